@@ -1,0 +1,59 @@
+"""The one exception family for errors a user can cause, and the CLI exit codes.
+
+Every error a user can trigger (a bad file, a bad parameter, a cloud the engine cannot fit) is a
+:class:`KbsError`; the command line prints its message on one line and exits with its
+:attr:`KbsError.exit_code`. Anything else escaping to the top is a bug.
+"""
+from __future__ import annotations
+
+import enum
+
+
+class ExitCode(enum.IntEnum):
+    """Documented exit codes of the ``kbs`` command."""
+
+    OK = 0
+    INTERNAL = 1  #: a bug: an unexpected exception
+    USAGE = 2  #: bad command-line usage or option value (click's own code for usage errors)
+    CLOUD = 3  #: unreadable, malformed, empty or all-invalid point-cloud file
+    RULES = 4  #: invalid rule file
+    FIT = 5  #: the engine could not fit the data (degenerate input)
+    PARAMETER = 6  #: an invalid parameter value given through the library
+
+
+class KbsError(Exception):
+    """Base class of every error a user can cause."""
+
+    exit_code: ExitCode = ExitCode.INTERNAL
+
+
+class ParameterError(KbsError, ValueError):
+    """An invalid parameter value (also a ``ValueError``, as scikit-learn users expect)."""
+
+    exit_code = ExitCode.PARAMETER
+
+
+class CloudFileError(KbsError):
+    """A point-cloud file that cannot be read, or holds no usable point.
+
+    Parameters
+    ----------
+    path : str
+        The file concerned.
+    problem : str
+        What is wrong with it, in a few words.
+    """
+
+    exit_code = ExitCode.CLOUD
+
+    def __init__(self, path: str, problem: str) -> None:
+        self.path = str(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")
+
+
+class FitError(KbsError, ArithmeticError):
+    """The engine could not fit the data (e.g. fewer distinct points than needed, every cluster
+    died). The message says what to change."""
+
+    exit_code = ExitCode.FIT
