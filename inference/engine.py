@@ -1,0 +1,174 @@
+"""The two iteration layers of UFP-ONC: fuzzy c-means (layer 1) and Gath-Geva's fuzzy maximum
+likelihood estimation with the exponential distance (layer 2).
+
+Both work on a :class:`~kbs.inference.kernels.Moments` fitting set (centred, weighted points),
+stop on ``max |dU| < tol`` or ``max_iter`` (Gath-Geva is not a likelihood ascent and may
+oscillate), and drop clusters whose effective size ``sum_j w_j u_ij`` falls below ``min_mass``,
+recording each drop. Memberships are clusters-first, (K, n), as in the kernels.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from kbs.errors import FitError
+from kbs.inference.kernels import (
+    FlooredGaussians,
+    Moments,
+    floor_covariances,
+    fuzzy_covariances,
+    log_exp_distance,
+    mahalanobis_sq,
+    memberships_from_log_dist,
+    memberships_from_sq_dist,
+    sq_euclidean,
+    weighted_centers,
+)
+
+
+@dataclass(frozen=True)
+class DroppedCluster:
+    """A cluster that died during fitting: its effective size fell below the minimum."""
+
+    layer: str  #: 'fcm' or 'gg'
+    iteration: int  #: 1-based iteration of that layer
+    index: int  #: its position among the clusters alive at that iteration
+    mass: float  #: its effective size sum_j w_j u_ij when it was dropped
+
+    def __str__(self) -> str:
+        return (
+            f"cluster {self.index} dropped in {self.layer} iteration {self.iteration} "
+            f"(effective size {self.mass:.3g})"
+        )
+
+
+@dataclass(frozen=True)
+class FCMState:
+    centers: np.ndarray  # (K, D)
+    memberships: np.ndarray  # (K, n)
+    n_iter: int
+    converged: bool
+    dropped: tuple[DroppedCluster, ...] = ()
+
+
+@dataclass(frozen=True)
+class GGState:
+    centers: np.ndarray  # (K, D)
+    gaussians: FlooredGaussians
+    priors: np.ndarray  # (K,)
+    memberships: np.ndarray  # (K, n), computed from the parameters above
+    maha: np.ndarray = field(repr=False)  # (K, n) squared Mahalanobis distances
+    n_iter: int = 0
+    converged: bool = False
+    dropped: tuple[DroppedCluster, ...] = ()
+
+
+def _drop_dead(mass: np.ndarray, min_mass: float, layer: str, iteration: int) -> tuple[np.ndarray, list]:
+    alive = mass >= min_mass
+    if alive.all():
+        return alive, []
+    if not alive.any():
+        raise FitError(
+            f"every cluster fell below the minimum effective size {min_mass:g} in {layer} iteration "
+            f"{iteration}; lower min_cluster_size or give more points"
+        )
+    dead = [DroppedCluster(layer, iteration, int(i), float(mass[i])) for i in np.flatnonzero(~alive)]
+    return alive, dead
+
+
+def fcm_fit(mom: Moments, u0: np.ndarray, *, m: float, tol: float, max_iter: int, min_mass: float) -> FCMState:
+    """Fuzzy c-means from initial memberships ``u0`` (K, n): alternate centres (weights
+    ``w u^m``) and memberships from squared Euclidean distances."""
+    u = u0
+    dropped: list[DroppedCluster] = []
+    converged = False
+    it = 0
+    centers = np.empty((0, mom.X.shape[1]))
+    for it in range(1, max_iter + 1):
+        centers = weighted_centers(u, mom.w, mom.X, m)
+        u_new = memberships_from_sq_dist(sq_euclidean(mom.XT, centers), m)
+        # the initial memberships are not judged: a new prototype first gets a centre
+        alive, dead = _drop_dead(u_new @ mom.w, min_mass, "fcm", it)
+        if dead:
+            dropped += dead
+            u, u_new, centers = u[alive], u_new[alive], centers[alive]
+            u_new /= u_new.sum(axis=0)
+        delta = float(np.abs(u_new - u).max())
+        u = u_new
+        if delta < tol and not dead:
+            converged = True
+            break
+    return FCMState(centers=centers, memberships=u, n_iter=it, converged=converged, dropped=tuple(dropped))
+
+
+def gg_fit(mom: Moments, u0: np.ndarray, *, m: float, center_power: float, tol: float, max_iter: int,
+           min_variance: float, max_condition: float, min_mass: float) -> GGState:
+    """Gath-Geva iterations from initial memberships ``u0`` (K, n).
+
+    Each iteration: centres (weights ``w u^p``), fuzzy covariances and priors (weights ``w u``),
+    eigenvalue floor, exponential distances, memberships. The returned memberships were computed
+    from the returned parameters (predicting on the fitting set reproduces them exactly).
+    """
+    u = u0
+    total = float(mom.w.sum())
+    dropped: list[DroppedCluster] = []
+    converged = False
+    for it in range(1, max_iter + 1):
+        centers = weighted_centers(u, mom.w, mom.X, center_power)
+        cov, mass = fuzzy_covariances(mom, u, centers)
+        alive, dead = _drop_dead(mass, min_mass, "gg", it)
+        if dead:
+            dropped += dead
+            u, centers, cov, mass = u[alive], centers[alive], cov[alive], mass[alive]
+        gauss = floor_covariances(cov, min_variance, max_condition)
+        priors = mass / total
+        maha = mahalanobis_sq(mom.XT, centers, gauss.whitening)
+        u_new = memberships_from_log_dist(log_exp_distance(maha, gauss.logdet, np.log(priors)), m)
+        delta = float(np.abs(u_new - u).max())
+        u = u_new
+        if delta < tol and not dead:
+            converged = True
+            break
+    return GGState(centers=centers, gaussians=gauss, priors=priors, memberships=u, maha=maha, n_iter=it,
+                   converged=converged, dropped=tuple(dropped))
+
+
+def gg_memberships(XT: np.ndarray, centers: np.ndarray, gauss: FlooredGaussians, priors: np.ndarray,
+                   m: float) -> np.ndarray:
+    """Gath-Geva memberships (K, n) of points ``XT`` (D, n) under fixed parameters."""
+    maha = mahalanobis_sq(XT, centers, gauss.whitening)
+    return memberships_from_log_dist(log_exp_distance(maha, gauss.logdet, np.log(priors)), m)
+
+
+def new_prototype_memberships(XT: np.ndarray, centers: np.ndarray, d0: float, m: float) -> np.ndarray:
+    """Initial memberships (K+1, n) for K + 1 clusters (Gath-Geva's way (V)): Euclidean distances
+    to the old prototypes, and the constant squared distance ``d0`` to the new one, so that the new
+    prototype takes the points the old ones explain badly."""
+    d2 = np.empty((centers.shape[0] + 1, XT.shape[1]))
+    d2[:-1] = sq_euclidean(XT, centers)
+    d2[-1] = d0
+    return memberships_from_sq_dist(d2, m)
+
+
+def worst_point_memberships(X: np.ndarray, centers: np.ndarray, memberships: np.ndarray, m: float) -> np.ndarray:
+    """Initial memberships (K+1, n) for K + 1 clusters (way (W)): the new prototype is placed on
+    the point with the lowest maximum membership (ties broken by the lowest coordinates, not by
+    point order)."""
+    worst = memberships.max(axis=0)
+    cand = np.flatnonzero(worst == worst.min())
+    if cand.size > 1:
+        cand = cand[np.lexsort(X[cand].T[::-1])]
+    new_centers = np.vstack([centers, X[cand[0]]])
+    return memberships_from_sq_dist(sq_euclidean(np.ascontiguousarray(X.T), new_centers), m)
+
+
+def memberships_in_chunks(X: np.ndarray, offset: np.ndarray, fn, n_clusters: int, chunk_size: int) -> np.ndarray:
+    """Apply ``fn(XT_chunk) -> (K, c)`` to centred chunks of ``X`` (n, D, any float dtype) and
+    assemble the (n, K) result; peak extra memory is O(chunk_size K D)."""
+    n = X.shape[0]
+    out = np.empty((n, n_clusters))
+    for s in range(0, n, chunk_size):
+        XT = np.asarray(X[s : s + chunk_size], dtype=np.float64).T - offset[:, None]
+        out[s : s + chunk_size] = fn(np.ascontiguousarray(XT)).T
+    return out

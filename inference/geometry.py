@@ -1,0 +1,102 @@
+"""Cluster geometry: fuzzy centre, fuzzy covariance, its eigen-decomposition, best approximating
+plane (BAP) and thickness (ALGORITHMS.md section 2). Used by the knowledge module's predicates.
+
+The covariance here is the raw one (two-pass, no eigenvalue floor): the floor is a numerical
+device of the clustering, and must not hide how thin a planar cluster really is.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from kbs.errors import FitError
+
+
+@dataclass(frozen=True)
+class ClusterGeometry:
+    """Shape of one (fuzzy) cluster.
+
+    Attributes
+    ----------
+    center : ndarray (D,)
+        Fuzzy centre ``sum w u^p x / sum w u^p``.
+    covariance : ndarray (D, D)
+        Fuzzy covariance ``sum w u (x - c)(x - c)^T / sum w u``.
+    eigenvalues : ndarray (D,)
+        ``mu1 <= mu2 <= mu3`` (clipped at 0).
+    eigenvectors : ndarray (D, D)
+        Columns ``e1, e2, e3`` matching the eigenvalues.
+    mass : float
+        Effective size ``sum w u``.
+    """
+
+    center: np.ndarray
+    covariance: np.ndarray
+    eigenvalues: np.ndarray
+    eigenvectors: np.ndarray
+    mass: float
+
+    @property
+    def normal(self) -> np.ndarray:
+        """Unit normal ``e1`` of the best approximating plane (sign: pointing to +z when possible)."""
+        n = self.eigenvectors[:, 0]
+        return -n if n[-1] < 0 else n
+
+    @property
+    def thickness(self) -> float:
+        """``sqrt(mu1)``: the spread across the best approximating plane, in length units."""
+        return float(np.sqrt(self.eigenvalues[0]))
+
+    @property
+    def plane(self) -> tuple[np.ndarray, float]:
+        """Best approximating plane as ``(n, d)`` with ``n . x + d = 0``, through the centre."""
+        n = self.normal
+        return n, float(-n @ self.center)
+
+    def distance_to_plane(self, X: np.ndarray) -> np.ndarray:
+        """Signed distances (n,) of points to the best approximating plane."""
+        n, d = self.plane
+        return X @ n + d
+
+
+def cluster_geometry(
+    X: np.ndarray,
+    memberships: np.ndarray | None = None,
+    sample_weight: np.ndarray | None = None,
+    *,
+    center_power: float = 2.0,
+) -> ClusterGeometry:
+    """Geometry of one cluster from its points and (optional) memberships.
+
+    Parameters
+    ----------
+    X : ndarray (n, D)
+    memberships : ndarray (n,), optional
+        Memberships of the points in the cluster; all ones (a hard cluster) when omitted.
+    sample_weight : ndarray (n,), optional
+    center_power : float
+        Power of the memberships in the centre (Gath-Geva: m = 2).
+    """
+    X = np.asarray(X, dtype=np.float64)
+    n = X.shape[0]
+    u = np.ones(n) if memberships is None else np.asarray(memberships, dtype=np.float64)
+    w = np.ones(n) if sample_weight is None else np.asarray(sample_weight, dtype=np.float64)
+    uw = u * w
+    mass = float(uw.sum())
+    if n == 0 or mass <= 0.0:
+        raise FitError("cannot describe an empty cluster (no point with a positive membership)")
+    upw = (u**center_power) * w
+    center = (upw @ X) / upw.sum()
+    diff = X - center
+    cov = (diff * uw[:, None]).T @ diff / mass
+    cov = 0.5 * (cov + cov.T)
+    lam, vec = np.linalg.eigh(cov)
+    return ClusterGeometry(center=center, covariance=cov, eigenvalues=np.maximum(lam, 0.0),
+                           eigenvectors=vec, mass=mass)
+
+
+def angle_between_planes(n1: np.ndarray, n2: np.ndarray) -> float:
+    """Angle in radians in [0, pi/2] between two planes given by their normals (0 = parallel)."""
+    c = abs(float(np.dot(n1, n2)) / (np.linalg.norm(n1) * np.linalg.norm(n2)))
+    return float(np.arccos(min(1.0, c)))
