@@ -25,7 +25,7 @@ from kbs.inference import (
     voxel_reduce,
 )
 from kbs.inference.kernels import Moments, fuzzy_covariances, weighted_centers
-from tests.scenes import anisotropic_blobs, ground_and_boxes
+from scenes import anisotropic_blobs, ground_and_boxes
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -1,0 +1,1 @@
+"""The ``kbs`` command: thin commands over the library (parse, call, print)."""

@@ -1,0 +1,39 @@
+"""Pieces shared by the commands: the cloud argument, the progress bar, result files."""
+from __future__ import annotations
+
+import contextlib
+import sys
+from pathlib import Path
+from typing import Iterator, Mapping
+
+import click
+import numpy as np
+from tqdm import tqdm
+
+from kbs.errors import CloudFileError
+from kbs.io import PointCloud, write_ply
+
+#: The CLOUD argument: existence and readability are checked by the reader, which says what is
+#: wrong in one line with the file's name (click's own check would not give our exit code).
+cloud_argument = click.argument("cloud", type=click.Path(path_type=Path))
+
+
+@contextlib.contextmanager
+def progress_bar(total: int, desc: str, quiet: bool) -> Iterator[tqdm]:
+    """A tqdm bar on stderr, shown only on a terminal and when not quiet."""
+    bar = tqdm(total=total, desc=desc, file=sys.stderr, disable=True if quiet else None, leave=False)
+    try:
+        yield bar
+    finally:
+        bar.close()
+
+
+def write_result_ply(path: Path, cloud: PointCloud, results: Mapping[str, np.ndarray]) -> None:
+    """Write the cloud's points with its own fields and the per-point ``results`` to a PLY file."""
+    fields = {name: values for name, values in cloud.fields.items()
+              if name not in results and np.asarray(values).ndim == 1}
+    fields.update(results)
+    try:
+        write_ply(path, cloud.xyz, fields)
+    except OSError as exc:
+        raise CloudFileError(str(path), f"cannot write: {exc.strerror or exc}") from exc

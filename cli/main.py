@@ -1,0 +1,59 @@
+"""Entry point of the ``kbs`` command.
+
+Data goes to stdout, progress and diagnostics to stderr. Errors a user can cause print one line
+``kbs: error: ...`` and exit with the code of :class:`kbs.errors.ExitCode`; click's own usage
+errors exit with 2. Anything else is a bug: it prints a traceback and exits with 1.
+"""
+from __future__ import annotations
+
+import logging
+import sys
+
+import click
+
+from kbs import __version__
+from kbs.cli.cluster import cluster
+from kbs.errors import ExitCode, KbsError
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="kbs")
+@click.option("-q", "--quiet", is_flag=True, help="Only errors on stderr (no progress, no notes).")
+@click.pass_context
+def cli(ctx: click.Context, quiet: bool) -> None:
+    """kbs: knowledge-based partitioning of unorganised 3D point clouds.
+
+    Exit codes: 0 ok, 1 internal error (a bug), 2 bad usage or option, 3 unreadable or empty
+    cloud, 4 invalid rule file, 5 the engine could not fit the data, 6 invalid parameter.
+    """
+    ctx.ensure_object(dict)
+    ctx.obj["quiet"] = quiet
+    logging.basicConfig(level=logging.WARNING if quiet else logging.INFO, format="kbs: %(message)s",
+                        stream=sys.stderr)
+
+
+cli.add_command(cluster)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the command line; returns (and exits with) the exit code."""
+    try:
+        cli.main(args=argv, prog_name="kbs", standalone_mode=False)
+    except click.exceptions.Exit as exc:  # --help, --version
+        return int(exc.exit_code)
+    except click.ClickException as exc:
+        exc.show()
+        return int(ExitCode.USAGE if isinstance(exc, click.UsageError) else exc.exit_code)
+    except click.exceptions.Abort:
+        click.echo("kbs: aborted", err=True)
+        return int(130)
+    except KbsError as exc:
+        click.echo(f"kbs: error: {exc}", err=True)
+        return int(exc.exit_code)
+    except BrokenPipeError:
+        return int(0)
+    return int(0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,101 @@
+"""End-to-end tests of the ``kbs`` command, run as a real subprocess."""
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from plyfile import PlyData
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLE = ROOT / "examples" / "data" / "outdoor.ply"
+
+
+def kbs(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    exe = shutil.which("kbs", path=str(Path(sys.executable).parent)) or shutil.which("kbs")
+    assert exe, "the kbs command is not installed"
+    env = {k: v for k, v in os.environ.items() if k != "COLUMNS"}
+    return subprocess.run([exe, *args], capture_output=True, text=True, cwd=cwd, env=env, timeout=300)
+
+
+def test_version_and_help():
+    r = kbs("--version")
+    assert r.returncode == 0 and "kbs" in r.stdout
+    r = kbs("cluster", "--help")
+    assert r.returncode == 0 and "--k-max" in r.stdout
+
+
+def test_cluster_bundled_example_writes_cluster_and_membership(tmp_path):
+    out = tmp_path / "clustered.ply"
+    r = kbs("cluster", str(EXAMPLE), "--k-max", "6", "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    table = [ln for ln in lines if ln[:4].strip().rstrip("*").isdigit()]
+    assert [int(ln[:4].strip().rstrip("*")) for ln in table] == list(range(1, len(table) + 1))
+    assert sum("*" in ln[:4] for ln in table) == 1
+    assert "chosen K =" in r.stdout
+    v = PlyData.read(str(out))["vertex"]
+    names = [p.name for p in v.properties]
+    assert {"x", "y", "z", "cluster", "membership", "label"} <= set(names)
+    assert v["cluster"].dtype == np.int32
+    chosen = int(r.stdout.split("chosen K = ")[1].split()[0])
+    assert set(np.unique(v["cluster"])) <= set(range(chosen))
+    assert ((v["membership"] >= 1.0 / chosen - 1e-6) & (v["membership"] <= 1.0)).all()
+
+
+@pytest.mark.parametrize("scan", ["semantickitti/000001.points.npy", "isprs/samp11.txt"])
+def test_cluster_runs_on_real_scans(shared_data, scan):
+    r = kbs("cluster", str(shared_data / scan))
+    assert r.returncode == 0, r.stderr
+    assert "chosen K =" in r.stdout
+    assert sum(1 for ln in r.stdout.splitlines() if ln[:4].strip().rstrip("*").isdigit()) == 10
+
+
+def _bad_inputs(tmp: Path) -> dict[str, tuple[Path, str]]:
+    (tmp / "adir.ply").mkdir()
+    text = tmp / "letters.xyz"
+    text.write_text("1 2 3\n4 5 6\nfoo bar baz\n")
+    good = tmp / "good.ply"
+    from kbs.io import write_ply
+
+    write_ply(good, np.random.default_rng(0).normal(size=(500, 3)))
+    trunc = tmp / "truncated.ply"
+    trunc.write_bytes(good.read_bytes()[: len(good.read_bytes()) // 2])
+    unknown = tmp / "scan.foo"
+    unknown.write_text("1 2 3\n")
+    nan = tmp / "nan.npy"
+    np.save(nan, np.full((10, 3), np.nan))
+    return {
+        "directory": (tmp / "adir.ply", "directory"),
+        "letters": (text, "line 3"),
+        "truncated": (trunc, ""),
+        "unknown extension": (unknown, ".foo"),
+        "missing": (tmp / "nope.pcd", ""),
+        "all NaN": (nan, "NaN"),
+    }
+
+
+@pytest.mark.parametrize("case", ["directory", "letters", "truncated", "unknown extension", "missing", "all NaN"])
+def test_bad_input_is_one_line_with_file_and_exit_code_3(tmp_path, case):
+    path, needle = _bad_inputs(tmp_path)[case]
+    r = kbs("cluster", str(path))
+    assert r.returncode == 3, (r.returncode, r.stderr)
+    err = r.stderr.strip().splitlines()
+    assert len(err) == 1, r.stderr
+    assert err[0].startswith("kbs: error: ") and path.name in err[0] and needle in err[0]
+    assert "Traceback" not in r.stderr
+
+
+def test_bad_option_is_a_usage_error():
+    r = kbs("cluster", str(EXAMPLE), "--k-max", "0")
+    assert r.returncode == 2
+    assert "Traceback" not in r.stderr
+
+
+def test_unwritable_output_is_a_clean_error(tmp_path):
+    r = kbs("cluster", str(EXAMPLE), "--k-max", "2", "--out", str(tmp_path / "no" / "such" / "dir" / "o.ply"))
+    assert r.returncode == 3 and "cannot write" in r.stderr and "Traceback" not in r.stderr
