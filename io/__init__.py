@@ -1,0 +1,19 @@
+"""Point-cloud files: read PLY, PCD, LAS/LAZ, text tables, ``.npy`` and KITTI ``.bin``; write PLY.
+
+>>> from kbs.io import read_cloud, write_ply
+>>> cloud = read_cloud("scan.pcd")              # doctest: +SKIP
+>>> cloud.xyz.shape, cloud.fields.keys()        # doctest: +SKIP
+((182292, 3), dict_keys(['label', 'rgba']))
+
+Every problem with a file raises :class:`kbs.errors.CloudFileError` (path and problem in one
+line); points with a NaN/Inf coordinate are dropped, counted in ``n_dropped`` and logged on the
+``kbs.io`` logger at INFO level.
+"""
+
+from __future__ import annotations
+
+from kbs.io.cloud import PointCloud
+from kbs.io.ply import write_ply
+from kbs.io.readers import SUPPORTED_EXTENSIONS, read_cloud
+
+__all__ = ["PointCloud", "read_cloud", "write_ply", "SUPPORTED_EXTENSIONS"]

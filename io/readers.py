@@ -1,0 +1,359 @@
+"""Readers of the supported point-cloud formats, dispatched on the file extension.
+
+Each format has one small function ``path -> PointCloud`` that extracts the coordinates and the
+per-point attributes with the ecosystem's library and hands them to
+:meth:`~kbs.io.cloud.PointCloud.from_arrays`. Every failure a bad file can cause, including the
+libraries' own exceptions, becomes a :class:`~kbs.errors.CloudFileError` naming the file and the
+problem in one line.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import struct
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+from pathlib import Path
+
+import laspy
+import numpy as np
+import plyfile
+import pypcd4
+
+from kbs.errors import CloudFileError, KbsError, ParameterError
+from kbs.io.cloud import PointCloud
+from kbs.io.text import TableError, parse_table
+
+logger = logging.getLogger("kbs.io")
+
+#: LAS attributes kept as fields when the point format has them.
+LAS_FIELDS = ("classification", "intensity", "return_number", "number_of_returns", "red", "green", "blue")
+#: pypcd4 renames the padding fields ``_`` of a PCD header to this prefix plus random letters.
+_PCD_PADDING_PREFIX = "#$%&~~"
+#: Fragments of library messages that reveal damaged data, and what they mean.
+_DAMAGE_HINTS = {
+    "early end-of-file": "truncated",  # plyfile
+    "multiple of element size": "truncated",  # numpy.frombuffer in pypcd4 and laspy
+    "unpack requires a buffer": "truncated",  # struct, reading a PCD compressed-block header
+    "failed to fill whole buffer": "truncated",  # lazrs
+    "error in compressed data": "corrupt or truncated",  # lzf, PCD binary_compressed
+}
+#: KITTI Velodyne records: little-endian float32 x y z intensity.
+_KITTI_RECORD = np.dtype("<f4")
+_KITTI_COLUMNS = 4
+#: Sizes in the LAS public header (LAS 1.0-1.4 specifications).
+_LAS_MIN_HEADER = 227
+_LAS_VLR_HEADER = 54
+_LAS_EVLR_HEADER = 60
+
+
+def _one_line(exc: BaseException) -> str:
+    """A short one-line description of a library exception."""
+    errors = getattr(exc, "errors", None)
+    if callable(errors):  # pydantic.ValidationError (pypcd4's header model)
+        try:
+            details = [f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in errors()[:3]]
+        except Exception:  # noqa: BLE001 - fall back to the message below
+            details = []
+        if details:
+            return "invalid header (" + "; ".join(details) + ")"
+    lines = str(exc).strip().splitlines()
+    text = lines[0].split("; use `usecols`")[0] if lines else type(exc).__name__
+    return text if len(text) <= 160 else text[:157] + "..."
+
+
+@contextmanager
+def _library_errors(path: Path, kind: str) -> Iterator[None]:
+    """Turn any exception a parsing library raises on a bad file into a CloudFileError.
+
+    Parameters
+    ----------
+    path : Path
+        The file being read.
+    kind : str
+        Its format, for the message (``"PLY"``, ``"PCD"``, ...).
+    """
+    try:
+        yield
+    except KbsError:
+        raise
+    except OSError as exc:
+        raise CloudFileError(
+            str(path), f"cannot read the {kind} file: {exc.strerror or _one_line(exc)}"
+        ) from exc
+    except Exception as exc:
+        detail = _one_line(exc)
+        state = next((state for hint, state in _DAMAGE_HINTS.items() if hint in detail), "malformed")
+        raise CloudFileError(str(path), f"{state} {kind} file: {detail}") from exc
+
+
+def _check_magic(path: Path, magic: tuple[bytes, ...], kind: str) -> None:
+    """Raise unless the file starts with one of ``magic`` (after blank space)."""
+    with open(path, "rb") as fp:
+        head = fp.read(64).lstrip()
+    if not head.startswith(magic):
+        signatures = [f"'{m.decode('ascii', 'backslashreplace')}'" for m in magic]
+        expected = " or ".join(
+            [", ".join(signatures[:-1]), signatures[-1]] if len(signatures) > 1 else signatures
+        )
+        raise CloudFileError(str(path), f"not a {kind} file (it does not start with {expected})")
+
+
+def _require_xyz(path: Path, names: tuple[str, ...], where: str) -> None:
+    missing = [axis for axis in ("x", "y", "z") if axis not in names]
+    if missing:
+        raise CloudFileError(
+            str(path), f"no {'/'.join(missing)} field in {where} (it has: {', '.join(names) or 'nothing'})"
+        )
+
+
+def _check_count(path: Path, kind: str, expected: int, found: int) -> None:
+    if found != expected:
+        raise CloudFileError(
+            str(path),
+            f"truncated {kind} file: the header announces {expected} points, the data holds {found}",
+        )
+
+
+def _from_structured(
+    path: Path,
+    data: np.ndarray,
+    *,
+    skip: Callable[[str], bool] = lambda name: False,
+    shape: tuple[int, int] | None = None,
+) -> PointCloud:
+    """A cloud from a structured array with x, y, z fields; every other 1-D field is kept."""
+    names = tuple(name for name in data.dtype.names if not skip(name))
+    fields: dict[str, np.ndarray] = {}
+    for name in names:
+        if name in ("x", "y", "z"):
+            continue
+        if data.dtype[name].shape:
+            logger.debug("%s: field %r has shape %s per point; not kept", path, name, data.dtype[name].shape)
+            continue
+        fields[name] = data[name]
+    xyz = np.column_stack([data["x"], data["y"], data["z"]]) if len(data) else np.empty((0, 3))
+    return PointCloud.from_arrays(xyz, fields, shape=shape, path=str(path))
+
+
+def read_ply(path: Path) -> PointCloud:
+    """Read the ``vertex`` element of an ascii or binary PLY file (plyfile); list properties are skipped."""
+    _check_magic(path, (b"ply",), "PLY")
+    with _library_errors(path, "PLY"):
+        ply = plyfile.PlyData.read(str(path))  # memory-mapped when binary; from_arrays copies
+    elements = {element.name: element for element in ply.elements}
+    if "vertex" not in elements:
+        raise CloudFileError(str(path), f"no vertex element (it has: {', '.join(elements) or 'nothing'})")
+    vertex = elements["vertex"]
+    scalars = tuple(p.name for p in vertex.properties if not isinstance(p, plyfile.PlyListProperty))
+    _require_xyz(path, scalars, "the PLY vertex element")
+    return _from_structured(path, vertex.data, skip=lambda name: name not in scalars)
+
+
+def read_pcd(path: Path) -> PointCloud:
+    """Read an ascii, binary or binary_compressed PCD file (pypcd4); HEIGHT > 1 gives an organised cloud."""
+    _check_magic(path, (b"#", b"VERSION", b"FIELDS"), "PCD")
+    with _library_errors(path, "PCD"):
+        pcd = pypcd4.PointCloud.from_path(path)
+    meta = pcd.metadata
+    data = np.atleast_1d(pcd.pc_data)
+    _check_count(path, "PCD", meta.points, len(data))
+    names = tuple(name for name in data.dtype.names if not name.startswith(_PCD_PADDING_PREFIX))
+    _require_xyz(path, names, "the PCD header")
+    shape = None
+    if meta.height > 1:
+        if meta.height * meta.width != meta.points:
+            raise CloudFileError(
+                str(path),
+                f"malformed PCD header: WIDTH {meta.width} x HEIGHT {meta.height} != POINTS {meta.points}",
+            )
+        shape = (meta.height, meta.width)
+    return _from_structured(path, data, skip=lambda name: name.startswith(_PCD_PADDING_PREFIX), shape=shape)
+
+
+def _check_las_layout(path: Path, kind: str) -> None:
+    """Check that the header's sizes and record counts fit in the file.
+
+    laspy loops over the header's VLR and EVLR counts without checking for the end of the file,
+    so a damaged header (say 3 billion VLRs) would make it spin for minutes.
+    """
+    size = path.stat().st_size
+    with open(path, "rb") as fp:
+        head = fp.read(_LAS_MIN_HEADER + 24)
+    if len(head) < _LAS_MIN_HEADER:
+        raise CloudFileError(str(path), f"truncated {kind} file: {size} bytes, shorter than a LAS header")
+    minor = head[25]
+    header_size, offset_to_points, n_vlrs = struct.unpack_from("<HII", head, 94)
+    if (
+        not header_size <= offset_to_points <= size
+        or header_size + n_vlrs * _LAS_VLR_HEADER > offset_to_points
+    ):
+        raise CloudFileError(
+            str(path),
+            f"malformed {kind} header: {n_vlrs} VLRs and point data at byte {offset_to_points} "
+            f"do not fit a {size}-byte file",
+        )
+    if minor >= 4 and len(head) >= 247:
+        start_of_evlrs, n_evlrs = struct.unpack_from("<QI", head, 235)
+        if n_evlrs and start_of_evlrs + n_evlrs * _LAS_EVLR_HEADER > size:
+            raise CloudFileError(
+                str(path), f"malformed {kind} header: {n_evlrs} extended VLRs do not fit a {size}-byte file"
+            )
+
+
+def read_las(path: Path) -> PointCloud:
+    """Read a LAS or LAZ file (laspy, lazrs backend): scaled float64 xyz and the LAS_FIELDS present."""
+    kind = "LAZ" if path.suffix.lower() == ".laz" else "LAS"
+    _check_magic(path, (b"LASF",), kind)
+    _check_las_layout(path, kind)
+    with _library_errors(path, kind):
+        las = laspy.read(path)
+        _check_count(path, kind, las.header.point_count, len(las.points))
+        xyz = np.column_stack(
+            [
+                np.asarray(las.x, dtype=np.float64),
+                np.asarray(las.y, dtype=np.float64),
+                np.asarray(las.z, dtype=np.float64),
+            ]
+        )
+        present = set(las.point_format.dimension_names)
+        fields = {name: np.asarray(las[name]) for name in LAS_FIELDS if name in present}
+    return PointCloud.from_arrays(xyz, fields, path=str(path))
+
+
+def read_text(path: Path) -> PointCloud:
+    """Read a whitespace- or comma-separated table: x y z, then extra columns kept as float64 fields.
+
+    Extra columns are named from the header line if there is one, else ``col3``, ``col4`` ... by
+    their 0-based position. A header naming ``x``, ``y`` and ``z`` (any case) picks those columns.
+    """
+    text = path.read_bytes().decode("utf-8-sig", errors="replace")
+    try:
+        table = parse_table(text)
+    except TableError as exc:
+        raise CloudFileError(str(path), str(exc)) from exc
+    values, names = table.values, table.names
+    n_columns = values.shape[1]
+    lowered = [name.lower() for name in names] if names else []
+    if all(axis in lowered for axis in ("x", "y", "z")):
+        xyz_columns = [lowered.index(axis) for axis in ("x", "y", "z")]
+    else:
+        xyz_columns = [0, 1, 2]
+    fields: dict[str, np.ndarray] = {}
+    for column in range(n_columns):
+        if column in xyz_columns:
+            continue
+        name = names[column] if names else f"col{column}"
+        if name in fields:
+            raise CloudFileError(str(path), f"the header names two columns {name!r}")
+        fields[name] = values[:, column]
+    return PointCloud.from_arrays(values[:, xyz_columns], fields, path=str(path))
+
+
+def read_npy(path: Path) -> PointCloud:
+    """Read a ``.npy`` array: (N, 3+) numbers (x y z, then ``intensity``, ``col4`` ...) or a structured
+    array with x, y, z fields (a 2-D structured array is an organised cloud)."""
+    _check_magic(path, (b"\x93NUMPY",), "NPY")
+    with _library_errors(path, "NPY"):
+        array = np.load(path, allow_pickle=False)
+    if not isinstance(array, np.ndarray):
+        raise CloudFileError(str(path), "not a single .npy array")
+    if array.dtype.names is not None:
+        _require_xyz(path, array.dtype.names, "the structured array")
+        if array.ndim not in (1, 2):
+            raise CloudFileError(
+                str(path), f"a structured array of shape {array.shape}; expected (N,) or (rows, cols)"
+            )
+        shape = (array.shape[0], array.shape[1]) if array.ndim == 2 else None
+        return _from_structured(path, array.reshape(-1), shape=shape)
+    if array.ndim != 2 or array.shape[1] < 3 or array.dtype.kind not in "fiu":
+        raise CloudFileError(
+            str(path),
+            f"expected an (N, 3+) array of numbers or x/y/z fields, got {array.dtype} {array.shape}",
+        )
+    fields = {
+        ("intensity" if column == 3 else f"col{column}"): array[:, column]
+        for column in range(3, array.shape[1])
+    }
+    return PointCloud.from_arrays(array[:, :3], fields, path=str(path))
+
+
+def read_kitti_bin(path: Path) -> PointCloud:
+    """Read a KITTI Velodyne ``.bin`` scan: little-endian float32 records x y z intensity."""
+    record = _KITTI_COLUMNS * _KITTI_RECORD.itemsize
+    size = path.stat().st_size
+    if size % record:
+        raise CloudFileError(
+            str(path),
+            f"size {size} bytes is not a multiple of {record} "
+            "(KITTI .bin records are float32 x y z intensity)",
+        )
+    array = np.fromfile(path, dtype=_KITTI_RECORD).reshape(-1, _KITTI_COLUMNS)
+    return PointCloud.from_arrays(array[:, :3], {"intensity": array[:, 3]}, path=str(path))
+
+
+#: Reader of each supported extension (lower case, with the dot).
+READERS: Mapping[str, Callable[[Path], PointCloud]] = {
+    ".ply": read_ply,
+    ".pcd": read_pcd,
+    ".las": read_las,
+    ".laz": read_las,
+    ".xyz": read_text,
+    ".txt": read_text,
+    ".csv": read_text,
+    ".pts": read_text,
+    ".npy": read_npy,
+    ".bin": read_kitti_bin,
+}
+
+#: The file extensions :func:`read_cloud` understands.
+SUPPORTED_EXTENSIONS: tuple[str, ...] = tuple(sorted(READERS))
+
+
+def read_cloud(path: str | os.PathLike[str], *, format: str | None = None) -> PointCloud:  # noqa: A002
+    """Read a point cloud file.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file. Its extension (case-insensitive) selects the reader, one of
+        :data:`SUPPORTED_EXTENSIONS`.
+    format : str, optional
+        Read the file as this format instead (an extension, with or without the dot: ``"ply"``).
+
+    Returns
+    -------
+    PointCloud
+        The N finite points, as float64 (N, 3) coordinates in the file's frame (not centred),
+        with their attributes; points with a NaN/Inf coordinate are dropped and counted.
+
+    Raises
+    ------
+    CloudFileError
+        The file is missing, a directory, of an unknown extension, empty, truncated or
+        malformed, or holds no finite point.
+    ParameterError
+        ``format`` is not a supported format.
+    """
+    file = Path(os.fspath(path))
+    supported = ", ".join(SUPPORTED_EXTENSIONS)
+    if format is not None:
+        extension = "." + format.lower().lstrip(".")
+        if extension not in READERS:
+            raise ParameterError(f"unknown point-cloud format {format!r} (supported: {supported})")
+    else:
+        extension = file.suffix.lower()
+    if not file.exists():
+        raise CloudFileError(str(file), "no such file")
+    if file.is_dir():
+        raise CloudFileError(str(file), "is a directory, not a point-cloud file")
+    if extension not in READERS:
+        what = f"unknown extension {file.suffix!r}" if file.suffix else "no file extension"
+        raise CloudFileError(str(file), f"{what} (supported: {supported})")
+    try:
+        if file.stat().st_size == 0:
+            raise CloudFileError(str(file), "empty file (0 bytes)")
+        return READERS[extension](file)
+    except OSError as exc:
+        raise CloudFileError(str(file), f"cannot read: {exc.strerror or exc}") from exc
