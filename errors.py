@@ -15,10 +15,11 @@ class ExitCode(enum.IntEnum):
     OK = 0
     INTERNAL = 1  #: a bug: an unexpected exception
     USAGE = 2  #: bad command-line usage or option value (click's own code for usage errors)
-    CLOUD = 3  #: unreadable, malformed, empty or all-invalid point-cloud file
+    CLOUD = 3  #: unreadable, malformed, empty or all-invalid input file (a cloud, a result)
     RULES = 4  #: invalid rule file
     FIT = 5  #: the engine could not fit the data (degenerate input)
     PARAMETER = 6  #: an invalid parameter value given through the library
+    PLUGIN = 7  #: a predicate plugin that breaks the contract or fails
 
 
 class KbsError(Exception):

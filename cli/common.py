@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import contextlib
+import re
 import sys
 from pathlib import Path
 from typing import Iterator, Mapping
@@ -10,7 +11,6 @@ import click
 import numpy as np
 from tqdm import tqdm
 
-from kbs.errors import CloudFileError
 from kbs.io import PointCloud, write_ply
 
 #: The CLOUD argument: existence and readability are checked by the reader, which says what is
@@ -30,10 +30,10 @@ def progress_bar(total: int, desc: str, quiet: bool) -> Iterator[tqdm]:
 
 def write_result_ply(path: Path, cloud: PointCloud, results: Mapping[str, np.ndarray]) -> None:
     """Write the cloud's points with its own fields and the per-point ``results`` to a PLY file."""
-    fields = {name: values for name, values in cloud.fields.items()
-              if name not in results and np.asarray(values).ndim == 1}
+    fields = {}
+    for name, values in cloud.fields.items():  # the input's own fields, under PLY-safe names
+        safe = re.sub(r"\W", "_", name)
+        if safe and safe not in results and np.asarray(values).ndim == 1:
+            fields[safe] = values
     fields.update(results)
-    try:
-        write_ply(path, cloud.xyz, fields)
-    except OSError as exc:
-        raise CloudFileError(str(path), f"cannot write: {exc.strerror or exc}") from exc
+    write_ply(path, cloud.xyz, fields)

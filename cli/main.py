@@ -13,6 +13,7 @@ import click
 
 from kbs import __version__
 from kbs.cli.cluster import cluster
+from kbs.cli.run import explain, predicates, rules, run
 from kbs.errors import ExitCode, KbsError
 
 
@@ -23,8 +24,11 @@ from kbs.errors import ExitCode, KbsError
 def cli(ctx: click.Context, quiet: bool) -> None:
     """kbs: knowledge-based partitioning of unorganised 3D point clouds.
 
+    Main command: kbs run --rules outdoor SCAN.
+
     Exit codes: 0 ok, 1 internal error (a bug), 2 bad usage or option, 3 unreadable or empty
-    cloud, 4 invalid rule file, 5 the engine could not fit the data, 6 invalid parameter.
+    input file, 4 invalid rule file, 5 the engine could not fit the data, 6 invalid parameter,
+    7 a predicate plugin broke the contract or failed.
     """
     ctx.ensure_object(dict)
     ctx.obj["quiet"] = quiet
@@ -32,7 +36,8 @@ def cli(ctx: click.Context, quiet: bool) -> None:
                         stream=sys.stderr)
 
 
-cli.add_command(cluster)
+for _command in (run, explain, rules, predicates, cluster):
+    cli.add_command(_command)
 
 
 def main(argv: list[str] | None = None) -> int:

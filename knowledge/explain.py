@@ -1,0 +1,220 @@
+"""Explanations are data: a tree of records, one per cluster, saying what was measured, which rule
+acted, with what result. Only the renderers here turn them into sentences.
+
+Like hdbscan's ``CondensedTree``: a first-class object with exporters (:meth:`Explanation.to_dict`,
+:meth:`Explanation.to_networkx`) and renderers (:meth:`Explanation.render`,
+:meth:`Explanation.why`).
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any, Iterator
+
+
+@dataclass(frozen=True)
+class CheckRecord:
+    """One check measured on one cluster."""
+
+    check: str
+    predicate: str
+    value: float
+    unit: str
+    min: float | None
+    max: float | None
+    passed: bool
+    source: str  #: 'outdoor.yaml:31'
+
+    def bound(self) -> tuple[str, float]:
+        """The comparison that decided: ('<=', max) when within the upper bound, ('>', max) above
+        it, ('>=', min) or ('<', min) for a lower bound."""
+        if self.max is not None and (self.value > self.max or self.min is None or self.value >= self.min):
+            return ("<=" if self.value <= self.max else ">"), self.max
+        return (">=" if self.value >= self.min else "<"), self.min
+
+    def comparison(self) -> str:
+        """'0.021 m <= 0.05 m'."""
+        op, b = self.bound()
+        u = f" {self.unit}" if self.unit else ""
+        return f"{self.value:.4g}{u} {op} {b:g}{u}"
+
+    def sentence(self) -> str:
+        """'connexity = 3 components > 1', 'thickness = 0.12 m > 0.05 m'."""
+        op, b = self.bound()
+        u = f" {self.unit}" if self.unit else ""
+        if self.predicate == "connexity":
+            n = int(round(self.value))
+            return f"connexity = {n} component{'s' if n != 1 else ''} {op} {b:g}"
+        if self.predicate == "point_count":
+            return f"point_count = {int(self.value):,} {op} {b:g}"
+        return f"{self.predicate} = {self.value:.4g}{u} {op} {b:g}{u}"
+
+
+@dataclass(frozen=True)
+class APDCurve:
+    """The APD values of the UFP-ONC sweep that chose K for a split."""
+
+    ks: tuple[int, ...]
+    apd: tuple[float, ...]
+    chosen: int
+
+    def text(self) -> str:
+        return ", ".join(f"K={k}{'*' if k == self.chosen else ''}: {a:.4g}" for k, a in zip(self.ks, self.apd))
+
+
+@dataclass
+class ClusterRecord:
+    """Everything decided about one cluster.
+
+    ``action`` is one of 'accept', 'split' (UFP-ONC), 'split_components', 'reject' (noise),
+    'limit' (it should have been split but a limit stopped it; it is kept as it is), 'partition'
+    (the root: the scene's initial partition).
+    """
+
+    id: str
+    parent: str | None
+    depth: int
+    n_points: int
+    descriptors: dict[str, Any] = field(default_factory=dict)
+    checks: list[CheckRecord] = field(default_factory=list)
+    action: str = "accept"
+    rule: str | None = None
+    rule_source: str | None = None
+    children: list[str] = field(default_factory=list)
+    label: str | None = None
+    apd: APDCurve | None = None
+    notes: list[str] = field(default_factory=list)
+    output_index: int | None = None  #: value of the per-point 'cluster' property, None if none
+    decisive: list[str] = field(default_factory=list)  #: checks of the condition that decided
+
+    def decisive_checks(self) -> list[CheckRecord]:
+        names = set(self.decisive)
+        return [c for c in self.checks if c.check in names]
+
+    def failing_checks(self) -> list[CheckRecord]:
+        return [c for c in self.checks if not c.passed]
+
+
+@dataclass
+class Explanation:
+    """The tree of cluster records of one run."""
+
+    rule_base: str
+    rule_file: str
+    strategy: str
+    label_names: list[str]
+    records: dict[str, ClusterRecord]
+    root: str
+    ground: dict[str, Any] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+
+    # -- access ----------------------------------------------------------------------------
+
+    def __getitem__(self, cluster_id: str) -> ClusterRecord:
+        return self.records[cluster_id]
+
+    def walk(self, start: str | None = None) -> Iterator[ClusterRecord]:
+        """Records depth-first, children in order."""
+        stack = [start or self.root]
+        while stack:
+            rec = self.records[stack.pop()]
+            yield rec
+            stack.extend(reversed(rec.children))
+
+    def leaves(self) -> list[ClusterRecord]:
+        return [r for r in self.walk() if not r.children]
+
+    # -- export ----------------------------------------------------------------------------
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "rule_base": self.rule_base, "rule_file": self.rule_file, "strategy": self.strategy,
+            "label_names": list(self.label_names), "root": self.root, "ground": self.ground,
+            "notes": list(self.notes), "clusters": [asdict(r) for r in self.walk()],
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "Explanation":
+        records = {}
+        for r in d["clusters"]:
+            r = dict(r)
+            r["checks"] = [CheckRecord(**c) for c in r.get("checks", [])]
+            if r.get("apd"):
+                a = r["apd"]
+                r["apd"] = APDCurve(tuple(a["ks"]), tuple(a["apd"]), a["chosen"])
+            records[r["id"]] = ClusterRecord(**r)
+        return cls(rule_base=d["rule_base"], rule_file=d["rule_file"], strategy=d["strategy"],
+                   label_names=list(d["label_names"]), records=records, root=d["root"], ground=d.get("ground", {}),
+                   notes=list(d.get("notes", [])))
+
+    def to_networkx(self):
+        """A ``networkx.DiGraph`` parent -> child with each record's fields as node attributes."""
+        import networkx as nx
+
+        g = nx.DiGraph()
+        for r in self.walk():
+            g.add_node(r.id, **{k: v for k, v in asdict(r).items() if k != "children"})
+            if r.parent is not None:
+                g.add_edge(r.parent, r.id)
+        return g
+
+    # -- renderers -------------------------------------------------------------------------
+
+    def line(self, rec: ClusterRecord) -> str:
+        """One line: 'c0.2 (1,204 pts) split in 3: connexity = 3 components > 1 [outdoor.yaml:31 CAh]'."""
+        head = f"{rec.id} ({rec.n_points:,} pts)"
+        src = f" [{rec.rule_source} {rec.rule}]" if rec.rule_source else ""
+        why = "; ".join(c.sentence() for c in rec.decisive_checks())
+        if rec.action == "partition":
+            k = len(rec.children)
+            chosen = f" (APD first local maximum: {rec.apd.text()})" if rec.apd else ""
+            return f"{head} partitioned in {k}{chosen}"
+        if rec.action in ("split", "split_components"):
+            how = "" if rec.action == "split" else " components"
+            return f"{head} split in {len(rec.children)}{how}: {why}{src}"
+        if rec.action == "reject":
+            return f"{head} rejected as noise: {why}{src}"
+        if rec.action == "limit":
+            return f"{head} kept as {rec.label or 'it is'} ({'; '.join(rec.notes)}): {why}{src}"
+        label = f" as {rec.label}" if rec.label else ""
+        why = why or "; ".join(c.sentence() for c in rec.checks) or "no check measured"
+        return f"{head} accepted{label}: {why}"
+
+    def render(self, start: str | None = None) -> str:
+        """The tree as indented text."""
+        base = self.records[start or self.root].depth
+        lines = []
+        for rec in self.walk(start):
+            lines.append("  " * (rec.depth - base) + self.line(rec))
+        return "\n".join(lines)
+
+    def why(self, cluster_id: str) -> str:
+        """Why one cluster ended as it did: its ancestry, its decision, every check with values."""
+        if cluster_id not in self.records:
+            raise KeyError(cluster_id)
+        chain = []
+        rec: ClusterRecord | None = self.records[cluster_id]
+        while rec is not None:
+            chain.append(rec)
+            rec = self.records[rec.parent] if rec.parent else None
+        out = [self.line(r) for r in reversed(chain)]
+        rec = chain[0]
+        out.append("")
+        out.append(f"{rec.id}: {rec.n_points:,} points, action {rec.action}"
+                   + (f", label {rec.label}" if rec.label else ""))
+        for c in rec.checks:
+            out.append(f"  {'pass' if c.passed else 'FAIL'}  {c.check}: {c.predicate} = {c.comparison()}  [{c.source}]")
+        for k, v in rec.descriptors.items():
+            out.append(f"  {k}: {_fmt(v)}")
+        for n in rec.notes:
+            out.append(f"  note: {n}")
+        if rec.apd:
+            out.append(f"  APD: {rec.apd.text()}")
+        return "\n".join(out)
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_fmt(x) for x in v) + "]"
+    return str(v)

@@ -1,0 +1,461 @@
+"""The interpreter: runs a rule base's strategy over a cloud, with the inference motor as its only
+means of splitting, and records every decision in an :class:`~kbs.knowledge.explain.Explanation`.
+
+Strategies (ALGORITHMS.md section 3):
+
+- ``divisive``: the scene's initial partition (K by APD's first local maximum, or fixed), then
+  every cluster a rule wants split is split on its own — by UFP-ONC on its points ('split') or
+  along its connected components ('split_components') — and its children are judged in turn.
+- ``global`` (the seed paper): while some cluster of the scene's K-partition fails, go on to the
+  (K+1)-partition of the whole scene, up to k_max.
+
+Either way: rejected clusters become noise, accepted ones take the first label whose condition
+holds, and clusters of the merge label whose planes agree are merged. Every limit reached is
+recorded; the run always terminates (depth, cluster count and minimum size are bounded).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+from kbs.errors import FitError, KbsError
+from kbs.inference import UFPONCResult, angle_between_planes, ufp_onc
+from kbs.knowledge.connexity import Connexity, assign_to_nearest, project_on_plane
+from kbs.knowledge.explain import APDCurve, CheckRecord, ClusterRecord, Explanation
+from kbs.knowledge.predicates import Cluster, Ground, PredicateError, Scene
+from kbs.knowledge.rulebase import Condition, RuleBase
+
+
+@dataclass(frozen=True)
+class Segmentation:
+    """The result of a run.
+
+    Attributes
+    ----------
+    cluster : ndarray (n,) int32
+        Output cluster of each point (numbered by decreasing size), -1 = not assigned (noise).
+    label : ndarray (n,) int32
+        Index into ``label_names``, -1 = none (noise).
+    membership : ndarray (n,) float32
+        Membership of each point in its cluster (product of the fuzzy memberships along its path
+        in the split tree; crisp splits count 1).
+    label_names : list of str
+    explanation : Explanation
+    clusters : list of dict
+        One per output cluster: index, ids of the records merged into it, label, size, descriptors.
+    seconds : float
+    """
+
+    cluster: np.ndarray
+    label: np.ndarray
+    membership: np.ndarray
+    label_names: list[str]
+    explanation: Explanation
+    clusters: list[dict[str, Any]]
+    seconds: float
+
+    @property
+    def n_splits(self) -> int:
+        return sum(r.action in ("split", "split_components") for r in self.explanation.records.values())
+
+    def summary(self) -> dict[str, Any]:
+        counts = {name: int((self.label == i).sum()) for i, name in enumerate(self.label_names)}
+        counts["noise"] = int((self.label < 0).sum())
+        return {"points": int(self.cluster.size), "clusters": len(self.clusters), "splits": self.n_splits,
+                "limits": sum(r.action == "limit" for r in self.explanation.records.values()),
+                "points_per_label": counts, "seconds": round(self.seconds, 3)}
+
+
+@dataclass
+class _Node:
+    id: str
+    parent: str | None
+    depth: int
+    idx: np.ndarray  # indices into X
+    weight: np.ndarray  # membership in this node (from its own split)
+    path: np.ndarray  # membership along the path
+
+
+class Interpreter:
+    """Applies a :class:`RuleBase` to clouds.
+
+    Parameters
+    ----------
+    rule_base : RuleBase
+    sensor : array-like (3,), optional
+        Overrides the rule base's sensor position.
+    progress : callable, optional
+        Called with a short message after each decision.
+    """
+
+    def __init__(self, rule_base: RuleBase, *, sensor: Any = None,
+                 progress: Callable[[str], None] | None = None) -> None:
+        self.rb = rule_base
+        self.sensor = np.asarray(rule_base.sensor if sensor is None else sensor, dtype=np.float64)
+        self.progress = progress
+
+    # -- engine --------------------------------------------------------------------------------
+
+    def _ufp_onc(self, X: np.ndarray, stop: str) -> UFPONCResult:
+        e = self.rb.engine
+        return ufp_onc(X, e["k_max"], m=e["m"], tol=e["tol"], max_iter=e["max_iter"],
+                       min_variance=e["min_variance"], max_condition=e["max_condition"],
+                       new_prototype=e["new_prototype"], stop=stop, max_fit_points=e["max_fit_points"])
+
+    def _initial_k(self, res: UFPONCResult) -> int:
+        ik = self.rb.engine["initial_k"]
+        if isinstance(ik, int):
+            ks = [p.k for p in res.partitions]
+            return ik if ik in ks else ks[-1]
+        return res.chosen_k
+
+    # -- facts -----------------------------------------------------------------------------------
+
+    def _facts(self, cluster: Cluster, scene: Scene, rec: ClusterRecord) -> Callable[[str], bool]:
+        rb = self.rb
+        done: dict[str, bool] = {c.check: c.passed for c in rec.checks}  # measured before: reuse
+
+        def fact(name: str) -> bool:
+            if name not in done:
+                check = rb.checks[name]
+                if check.predicate.needs_ground and scene.ground is None:
+                    raise FitError(f"check '{name}' needs the ground plane, which is not known yet")
+                try:
+                    m = check.predicate.measure(cluster, scene, check.params)
+                except KbsError:
+                    raise
+                except Exception as exc:  # a predicate's bug must name the predicate and cluster
+                    raise PredicateError(f"predicate '{check.predicate.name}' failed on cluster {cluster.id} "
+                                         f"({cluster.n_points} points): {type(exc).__name__}: {exc}") from exc
+                done[name] = check.passes(m.value)
+                cluster.cache[name] = m
+                rec.checks.append(CheckRecord(
+                    check=name, predicate=check.predicate.name, value=m.value,
+                    unit=check.predicate.unit_label(rb.length_unit), min=check.min, max=check.max,
+                    passed=done[name], source=check.pos.short))
+            return done[name]
+
+        return fact
+
+    @staticmethod
+    def _names(cond: Condition | None) -> list[str]:
+        return [] if cond is None else list(dict.fromkeys(f.name for f in cond.facts()))
+
+    def _judge(self, cluster: Cluster, scene: Scene, rec: ClusterRecord) -> tuple[str, Any]:
+        """Evaluate the rules in order: the first whose condition holds acts."""
+        fact = self._facts(cluster, scene, rec)
+        for rule in self.rb.rules:
+            if rule.condition.evaluate(fact):
+                rec.rule, rec.rule_source = rule.name, rule.pos.short
+                rec.decisive = self._names(rule.condition)
+                return rule.action, rule
+        return "accept", None
+
+    def _label(self, cluster: Cluster, scene: Scene, rec: ClusterRecord) -> None:
+        fact = self._facts(cluster, scene, rec)
+        for lab in self.rb.labels:
+            if lab.condition is None or lab.condition.evaluate(fact):
+                rec.label = lab.name
+                if rec.action == "accept":
+                    rec.decisive = self._names(lab.condition)
+                return
+        rec.notes.append("no label's condition holds")
+
+    # -- ground ----------------------------------------------------------------------------------
+
+    def _ground(self, X: np.ndarray, candidates: list[tuple[Cluster, ClusterRecord]], info: dict) -> Ground | None:
+        spec = self.rb.ground
+        if not self.rb.needs_ground and spec.normal is None and spec.candidate is None:
+            return None
+        if spec.normal is not None:
+            return self._plane_from_normal(X, np.asarray(spec.normal, float), "fixed", info)
+        best = None
+        if spec.candidate is not None:
+            provisional = Scene(self.sensor, None, self.rb.units)
+            for cl, rec in candidates:
+                if cl.n_points < spec.min_points:
+                    continue
+                if not self._facts(cl, provisional, rec)(spec.candidate):
+                    continue
+                dist = float(np.sqrt(((cl.X - self.sensor) ** 2).sum(axis=1).min()))
+                if best is None or dist < best[0]:
+                    best = (dist, cl)
+        if best is None:
+            info["note"] = (f"no cluster of the initial partition with >= {spec.min_points} points passes "
+                            f"'{spec.candidate}': the fallback normal {list(spec.fallback)} is used")
+            return self._plane_from_normal(X, np.asarray(spec.fallback, float), "fallback", info)
+        dist, cl = best
+        geo = cl.geometry
+        n = geo.normal
+        if (self.sensor - geo.center) @ n < 0:  # point up, towards the sensor
+            n = -n
+        info.update(source=f"cluster {cl.id}", cluster=cl.id, normal=n.tolist(), point=geo.center.tolist(),
+                    distance_to_sensor=dist, thickness=geo.thickness)
+        return Ground(normal=n, point=geo.center.copy(), source=f"cluster {cl.id}")
+
+    @staticmethod
+    def _plane_from_normal(X: np.ndarray, n: np.ndarray, source: str, info: dict) -> Ground:
+        n = n / np.linalg.norm(n)
+        q = float(np.quantile(X @ n, 0.05))
+        info.update(source=source, normal=n.tolist(), point=(q * n).tolist())
+        return Ground(normal=n, point=q * n, source=source)
+
+    # -- records ---------------------------------------------------------------------------------
+
+    def _record(self, node: _Node, X: np.ndarray) -> tuple[Cluster, ClusterRecord]:
+        cl = Cluster(node.id, X[node.idx], node.weight)
+        rec = ClusterRecord(id=node.id, parent=node.parent, depth=node.depth, n_points=int(node.idx.size))
+        if node.idx.size:
+            geo = cl.geometry
+            rec.descriptors = {
+                "center": geo.center.tolist(), "normal": geo.normal.tolist(), "thickness": geo.thickness,
+                "eigenvalues": geo.eigenvalues.tolist(), "mass": geo.mass,
+            }
+        return cl, rec
+
+    @staticmethod
+    def _apd(res: UFPONCResult, chosen: int) -> APDCurve:
+        return APDCurve(tuple(p.k for p in res.partitions), tuple(p.apd for p in res.partitions), chosen)
+
+    @staticmethod
+    def _children_from_memberships(node: _Node, u: np.ndarray) -> list[_Node]:
+        hard = u.argmax(axis=1)
+        parts = [np.flatnonzero(hard == j) for j in range(u.shape[1])]
+        order = sorted((j for j in range(len(parts)) if parts[j].size), key=lambda j: -parts[j].size)
+        return [_Node(f"{node.id}.{i}" if node.parent is not None else f"c{i}", node.id, node.depth + 1,
+                      node.idx[parts[j]], u[parts[j], j], node.path[parts[j]] * u[parts[j], j])
+                for i, j in enumerate(order)]
+
+    # -- strategies ------------------------------------------------------------------------------
+
+    def run(self, X: np.ndarray) -> Segmentation:
+        """Segment points ``X`` (n, 3)."""
+        t0 = time.perf_counter()
+        X = np.ascontiguousarray(X, dtype=np.float64)
+        if X.ndim != 2 or X.shape[1] != 3 or X.shape[0] == 0:
+            raise FitError(f"expected a non-empty (n, 3) cloud, got shape {X.shape}")
+        n = X.shape[0]
+        root = _Node("c", None, 0, np.arange(n), np.ones(n), np.ones(n))
+        root_cl, root_rec = self._record(root, X)
+        root_rec.action = "partition"
+        records: dict[str, ClusterRecord] = {"c": root_rec}
+        global_mode = self.rb.strategy == "global"
+        res = self._ufp_onc(X, "k_max" if global_mode else "first_max")
+        k0 = self._initial_k(res)
+        root_rec.apd = self._apd(res, k0)
+        ground_info: dict[str, Any] = {}
+        notes: list[str] = list(res.notes)
+        if global_mode:
+            leaves, scene = self._run_global(X, root, res, k0, records, ground_info, notes)
+        else:
+            leaves, scene = self._run_divisive(X, root, res, k0, records, ground_info, notes)
+        seg = self._finish(X, leaves, scene, records, ground_info, notes, t0)
+        return seg
+
+    def _initial_children(self, X, root, res, k) -> list[_Node]:
+        part = res.partition(k)
+        u = res.memberships if k == res.chosen_k else part.predict_proba(X)
+        return self._children_from_memberships(root, u)
+
+    def _run_divisive(self, X, root, res, k0, records, ground_info, notes):
+        rb, lim = self.rb, self.rb.limits
+        children = self._initial_children(X, root, res, k0)
+        records["c"].children = [c.id for c in children]
+        pending = [(c, *self._record(c, X)) for c in children]
+        scene = Scene(self.sensor, self._ground(X, [(cl, rec) for _, cl, rec in pending], ground_info), rb.units)
+        leaves: list[tuple[_Node, Cluster, ClusterRecord]] = []
+        n_clusters = len(pending)
+        while pending:
+            node, cl, rec = pending.pop(0)
+            records[node.id] = rec
+            action, rule = self._judge(cl, scene, rec)
+            if action == "reject":
+                rec.action = "reject"
+                continue
+            if action == "accept":
+                rec.action = "accept"
+                leaves.append((node, cl, rec))
+                continue
+            why_not = self._cannot_split(node, n_clusters)
+            kids: list[_Node] = []
+            if why_not is None:
+                try:
+                    kids = self._split(node, X, cl, rec, action, rule)
+                except FitError as exc:
+                    why_not = f"the split failed: {exc}"
+                if why_not is None and len(kids) < 2:
+                    why_not = "the split gave a single cluster"
+            if why_not is not None:
+                rec.action = "limit"
+                rec.notes.append(why_not)
+                leaves.append((node, cl, rec))
+                continue
+            rec.action = action
+            rec.children = [k.id for k in kids]
+            n_clusters += len(kids) - 1
+            pending.extend((k, *self._record(k, X)) for k in kids)
+            if self.progress:
+                self.progress(f"{node.id} split in {len(kids)}")
+        return leaves, scene
+
+    def _cannot_split(self, node: _Node, n_clusters: int) -> str | None:
+        lim = self.rb.limits
+        if node.depth >= lim["max_depth"]:
+            return f"limit reached: max_depth = {lim['max_depth']}"
+        if node.idx.size < lim["min_points"]:
+            return f"limit reached: {node.idx.size} points < min_points = {lim['min_points']}"
+        if n_clusters >= lim["max_clusters"]:
+            return f"limit reached: max_clusters = {lim['max_clusters']}"
+        return None
+
+    def _split(self, node: _Node, X: np.ndarray, cl: Cluster, rec: ClusterRecord, action: str, rule) -> list[_Node]:
+        if action == "split":
+            res = self._ufp_onc(X[node.idx], "first_max")
+            k = res.chosen_k
+            if k == 1:
+                if len(res.partitions) < 2:
+                    raise FitError("UFP-ONC found no second cluster")
+                k = 2
+            rec.apd = self._apd(res, k)
+            u = res.memberships if k == res.chosen_k else res.partition(k).predict_proba(X[node.idx])
+            sub = _Node(node.id, node.parent, node.depth, node.idx, node.weight, node.path)
+            kids = self._children_from_memberships(sub, u)
+            for kid in kids:  # children ids are path-like under this node
+                kid.parent = node.id
+            return kids
+        # split_components: reuse the components of the failed connexity check
+        conn: Connexity | None = None
+        for f in rule.condition.facts():
+            m = cl.cache.get(f.name)
+            if m is not None and isinstance(m.details, Connexity):
+                conn = m.details
+                break
+        if conn is None or conn.n_significant < 2:
+            raise FitError("no two significant connected components to split along")
+        geo = cl.geometry
+        labels = assign_to_nearest(project_on_plane(cl.X, geo.center, geo.normal), conn.labels, conn.significant)
+        kids = []
+        for i in range(conn.n_significant):
+            sel = np.flatnonzero(labels == i)
+            if sel.size:
+                kids.append(_Node(f"{node.id}.{len(kids)}", node.id, node.depth + 1, node.idx[sel],
+                                  np.ones(sel.size), node.path[sel]))
+        return kids
+
+    def _run_global(self, X, root, res, k0, records, ground_info, notes):
+        rb = self.rb
+        ks = [p.k for p in res.partitions]
+        k = k0
+        scene = None
+        history = []
+        while True:
+            children = self._initial_children(X, root, res, k)
+            judged = [(c, *self._record(c, X)) for c in children]
+            if scene is None:
+                scene = Scene(self.sensor, self._ground(X, [(cl, rec) for _, cl, rec in judged], ground_info), rb.units)
+            failing = []
+            for node, cl, rec in judged:
+                action, rule = self._judge(cl, scene, rec)
+                rec.action = action
+                if action in ("split", "split_components"):
+                    failing.append(f"{node.id} ({rule.name})")
+            later = [kk for kk in ks if kk > k]
+            if failing and later:
+                history.append(f"K={k}: {', '.join(failing)} failed; next K")
+                k = later[0]
+                continue
+            break
+        records["c"].children = [c.id for c, _, _ in judged]
+        records["c"].notes.extend(history)
+        records["c"].notes.append(f"final K = {k}")
+        leaves = []
+        for node, cl, rec in judged:
+            records[node.id] = rec
+            if rec.action in ("split", "split_components"):
+                rec.notes.append(f"limit reached: no partition of the scene beyond K = {k} (k_max = {rb.engine['k_max']}"
+                                 f", or the sweep stopped)")
+                rec.action = "limit"
+            if rec.action != "reject":
+                leaves.append((node, cl, rec))
+        return leaves, scene
+
+    # -- labels, merge, output -------------------------------------------------------------------
+
+    def _finish(self, X, leaves, scene, records, ground_info, notes, t0) -> Segmentation:
+        rb = self.rb
+        for node, cl, rec in leaves:
+            self._label(cl, scene, rec)
+        groups = self._merge(leaves)
+        n = X.shape[0]
+        cluster = np.full(n, -1, dtype=np.int32)
+        label = np.full(n, -1, dtype=np.int32)
+        membership = np.zeros(n, dtype=np.float32)
+        groups.sort(key=lambda g: -sum(leaves[i][0].idx.size for i in g))
+        out_clusters = []
+        for gi, members in enumerate(groups):
+            ids = [leaves[i][2].id for i in members]
+            lab = leaves[members[0]][2].label
+            li = rb.label_names.index(lab) if lab in rb.label_names else -1
+            size = 0
+            for i in members:
+                node, cl, rec = leaves[i]
+                cluster[node.idx] = gi
+                label[node.idx] = li
+                membership[node.idx] = node.path
+                rec.output_index = gi
+                size += node.idx.size
+                if len(members) > 1:
+                    rec.notes.append(f"merged with {', '.join(x for x in ids if x != rec.id)} "
+                                     f"(coplanar {lab}) into output cluster {gi}")
+            out_clusters.append({"index": gi, "ids": ids, "label": lab, "n_points": int(size),
+                                 "descriptors": leaves[members[0]][2].descriptors if len(members) == 1 else
+                                 self._group_descriptors(X, [leaves[i][0] for i in members])})
+        expl = Explanation(rule_base=rb.name, rule_file=rb.path, strategy=rb.strategy, label_names=rb.label_names,
+                           records=records, root="c", ground=ground_info, notes=notes)
+        return Segmentation(cluster=cluster, label=label, membership=membership, label_names=rb.label_names,
+                            explanation=expl, clusters=out_clusters, seconds=time.perf_counter() - t0)
+
+    @staticmethod
+    def _group_descriptors(X, nodes: list[_Node]) -> dict[str, Any]:
+        from kbs.inference import cluster_geometry
+
+        idx = np.concatenate([nd.idx for nd in nodes])
+        geo = cluster_geometry(X[idx], np.concatenate([nd.weight for nd in nodes]))
+        return {"center": geo.center.tolist(), "normal": geo.normal.tolist(), "thickness": geo.thickness,
+                "eigenvalues": geo.eigenvalues.tolist(), "mass": geo.mass}
+
+    def _merge(self, leaves) -> list[list[int]]:
+        """Groups of leaf indices: coplanar clusters of the merge label are merged (union-find)."""
+        parent = list(range(len(leaves)))
+
+        def find(i: int) -> int:
+            while parent[i] != i:
+                parent[i] = parent[parent[i]]
+                i = parent[i]
+            return i
+
+        spec = self.rb.merge
+        if spec is not None:
+            cand = [i for i, (_, _, rec) in enumerate(leaves) if rec.label == spec.label]
+            for a_i, a in enumerate(cand):
+                ga = leaves[a][1].geometry
+                for b in cand[a_i + 1:]:
+                    gb = leaves[b][1].geometry
+                    angle = math.degrees(angle_between_planes(ga.normal, gb.normal))
+                    offset = max(abs(ga.distance_to_plane(gb.center[None])[0]),
+                                 abs(gb.distance_to_plane(ga.center[None])[0]))
+                    if angle <= spec.max_angle and offset <= spec.max_offset:
+                        parent[find(b)] = find(a)
+        groups: dict[int, list[int]] = {}
+        for i in range(len(leaves)):
+            groups.setdefault(find(i), []).append(i)
+        return list(groups.values())
+
+
+def segment(X: np.ndarray, rule_base: RuleBase, *, sensor: Any = None) -> Segmentation:
+    """Segment points ``X`` (n, 3) with a rule base (see :class:`Interpreter`)."""
+    return Interpreter(rule_base, sensor=sensor).run(X)
