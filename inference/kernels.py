@@ -74,7 +74,7 @@ def powered(u: np.ndarray, power: float) -> np.ndarray:
 def weighted_centers(u: np.ndarray, w: np.ndarray, X: np.ndarray, power: float) -> np.ndarray:
     """Centres ``v_i = sum_j w_j u_ij^p x_j / sum_j w_j u_ij^p`` (K, D); ``u`` is (K, n)."""
     up = powered(u, power) * w
-    return (up @ X) / up.sum(axis=1)[:, None]
+    return (up @ X) / np.maximum(up.sum(axis=1), TINY)[:, None]
 
 
 @dataclass(frozen=True)

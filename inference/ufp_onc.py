@@ -283,7 +283,7 @@ def ufp_onc(
             if new_prototype == "distance":
                 if d0 is None:
                     cov1 = partitions[0].covariances[0]
-                    d0 = 10.0 * float(np.trace(cov1))
+                    d0 = max(10.0 * float(np.trace(cov1)), 10.0 * min_variance)  # all points may coincide
                 u0 = new_prototype_memberships(mom.XT, prev.centers, d0, m)
             else:
                 u0 = worst_point_memberships(mom.X, prev.centers, prev.memberships, m)

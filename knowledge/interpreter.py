@@ -244,10 +244,21 @@ class Interpreter:
         root_rec.action = "partition"
         records: dict[str, ClusterRecord] = {"c": root_rec}
         global_mode = self.rb.strategy == "global"
-        res = self._ufp_onc(X, "k_max" if global_mode else "first_max")
+        ground_info: dict[str, Any] = {}
+        try:
+            res = self._ufp_onc(X, "k_max" if global_mode else "first_max")
+        except FitError as exc:  # too few or degenerate points: the scene is one cluster
+            root_rec.notes.append(f"the scene was not partitioned: {exc}")
+            child = _Node("c0", "c", 1, root.idx, root.weight, root.path)
+            root_rec.children = ["c0"]
+            c_cl, c_rec = self._record(child, X)
+            records["c0"] = c_rec
+            scene = Scene(self.sensor, self._ground(X, [(c_cl, c_rec)], ground_info), self.rb.units)
+            self._judge_leaf(child, c_cl, c_rec, scene)
+            leaves = [] if c_rec.action == "reject" else [(child, c_cl, c_rec)]
+            return self._finish(X, leaves, scene, records, ground_info, [], t0)
         k0 = self._initial_k(res)
         root_rec.apd = self._apd(res, k0)
-        ground_info: dict[str, Any] = {}
         notes: list[str] = list(res.notes)
         if global_mode:
             leaves, scene = self._run_global(X, root, res, k0, records, ground_info, notes)
@@ -301,6 +312,16 @@ class Interpreter:
             if self.progress:
                 self.progress(f"{node.id} split in {len(kids)}")
         return leaves, scene
+
+    def _judge_leaf(self, node: _Node, cl: Cluster, rec: ClusterRecord, scene: Scene) -> None:
+        """Judge a cluster that cannot be split whatever the rules say (the scene could not be
+        partitioned at all)."""
+        action, _ = self._judge(cl, scene, rec)
+        if action in ("split", "split_components"):
+            rec.action = "limit"
+            rec.notes.append("it cannot be split: the engine could not partition these points")
+        else:
+            rec.action = action
 
     def _cannot_split(self, node: _Node, n_clusters: int) -> str | None:
         lim = self.rb.limits
@@ -409,8 +430,8 @@ class Interpreter:
                 rec.output_index = gi
                 size += node.idx.size
                 if len(members) > 1:
-                    rec.notes.append(f"merged with {', '.join(x for x in ids if x != rec.id)} "
-                                     f"(coplanar {lab}) into output cluster {gi}")
+                    rec.notes.append(f"merged with {len(members) - 1} other coplanar {lab} cluster"
+                                     f"{'s' if len(members) > 2 else ''} into output cluster {gi}")
             out_clusters.append({"index": gi, "ids": ids, "label": lab, "n_points": int(size),
                                  "descriptors": leaves[members[0]][2].descriptors if len(members) == 1 else
                                  self._group_descriptors(X, [leaves[i][0] for i in members])})

@@ -343,6 +343,14 @@ def thickness(cluster: Cluster, scene: Scene) -> float:
     return cluster.geometry.thickness
 
 
+@predicate(unit="ratio", value_range=(0.0, 1.0))
+def flatness(cluster: Cluster, scene: Scene) -> float:
+    """sqrt(mu1 / mu2): the spread across the best approximating plane relative to the smaller
+    spread along it; 0 for a sheet, 1 when the cluster is as thick as it is wide (a blob)."""
+    mu = cluster.geometry.eigenvalues
+    return float(np.sqrt(mu[0] / mu[1])) if mu[1] > 0 else 0.0
+
+
 @predicate(unit="deg", value_range=(0.0, 90.0), needs_ground=True)
 def ground_angle(cluster: Cluster, scene: Scene) -> float:
     """Angle in degrees between the cluster's best approximating plane and the ground plane
@@ -398,5 +406,5 @@ def distance_to_sensor(cluster: Cluster, scene: Scene, *, to: str = "center") ->
     return float(np.sqrt(((cluster.X - scene.sensor) ** 2).sum(axis=1).min()))
 
 
-BUILTINS: tuple[Predicate, ...] = (thickness, ground_angle, connexity, point_count, extent, height_above_ground,
+BUILTINS: tuple[Predicate, ...] = (thickness, flatness, ground_angle, connexity, point_count, extent, height_above_ground,
                                    distance_to_sensor)

@@ -34,3 +34,62 @@ def ground_and_boxes(n_ground: int = 20000, n_box: int = 3000, seed: int = 1, no
         P = P * [1.5, 1.5, h / 2] + [cx, cy, h / 2 + 0.3]
         boxes.append(P + rng.normal(0, noise, P.shape))
     return np.vstack([ground] + boxes)
+
+
+def _ground(rng: np.random.Generator, n: int, half: float, noise: float) -> np.ndarray:
+    return np.column_stack([rng.uniform(-half, half, n), rng.uniform(-half, half, n), rng.normal(0, noise, n)])
+
+
+def _dome(rng: np.random.Generator, n: int, center, radii) -> np.ndarray:
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d[:, 2] = np.abs(d[:, 2])
+    return d * radii + center
+
+
+def ground_and_rocks(seed: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Flat ground (12 m x 12 m) and three look-alike rocks (domes 0.6 m high) 4 m apart, in a
+    sensor frame with the sensor 1.5 m above the ground. Labels: 0 ground, 1..3 rocks."""
+    rng = np.random.default_rng(seed)
+    parts, labels = [_ground(rng, 12000, 6.0, 0.005)], [np.zeros(12000, int)]
+    for i, cx in enumerate((-4.0, 0.0, 4.0), start=1):
+        parts.append(_dome(rng, 1500, (cx, 3.0, 0.0), (0.6, 0.6, 0.6)))
+        labels.append(np.full(1500, i))
+    X = np.vstack(parts) - [0.0, 0.0, 1.5]
+    return X, np.concatenate(labels)
+
+
+def ground_with_small_obstacles(seed: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Dense flat ground with small sparse obstacles (cubes of 0.4 m) standing on it. Labels:
+    0 ground, 1 obstacles. The sensor is 1.5 m above the ground."""
+    rng = np.random.default_rng(seed)
+    g = _ground(rng, 15000, 5.0, 0.005)
+    obs = []
+    for cx, cy in ((-2.5, -2.0), (1.5, 2.5), (3.0, -3.0), (-1.0, 3.5), (0.5, -0.5), (-3.5, 1.0)):
+        P = rng.uniform(-1, 1, (400, 3))
+        face = rng.integers(0, 3, 400)
+        P[np.arange(400), face] = np.sign(rng.uniform(-1, 1, 400))
+        P = P * 0.2 + [cx, cy, 0.2]
+        obs.append(P[P[:, 2] > 0.01])
+    O = np.vstack(obs)
+    X = np.vstack([g, O]) - [0.0, 0.0, 1.5]
+    return X, np.concatenate([np.zeros(len(g), int), np.ones(len(O), int)])
+
+
+def box_on_table(seed: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """A range sensor's view of a box on a table (metres): the table top (1.2 m x 0.8 m) and the
+    three faces of the box it sees (top, front, side), 1 mm depth noise. Labels: 0 table,
+    1 box top, 2 box front, 3 box side."""
+    rng = np.random.default_rng(seed)
+    L, W, H = 0.30, 0.20, 0.15
+    table = np.column_stack([rng.uniform(-0.6, 0.6, 20000), rng.uniform(-0.4, 0.4, 20000), np.zeros(20000)])
+    under = (np.abs(table[:, 0]) < L / 2) & (np.abs(table[:, 1]) < W / 2)
+    table = table[~under]
+    top = np.column_stack([rng.uniform(-L / 2, L / 2, 3000), rng.uniform(-W / 2, W / 2, 3000), np.full(3000, H)])
+    front = np.column_stack([np.full(2500, L / 2), rng.uniform(-W / 2, W / 2, 2500), rng.uniform(0, H, 2500)])
+    side = np.column_stack([rng.uniform(-L / 2, L / 2, 2500), np.full(2500, W / 2), rng.uniform(0, H, 2500)])
+    parts = [table, top, front, side]
+    X = np.vstack(parts)
+    X = X + rng.normal(0, 0.001, X.shape)
+    labels = np.concatenate([np.full(len(p), i) for i, p in enumerate(parts)])
+    return X, labels
