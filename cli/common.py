@@ -29,10 +29,13 @@ def progress_bar(total: int, desc: str, quiet: bool) -> Iterator[tqdm]:
 
 
 def write_result_ply(path: Path, cloud: PointCloud, results: Mapping[str, np.ndarray]) -> None:
-    """Write the cloud's points with its own fields and the per-point ``results`` to a PLY file."""
+    """Write the cloud's points with its own fields and the per-point ``results`` to a PLY file
+    (an input field named like a result is kept with the suffix '_in')."""
     fields = {}
     for name, values in cloud.fields.items():  # the input's own fields, under PLY-safe names
         safe = re.sub(r"\W", "_", name)
+        if safe in results:  # the input's own 'label' stays, as 'label_in'
+            safe += "_in"
         if safe and safe not in results and np.asarray(values).ndim == 1:
             fields[safe] = values
     fields.update(results)

@@ -43,7 +43,9 @@ for _command in (run, explain, rules, predicates, cluster):
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; returns (and exits with) the exit code."""
     try:
-        cli.main(args=argv, prog_name="kbs", standalone_mode=False)
+        # without standalone mode, click returns the code of an Exit (raised by --help, --version,
+        # or a command that chooses its exit code) instead of raising it
+        code = cli.main(args=argv, prog_name="kbs", standalone_mode=False)
     except click.exceptions.Exit as exc:  # --help, --version
         return int(exc.exit_code)
     except click.ClickException as exc:
@@ -56,8 +58,8 @@ def main(argv: list[str] | None = None) -> int:
         click.echo(f"kbs: error: {exc}", err=True)
         return int(exc.exit_code)
     except BrokenPipeError:
-        return int(0)
-    return int(0)
+        return 0
+    return code if isinstance(code, int) else 0
 
 
 if __name__ == "__main__":

@@ -308,7 +308,10 @@ def parse_rule_base(text: str, file: str, registry: PredicateRegistry) -> RuleBa
         pos = _Positions(file, text, None)
         line, col = (mark.line + 1, mark.column + 1) if mark else (1, 1)
         src = pos.lines[line - 1] if 0 < line <= len(pos.lines) else ""
-        raise RuleFileError([Problem(SourcePos(file, line, col), f"YAML syntax: {exc.problem}", src)]) from exc
+        msg = f"YAML syntax: {exc.problem}"
+        if exc.context and exc.context_mark and exc.context_mark is not mark:
+            msg += f" ({exc.context} at line {exc.context_mark.line + 1}, column {exc.context_mark.column + 1})"
+        raise RuleFileError([Problem(SourcePos(file, line, col), msg, src)]) from exc
     except yaml.YAMLError as exc:
         raise RuleFileError([Problem(SourcePos(file, 1, 1), f"YAML: {exc}")]) from exc
     pos = _Positions(file, text, root)

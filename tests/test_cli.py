@@ -40,7 +40,7 @@ def test_cluster_bundled_example_writes_cluster_and_membership(tmp_path):
     assert "chosen K =" in r.stdout
     v = PlyData.read(str(out))["vertex"]
     names = [p.name for p in v.properties]
-    assert {"x", "y", "z", "cluster", "membership", "label"} <= set(names)
+    assert {"x", "y", "z", "cluster", "membership", "label"} <= set(names)  # the input's label is kept
     assert v["cluster"].dtype == np.int32
     chosen = int(r.stdout.split("chosen K = ")[1].split()[0])
     assert set(np.unique(v["cluster"])) <= set(range(chosen))
