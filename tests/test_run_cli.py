@@ -154,3 +154,16 @@ def test_runs_on_real_scans(shared_data, tmp_path, rules, scan):
         tp = (truth & pred).sum()
         f1 = 2 * tp / (truth.sum() + pred.sum())
         assert f1 > 0.85, f1
+
+
+def test_worked_example_tabletop_rule_base_on_mosd(shared_data, tmp_path):
+    r = kbs("rules", "check", str(ROOT / "examples" / "rules" / "tabletop.yaml"))
+    assert r.returncode == 0, r.stderr
+    r = kbs("run", "--rules", str(ROOT / "examples" / "rules" / "tabletop.yaml"),
+            str(shared_data / "mosd" / "learn0.pcd"), "--out", str(tmp_path))
+    assert r.returncode == 0, r.stderr
+    v = _ply(tmp_path / "learn0.ply")
+    gt, pred = np.asarray(v["label_in"]), np.asarray(v["label"])
+    for name, index, truth in (("table", 0, (gt >= 1) & (gt <= 9)), ("object", 1, gt >= 20)):
+        p = pred == index
+        assert (p & truth).sum() / p.sum() > 0.98 and (p & truth).sum() / truth.sum() > 0.95, name
