@@ -23,6 +23,7 @@ class CheckRecord:
     max: float | None
     passed: bool
     source: str  #: 'outdoor.yaml:31'
+    note: str = ""  #: e.g. where a value was measured when not on the cluster itself
 
     def bound(self) -> tuple[str, float]:
         """The comparison that decided: ('<=', max) when within the upper bound, ('>', max) above
@@ -202,7 +203,8 @@ class Explanation:
         out.append(f"{rec.id}: {rec.n_points:,} points, action {rec.action}"
                    + (f", label {rec.label}" if rec.label else ""))
         for c in rec.checks:
-            out.append(f"  {'pass' if c.passed else 'FAIL'}  {c.check}: {c.predicate} = {c.comparison()}  [{c.source}]")
+            out.append(f"  {'pass' if c.passed else 'FAIL'}  {c.check}: {c.predicate} = {c.comparison()}  [{c.source}]"
+                       + (f"  ({c.note})" if c.note else ""))
         for k, v in rec.descriptors.items():
             out.append(f"  {k}: {_fmt(v)}")
         for n in rec.notes:

@@ -26,7 +26,7 @@ from kbs.errors import FitError, KbsError
 from kbs.inference import UFPONCResult, angle_between_planes, ufp_onc
 from kbs.knowledge.connexity import Connexity, assign_to_nearest, project_on_plane
 from kbs.knowledge.explain import APDCurve, CheckRecord, ClusterRecord, Explanation
-from kbs.knowledge.predicates import Cluster, Ground, PredicateError, Scene
+from kbs.knowledge.predicates import Cluster, Ground, Measurement, PredicateError, Scene
 from kbs.knowledge.rulebase import Condition, RuleBase
 
 
@@ -308,10 +308,29 @@ class Interpreter:
             rec.action = action
             rec.children = [k.id for k in kids]
             n_clusters += len(kids) - 1
-            pending.extend((k, *self._record(k, X)) for k in kids)
+            children = [(k, *self._record(k, X)) for k in kids]
+            if action == "split_components":
+                self._inherit_connexity(rule, children)
+            pending.extend(children)
             if self.progress:
                 self.progress(f"{node.id} split in {len(kids)}")
         return leaves, scene
+
+    def _inherit_connexity(self, rule, children) -> None:
+        """A child of a split along connected components is one component of its parent's
+        alpha-complex: its connexity checks hold at the parent's alpha, and are recorded so rather
+        than measured again with a smaller alpha of its own (which would cut it again and again
+        along the sampling pattern, e.g. LiDAR rings)."""
+        names = {f.name for f in rule.condition.facts() if self.rb.checks[f.name].predicate.name == "connexity"}
+        for _, cl, rec in children:
+            for name in names:
+                check = self.rb.checks[name]
+                passed = check.passes(1.0)
+                cl.cache[name] = Measurement(1.0)
+                rec.checks.append(CheckRecord(
+                    check=name, predicate="connexity", value=1.0, unit=check.predicate.unit_label(self.rb.length_unit),
+                    min=check.min, max=check.max, passed=passed, source=check.pos.short,
+                    note=f"one component of {rec.parent}, at its alpha"))
 
     def _judge_leaf(self, node: _Node, cl: Cluster, rec: ClusterRecord, scene: Scene) -> None:
         """Judge a cluster that cannot be split whatever the rules say (the scene could not be
