@@ -18,12 +18,10 @@ from kbs.inference.kernels import (
     Moments,
     floor_covariances,
     fuzzy_covariances,
-    log_exp_distance,
+    gg_memberships_from_maha,
     mahalanobis_sq,
-    memberships_from_log_dist,
     memberships_from_sq_dist,
     sq_euclidean,
-    weighted_centers,
 )
 
 
@@ -86,7 +84,7 @@ def fcm_fit(mom: Moments, u0: np.ndarray, *, m: float, tol: float, max_iter: int
     it = 0
     centers = np.empty((0, mom.X.shape[1]))
     for it in range(1, max_iter + 1):
-        centers = weighted_centers(u, mom.w, mom.X, m)
+        centers = mom.centers(u, m)
         u_new = memberships_from_sq_dist(sq_euclidean(mom.XT, centers), m)
         # the initial memberships are not judged: a new prototype first gets a centre
         alive, dead = _drop_dead(u_new @ mom.w, min_mass, "fcm", it)
@@ -115,7 +113,7 @@ def gg_fit(mom: Moments, u0: np.ndarray, *, m: float, center_power: float, tol: 
     dropped: list[DroppedCluster] = []
     converged = False
     for it in range(1, max_iter + 1):
-        centers = weighted_centers(u, mom.w, mom.X, center_power)
+        centers = mom.centers(u, center_power)
         cov, mass = fuzzy_covariances(mom, u, centers)
         alive, dead = _drop_dead(mass, min_mass, "gg", it)
         if dead:
@@ -124,7 +122,7 @@ def gg_fit(mom: Moments, u0: np.ndarray, *, m: float, center_power: float, tol: 
         gauss = floor_covariances(cov, min_variance, max_condition)
         priors = mass / total
         maha = mahalanobis_sq(mom.XT, centers, gauss.whitening)
-        u_new = memberships_from_log_dist(log_exp_distance(maha, gauss.logdet, np.log(priors)), m)
+        u_new = gg_memberships_from_maha(maha, gauss.logdet, np.log(priors), m)
         delta = float(np.abs(u_new - u).max())
         u = u_new
         if delta < tol and not dead:
@@ -137,8 +135,7 @@ def gg_fit(mom: Moments, u0: np.ndarray, *, m: float, center_power: float, tol: 
 def gg_memberships(XT: np.ndarray, centers: np.ndarray, gauss: FlooredGaussians, priors: np.ndarray,
                    m: float) -> np.ndarray:
     """Gath-Geva memberships (K, n) of points ``XT`` (D, n) under fixed parameters."""
-    maha = mahalanobis_sq(XT, centers, gauss.whitening)
-    return memberships_from_log_dist(log_exp_distance(maha, gauss.logdet, np.log(priors)), m)
+    return gg_memberships_from_maha(mahalanobis_sq(XT, centers, gauss.whitening), gauss.logdet, np.log(priors), m)
 
 
 def new_prototype_memberships(XT: np.ndarray, centers: np.ndarray, d0: float, m: float) -> np.ndarray:

@@ -16,22 +16,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: log of the smallest positive normal float64: log-distances are clamped here so that a point
-#: sitting exactly on a prototype gets a finite (dominant) value instead of -inf.
-LOG_TINY = float(np.log(np.finfo(np.float64).tiny))
+#: the smallest positive normal float64: squared distances are clamped here, so that a point
+#: sitting exactly on a prototype gets a finite (dominant) membership instead of a division by 0.
 TINY = float(np.finfo(np.float64).tiny)
 
 
-def memberships_from_log_dist(log_d: np.ndarray, m: float) -> np.ndarray:
-    """Fuzzy memberships ``u_ij = 1 / sum_k (d_ij / d_kj)^(1/(m-1))`` from ``log d`` (K, n).
-
-    ``d`` is the squared quantity (squared Euclidean distance for c-means, the exponential distance
-    ``d_e2`` for Gath-Geva); the exponent 1/(m-1) applies to it. Computed as a softmax over
-    clusters of ``-log d / (m - 1)``, so it never overflows. Columns sum to 1. ``log_d`` is
-    overwritten.
-    """
-    z = np.maximum(log_d, LOG_TINY, out=log_d)
-    z *= -1.0 / (m - 1.0)
+def gg_memberships_from_maha(maha: np.ndarray, logdet: np.ndarray, log_priors: np.ndarray, m: float) -> np.ndarray:
+    """Gath-Geva memberships (K, n) from squared Mahalanobis distances (K, n): the softmax over
+    clusters of ``-log d_e2 / (m - 1)`` with ``log d_e2 = logdet/2 - log P + maha/2``, fused into
+    as few passes as possible (this is the hot loop). ``maha`` is not modified."""
+    a = -0.5 / (m - 1.0)
+    z = maha * a
+    z -= ((0.5 * logdet - log_priors) / (m - 1.0))[:, None]
     z -= z.max(axis=0)
     np.exp(z, out=z)
     z /= z.sum(axis=0)
@@ -71,26 +67,21 @@ def powered(u: np.ndarray, power: float) -> np.ndarray:
     return u**power
 
 
-def weighted_centers(u: np.ndarray, w: np.ndarray, X: np.ndarray, power: float) -> np.ndarray:
-    """Centres ``v_i = sum_j w_j u_ij^p x_j / sum_j w_j u_ij^p`` (K, D); ``u`` is (K, n)."""
-    up = powered(u, power) * w
-    return (up @ X) / np.maximum(up.sum(axis=1), TINY)[:, None]
-
-
 @dataclass(frozen=True)
 class Moments:
     """Per-sample sufficient statistics of a (possibly voxel-reduced) fitting set.
 
-    ``second`` holds, per sample, ``w x x^T`` plus the within-voxel scatter, flattened to D*D, so
-    that a fuzzy covariance is two matrix products per iteration, whatever the number of
-    clusters. ``X`` should be centred (the driver does it) to keep the moment formula exact.
+    ``stats`` holds, per sample, ``[w, w x, w x x^T + scatter]`` (1 + D + D*D columns; the
+    within-voxel scatter is added when the set is a voxel reduction), so that centres and fuzzy
+    covariances are one matrix product per iteration each, whatever the number of clusters.
+    ``X`` should be centred (the driver does it) to keep the moment formula exact.
     """
 
     X: np.ndarray  # (n, D)
     XT: np.ndarray  # (D, n)
     w: np.ndarray  # (n,)
-    wX: np.ndarray  # (n, D)
-    second: np.ndarray  # (n, D*D)
+    first: np.ndarray  # (n, 1 + D): [w, w x]
+    stats: np.ndarray  # (n, 1 + D + D*D): [w, w x, w x x^T + scatter]
 
     @classmethod
     def build(cls, X: np.ndarray, w: np.ndarray, scatter: np.ndarray | None = None) -> "Moments":
@@ -98,11 +89,22 @@ class Moments:
         second = (w[:, None, None] * (X[:, :, None] * X[:, None, :])).reshape(n, D * D)
         if scatter is not None:
             second = second + scatter.reshape(n, D * D)
-        return cls(X=X, XT=np.ascontiguousarray(X.T), w=w, wX=X * w[:, None], second=second)
+        first = np.column_stack([w, X * w[:, None]])
+        return cls(X=X, XT=np.ascontiguousarray(X.T), w=w, first=first,
+                   stats=np.ascontiguousarray(np.column_stack([first, second])))
 
     @property
     def n(self) -> int:
         return int(self.X.shape[0])
+
+    @property
+    def wX(self) -> np.ndarray:
+        return self.first[:, 1:]
+
+    def centers(self, u: np.ndarray, power: float) -> np.ndarray:
+        """Centres ``sum w u^p x / sum w u^p`` (K, D) for memberships ``u`` (K, n)."""
+        S = powered(u, power) @ self.first
+        return S[:, 1:] / np.maximum(S[:, :1], TINY)
 
 
 def fuzzy_covariances(mom: Moments, u: np.ndarray, centers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -112,9 +114,8 @@ def fuzzy_covariances(mom: Moments, u: np.ndarray, centers: np.ndarray) -> tuple
     with another power. Returns ``(cov (K, D, D), mass (K,))`` with ``mass_i = sum_j w_j u_ij``.
     """
     K, D = centers.shape
-    mass = u @ mom.w
-    s1 = u @ mom.wX  # (K, D)
-    s2 = (u @ mom.second).reshape(K, D, D)
+    S = u @ mom.stats
+    mass, s1, s2 = S[:, 0], S[:, 1 : 1 + D], S[:, 1 + D :].reshape(K, D, D)
     # sum u w (x - v)(x - v)^T = S2 - v s1^T - s1 v^T + mass v v^T
     vs1 = centers[:, :, None] * s1[:, None, :]
     cov = s2 - vs1 - vs1.transpose(0, 2, 1) + mass[:, None, None] * (centers[:, :, None] * centers[:, None, :])
@@ -166,14 +167,6 @@ def mahalanobis_sq(XT: np.ndarray, centers: np.ndarray, whitening: np.ndarray) -
     Y -= np.einsum("kde,kd->ke", whitening, centers).reshape(K * D, 1)
     Y *= Y
     return Y.reshape(K, D, -1).sum(axis=1)
-
-
-def log_exp_distance(maha: np.ndarray, logdet: np.ndarray, log_priors: np.ndarray) -> np.ndarray:
-    """``log d_e2 = logdet(F)/2 - log P + maha/2`` (K, n): the log of Gath-Geva's exponential
-    distance ``sqrt(det F) / P * exp(maha / 2)``."""
-    out = maha * 0.5
-    out += (0.5 * logdet - log_priors)[:, None]
-    return out
 
 
 def validity(u: np.ndarray, w: np.ndarray, maha: np.ndarray, logdet: np.ndarray) -> tuple[float, float, float]:

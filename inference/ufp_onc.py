@@ -45,6 +45,7 @@ ENGINE_CONSTRAINTS: dict[str, list] = {
     "min_cluster_size": [Interval(numbers.Real, 0, None, closed="neither"), NoneValue()],
     "new_prototype": [Options(("distance", "worst"))],
     "stop": [Options(("k_max", "first_max"))],
+    "min_k": [Interval(numbers.Integral, 1, None)],
     "max_fit_points": [Interval(numbers.Integral, 10, None), NoneValue()],
     "voxel_size": [Interval(numbers.Real, 0, None, closed="neither"), NoneValue()],
     "chunk_size": [Interval(numbers.Integral, 1, None)],
@@ -179,6 +180,8 @@ def prepare_fit_set(X: np.ndarray, w: np.ndarray, *, max_fit_points: int | None,
     if reduce and X.shape[1] <= 3:
         size = voxel_size if voxel_size is not None else auto_voxel_size(Xc, max_fit_points)
         red = voxel_reduce(Xc, size, w)
+        while voxel_size is None and len(red) > max_fit_points:  # the size search counts on a finer grid
+            red = voxel_reduce(Xc, red.voxel_size * 1.05, w)
         return FitSet(Moments.build(red.centroids, red.weights, red.scatter), offset, red.voxel_size)
     order = np.lexsort(Xc.T[::-1])
     return FitSet(Moments.build(Xc[order], w[order]), offset, None)
@@ -200,6 +203,7 @@ def ufp_onc(
     min_cluster_size: float | None = None,
     new_prototype: str = "distance",
     stop: str = "k_max",
+    min_k: int = 1,
     max_fit_points: int | None = 6000,
     voxel_size: float | None = None,
     chunk_size: int = 65536,
@@ -236,6 +240,9 @@ def ufp_onc(
         point (Gath-Geva's way V), or the point of lowest maximum membership (way W).
     stop : {'k_max', 'first_max'}
         Compute every K up to k_max, or stop as soon as APD's first local maximum is confirmed.
+    min_k : int
+        Smallest K that may be chosen: the first local maximum is sought among K >= min_k (a
+        divisive split asks for 2). Partitions with smaller K are still computed and returned.
     max_fit_points : int, optional
         Clouds larger than this are fitted on a voxel grid sized to at most this many voxels;
         None fits every point.
@@ -253,7 +260,7 @@ def ufp_onc(
     t_start = time.perf_counter()
     params = dict(k_max=k_max, m=m, center_power=center_power, tol=tol, fcm_tol=fcm_tol, max_iter=max_iter,
                   fcm_max_iter=fcm_max_iter, min_variance=min_variance, max_condition=max_condition,
-                  min_cluster_size=min_cluster_size, new_prototype=new_prototype, stop=stop,
+                  min_cluster_size=min_cluster_size, new_prototype=new_prototype, stop=stop, min_k=min_k,
                   max_fit_points=max_fit_points, voxel_size=voxel_size, chunk_size=chunk_size)
     validate_params("ufp_onc", params, ENGINE_CONSTRAINTS)
     X = check_points(X, owner="ufp_onc")
@@ -313,10 +320,12 @@ def ufp_onc(
         if progress is not None:
             progress(part)
         prev = state
-        if stop == "first_max" and len(partitions) >= 2 and partitions[-1].apd <= partitions[-2].apd:
+        if (stop == "first_max" and len(partitions) >= 2 and partitions[-2].k >= min_k
+                and partitions[-1].apd <= partitions[-2].apd):
             stop_reason = "first_max"
             break
-    chosen = partitions[first_local_max([p.apd for p in partitions])]
+    eligible = [p for p in partitions if p.k >= min_k] or partitions[-1:]
+    chosen = eligible[first_local_max([p.apd for p in eligible])]
     memberships = chosen.predict_proba(X, chunk_size)
     return UFPONCResult(
         partitions=tuple(partitions), chosen_k=chosen.k, memberships=memberships, offset=fit.offset,

@@ -67,10 +67,12 @@ def count_voxels(X: np.ndarray, size: float) -> int:
 
 
 def auto_voxel_size(X: np.ndarray, target: int) -> float:
-    """The smallest voxel edge (within ~10 %) whose grid has at most ``target`` occupied voxels.
+    """A voxel edge whose grid has at most ``target`` occupied voxels, and at least about 90 % of
+    that (the coarsest grid that fits, within ~6 % in edge length).
 
-    Deterministic: depends on the set of points only. Counts are searched on the distinct cells of
-    a fine grid, so the full cloud is gridded once.
+    Deterministic: depends on the set of points only. The cloud is gridded once, finely; coarser
+    grids are counted on its distinct cells, with a secant search in log-log space (the number of
+    occupied voxels of a surface falls about as the square of the edge).
     """
     if X.shape[1] > 3:
         raise ValueError("voxel reduction supports at most 3 dimensions")
@@ -80,22 +82,28 @@ def auto_voxel_size(X: np.ndarray, target: int) -> float:
         return 1.0
     fine = max(extent / 4096.0, _min_size(X))
     fine_cells = _decode(np.unique(_keys(_cells(X, lo, fine))), X.shape[1])
+    n_fine = fine_cells.shape[0]
+    if n_fine <= target:
+        return fine
 
     def occupied(factor: float) -> int:
         return int(np.unique(_keys(np.floor(fine_cells / factor).astype(np.int64))).size)
 
-    if fine_cells.shape[0] <= target:
-        return fine
-    low, high = 1.0, 2.0
-    while occupied(high) > target:
-        low, high = high, high * 2.0
-    while high / low > 1.1:
-        mid = np.sqrt(low * high)
-        if occupied(mid) > target:
-            low = mid
-        else:
-            high = mid
-    return fine * high
+    f0, n0 = 1.0, n_fine
+    f = float(np.sqrt(n_fine / target))
+    n = occupied(f)
+    for _ in range(6):
+        if 0.9 * target <= n <= target:
+            return fine * f
+        slope = np.log(n / n0) / np.log(f / f0) if n != n0 and f != f0 else -2.0
+        slope = min(slope, -0.5)  # more voxels for a finer grid, whatever the local shape
+        f0, n0 = f, n
+        f = max(f * (0.95 * target / n) ** (1.0 / slope), 1.0)
+        n = occupied(f)
+    while n > target:  # did not settle: make sure of the bound
+        f *= 1.1
+        n = occupied(f)
+    return fine * f
 
 
 def voxel_reduce(X: np.ndarray, size: float, sample_weight: np.ndarray | None = None) -> VoxelReduction:

@@ -16,10 +16,7 @@ from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 
-import laspy
 import numpy as np
-import plyfile
-import pypcd4
 
 from kbs.errors import CloudFileError, KbsError, ParameterError
 from kbs.io.cloud import PointCloud
@@ -140,6 +137,8 @@ def _from_structured(
 def read_ply(path: Path) -> PointCloud:
     """Read the ``vertex`` element of an ascii or binary PLY file (plyfile); list properties are skipped."""
     _check_magic(path, (b"ply",), "PLY")
+    import plyfile  # each format's library is imported when a file of that format is read
+
     with _library_errors(path, "PLY"):
         ply = plyfile.PlyData.read(str(path))  # memory-mapped when binary; from_arrays copies
     elements = {element.name: element for element in ply.elements}
@@ -154,6 +153,8 @@ def read_ply(path: Path) -> PointCloud:
 def read_pcd(path: Path) -> PointCloud:
     """Read an ascii, binary or binary_compressed PCD file (pypcd4); HEIGHT > 1 gives an organised cloud."""
     _check_magic(path, (b"#", b"VERSION", b"FIELDS"), "PCD")
+    import pypcd4
+
     with _library_errors(path, "PCD"):
         pcd = pypcd4.PointCloud.from_path(path)
     meta = pcd.metadata
@@ -207,6 +208,8 @@ def read_las(path: Path) -> PointCloud:
     kind = "LAZ" if path.suffix.lower() == ".laz" else "LAS"
     _check_magic(path, (b"LASF",), kind)
     _check_las_layout(path, kind)
+    import laspy
+
     with _library_errors(path, kind):
         las = laspy.read(path)
         _check_count(path, kind, las.header.point_count, len(las.points))

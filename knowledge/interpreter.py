@@ -100,11 +100,12 @@ class Interpreter:
 
     # -- engine --------------------------------------------------------------------------------
 
-    def _ufp_onc(self, X: np.ndarray, stop: str) -> UFPONCResult:
+    def _ufp_onc(self, X: np.ndarray, stop: str, min_k: int = 1) -> UFPONCResult:
         e = self.rb.engine
         return ufp_onc(X, e["k_max"], m=e["m"], tol=e["tol"], max_iter=e["max_iter"],
                        min_variance=e["min_variance"], max_condition=e["max_condition"],
-                       new_prototype=e["new_prototype"], stop=stop, max_fit_points=e["max_fit_points"])
+                       new_prototype=e["new_prototype"], stop=stop, min_k=min_k,
+                       max_fit_points=e["max_fit_points"])
 
     def _initial_k(self, res: UFPONCResult) -> int:
         ik = self.rb.engine["initial_k"]
@@ -354,9 +355,9 @@ class Interpreter:
 
     def _split(self, node: _Node, X: np.ndarray, cl: Cluster, rec: ClusterRecord, action: str, rule) -> list[_Node]:
         if action == "split":
-            res = self._ufp_onc(X[node.idx], "first_max")
+            res = self._ufp_onc(X[node.idx], "first_max", min_k=self.rb.engine["split_min_k"])
             k = res.chosen_k
-            if k == 1:
+            if k < 2:
                 if len(res.partitions) < 2:
                     raise FitError("UFP-ONC found no second cluster")
                 k = 2

@@ -27,7 +27,7 @@ ACTIONS = ("split", "split_components", "reject")
 
 ENGINE_DEFAULTS: dict[str, Any] = {
     "m": 2.0, "k_max": 10, "initial_k": "first_apd_max", "max_fit_points": 6000, "min_variance": 1e-6,
-    "max_condition": 1e4, "tol": 1e-3, "max_iter": 100, "new_prototype": "distance",
+    "max_condition": 1e4, "tol": 1e-3, "max_iter": 100, "new_prototype": "distance", "split_min_k": 1,
 }
 LIMIT_DEFAULTS: dict[str, Any] = {"max_depth": 8, "max_clusters": 400, "min_points": 30}
 GROUND_DEFAULTS: dict[str, Any] = {"normal": "auto", "candidate": None, "min_points": 500, "fallback": [0.0, 0.0, 1.0]}

@@ -24,7 +24,7 @@ from kbs.inference import (
     ufp_onc,
     voxel_reduce,
 )
-from kbs.inference.kernels import Moments, fuzzy_covariances, weighted_centers
+from kbs.inference.kernels import Moments, fuzzy_covariances
 from scenes import anisotropic_blobs, ground_and_boxes
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -84,7 +84,7 @@ def test_hard_memberships_give_numpy_covariance():
     X = X + [100.0, -50.0, 7.0]
     u = np.stack([(labels == k).astype(float) for k in range(3)])  # (K, n)
     mom = Moments.build(X, np.ones(len(X)))
-    centers = weighted_centers(u, mom.w, X, 2.0)
+    centers = mom.centers(u, 2.0)
     cov, mass = fuzzy_covariances(mom, u, centers)
     for k in range(3):
         np.testing.assert_allclose(centers[k], X[labels == k].mean(axis=0), rtol=1e-12)
@@ -367,3 +367,14 @@ def test_inference_imports_neither_knowledge_nor_cli_nor_files():
                 names = [node.module]
             for name in names:
                 assert not name.startswith(("kbs.knowledge", "kbs.cli", "kbs.io", "yaml")), f"{path.name} imports {name}"
+
+
+def test_min_k_seeks_the_first_apd_maximum_among_larger_k():
+    X = np.random.default_rng(12).normal(0, 1, (2000, 3)) * [3.0, 1.0, 0.3]  # one blob: K = 1
+    one = ufp_onc(X, 6, stop="first_max")
+    assert one.chosen_k == 1 and [p.k for p in one.partitions] == [1, 2]
+    two = ufp_onc(X, 6, stop="first_max", min_k=2)
+    eligible = [p for p in two.partitions if p.k >= 2]
+    assert two.chosen_k >= 2
+    assert two.chosen_k == eligible[first_local_max([p.apd for p in eligible])].k
+    assert two.partitions[0].apd > two.best.apd  # K = 1 would have won
