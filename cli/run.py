@@ -74,7 +74,7 @@ def run(ctx: click.Context, rules: str, cloud: Path, sensor, out_dir: Path, plug
         "explanation": seg.explanation.to_dict(),
     }
     try:
-        js.write_text(json.dumps(doc, indent=1, default=_jsonable))
+        js.write_text(json.dumps(doc, separators=(",", ":"), default=_jsonable))
     except OSError as exc:
         raise CloudFileError(str(js), f"cannot write: {exc.strerror or exc}") from exc
     t_write = time.perf_counter() - t1

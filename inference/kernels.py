@@ -46,16 +46,11 @@ def memberships_from_sq_dist(d2: np.ndarray, m: float) -> np.ndarray:
 
 
 def sq_euclidean(XT: np.ndarray, centers: np.ndarray) -> np.ndarray:
-    """Squared Euclidean distances (K, n) from points ``XT`` (D, n), by explicit differences."""
-    K, D = centers.shape
-    out = np.zeros((K, XT.shape[1]))
-    tmp = np.empty(XT.shape[1])
-    for k in range(K):
-        for d in range(D):
-            np.subtract(XT[d], centers[k, d], out=tmp)
-            tmp *= tmp
-            out[k] += tmp
-    return out
+    """Squared Euclidean distances (K, n) from points ``XT`` (D, n), by explicit differences (no
+    cancellation, unlike the expanded |x|^2 - 2 x.c + |c|^2)."""
+    d = XT[None, :, :] - centers[:, :, None]
+    d *= d
+    return d.sum(axis=1)
 
 
 def powered(u: np.ndarray, power: float) -> np.ndarray:

@@ -130,7 +130,7 @@ class Explanation:
         return {
             "rule_base": self.rule_base, "rule_file": self.rule_file, "strategy": self.strategy,
             "label_names": list(self.label_names), "root": self.root, "ground": self.ground,
-            "notes": list(self.notes), "clusters": [asdict(r) for r in self.walk()],
+            "notes": list(self.notes), "clusters": [_record_dict(r) for r in self.walk()],
         }
 
     @classmethod
@@ -220,3 +220,12 @@ def _fmt(v: Any) -> str:
     if isinstance(v, (list, tuple)):
         return "[" + ", ".join(_fmt(x) for x in v) + "]"
     return str(v)
+
+
+def _record_dict(r: ClusterRecord) -> dict[str, Any]:
+    """A record as plain data (what ``dataclasses.asdict`` gives, without its deep copies)."""
+    d = dict(vars(r))
+    d["checks"] = [dict(vars(c)) for c in r.checks]
+    d["apd"] = None if r.apd is None else {"ks": list(r.apd.ks), "apd": list(r.apd.apd), "chosen": r.apd.chosen}
+    d["children"], d["notes"], d["decisive"] = list(r.children), list(r.notes), list(r.decisive)
+    return d

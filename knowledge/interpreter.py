@@ -15,7 +15,6 @@ recorded; the run always terminates (depth, cluster count and minimum size are b
 """
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -23,7 +22,7 @@ from typing import Any, Callable
 import numpy as np
 
 from kbs.errors import FitError, KbsError
-from kbs.inference import UFPONCResult, angle_between_planes, ufp_onc
+from kbs.inference import UFPONCResult, ufp_onc
 from kbs.knowledge.connexity import Connexity, assign_to_nearest, project_on_plane
 from kbs.knowledge.explain import APDCurve, CheckRecord, ClusterRecord, Explanation
 from kbs.knowledge.predicates import Cluster, Ground, Measurement, PredicateError, Scene
@@ -274,7 +273,7 @@ class Interpreter:
         return self._children_from_memberships(root, u)
 
     def _run_divisive(self, X, root, res, k0, records, ground_info, notes):
-        rb, lim = self.rb, self.rb.limits
+        rb = self.rb
         children = self._initial_children(X, root, res, k0)
         records["c"].children = [c.id for c in children]
         pending = [(c, *self._record(c, X)) for c in children]
@@ -470,31 +469,29 @@ class Interpreter:
                 "eigenvalues": geo.eigenvalues.tolist(), "mass": geo.mass}
 
     def _merge(self, leaves) -> list[list[int]]:
-        """Groups of leaf indices: coplanar clusters of the merge label are merged (union-find)."""
-        parent = list(range(len(leaves)))
-
-        def find(i: int) -> int:
-            while parent[i] != i:
-                parent[i] = parent[parent[i]]
-                i = parent[i]
-            return i
-
+        """Groups of leaf indices: clusters of the merge label whose planes agree (normals within
+        max_angle, each centre within max_offset of the other's plane) are merged, transitively."""
+        groups = np.arange(len(leaves))
         spec = self.rb.merge
         if spec is not None:
-            cand = [i for i, (_, _, rec) in enumerate(leaves) if rec.label == spec.label]
-            for a_i, a in enumerate(cand):
-                ga = leaves[a][1].geometry
-                for b in cand[a_i + 1:]:
-                    gb = leaves[b][1].geometry
-                    angle = math.degrees(angle_between_planes(ga.normal, gb.normal))
-                    offset = max(abs(ga.distance_to_plane(gb.center[None])[0]),
-                                 abs(gb.distance_to_plane(ga.center[None])[0]))
-                    if angle <= spec.max_angle and offset <= spec.max_offset:
-                        parent[find(b)] = find(a)
-        groups: dict[int, list[int]] = {}
-        for i in range(len(leaves)):
-            groups.setdefault(find(i), []).append(i)
-        return list(groups.values())
+            cand = np.array([i for i, (_, _, rec) in enumerate(leaves) if rec.label == spec.label], dtype=int)
+            if cand.size > 1:
+                geos = [leaves[i][1].geometry for i in cand]
+                N = np.array([g.normal for g in geos])
+                C = np.array([g.center for g in geos])
+                cos = np.clip(np.abs(N @ N.T), 0.0, 1.0)
+                off = np.abs(np.einsum("id,ijd->ij", N, C[None, :, :] - C[:, None, :]))  # j's centre to i's plane
+                ok = (np.degrees(np.arccos(cos)) <= spec.max_angle) & (np.maximum(off, off.T) <= spec.max_offset)
+                from scipy.sparse.csgraph import connected_components
+
+                _, comp = connected_components(ok, directed=False)
+                for c in np.unique(comp):  # each merged group takes its first member's number
+                    members = cand[comp == c]
+                    groups[members] = members[0]
+        out: dict[int, list[int]] = {}
+        for i, g in enumerate(groups):
+            out.setdefault(int(g), []).append(i)
+        return list(out.values())
 
 
 def segment(X: np.ndarray, rule_base: RuleBase, *, sensor: Any = None) -> Segmentation:

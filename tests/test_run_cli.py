@@ -3,7 +3,6 @@ real command."""
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
 import numpy as np
