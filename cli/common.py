@@ -30,7 +30,9 @@ def progress_bar(total: int, desc: str, quiet: bool) -> Iterator[tqdm]:
 
 def write_result_ply(path: Path, cloud: PointCloud, results: Mapping[str, np.ndarray]) -> None:
     """Write the cloud's points with its own fields and the per-point ``results`` to a PLY file
-    (an input field named like a result is kept with the suffix '_in')."""
+    (an input field named like a result is kept with the suffix '_in'). For an organised input
+    (a range image, an organised PCD), ``pixel`` (int32) is each point's position in the
+    row-major grid of ``cloud.shape``."""
     fields = {}
     for name, values in cloud.fields.items():  # the input's own fields, under PLY-safe names
         safe = re.sub(r"\W", "_", name)
@@ -39,4 +41,6 @@ def write_result_ply(path: Path, cloud: PointCloud, results: Mapping[str, np.nda
         if safe and safe not in results and np.asarray(values).ndim == 1:
             fields[safe] = values
     fields.update(results)
+    if cloud.shape is not None and "pixel" not in fields:  # organised input: where each point sits
+        fields["pixel"] = cloud.index.astype(np.int32)
     write_ply(path, cloud.xyz, fields)
