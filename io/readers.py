@@ -20,6 +20,7 @@ import numpy as np
 
 from kbs.errors import CloudFileError, KbsError, ParameterError
 from kbs.io.cloud import PointCloud
+from kbs.io.segcomp import read_range
 from kbs.io.text import TableError, parse_table
 
 logger = logging.getLogger("kbs.io")
@@ -308,6 +309,7 @@ READERS: Mapping[str, Callable[[Path], PointCloud]] = {
     ".pts": read_text,
     ".npy": read_npy,
     ".bin": read_kitti_bin,
+    ".range": read_range,  # ABW range images of the SegComp contest (kbs.io.segcomp)
 }
 
 #: The file extensions :func:`read_cloud` understands.

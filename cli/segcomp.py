@@ -1,0 +1,109 @@
+"""``kbs segcomp``: turn a ``kbs run`` result on a range image into the SegComp ``compare`` inputs."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+import numpy as np
+
+from kbs.errors import CloudFileError
+from kbs.io import PointCloud, read_cloud
+from kbs.io.segcomp import (
+    FIRST_REGION_LABEL,
+    read_sunraster,
+    region_normals,
+    segmentation_to_image,
+    write_ms_nor,
+    write_ms_seg,
+)
+
+
+def _result_arrays(result: Path, cloud: PointCloud) -> tuple[np.ndarray, np.ndarray]:
+    """The result's per-point ``cluster`` and ``pixel``, or a one-line error saying what is missing."""
+    if "cluster" not in cloud.fields:
+        raise CloudFileError(str(result), "no 'cluster' field: not a `kbs run` result")
+    if "pixel" not in cloud.fields:
+        raise CloudFileError(
+            str(result),
+            "no 'pixel' field: the input of `kbs run` was not organised (run it on a range image, e.g. IMAGE.range)",
+        )
+    cluster, pixel = cloud.fields["cluster"], cloud.fields["pixel"]
+    if cluster.dtype.kind not in "iu" or pixel.dtype.kind not in "iu":
+        raise CloudFileError(
+            str(result), f"'cluster' and 'pixel' must be integers, got {cluster.dtype} and {pixel.dtype}"
+        )
+    return cluster.astype(np.int64), pixel.astype(np.int64)
+
+
+def _check_against_image(result: Path, image_path: Path, image: np.ndarray, pixel: np.ndarray) -> None:
+    """Every point must sit on a pixel of the image that holds data."""
+    rows, cols = image.shape
+    outside = (pixel < 0) | (pixel >= image.size)
+    if outside.any():
+        raise CloudFileError(
+            str(result), f"pixel {int(pixel[outside][0])} is outside the {rows} x {cols} grid of {image_path}: "
+                         "the result was not computed from this image"
+        )
+    empty = image.ravel()[pixel] == 0
+    if empty.any():
+        raise CloudFileError(
+            str(result), f"{int(empty.sum())} points sit on pixels where {image_path} has no data: "
+                         "the result was not computed from this image"
+        )
+    if np.unique(pixel).size != pixel.size:
+        raise CloudFileError(str(result), "two points share a pixel: not a `kbs run` result on a range image")
+
+
+def _not_an_input(path: Path, *inputs: Path) -> None:
+    for source in inputs:
+        if path.resolve() == source.resolve():
+            raise CloudFileError(str(path), "the output would overwrite an input; choose another path")
+
+
+@click.command()
+@click.argument("result", type=click.Path(path_type=Path))
+@click.option("--image", "image_path", required=True, type=click.Path(path_type=Path), metavar="IMAGE.range",
+              help="The range image the result was computed from (gives the grid).")
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), metavar="X.ms-seg",
+              help="Machine-segmentation image to write [default: RESULT with the suffix .ms-seg].")
+@click.option("--normals", type=click.Path(dir_okay=False, path_type=Path), metavar="X.ms-nor",
+              help="Region normals file to write [default: the --out path with the suffix .ms-nor].")
+@click.option("--no-normals", is_flag=True, help="Do not write the normals file (for compare -noNormals).")
+@click.pass_context
+def segcomp(ctx: click.Context, result: Path, image_path: Path, out: Path | None, normals: Path | None,
+            no_normals: bool) -> None:
+    """Write the SegComp machine segmentation of a `kbs run` RESULT.ply on a range image.
+
+    Cluster k becomes region 10 + k (labels consecutive from 10, at most 246 regions); noise and
+    pixels without data are 0. The normals file holds each region's least-squares plane normal.
+    Name the outputs <prefix>.ms-seg / <prefix>.ms-nor beside <prefix>.gt-seg for `compare`.
+    """
+    quiet = ctx.obj.get("quiet", False)
+    if no_normals and normals is not None:
+        raise click.UsageError("--normals and --no-normals exclude each other")
+    out = out if out is not None else result.with_suffix(".ms-seg")
+    normals = None if no_normals else (normals if normals is not None else out.with_suffix(".ms-nor"))
+    cloud = read_cloud(result)
+    cluster, pixel = _result_arrays(result, cloud)
+    image = read_sunraster(image_path)
+    _check_against_image(result, image_path, image, pixel)
+    labels = segmentation_to_image(cluster, pixel, image.shape)
+    n_regions = int(np.unique(labels[labels >= FIRST_REGION_LABEL]).size)
+    if n_regions == 0:
+        raise CloudFileError(str(result), "no cluster of at least 3 points: nothing to segment (every point is noise)")
+    region_normal = region_normals(labels, cloud.xyz, pixel) if normals is not None else None
+    for path in (out, normals):
+        if path is not None:
+            _not_an_input(path, result, image_path)
+    write_ms_seg(out, labels)
+    if region_normal is not None:
+        write_ms_nor(normals, region_normal)
+    n_clusters = np.unique(cluster[cluster >= 0]).size
+    labelled = int(np.count_nonzero(labels >= FIRST_REGION_LABEL))
+    click.echo(f"{result}: {len(cluster):,} points, {n_clusters} clusters -> {n_regions} regions "
+               f"(labels {FIRST_REGION_LABEL}..{FIRST_REGION_LABEL + n_regions - 1}); "
+               f"{labelled:,} of the image's {int(np.count_nonzero(image)):,} pixels with data in a region")
+    click.echo(f"wrote {out}" + (f" and {normals}" if normals is not None else ""))
+    if not quiet and n_regions < n_clusters:
+        click.echo(f"note: {n_clusters - n_regions} clusters left out of the regions (see the warnings above)",
+                   err=True)
