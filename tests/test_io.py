@@ -598,6 +598,7 @@ def test_supported_extensions_match_readers() -> None:
         ".pcd",
         ".ply",
         ".pts",
+        ".range",
         ".txt",
         ".xyz",
     )
