@@ -14,6 +14,7 @@ import click
 from kbs import __version__
 from kbs.cli.cluster import cluster
 from kbs.cli.run import explain, predicates, rules, run
+from kbs.cli.synth import synth
 from kbs.cli.segcomp import segcomp
 from kbs.errors import ExitCode, KbsError
 
@@ -37,7 +38,7 @@ def cli(ctx: click.Context, quiet: bool) -> None:
                         stream=sys.stderr)
 
 
-for _command in (run, explain, rules, predicates, cluster, segcomp):
+for _command in (run, explain, rules, predicates, cluster, segcomp, synth):
     cli.add_command(_command)
 
 
