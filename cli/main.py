@@ -13,6 +13,7 @@ import click
 
 from kbs import __version__
 from kbs.cli.cluster import cluster
+from kbs.cli.eval import eval_
 from kbs.cli.run import explain, predicates, rules, run
 from kbs.cli.synth import synth
 from kbs.cli.segcomp import segcomp
@@ -38,7 +39,7 @@ def cli(ctx: click.Context, quiet: bool) -> None:
                         stream=sys.stderr)
 
 
-for _command in (run, explain, rules, predicates, cluster, segcomp, synth):
+for _command in (run, explain, rules, predicates, cluster, segcomp, eval_, synth):
     cli.add_command(_command)
 
 
