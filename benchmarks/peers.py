@@ -96,7 +96,7 @@ def ransac_ground(X: np.ndarray, frame: Frame, distance: float = 0.2) -> np.ndar
     import open3d as o3d
 
     o3d.utility.random.seed(0)
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(X))
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(X, dtype=np.float64)))  # a writable copy
     _, inliers = pc.segment_plane(distance_threshold=distance, ransac_n=3, num_iterations=1000)
     mask = np.zeros(len(X), bool)
     mask[np.asarray(inliers, dtype=np.int64)] = True
@@ -110,6 +110,7 @@ def ransac_dbscan_planes(X: np.ndarray, distance: float = 0.01, min_points: int 
     import open3d as o3d
 
     o3d.utility.random.seed(0)
+    X = np.array(X, dtype=np.float64)  # Open3D wants a writable array
     labels = np.full(len(X), -1, dtype=np.int64)
     rest = np.arange(len(X))
     nxt = 0
