@@ -6,21 +6,41 @@ errors exit with 2. Anything else is a bug: it prints a traceback and exits with
 """
 from __future__ import annotations
 
+import importlib
 import logging
 import sys
 
 import click
 
 from kbs import __version__
-from kbs.cli.cluster import cluster
-from kbs.cli.eval import eval_
-from kbs.cli.run import explain, predicates, rules, run
-from kbs.cli.synth import synth
-from kbs.cli.segcomp import segcomp
 from kbs.errors import ExitCode, KbsError
 
+#: command name -> "module:attribute". Commands are imported when used (click's lazy-group
+#: pattern), so `kbs run` does not pay for the imports of `kbs eval` or `kbs synth`.
+COMMANDS = {
+    "run": "kbs.cli.run:run",
+    "explain": "kbs.cli.run:explain",
+    "rules": "kbs.cli.run:rules",
+    "predicates": "kbs.cli.run:predicates",
+    "eval": "kbs.cli.eval:eval_",
+    "cluster": "kbs.cli.cluster:cluster",
+    "synth": "kbs.cli.synth:synth",
+    "segcomp": "kbs.cli.segcomp:segcomp",
+}
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+
+class LazyGroup(click.Group):
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return list(COMMANDS)
+
+    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        if name not in COMMANDS:
+            return None
+        module, attr = COMMANDS[name].split(":")
+        return getattr(importlib.import_module(module), attr)
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="kbs")
 @click.option("-q", "--quiet", is_flag=True, help="Only errors on stderr (no progress, no notes).")
 @click.pass_context
@@ -39,8 +59,6 @@ def cli(ctx: click.Context, quiet: bool) -> None:
                         stream=sys.stderr)
 
 
-for _command in (run, explain, rules, predicates, cluster, segcomp, eval_, synth):
-    cli.add_command(_command)
 
 
 def main(argv: list[str] | None = None) -> int:
