@@ -106,11 +106,15 @@ class Interpreter:
                        new_prototype=e["new_prototype"], stop=stop, min_k=min_k,
                        max_fit_points=e["max_fit_points"])
 
-    def _initial_k(self, res: UFPONCResult) -> int:
+    def _initial_k(self, res: UFPONCResult, notes: list[str]) -> int:
         ik = self.rb.engine["initial_k"]
         if isinstance(ik, int):
             ks = [p.k for p in res.partitions]
-            return ik if ik in ks else ks[-1]
+            if ik not in ks:
+                notes.append(f"initial_k = {ik} could not be reached (the sweep stopped at K = {ks[-1]}: "
+                             f"{res.stop_reason}); K = {ks[-1]} is used")
+                return ks[-1]
+            return ik
         return res.chosen_k
 
     # -- facts -----------------------------------------------------------------------------------
@@ -246,7 +250,8 @@ class Interpreter:
         global_mode = self.rb.strategy == "global"
         ground_info: dict[str, Any] = {}
         try:
-            res = self._ufp_onc(X, "k_max" if global_mode else "first_max")
+            fixed_k = isinstance(self.rb.engine["initial_k"], int)
+            res = self._ufp_onc(X, "k_max" if global_mode or fixed_k else "first_max")
         except FitError as exc:  # too few or degenerate points: the scene is one cluster
             root_rec.notes.append(f"the scene was not partitioned: {exc}")
             child = _Node("c0", "c", 1, root.idx, root.weight, root.path)
@@ -257,9 +262,9 @@ class Interpreter:
             self._judge_leaf(child, c_cl, c_rec, scene)
             leaves = [] if c_rec.action == "reject" else [(child, c_cl, c_rec)]
             return self._finish(X, leaves, scene, records, ground_info, [], t0)
-        k0 = self._initial_k(res)
-        root_rec.apd = self._apd(res, k0)
         notes: list[str] = list(res.notes)
+        k0 = self._initial_k(res, notes)
+        root_rec.apd = self._apd(res, k0)
         if global_mode:
             leaves, scene = self._run_global(X, root, res, k0, records, ground_info, notes)
         else:

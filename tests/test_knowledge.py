@@ -28,7 +28,7 @@ from kbs.knowledge import (
     shipped_rule_bases,
 )
 from kbs.knowledge.rulebase import parse_rule_base, schema
-from scenes import box_on_table, ground_and_rocks, ground_with_small_obstacles
+from scenes import anisotropic_blobs, box_on_table, ground_and_rocks, ground_with_small_obstacles
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -355,3 +355,18 @@ def test_the_interpreter_terminates_and_assigns_every_point(n, seed, shape):
     assert set(np.unique(seg.cluster[seg.cluster >= 0])) == set(range(len(seg.clusters)))
     assert np.isfinite(seg.membership).all()
     _descendants_partition_parents(seg.explanation)
+
+
+def test_fixed_initial_k_is_honoured_or_its_shortfall_recorded():
+    X, _ = ground_and_rocks()
+    rb = load_rule_base("outdoor")
+    three = parse_rule_base(rb.text.replace("initial_k: first_apd_max", "initial_k: 3"), "o.yaml",
+                            PredicateRegistry.default())
+    seg = Interpreter(three).run(X)
+    root = seg.explanation["c"]
+    assert len(root.children) == 3 and root.apd.chosen == 3
+    blobs, _ = anisotropic_blobs()  # three blobs: a new prototype dies before K = 9
+    far = parse_rule_base(rb.text.replace("initial_k: first_apd_max", "initial_k: 9"), "o.yaml",
+                          PredicateRegistry.default())
+    seg = Interpreter(far).run(blobs)
+    assert any(n.startswith("initial_k = 9 could not be reached") for n in seg.explanation.notes)
