@@ -26,6 +26,7 @@ COMMANDS = {
     "cluster": "kbs.cli.cluster:cluster",
     "synth": "kbs.cli.synth:synth",
     "segcomp": "kbs.cli.segcomp:segcomp",
+    "render": "kbs.cli.render:render",
 }
 
 

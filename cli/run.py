@@ -48,8 +48,13 @@ plugin_option = click.option("--plugin", "plugins", multiple=True, type=click.Pa
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=Path("kbs-out"),
               show_default=True, help="Directory for <stem>.ply and <stem>.json.")
 @plugin_option
+@click.option("--color-by", "color_by", type=click.Choice(["cluster", "label"]), default="cluster", show_default=True,
+              help="Colour of each vertex (red green blue) in <stem>.ply: one per output cluster or per label.")
+@click.option("--meshes", is_flag=True, help="Also write DIR/<stem>-meshes/: a convex hull per obstacle cluster "
+              "(obstacle-<index>.ply) and the ground surface (ground.ply).")
 @click.pass_context
-def run(ctx: click.Context, rules: str, cloud: Path, sensor, out_dir: Path, plugins: tuple[Path, ...]) -> None:
+def run(ctx: click.Context, rules: str, cloud: Path, sensor, out_dir: Path, plugins: tuple[Path, ...],
+        color_by: str = "cluster", meshes: bool = False) -> None:
     """Segment CLOUD with a rule base; write DIR/<stem>.ply (per-vertex cluster, label, membership)
     and DIR/<stem>.json (label names, clusters, the explanation tree)."""
     quiet = ctx.obj.get("quiet", False)
@@ -66,7 +71,10 @@ def run(ctx: click.Context, rules: str, cloud: Path, sensor, out_dir: Path, plug
     ply, js = out_dir / f"{cloud.stem}.ply", out_dir / f"{cloud.stem}.json"
     if ply.resolve() == cloud.resolve():
         raise CloudFileError(str(ply), "the output would overwrite the input; choose another --out")
-    write_result_ply(ply, pc, {"cluster": seg.cluster, "label": seg.label, "membership": seg.membership})
+    from kbs.report.colors import rgb_fields
+
+    write_result_ply(ply, pc, {"cluster": seg.cluster, "label": seg.label, "membership": seg.membership,
+                               **rgb_fields(seg.cluster if color_by == "cluster" else seg.label)})
     doc = {
         "kbs_version": __version__, "input": str(cloud), "n_points": len(pc), "n_dropped": pc.n_dropped,
         "rule_base": rb.name, "rule_file": rb.path, "units": rb.units, "sensor": list(map(float, sensor or rb.sensor)),
@@ -86,6 +94,11 @@ def run(ctx: click.Context, rules: str, cloud: Path, sensor, out_dir: Path, plug
     click.echo(f"  time: {time.perf_counter() - t0:.2f} s (read {t_read:.2f}, segment {seg.seconds:.2f}, "
                f"write {t_write:.2f})")
     click.echo(f"wrote {ply} and {js}")
+    if meshes:
+        from kbs.report.meshes import write_meshes
+
+        click.echo(write_meshes(out_dir / f"{cloud.stem}-meshes", pc.xyz, seg.cluster, seg.label,
+                                seg.label_names).describe())
     if not quiet:
         for note in seg.explanation.notes + ([seg.explanation.ground["note"]] if "note" in seg.explanation.ground else []):
             click.echo(f"note: {note}", err=True)

@@ -1,0 +1,62 @@
+"""``kbs render``: static figures (PNG) of a ``kbs run`` result."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import click
+
+from kbs.errors import CloudFileError
+
+KINDS = ("series", "map", "clusters")
+
+
+def _outputs(result: Path, out: Path | None, kind: str) -> dict[str, Path]:
+    """kind -> PNG path. One kind: ``--out`` as given (default ``<stem>-<kind>.png`` next to the
+    result). ``all``: three files, ``<out stem>-series.png``, ``-map.png``, ``-clusters.png``
+    (default ``<result stem>-...`` next to the result)."""
+    kinds = KINDS if kind == "all" else (kind,)
+    if out is not None and kind != "all":
+        return {kind: out}
+    base = (out.with_suffix("") if out is not None else result.with_suffix(""))
+    return {k: base.with_name(f"{base.name}-{k}.png") for k in kinds}
+
+
+@click.command()
+@click.argument("result", type=click.Path(path_type=Path))
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="PNG to write (default: <stem>-<kind>.png next to RESULT). With --kind all, three "
+                   "files: <out stem>-series.png, -map.png, -clusters.png.")
+@click.option("--kind", type=click.Choice([*KINDS, "all"]), default="all", show_default=True,
+              help="series: UFP-ONC partitions for K = 2,4,5,6,8,10 (seed paper's figure 2); map: top-down "
+                   "obstacle map; clusters: points, fuzzy centres and covariance boxes.")
+@click.option("--max-points", type=click.IntRange(100, None), default=30000, show_default=True,
+              help="Points drawn (and clustered for the series), a deterministic stride sample.")
+@click.option("--dpi", type=click.IntRange(30, 600), default=100, show_default=True)
+def render(result: Path, out: Path | None, kind: str, max_points: int, dpi: int) -> None:
+    """Draw figures of a `kbs run` RESULT.json (its points are read from the sibling RESULT.ply)."""
+    import matplotlib
+
+    matplotlib.use("Agg")  # headless whatever MPLBACKEND says
+    from kbs.report import figures
+
+    t0 = time.perf_counter()
+    res = figures.load_result(result)
+    stem = result.stem
+    for k, path in _outputs(result, out, kind).items():
+        t = time.perf_counter()
+        if k == "series":
+            fig = figures.series_figure(res.X, max_points=max_points, title=f"{stem}: UFP-ONC partitions, top view")
+        elif k == "map":
+            fig = figures.obstacle_map_figure(res.X, res.label, res.label_names, sensor=res.sensor,
+                                              title=f"{stem}: obstacle map")
+        else:
+            fig = figures.clusters_figure(res.X, res.cluster, res.doc["clusters"], membership=res.membership,
+                                          max_points=max_points, title=f"{stem}: output clusters")
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fig.savefig(path, dpi=dpi)
+        except OSError as exc:
+            raise CloudFileError(str(path), f"cannot write: {exc.strerror or exc}") from exc
+        click.echo(f"wrote {path} ({time.perf_counter() - t:.2f} s)")
+    click.echo(f"time: {time.perf_counter() - t0:.2f} s", err=True)

@@ -1,0 +1,70 @@
+"""Deterministic qualitative colours for clusters and labels (no matplotlib import: ``kbs run``
+does not pay for it).
+
+The first 18 colours are matplotlib's ``tab20`` without its two greys, dark shades first then
+light ones (so neighbouring indices differ strongly); from index 18 on, hues step by the golden
+ratio at two saturation/value levels, which keeps any number of colours distinct and
+reproducible. Index -1 (noise, not assigned) is grey, a colour the palette never uses.
+
+>>> from kbs.report.colors import colors_for
+>>> colors_for(np.array([0, 1, -1]))
+array([[ 31, 119, 180],
+       [255, 127,  14],
+       [128, 128, 128]], dtype=uint8)
+"""
+from __future__ import annotations
+
+import colorsys
+
+import numpy as np
+
+#: RGB (uint8) of noise / unassigned points (cluster or label -1).
+NOISE_RGB = (128, 128, 128)
+
+# matplotlib tab20, dark shades (even indices) first, then light ones; its greys (127,127,127)
+# and (199,199,199) left out so that grey means noise only.
+_TAB20_DARK = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),
+               (140, 86, 75), (227, 119, 194), (188, 189, 34), (23, 190, 207)]
+_TAB20_LIGHT = [(174, 199, 232), (255, 187, 120), (152, 223, 138), (255, 152, 150), (197, 176, 213),
+                (196, 156, 148), (247, 182, 210), (219, 219, 141), (158, 218, 229)]
+_BASE = np.array(_TAB20_DARK + _TAB20_LIGHT, dtype=np.uint8)
+_GOLDEN = 0.618033988749895
+
+
+def palette(n: int) -> np.ndarray:
+    """The first ``n`` colours of the palette, as an (n, 3) uint8 array (deterministic, pairwise
+    distinct, never grey)."""
+    if n <= len(_BASE):
+        return _BASE[:max(n, 0)].copy()
+    extra = []
+    for i in range(n - len(_BASE)):
+        h = (0.11 + i * _GOLDEN) % 1.0
+        s, v = (0.85, 0.80) if i % 2 == 0 else (0.55, 0.95)
+        extra.append([round(255 * c) for c in colorsys.hsv_to_rgb(h, s, v)])
+    out = np.vstack([_BASE, np.array(extra, dtype=np.uint8)])
+    # a golden-ratio hue could, after rounding, land on an earlier colour: nudge it
+    seen: set[tuple[int, int, int]] = {NOISE_RGB}
+    for i in range(out.shape[0]):
+        while tuple(int(c) for c in out[i]) in seen:
+            out[i, 2] = (int(out[i, 2]) + 1) % 256
+        seen.add(tuple(int(c) for c in out[i]))
+    return out
+
+
+def colors_for(index: np.ndarray) -> np.ndarray:
+    """RGB colours (n, 3) uint8 for integer indices (n,) (cluster or label numbers): index i gets
+    ``palette[i]``, any negative index (noise) gets :data:`NOISE_RGB`."""
+    index = np.asarray(index)
+    out = np.empty((index.size, 3), dtype=np.uint8)
+    out[:] = NOISE_RGB
+    ok = index >= 0
+    if ok.any():
+        pal = palette(int(index[ok].max()) + 1)
+        out[ok] = pal[index[ok]]
+    return out
+
+
+def rgb_fields(index: np.ndarray) -> dict[str, np.ndarray]:
+    """The PLY per-vertex properties ``red``, ``green``, ``blue`` (uint8) for indices (n,)."""
+    rgb = colors_for(index)
+    return {"red": rgb[:, 0].copy(), "green": rgb[:, 1].copy(), "blue": rgb[:, 2].copy()}

@@ -1,0 +1,266 @@
+"""Static figures of a ``kbs run`` result (matplotlib, headless).
+
+Every function returns a :class:`matplotlib.figure.Figure` built without pyplot (no global
+state, no display needed; ``fig.savefig`` renders with Agg):
+
+- :func:`series_figure`: the K-partition series of the seed paper's figure 2, UFP-ONC re-run on
+  the points and the hard partition shown for K = 2, 4, 5, 6, 8, 10 (those the sweep reaches);
+- :func:`obstacle_map_figure`: a top-down grid of ground / obstacle cells, the sensor marked;
+- :func:`clusters_figure`: the points coloured by output cluster, each fuzzy centre marked and a
+  box along the eigenvectors of the cluster's covariance (half-sides 2 sqrt(eigenvalue)).
+
+:func:`load_result` reads a result (``<stem>.json`` and its sibling ``<stem>.ply``).
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kbs.errors import CloudFileError
+from kbs.report.colors import NOISE_RGB, colors_for
+
+#: The K of the seed paper's figure 2.
+SERIES_K = (2, 4, 5, 6, 8, 10)
+
+
+@dataclass(frozen=True)
+class Result:
+    """A ``kbs run`` result read back: the JSON document and the per-point arrays of the PLY."""
+
+    doc: dict[str, Any]
+    X: np.ndarray  # (n, 3)
+    cluster: np.ndarray  # (n,) int
+    label: np.ndarray  # (n,) int
+    membership: np.ndarray  # (n,) float
+
+    @property
+    def label_names(self) -> list[str]:
+        return list(self.doc.get("label_names", []))
+
+    @property
+    def sensor(self) -> np.ndarray | None:
+        s = self.doc.get("sensor")
+        return None if s is None else np.asarray(s, dtype=float)
+
+
+def load_result(path: str | Path) -> Result:
+    """Read ``RESULT.json`` and the sibling ``RESULT.ply`` written by ``kbs run``.
+
+    Raises
+    ------
+    CloudFileError
+        Either file is missing or is not a kbs result.
+    """
+    from kbs.io import read_cloud
+
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        doc["clusters"], doc["label_names"]  # noqa: B018 -- a kbs result has both
+    except FileNotFoundError as exc:
+        raise CloudFileError(str(path), "no such file") from exc
+    except IsADirectoryError as exc:
+        raise CloudFileError(str(path), "is a directory, not a result file") from exc
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise CloudFileError(str(path), f"not a kbs result file ({type(exc).__name__}: {exc})") from exc
+    ply = path.with_suffix(".ply")
+    if not ply.is_file():
+        raise CloudFileError(str(ply), "no such file (the points of the result, written next to its .json)")
+    pc = read_cloud(ply)
+    missing = [f for f in ("cluster", "label") if f not in pc.fields]
+    if missing:
+        raise CloudFileError(str(ply), f"not a kbs result cloud (no {', '.join(missing)} field)")
+    n = len(pc)
+    return Result(doc=doc, X=np.asarray(pc.xyz, dtype=np.float64),
+                  cluster=np.asarray(pc.fields["cluster"]).astype(np.int64),
+                  label=np.asarray(pc.fields["label"]).astype(np.int64),
+                  membership=np.asarray(pc.fields.get("membership", np.ones(n)), dtype=np.float64))
+
+
+def decimate(n: int, max_points: int) -> np.ndarray:
+    """Indices of a deterministic stride sample of at most ``max_points`` out of ``n``."""
+    step = max(1, int(np.ceil(n / max_points)))
+    return np.arange(0, n, step)
+
+
+def _figure(width: float, height: float):
+    from matplotlib.figure import Figure
+
+    return Figure(figsize=(width, height), dpi=100, layout="constrained")
+
+
+def _rgb(index: np.ndarray) -> np.ndarray:
+    return colors_for(index).astype(float) / 255.0
+
+
+def series_figure(X: np.ndarray, ks: tuple[int, ...] = SERIES_K, *, max_points: int = 30000,
+                  point_size: float = 0.5, title: str = "") -> Any:
+    """UFP-ONC re-run on ``X`` (n, 3) (stride-decimated to ``max_points``) for K = 1 .. max(ks);
+    one top-down panel per K of ``ks`` the sweep reaches, points coloured by hard cluster, the
+    K chosen by APD marked."""
+    from kbs.inference import ufp_onc
+
+    Xd = np.asarray(X, dtype=np.float64)[decimate(len(X), max_points)]
+    res = ufp_onc(Xd, k_max=max(ks), stop="k_max")
+    parts = [p for p in res.partitions if p.k in ks]
+    ncol = min(3, max(1, len(parts)))
+    nrow = int(np.ceil(len(parts) / ncol)) or 1
+    fig = _figure(4.0 * ncol, 3.6 * nrow)
+    for i, p in enumerate(parts):
+        ax = fig.add_subplot(nrow, ncol, i + 1)
+        hard = p.predict(Xd)
+        order = np.argsort(Xd[:, 2])  # higher points drawn last: obstacles stay visible from above
+        ax.scatter(Xd[order, 0], Xd[order, 1], c=_rgb(hard[order]), s=point_size, linewidths=0, rasterized=True)
+        ax.scatter(p.centers[:, 0], p.centers[:, 1], marker="x", c="k", s=25, linewidths=1.2)
+        ax.set_title(f"K = {p.k}" + ("  (chosen by APD)" if p.k == res.chosen_k else "") + f"   APD {p.apd:.3g}",
+                     fontsize=9)
+        ax.set_aspect("equal")
+        ax.tick_params(labelsize=7)
+    if len(parts) < len(ks):
+        fig.text(0.01, 0.005, f"the sweep stopped at K = {res.partitions[-1].k} ({res.stop_reason})", fontsize=8)
+    fig.suptitle(title or f"UFP-ONC partitions, top view ({len(Xd):,} points)", fontsize=11)
+    return fig
+
+
+def obstacle_grid(X: np.ndarray, label: np.ndarray, obstacle: np.ndarray, *, cell: float | None = None,
+                  max_cells: int = 400) -> tuple[np.ndarray, tuple[float, float, float]]:
+    """Top-down occupancy grid: 0 empty, 1 ground/other only, 2 obstacle (any obstacle point in
+    the cell), 3 noise only. ``obstacle`` is a boolean per label index. Returns the grid (ny, nx)
+    and ``(x0, y0, cell)``; the cell is 0.25 length units unless the extent would need more than
+    ``max_cells`` cells along a side."""
+    xy = np.asarray(X, dtype=float)[:, :2]
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    if cell is None:
+        cell = max(0.25, float((hi - lo).max()) / max_cells)
+    shape = np.maximum(np.ceil((hi - lo) / cell).astype(int), 1)
+    ij = np.minimum(((xy - lo) / cell).astype(int), shape - 1)
+    flat = ij[:, 1] * shape[0] + ij[:, 0]
+    lab = np.asarray(label)
+    is_obst = np.zeros(lab.shape, dtype=bool)
+    known = lab >= 0
+    is_obst[known] = np.asarray(obstacle, dtype=bool)[lab[known]]
+    size = int(shape[0] * shape[1])
+    any_pt = np.bincount(flat, minlength=size) > 0
+    any_known = np.bincount(flat[known], minlength=size) > 0
+    any_obst = np.bincount(flat[is_obst], minlength=size) > 0
+    grid = np.zeros(size, dtype=np.int8)
+    grid[any_pt] = 3
+    grid[any_known] = 1
+    grid[any_obst] = 2
+    return grid.reshape(shape[1], shape[0]), (float(lo[0]), float(lo[1]), float(cell))
+
+
+def obstacle_map_figure(X: np.ndarray, label: np.ndarray, label_names: list[str], *,
+                        sensor: np.ndarray | None = None, ground_label: str = "ground",
+                        cell: float | None = None, title: str = "") -> Any:
+    """Top-down map of ground vs obstacle cells (a cell is an obstacle when any of its points has
+    a label other than ``ground_label``; empty cells white, noise-only cells grey), the sensor
+    marked with a star."""
+    from matplotlib.colors import ListedColormap
+    from matplotlib.patches import Patch
+
+    obstacle = np.array([name != ground_label for name in label_names], dtype=bool)
+    grid, (x0, y0, c) = obstacle_grid(X, label, obstacle, cell=cell)
+    fig = _figure(6.4, 6.0)
+    ax = fig.add_subplot(1, 1, 1)
+    cmap = ListedColormap(["white", "#b8d8a8", "#c0392b", tuple(v / 255 for v in NOISE_RGB)])
+    ny, nx = grid.shape
+    ax.imshow(grid, cmap=cmap, vmin=0, vmax=3, origin="lower", interpolation="nearest",
+              extent=(x0, x0 + nx * c, y0, y0 + ny * c))
+    handles = [Patch(color="#b8d8a8", label=ground_label), Patch(color="#c0392b", label="obstacle"),
+               Patch(facecolor="white", edgecolor="0.6", label="no point")]
+    if sensor is not None:
+        h = ax.scatter([sensor[0]], [sensor[1]], marker="*", s=220, c="#1f4e99", edgecolors="k", zorder=3,
+                       label="sensor")
+        handles.append(h)
+    ax.legend(handles=handles, loc="upper right", fontsize=8, framealpha=0.9)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x")
+    ax.set_ylabel("y")
+    ax.set_title(title or f"obstacle map (cells {c:.3g})", fontsize=11)
+    return fig
+
+
+def _box_edges(center: np.ndarray, axes: np.ndarray, half: np.ndarray) -> list[np.ndarray]:
+    """The 12 edges (each (2, 3)) of the box ``center + sum_i s_i half_i axes[:, i]``, s_i = +-1."""
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
+    corners = center + (signs * half) @ axes.T
+    edges = []
+    for a in range(8):
+        for b in range(a + 1, 8):
+            if np.count_nonzero(signs[a] != signs[b]) == 1:
+                edges.append(corners[[a, b]])
+    return edges
+
+
+def cluster_axes(X: np.ndarray, weights: np.ndarray, normal: np.ndarray | None) -> np.ndarray:
+    """Eigenvectors (3, 3), columns e1 e2 e3 by increasing variance, of the weighted covariance of
+    a cluster's points; when ``normal`` (the JSON descriptor) is given, e1 is it and e2, e3 are
+    the principal directions within its plane."""
+    w = np.asarray(weights, dtype=float)
+    w = w / w.sum() if w.sum() > 0 else np.full(len(X), 1.0 / len(X))
+    c = w @ X
+    cov = (X - c).T @ ((X - c) * w[:, None])
+    if normal is None:
+        return np.linalg.eigh(cov)[1]
+    n = np.asarray(normal, dtype=float)
+    n = n / np.linalg.norm(n)
+    helper = np.eye(3)[int(np.argmin(np.abs(n)))]
+    u = np.cross(n, helper)
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)
+    B = np.column_stack([u, v])
+    _, vec2 = np.linalg.eigh(B.T @ cov @ B)
+    return np.column_stack([n, B @ vec2[:, 0], B @ vec2[:, 1]])
+
+
+def clusters_figure(X: np.ndarray, cluster: np.ndarray, clusters: list[dict[str, Any]], *,
+                    membership: np.ndarray | None = None, max_points: int = 30000, point_size: float = 0.6,
+                    elev: float = 35.0, azim: float = -60.0, title: str = "") -> Any:
+    """Oblique 3-D view: points (decimated) coloured by output cluster, each cluster's fuzzy
+    centre (a dot) and its box along the covariance eigenvectors with half-sides
+    2 sqrt(eigenvalue) (centre, eigenvalues and normal from the JSON descriptors; the in-plane
+    directions from the cluster's points weighted by membership)."""
+    X = np.asarray(X, dtype=float)
+    cluster = np.asarray(cluster)
+    fig = _figure(8.0, 6.4)
+    ax = fig.add_subplot(1, 1, 1, projection="3d", computed_zorder=False)  # boxes over points
+    idx = decimate(len(X), max_points)
+    w_all = np.ones(len(X)) if membership is None else np.asarray(membership, dtype=float)
+    for cl in clusters:
+        d = cl.get("descriptors") or {}
+        if "center" not in d or "eigenvalues" not in d:
+            continue
+        sel = cluster == cl["index"]
+        if sel.sum() < 3:
+            continue
+        col = _rgb(np.array([cl["index"]]))[0]
+        center = np.asarray(d["center"], dtype=float)
+        axes = cluster_axes(X[sel], w_all[sel], d.get("normal"))
+        half = 2.0 * np.sqrt(np.maximum(np.asarray(d["eigenvalues"], dtype=float), 0.0))
+        for e in _box_edges(center, axes, half):
+            ax.plot(e[:, 0], e[:, 1], e[:, 2], color=col * 0.6, linewidth=1.0, zorder=3)
+        ax.scatter([center[0]], [center[1]], [center[2]], s=60, c=[col], edgecolors="k", depthshade=False,
+                   zorder=4)
+        ax.text(center[0], center[1], center[2] + half[0] + 0.05 * float(np.ptp(X[:, 2]) or 1),
+                f"{cl['index']} {cl.get('label', '')}", fontsize=7, zorder=5)
+    lo, hi = np.percentile(X[idx], [1, 99], axis=0)  # far, sparse returns do not shrink the scene
+    pad = 0.05 * (hi - lo).max()
+    ax.set_xlim(lo[0] - pad, hi[0] + pad)
+    ax.set_ylim(lo[1] - pad, hi[1] + pad)
+    span = hi - lo + 2 * pad
+    inside = idx[np.all((X[idx, :2] >= lo[:2] - pad) & (X[idx, :2] <= hi[:2] + pad), axis=1)]
+    ax.scatter(X[inside, 0], X[inside, 1], X[inside, 2], c=_rgb(cluster[inside]), s=point_size, linewidths=0,
+               depthshade=False, rasterized=True, zorder=1)
+    ax.set_box_aspect(np.maximum(span, 0.25 * span.max()))  # flat scenes: heights stay readable
+    ax.view_init(elev=elev, azim=azim)
+    ax.set_xlabel("x", fontsize=8)
+    ax.set_ylabel("y", fontsize=8)
+    ax.set_zlabel("z", fontsize=8)
+    ax.tick_params(labelsize=6)
+    ax.set_title(title or f"{len(clusters)} output clusters: fuzzy centres and 2-sigma boxes", fontsize=11)
+    return fig

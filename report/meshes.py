@@ -1,0 +1,172 @@
+"""Meshes of a segmentation: a closed convex hull per obstacle cluster, and the ground surface.
+
+Obstacles: :func:`hull_mesh` is scipy's ``ConvexHull`` of the cluster's points with every
+triangle turned to face outward (its normal agrees with the hull facet's outward normal), so the
+mesh is closed, consistently wound and of positive volume. Clusters with fewer than 4 points, or
+whose points are coplanar/collinear (Qhull cannot build a 3-D hull), are skipped and listed.
+
+Ground: :func:`ground_mesh` projects the ground points on their best approximating plane, runs a
+2-D Delaunay triangulation there and removes triangles with an edge longer than ``edge_factor``
+times the median Delaunay edge (holes under obstacles and gaps between scan lines stay open).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import plyfile
+
+from kbs.errors import CloudFileError
+
+
+def hull_mesh(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closed, outward-oriented convex hull of ``points`` (n, 3).
+
+    Returns
+    -------
+    vertices : ndarray (m, 3) float64
+        The hull's vertices (a subset of the points).
+    faces : ndarray (f, 3) int32
+        Triangles indexing ``vertices``, counter-clockwise seen from outside.
+
+    Raises
+    ------
+    ValueError
+        Fewer than 4 points, or points that span no volume (coplanar, collinear, coincident).
+    """
+    from scipy.spatial import ConvexHull, QhullError
+
+    P = np.asarray(points, dtype=np.float64)
+    if P.shape[0] < 4:
+        raise ValueError(f"{P.shape[0]} points (a hull needs at least 4)")
+    try:
+        hull = ConvexHull(P)
+    except QhullError as exc:
+        raise ValueError("degenerate points (coplanar or collinear): no 3-D hull") from exc
+    scale = float(np.ptp(P, axis=0).max())
+    if hull.volume <= 1e-12 * max(scale, 1e-300) ** 3:
+        raise ValueError("degenerate points (hull volume ~ 0)")
+    tri = hull.simplices.copy()
+    a, b, c = P[tri[:, 0]], P[tri[:, 1]], P[tri[:, 2]]
+    normal = np.cross(b - a, c - a)
+    flip = np.einsum("ij,ij->i", normal, hull.equations[:, :3]) < 0
+    tri[flip] = tri[flip][:, [0, 2, 1]]
+    used = np.unique(tri)
+    remap = np.full(P.shape[0], -1, dtype=np.int64)
+    remap[used] = np.arange(used.size)
+    return P[used], remap[tri].astype(np.int32)
+
+
+def ground_mesh(points: np.ndarray, *, edge_factor: float = 3.0) -> tuple[np.ndarray, np.ndarray, float]:
+    """Triangulated ground surface of ``points`` (n, 3).
+
+    Returns
+    -------
+    vertices : ndarray (n, 3) float64
+        The points themselves.
+    faces : ndarray (f, 3) int32
+        Delaunay triangles of the projection on the best approximating plane, without those
+        having an edge longer than ``max_edge``; oriented so their normals point to the same
+        side as the plane normal (up when the ground faces +z).
+    max_edge : float
+        The edge-length threshold used: ``edge_factor`` x the median Delaunay edge length.
+    """
+    from scipy.spatial import Delaunay, QhullError
+
+    P = np.asarray(points, dtype=np.float64)
+    if P.shape[0] < 3:
+        raise ValueError(f"{P.shape[0]} ground points (a surface needs at least 3)")
+    c = P.mean(axis=0)
+    _, vec = np.linalg.eigh(np.cov((P - c).T))
+    n = vec[:, 0] if vec[2, 0] >= 0 else -vec[:, 0]
+    uv = (P - c) @ vec[:, 1:]
+    try:
+        tri = Delaunay(uv).simplices
+    except QhullError as exc:
+        raise ValueError("degenerate ground points (collinear): no surface") from exc
+    edges = np.stack([np.linalg.norm(P[tri[:, i]] - P[tri[:, (i + 1) % 3]], axis=1) for i in range(3)], axis=1)
+    max_edge = float(edge_factor * np.median(edges))
+    tri = tri[edges.max(axis=1) <= max_edge]
+    a, b, cc = P[tri[:, 0]], P[tri[:, 1]], P[tri[:, 2]]
+    flip = np.cross(b - a, cc - a) @ n < 0
+    tri[flip] = tri[flip][:, [0, 2, 1]]
+    return P, tri.astype(np.int32), max_edge
+
+
+def write_mesh_ply(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Write a triangle mesh as a binary PLY (``vertex``: x y z double; ``face``: vertex_indices)."""
+    v = np.empty(vertices.shape[0], dtype=[("x", "f8"), ("y", "f8"), ("z", "f8")])
+    v["x"], v["y"], v["z"] = vertices.T
+    f = np.empty(faces.shape[0], dtype=[("vertex_indices", "i4", (3,))])
+    f["vertex_indices"] = faces
+    data = plyfile.PlyData([plyfile.PlyElement.describe(v, "vertex"), plyfile.PlyElement.describe(f, "face")])
+    try:
+        data.write(str(path))
+    except OSError as exc:
+        raise CloudFileError(str(path), f"cannot write: {exc.strerror or exc}") from exc
+
+
+@dataclass
+class MeshSummary:
+    """What :func:`write_meshes` wrote and skipped."""
+
+    directory: Path
+    obstacles: list[Path] = field(default_factory=list)
+    skipped: list[tuple[int, str]] = field(default_factory=list)  # (cluster index, reason)
+    ground: Path | None = None
+    ground_note: str = ""
+
+    def describe(self) -> str:
+        lines = [f"meshes in {self.directory}: {len(self.obstacles)} obstacle hull"
+                 f"{'s' if len(self.obstacles) != 1 else ''}, ground: {self.ground_note}"]
+        for idx, why in self.skipped:
+            lines.append(f"  skipped cluster {idx}: {why}")
+        return "\n".join(lines)
+
+
+def write_meshes(directory: Path, X: np.ndarray, cluster: np.ndarray, label: np.ndarray,
+                 label_names: list[str], *, ground_label: str = "ground") -> MeshSummary:
+    """Write ``directory/obstacle-<index>.ply`` for every output cluster whose label is not
+    ``ground_label`` (noise excluded) and ``directory/ground.ply`` for the points labelled
+    ``ground_label``.
+
+    Parameters
+    ----------
+    X : ndarray (n, 3)
+    cluster, label : ndarray (n,) int
+        Output cluster and label index of each point (-1 = noise).
+    label_names : list of str
+    """
+    directory = Path(directory)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CloudFileError(str(directory), f"cannot create the mesh directory: {exc.strerror or exc}") from exc
+    X = np.asarray(X, dtype=np.float64)
+    gi = label_names.index(ground_label) if ground_label in label_names else None
+    out = MeshSummary(directory)
+    for idx in np.unique(cluster[cluster >= 0]):
+        sel = cluster == idx
+        if gi is not None and np.all(label[sel] == gi):
+            continue
+        try:
+            V, F = hull_mesh(X[sel])
+        except ValueError as exc:
+            out.skipped.append((int(idx), str(exc)))
+            continue
+        path = directory / f"obstacle-{int(idx)}.ply"
+        write_mesh_ply(path, V, F)
+        out.obstacles.append(path)
+    if gi is None:
+        out.ground_note = f"none (no label named {ground_label!r})"
+    else:
+        try:
+            V, F, max_edge = ground_mesh(X[label == gi])
+        except ValueError as exc:
+            out.ground_note = f"not written: {exc}"
+        else:
+            out.ground = directory / "ground.ply"
+            write_mesh_ply(out.ground, V, F)
+            out.ground_note = f"{out.ground.name} ({F.shape[0]:,} triangles, edges <= {max_edge:.3g})"
+    return out

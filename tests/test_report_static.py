@@ -1,0 +1,136 @@
+"""Coloured result clouds, ``kbs render`` figures and ``--meshes``, through the real command."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from plyfile import PlyData
+
+from kbs.report.colors import NOISE_RGB, colors_for, palette
+from kbs.report.meshes import hull_mesh
+
+from test_cli import EXAMPLE, kbs
+
+
+@pytest.fixture(scope="module")
+def outdoor_run(tmp_path_factory) -> Path:
+    """``kbs run --rules outdoor --meshes`` on the bundled example; returns the output directory."""
+    out = tmp_path_factory.mktemp("run")
+    r = kbs("run", "--rules", "outdoor", str(EXAMPLE), "--out", str(out), "--meshes")
+    assert r.returncode == 0, r.stderr
+    assert "meshes in" in r.stdout
+    return out
+
+
+def _rgb(v) -> np.ndarray:
+    return np.column_stack([v["red"], v["green"], v["blue"]])
+
+
+def test_palette_distinct_deterministic_never_grey():
+    p = palette(60)
+    assert p.dtype == np.uint8 and p.shape == (60, 3)
+    assert len({tuple(c) for c in p}) == 60
+    assert NOISE_RGB not in {tuple(int(x) for x in c) for c in p}
+    assert np.array_equal(palette(60), p) and np.array_equal(palette(7), p[:7])
+    assert tuple(colors_for(np.array([-1]))[0]) == NOISE_RGB
+
+
+def test_run_ply_colours_by_cluster(outdoor_run):
+    v = PlyData.read(str(outdoor_run / "outdoor.ply"))["vertex"]
+    names = [p.name for p in v.properties]
+    assert {"cluster", "label", "membership", "red", "green", "blue"} <= set(names)
+    assert all(v[c].dtype == np.uint8 for c in ("red", "green", "blue"))
+    rgb, cl = _rgb(v), np.asarray(v["cluster"])
+    seen = {}
+    for c in np.unique(cl):
+        colours = np.unique(rgb[cl == c], axis=0)
+        assert len(colours) == 1, f"cluster {c} has {len(colours)} colours"
+        seen[int(c)] = tuple(colours[0])
+    assert len(set(seen.values())) == len(seen) >= 2
+    assert all(col != NOISE_RGB for c, col in seen.items() if c >= 0)
+
+
+def test_run_colour_by_label_and_noise_grey(tmp_path):
+    # a scene with a far, sparse handful of points the outdoor rules reject as noise
+    rng = np.random.default_rng(0)
+    g = np.column_stack([rng.uniform(0, 10, 3000), rng.uniform(-5, 5, 3000), rng.normal(-1.5, 0.005, 3000)])
+    box = rng.uniform([4, -0.5, -1.5], [5, 0.5, -0.5], (600, 3))
+    stray = rng.normal([30, 30, 5], 0.05, (6, 3))
+    cloud = tmp_path / "scene.xyz"
+    np.savetxt(cloud, np.vstack([g, box, stray]))
+    r = kbs("run", "--rules", "outdoor", str(cloud), "--out", str(tmp_path / "o"), "--color-by", "label")
+    assert r.returncode == 0, r.stderr
+    v = PlyData.read(str(tmp_path / "o" / "scene.ply"))["vertex"]
+    rgb, lab = _rgb(v), np.asarray(v["label"])
+    for k in np.unique(lab):
+        assert len(np.unique(rgb[lab == k], axis=0)) == 1
+    assert (lab < 0).any(), "the scene should leave some noise"
+    assert (rgb[lab < 0] == NOISE_RGB).all()
+    assert not (rgb[lab >= 0] == NOISE_RGB).all(axis=1).any()
+    assert len({tuple(rgb[lab == k][0]) for k in np.unique(lab)}) == len(np.unique(lab))
+
+
+def test_render_all_writes_three_nonblank_pngs(outdoor_run, tmp_path):
+    from matplotlib.image import imread
+
+    out = tmp_path / "fig.png"
+    r = kbs("render", str(outdoor_run / "outdoor.json"), "--out", str(out), "--kind", "all", "--max-points", "8000")
+    assert r.returncode == 0, r.stderr
+    for kind in ("series", "map", "clusters"):
+        png = tmp_path / f"fig-{kind}.png"
+        assert png.is_file() and 5_000 < png.stat().st_size < 2_000_000, kind
+        img = imread(str(png))
+        assert img.shape[0] >= 300 and img.shape[1] >= 300
+        assert img[..., :3].std() > 0.02, f"{kind} looks blank"
+        # several distinct colours: points coloured by cluster / cell class, not a single ink
+        assert len(np.unique((img[..., :3] * 15).round().reshape(-1, 3), axis=0)) >= 4
+
+
+def test_render_missing_files_exit_3(outdoor_run, tmp_path):
+    r = kbs("render", str(tmp_path / "nope.json"))
+    assert r.returncode == 3 and r.stderr.count("\n") == 1 and "nope.json" in r.stderr
+    lone = tmp_path / "lone.json"
+    lone.write_text((outdoor_run / "outdoor.json").read_text())
+    r = kbs("render", str(lone), "--kind", "map")
+    assert r.returncode == 3 and "lone.ply" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_obstacle_meshes_are_closed_and_contain_their_points(outdoor_run):
+    import trimesh
+
+    doc = json.loads((outdoor_run / "outdoor.json").read_text())
+    v = PlyData.read(str(outdoor_run / "outdoor.ply"))["vertex"]
+    X = np.column_stack([v["x"], v["y"], v["z"]])
+    cl = np.asarray(v["cluster"])
+    mdir = outdoor_run / "outdoor-meshes"
+    obstacles = [c["index"] for c in doc["clusters"] if c["label"] != "ground"]
+    assert obstacles
+    for i in obstacles:
+        m = trimesh.load(str(mdir / f"obstacle-{i}.ply"), process=False)
+        assert m.is_watertight and m.is_winding_consistent
+        assert m.volume > 0
+        P = X[cl == i]
+        # inside or on the hull: behind every face's plane (faces outward, hull convex)
+        V, F = np.asarray(m.vertices), np.asarray(m.faces)
+        n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        out_dist = (P @ n.T - np.einsum("ij,ij->i", n, V[F[:, 0]])).max()
+        assert out_dist <= 1e-9 * max(1.0, float(np.abs(P).max()))
+    g = PlyData.read(str(mdir / "ground.ply"))
+    assert g["face"].count > 0 and g["vertex"].count > 3
+    assert not (mdir / "obstacle-0.ply").exists()  # cluster 0 is the ground
+
+
+def test_hull_skips_degenerate_clusters():
+    rng = np.random.default_rng(1)
+    with pytest.raises(ValueError, match="at least 4"):
+        hull_mesh(rng.normal(size=(3, 3)))
+    flat = np.column_stack([rng.normal(size=(50, 2)), np.zeros(50)])
+    with pytest.raises(ValueError, match="degenerate"):
+        hull_mesh(flat)
+    V, F = hull_mesh(rng.normal(size=(200, 3)))
+    # outward: every face normal points away from the centroid
+    n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    assert (np.einsum("ij,ij->i", n, V[F].mean(axis=1) - V.mean(axis=0)) > 0).all()
