@@ -1,0 +1,451 @@
+"""The self-contained HTML report of a ``kbs run``: one file that opens offline.
+
+:func:`write_report` writes a single HTML page holding
+
+- a 3D scatter of the cloud (plotly) coloured by output cluster or by label, with a toggle between
+  the two; noise (cluster -1) is grey;
+- the fuzzy centre of each output cluster (its ``descriptors.center``) as a marker and its
+  eigen-box: a wireframe box centred on the mean of the cluster's points, along the eigenvectors of
+  their covariance, with half-sides ``2 sqrt(eigenvalue)``. The result JSON keeps only the
+  eigenvalues and the normal of each cluster, not all its eigenvectors, so the box is computed here
+  with numpy from the points (all of them, before any decimation) and their ``cluster`` values;
+- the APD-per-K curve of the root record (the scene's initial partition), the chosen K marked;
+- the explanation tree (one line per record, the sentences of :meth:`Explanation.line`); clicking a
+  line, or a point of the 3D plot, shows why its cluster was split or accepted
+  (:meth:`Explanation.why`, computed here for every record and embedded as JSON).
+
+Nothing is fetched: plotly.js is inlined from the installed ``plotly`` package, the points travel
+as base64 float32/int32 arrays. Every embedded value goes through :func:`_json` (``<``, ``>``,
+``&`` and the JS line separators escaped), so a rule or cluster name cannot close the script.
+
+Above ``max_points`` points a deterministic subset (``numpy.random.default_rng(seed)``, without
+replacement, in the input order) is drawn and the page says so ("showing 200,000 of 1,234,567
+points"); the boxes, centres and explanations are always those of the whole cloud.
+
+The page carries its own error hook (``window.onerror``, unhandled rejections, ``console.error``):
+an error is written into a visible ``#kbs-errors`` box and into ``document.title``, and the page
+sets ``data-kbs-ready="1"`` on ``<body>`` once everything is drawn, so a headless browser's
+``--dump-dom`` tells whether the page rendered and without error (the tests read it that way).
+
+``report.html#c1.0`` opens with the explanation of record ``c1.0`` shown.
+"""
+from __future__ import annotations
+
+import base64
+import html
+import json
+import re
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from kbs.knowledge.explain import Explanation
+
+__all__ = ["write_report", "eigen_boxes"]
+
+#: Colours of the clusters (cycled) and of the labels; noise is NOISE.
+PALETTE = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#bcbd22",
+           "#17becf", "#393b79", "#637939", "#8c6d31", "#843c39", "#7b4173", "#3182bd", "#e6550d",
+           "#31a354", "#756bb1", "#636363", "#fd8d3c")
+NOISE = "#a0a0a0"
+
+
+def _json(obj: Any) -> str:
+    """JSON safe to put inside ``<script>``: no ``</script>``, ``<!--``, ``&`` or line separators."""
+    s = json.dumps(obj, separators=(",", ":"), allow_nan=False, default=_plain)
+    return (s.replace("<", "\\u003c").replace(">", "\\u003e").replace("&", "\\u0026")
+            .replace("\u2028", "\\u2028").replace("\u2029", "\\u2029"))
+
+
+def _plain(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(type(o).__name__)
+
+
+def _b64(a: np.ndarray, dtype: str) -> str:
+    return base64.b64encode(np.ascontiguousarray(a, dtype=np.dtype(dtype).newbyteorder("<")).tobytes()).decode("ascii")
+
+
+def eigen_boxes(xyz: np.ndarray, cluster: np.ndarray, n_clusters: int) -> list[dict[str, Any] | None]:
+    """For each output cluster 0..n_clusters-1, the box of its points along their covariance axes.
+
+    Parameters
+    ----------
+    xyz : (n_points, 3) array
+    cluster : (n_points,) int array, -1 for noise
+    n_clusters : int
+
+    Returns
+    -------
+    list of dict or None
+        ``{"center": (3,), "axes": (3, 3) rows = unit eigenvectors (ascending eigenvalues),
+        "half": (3,) = 2 sqrt(eigenvalue), "corners": (8, 3)}``, or None for a cluster with fewer
+        than 2 points. The covariance is the population one (``np.cov(..., bias=True)``).
+    """
+    out: list[dict[str, Any] | None] = []
+    for i in range(n_clusters):
+        P = xyz[cluster == i]
+        if len(P) < 2:
+            out.append(None)
+            continue
+        c = P.mean(axis=0)
+        w, V = np.linalg.eigh(np.cov(P - c, rowvar=False, bias=True))
+        half = 2.0 * np.sqrt(np.clip(w, 0.0, None))
+        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
+        corners = c + (signs * half) @ V.T
+        out.append({"center": c, "axes": V.T, "half": half, "corners": corners})
+    return out
+
+
+#: The 12 edges of a box whose corners are indexed by the bits (x, y, z) of signs as above.
+_EDGES = ((0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7), (0, 4), (1, 5), (2, 6), (3, 7))
+
+
+def _box_lines(boxes: Sequence[dict[str, Any] | None]) -> dict[str, list]:
+    xs: list = []
+    ys: list = []
+    zs: list = []
+    text: list = []
+    for i, b in enumerate(boxes):
+        if b is None:
+            continue
+        for a, e in _EDGES:
+            for p in (b["corners"][a], b["corners"][e]):
+                xs.append(round(float(p[0]), 5)), ys.append(round(float(p[1]), 5)), zs.append(round(float(p[2]), 5))
+                text.append(i)
+            xs.append(None), ys.append(None), zs.append(None), text.append(None)
+    return {"x": xs, "y": ys, "z": zs, "cluster": text}
+
+
+def _decimate(n: int, max_points: int, seed: int) -> np.ndarray | None:
+    if max_points <= 0 or n <= max_points:
+        return None
+    return np.sort(np.random.default_rng(seed).choice(n, size=max_points, replace=False))
+
+
+def write_report(path: str | Path, xyz: np.ndarray, cluster: np.ndarray, label: np.ndarray,
+                 label_names: Sequence[str], explanation_dict: dict[str, Any], clusters: Sequence[dict[str, Any]],
+                 *, title: str, max_points: int = 200_000, seed: int = 0) -> Path:
+    """Write the self-contained HTML report of one segmentation.
+
+    Parameters
+    ----------
+    path : str or Path
+        The HTML file to write (its directory must exist).
+    xyz : (n_points, 3) array
+        The points.
+    cluster : (n_points,) int array
+        Output cluster of each point (index into ``clusters``), -1 for noise.
+    label : (n_points,) int array
+        Label of each point (index into ``label_names``), -1 for noise.
+    label_names : sequence of str
+    explanation_dict : dict
+        ``Explanation.to_dict()`` (the ``explanation`` of a result JSON).
+    clusters : sequence of dict
+        The ``clusters`` of a result JSON: ``index``, ``ids``, ``label``, ``n_points``, ``descriptors``.
+    title : str
+        Shown as the page's title and heading.
+    max_points : int
+        Above this many points, a random subset of this size is shown (the page says so);
+        ``<= 0`` shows them all.
+    seed : int
+        Seed of that subset (the same inputs give the same page).
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
+    from plotly.offline import get_plotlyjs
+
+    xyz = np.asarray(xyz, dtype=np.float64)
+    cluster = np.asarray(cluster).astype(np.int32, copy=False)
+    label = np.asarray(label).astype(np.int32, copy=False)
+    n = len(xyz)
+    if xyz.ndim != 2 or xyz.shape[1] != 3 or cluster.shape != (n,) or label.shape != (n,):
+        raise ValueError(f"xyz must be (n_points, 3) and cluster, label (n_points,); got {xyz.shape}, "
+                         f"{cluster.shape}, {label.shape}")
+    expl = Explanation.from_dict(explanation_dict)
+    n_out = len(clusters)
+    boxes = eigen_boxes(xyz, cluster, n_out)
+
+    keep = _decimate(n, max_points, seed)
+    if keep is None:
+        shown, notice = np.arange(n), f"all {n:,} points shown"
+    else:
+        shown, notice = keep, f"showing {len(keep):,} of {n:,} points (a random subset, seed {seed})"
+    origin = xyz.mean(axis=0) if n else np.zeros(3)  # float32 keeps mm precision around the origin
+
+    records = []
+    for rec in expl.walk():
+        records.append({"id": rec.id, "parent": rec.parent, "depth": rec.depth, "line": expl.line(rec),
+                        "why": expl.why(rec.id), "action": rec.action, "label": rec.label,
+                        "output_index": rec.output_index})
+    root = expl.records[expl.root]
+    apd = None if root.apd is None else {"ks": list(root.apd.ks), "apd": list(root.apd.apd), "chosen": root.apd.chosen}
+    centres = [c.get("descriptors", {}).get("center") for c in clusters]
+    data = {
+        "n": int(n), "shown": int(len(shown)), "notice": notice,
+        "origin": origin.tolist(),
+        "xyz": _b64((xyz[shown] - origin).astype(np.float32), "f4"),
+        "cluster": _b64(cluster[shown], "i4"), "label": _b64(label[shown], "i4"),
+        "label_names": list(label_names),
+        "clusters": [{"index": int(c.get("index", i)), "ids": list(c.get("ids", [])), "label": c.get("label"),
+                      "n_points": int(c.get("n_points", 0)), "center": centres[i]} for i, c in enumerate(clusters)],
+        "boxes": _box_lines(boxes),
+        "records": records, "root": expl.root, "apd": apd,
+        "palette": list(PALETTE), "noise": NOISE,
+        "head": {"rule_base": expl.rule_base, "rule_file": expl.rule_file, "strategy": expl.strategy,
+                 "ground": expl.ground.get("source", ""), "notes": list(expl.notes)},
+    }
+    fill = {"TITLE": html.escape(title), "NOTICE": html.escape(notice),
+            "PLOTLYJS": get_plotlyjs().replace("</script", "<\\/script"), "DATA": _json(data)}
+    page = re.sub(r"%%([A-Z]+)%%", lambda mo: fill[mo.group(1)], _TEMPLATE)
+    path = Path(path)
+    path.write_text(page, encoding="utf-8")
+    return path
+
+
+# The page. Placeholders are filled in one pass (so nothing filled in is re-read as a placeholder). The error hook comes first, before plotly.js, so that its own errors are caught too.
+_TEMPLATE = r"""<!DOCTYPE html>
+<html lang="en">
+<head>
+<meta charset="utf-8">
+<meta name="viewport" content="width=device-width, initial-scale=1">
+<title>%%TITLE%%</title>
+<script>
+(function () {
+  var errors = [];
+  function report(msg) {
+    errors.push(String(msg));
+    document.title = "KBS-ERROR: " + errors.join(" | ");
+    var box = document.getElementById("kbs-errors");
+    if (box) { box.textContent = errors.join("\n"); box.style.display = "block"; }
+  }
+  window.kbsErrors = errors;
+  window.addEventListener("error", function (e) {
+    report("uncaught: " + (e.message || e) + (e.filename ? " (" + e.lineno + ":" + e.colno + ")" : ""));
+  });
+  window.addEventListener("unhandledrejection", function (e) { report("unhandled rejection: " + e.reason); });
+  var ce = console.error;
+  console.error = function () {
+    report("console.error: " + Array.prototype.map.call(arguments, String).join(" "));
+    return ce.apply(console, arguments);
+  };
+})();
+</script>
+<style>
+  body { font-family: system-ui, -apple-system, "Segoe UI", sans-serif; margin: 0; color: #222; }
+  header { padding: 6px 12px; border-bottom: 1px solid #ddd; }
+  header h1 { font-size: 17px; margin: 0 0 2px 0; }
+  header .meta { font-size: 12px; color: #555; }
+  #kbs-errors { display: none; background: #fdd; color: #900; padding: 6px 12px; white-space: pre-wrap; font: 12px monospace; }
+  main { display: flex; gap: 8px; padding: 6px; height: calc(100vh - 56px); box-sizing: border-box; }
+  #left { flex: 3 1 0; min-width: 0; display: flex; flex-direction: column; }
+  #right { flex: 2 1 0; min-width: 280px; display: flex; flex-direction: column; gap: 6px; }
+  #scatter { flex: 1 1 auto; min-height: 300px; height: calc(100vh - 100px); }
+  #controls { font-size: 13px; padding: 2px 0; }
+  #controls button { font-size: 13px; margin-right: 4px; }
+  #controls button.on { font-weight: bold; background: #dde8f5; }
+  #apd { height: 190px; flex: none; }
+  #tree { flex: 1 1 50%; overflow: auto; font: 12px/1.35 monospace; border: 1px solid #ddd; padding: 4px; }
+  #tree ul { list-style: none; margin: 0; padding-left: 14px; }
+  #tree > ul { padding-left: 0; }
+  #tree li > span { cursor: pointer; white-space: nowrap; }
+  #tree li > span:hover { background: #eef; }
+  #tree li > span.sel { background: #ffe9a8; }
+  #tree .accept { color: #1a6b1a; } #tree .reject { color: #888; } #tree .limit { color: #a15c00; }
+  #why { flex: 1 1 40%; overflow: auto; font: 12px/1.35 monospace; white-space: pre-wrap; border: 1px solid #ddd; padding: 4px; background: #fafafa; }
+  h2 { font-size: 13px; margin: 2px 0; }
+</style>
+</head>
+<body data-kbs-ready="0">
+<header>
+  <h1>%%TITLE%%</h1>
+  <div class="meta"><span id="meta"></span> &middot; <span id="notice">%%NOTICE%%</span></div>
+</header>
+<div id="kbs-errors"></div>
+<main>
+  <div id="left">
+    <div id="controls">colour by:
+      <button id="by-cluster" class="on" type="button">cluster</button><button id="by-label" type="button">label</button>
+      <label><input id="show-boxes" type="checkbox" checked> eigen-boxes</label>
+      <span style="color:#666">&middot; click a point or a tree line to see why</span>
+    </div>
+    <div id="scatter"></div>
+  </div>
+  <div id="right">
+    <div id="apd"></div>
+    <h2>Explanation tree</h2>
+    <div id="tree"></div>
+    <h2>Why</h2>
+    <div id="why">Click a cluster in the 3D view or a line of the tree.</div>
+  </div>
+</main>
+<script>%%PLOTLYJS%%</script>
+<script id="kbs-data" type="application/json">%%DATA%%</script>
+<script>
+(function () {
+  "use strict";
+  var D = JSON.parse(document.getElementById("kbs-data").textContent);
+  function bytes(b64) {
+    var s = atob(b64), u = new Uint8Array(s.length);
+    for (var i = 0; i < s.length; i++) u[i] = s.charCodeAt(i);
+    return u.buffer;
+  }
+  var xyz = new Float32Array(bytes(D.xyz)), cl = new Int32Array(bytes(D.cluster)), lb = new Int32Array(bytes(D.label));
+  var o = D.origin, m = D.shown;
+  var recById = {};
+  D.records.forEach(function (r) { recById[r.id] = r; });
+  function colour(i) { return i < 0 ? D.noise : D.palette[i % D.palette.length]; }
+
+  document.getElementById("meta").textContent = "rule base '" + D.head.rule_base + "' (" + D.head.rule_file +
+    "), strategy " + D.head.strategy + (D.head.ground ? "; ground: " + D.head.ground : "") +
+    "; " + D.clusters.length + " clusters";
+
+  // One trace per colouring holding every shown point, coloured point by point (hundreds of traces,
+  // one per cluster, make plotly several times slower to draw); the legend is made of empty traces.
+  var present = function (key) {
+    var seen = {};
+    for (var i = 0; i < m; i++) seen[key[i]] = true;
+    return Object.keys(seen).map(Number).sort(function (a, b) { return (a < 0) - (b < 0) || a - b; });
+  };
+  var X = new Float64Array(m), Y = new Float64Array(m), Z = new Float64Array(m);
+  for (var i = 0; i < m; i++) { X[i] = xyz[3 * i] + o[0]; Y[i] = xyz[3 * i + 1] + o[1]; Z[i] = xyz[3 * i + 2] + o[2]; }
+  function cloudTrace(key, nameOf, name, visible) {
+    var col = new Array(m), txt = new Array(m);
+    for (var i = 0; i < m; i++) { col[i] = colour(key[i]); txt[i] = nameOf(key[i]); }
+    return { type: "scatter3d", mode: "markers", name: name, x: X, y: Y, z: Z, visible: visible, showlegend: false,
+             marker: { size: 1.5, color: col }, hoverinfo: "text", text: txt };
+  }
+  function clusterName(k) {
+    var c = D.clusters[k];
+    return k < 0 ? "noise" : "cluster " + k + (c && c.label ? " (" + c.label + ")" : "");
+  }
+  function labelName(k) { return k < 0 ? "noise" : (D.label_names[k] || "label " + k); }
+  function legendTrace(k, name, visible) {
+    return { type: "scatter3d", mode: "markers", name: name, x: [null], y: [null], z: [null], visible: visible,
+             marker: { size: 6, color: colour(k) }, hoverinfo: "skip", showlegend: true };
+  }
+  var traces = [cloudTrace(cl, clusterName, "clusters", true), cloudTrace(lb, labelName, "labels", false)];
+  var byCluster = [0], byLabel = [1];
+  var kc = present(cl), manyClusters = kc.length > 30;  // a legend of hundreds of clusters hides the plot
+  kc.forEach(function (k) {
+    if (manyClusters && k >= 0) return;
+    byCluster.push(traces.length);
+    traces.push(legendTrace(k, clusterName(k), true));
+  });
+  present(lb).forEach(function (k) {
+    byLabel.push(traces.length);
+    traces.push(legendTrace(k, labelName(k), false));
+  });
+  var cx = [], cy = [], cz = [], ct = [], cc = [];
+  D.clusters.forEach(function (c, i) {
+    if (!c.center) return;
+    cx.push(c.center[0]); cy.push(c.center[1]); cz.push(c.center[2]); cc.push(i);
+    ct.push("cluster " + i + (c.label ? " (" + c.label + ")" : "") + ": " + c.ids.join(", "));
+  });
+  var centreTrace = traces.length;
+  traces.push({ type: "scatter3d", mode: "markers", name: "fuzzy centres", x: cx, y: cy, z: cz, text: ct,
+                hoverinfo: "text",
+                marker: { size: 5, symbol: "diamond", color: "#000", line: { color: "#fff", width: 1 } } });
+  var boxTrace = traces.length;
+  traces.push({ type: "scatter3d", mode: "lines", name: "eigen-boxes (2 sqrt(eigenvalue))",
+                x: D.boxes.x, y: D.boxes.y, z: D.boxes.z, hoverinfo: "skip", connectgaps: false,
+                line: { color: "#222", width: 2 } });
+
+  var gd = document.getElementById("scatter");
+  var layout = { margin: { l: 0, r: 0, t: 0, b: 0 }, height: Math.max(300, gd.clientHeight), legend: { itemsizing: "constant", font: { size: 11 }, x: 0, y: 1, itemclick: false, itemdoubleclick: false,
+                           bgcolor: "rgba(255,255,255,0.7)" },
+                 scene: { aspectmode: "data", xaxis: { title: { text: "x" } }, yaxis: { title: { text: "y" } },
+                          zaxis: { title: { text: "z" } } },
+                 uirevision: "keep" };
+  var config = { responsive: true, displaylogo: false };
+
+  function showWhy(ids, heading) {
+    document.querySelectorAll("#tree span.sel").forEach(function (e) { e.classList.remove("sel"); });
+    var parts = [];
+    ids.forEach(function (id) {
+      var r = recById[id];
+      if (!r) return;
+      parts.push(r.why);
+      var el = document.getElementById("rec-" + id);
+      if (el) { el.classList.add("sel"); el.scrollIntoView({ block: "nearest" }); tree.scrollLeft = 0; }
+    });
+    document.getElementById("why").textContent = (heading ? heading + "\n\n" : "") +
+      (parts.length ? parts.join("\n\n----\n\n") : "no record");
+  }
+  function showCluster(i) {
+    if (i < 0) {
+      var rej = D.records.filter(function (r) { return r.action === "reject"; }).map(function (r) { return r.id; });
+      showWhy(rej, "noise: points in no output cluster" + (rej.length ? "; rejected records:" : ""));
+      return;
+    }
+    var c = D.clusters[i];
+    showWhy(c.ids, "cluster " + i + (c.label ? " (" + c.label + ")" : "") + ", " + c.n_points.toLocaleString("en") +
+            " points, from record" + (c.ids.length > 1 ? "s " : " ") + c.ids.join(", ") + ":");
+  }
+
+  // the tree: nested lists following parent links, in the records' depth-first order
+  var tree = document.getElementById("tree"), lists = {};
+  var top = document.createElement("ul"); tree.appendChild(top);
+  D.records.forEach(function (r) {
+    var parentList = r.parent && lists[r.parent] ? lists[r.parent] : top;
+    var li = document.createElement("li"), sp = document.createElement("span");
+    sp.id = "rec-" + r.id; sp.textContent = r.line; sp.className = r.action; sp.title = "click: why";
+    sp.addEventListener("click", function () { showWhy([r.id]); });
+    li.appendChild(sp); parentList.appendChild(li);
+    var ul = document.createElement("ul"); li.appendChild(ul); lists[r.id] = ul;
+  });
+
+  function setMode(mode) {
+    var vis = traces.map(function (t, i) {
+      if (byCluster.indexOf(i) >= 0) return mode === "cluster";
+      if (byLabel.indexOf(i) >= 0) return mode === "label";
+      return i === boxTrace ? document.getElementById("show-boxes").checked : true;
+    });
+    Plotly.restyle(gd, { visible: vis });
+    document.getElementById("by-cluster").classList.toggle("on", mode === "cluster");
+    document.getElementById("by-label").classList.toggle("on", mode === "label");
+  }
+  document.getElementById("by-cluster").addEventListener("click", function () { setMode("cluster"); });
+  document.getElementById("by-label").addEventListener("click", function () { setMode("label"); });
+  document.getElementById("show-boxes").addEventListener("change", function (e) {
+    Plotly.restyle(gd, { visible: e.target.checked }, [boxTrace]);
+  });
+
+  var done = [Plotly.newPlot(gd, traces, layout, config).then(function () {
+    gd.on("plotly_click", function (ev) {
+      if (!ev || !ev.points || !ev.points.length) return;
+      var p = ev.points[0];
+      if (p.curveNumber === centreTrace) { showCluster(cc[p.pointNumber]); return; }
+      if (p.curveNumber <= 1) showCluster(cl[p.pointNumber]);
+    });
+  })];
+  if (D.apd) {
+    var ki = D.apd.ks.indexOf(D.apd.chosen);
+    done.push(Plotly.newPlot("apd", [
+      { type: "scatter", mode: "lines+markers", x: D.apd.ks, y: D.apd.apd, name: "APD", line: { color: "#1f77b4" } },
+      { type: "scatter", mode: "markers+text", x: [D.apd.chosen], y: [D.apd.apd[ki]], name: "chosen K",
+        text: ["K=" + D.apd.chosen], textposition: "bottom right",
+        marker: { size: 12, color: "#d62728", symbol: "star" } }],
+      { margin: { l: 60, r: 10, t: 28, b: 36 }, showlegend: false,
+        title: { text: "APD per K of the initial partition (" + D.root + ")", font: { size: 12 } },
+        xaxis: { title: { text: "K" }, dtick: 1 }, yaxis: { title: { text: "APD" } } },
+      { responsive: true, displayModeBar: false }));
+  } else {
+    document.getElementById("apd").textContent = "no APD curve for the root record";
+  }
+  // report.html#c1.0 opens with that record's explanation shown
+  var want = decodeURIComponent(location.hash.slice(1));
+  if (recById[want]) showWhy([want]);
+  Promise.all(done).then(function () { document.body.setAttribute("data-kbs-ready", "1"); });
+})();
+</script>
+</body>
+</html>
+"""
