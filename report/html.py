@@ -87,8 +87,11 @@ def eigen_boxes(xyz: np.ndarray, cluster: np.ndarray, n_clusters: int) -> list[d
         than 2 points. The covariance is the population one (``np.cov(..., bias=True)``).
     """
     out: list[dict[str, Any] | None] = []
+    cluster = np.asarray(cluster)
+    order = np.argsort(cluster, kind="stable")  # group the points once instead of a mask per cluster
+    bounds = np.searchsorted(cluster[order], np.arange(n_clusters + 1))
     for i in range(n_clusters):
-        P = xyz[cluster == i]
+        P = xyz[order[bounds[i]:bounds[i + 1]]]
         if len(P) < 2:
             out.append(None)
             continue
