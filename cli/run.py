@@ -52,9 +52,11 @@ plugin_option = click.option("--plugin", "plugins", multiple=True, type=click.Pa
               help="Colour of each vertex (red green blue) in <stem>.ply: one per output cluster or per label.")
 @click.option("--meshes", is_flag=True, help="Also write DIR/<stem>-meshes/: a convex hull per obstacle cluster "
               "(obstacle-<index>.ply) and the ground surface (ground.ply).")
+@click.option("--report", is_flag=True, help="Also write DIR/<stem>.html: a self-contained report (3D view by "
+              "cluster or label, centres and eigen-boxes, APD curve, the explanation tree; opens offline).")
 @click.pass_context
 def run(ctx: click.Context, rules: str, cloud: Path, sensor, out_dir: Path, plugins: tuple[Path, ...],
-        color_by: str = "cluster", meshes: bool = False) -> None:
+        color_by: str = "cluster", meshes: bool = False, report: bool = False) -> None:
     """Segment CLOUD with a rule base; write DIR/<stem>.ply (per-vertex cluster, label, membership)
     and DIR/<stem>.json (label names, clusters, the explanation tree)."""
     quiet = ctx.obj.get("quiet", False)
@@ -99,6 +101,16 @@ def run(ctx: click.Context, rules: str, cloud: Path, sensor, out_dir: Path, plug
 
         click.echo(write_meshes(out_dir / f"{cloud.stem}-meshes", pc.xyz, seg.cluster, seg.label,
                                 seg.label_names).describe())
+    if report:
+        from kbs.report.html import write_report
+
+        html = out_dir / f"{cloud.stem}.html"
+        try:
+            write_report(html, pc.xyz, seg.cluster, seg.label, seg.label_names, doc["explanation"], seg.clusters,
+                         title=f"{cloud.name} — rule base '{rb.name}'")
+        except OSError as exc:
+            raise CloudFileError(str(html), f"cannot write: {exc.strerror or exc}") from exc
+        click.echo(f"wrote {html}")
     if not quiet:
         for note in seg.explanation.notes + ([seg.explanation.ground["note"]] if "note" in seg.explanation.ground else []):
             click.echo(f"note: {note}", err=True)

@@ -200,12 +200,13 @@ def test_bundled_example_report_renders_in_chromium(outdoor, tmp_path):
 @needs_chromium
 def test_semantickitti_report_renders_in_chromium(shared_data, tmp_path):
     scan = shared_data / "semantickitti" / "000001.points.npy"
-    r = kbs("run", "--rules", "outdoor", str(scan), "--out", str(tmp_path))
+    r = kbs("run", "--rules", "outdoor", str(scan), "--out", str(tmp_path), "--report")  # the real command
     assert r.returncode == 0, r.stderr
-    args = _load(tmp_path / "000001.points.ply", tmp_path / "000001.points.json")
-    page = write_report(tmp_path / "report.html", **args, title="SemanticKITTI 000001")
+    page = tmp_path / "000001.points.html"
+    assert f"wrote {page}" in r.stdout
     ready, errors = _page_errors(page, tmp_path)
     assert errors == "" and ready
+    args = _load(tmp_path / "000001.points.ply", tmp_path / "000001.points.json")
     # and decimated
     page = write_report(tmp_path / "small.html", **args, title="SemanticKITTI 000001", max_points=20_000)
     assert "showing 20,000 of 88,173 points" in page.read_text(encoding="utf-8")
@@ -240,3 +241,12 @@ var t = setInterval(function () {
     for rid in c0["ids"]:
         assert expl.why(rid).splitlines()[-1].replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;") in why
         assert re.search(rf'<span id="rec-{re.escape(rid)}" class="[^"]*\bsel\b', dom)
+
+
+@needs_chromium
+def test_kbs_run_report_of_the_bundled_example_opens_without_errors(tmp_path):
+    r = kbs("run", "--rules", "outdoor", str(EXAMPLE), "--out", str(tmp_path),
+            "--report")
+    assert r.returncode == 0, r.stderr
+    ready, errors = _page_errors(tmp_path / "outdoor.html", tmp_path)
+    assert errors == "" and ready
