@@ -49,6 +49,18 @@ def _keys(cells: np.ndarray) -> np.ndarray:
     return key
 
 
+def _distinct(keys: np.ndarray) -> np.ndarray:
+    """The distinct keys, sorted: what ``np.unique`` returns, by a plain sort and a mask (several
+    times faster than ``np.unique`` on int64 keys here, and this is in the hot path)."""
+    s = np.sort(keys)
+    if s.size < 2:
+        return s
+    keep = np.empty(s.size, dtype=bool)
+    keep[0] = True
+    np.not_equal(s[1:], s[:-1], out=keep[1:])
+    return s[keep]
+
+
 def _decode(keys: np.ndarray, D: int) -> np.ndarray:
     """Inverse of :func:`_keys`."""
     mask = (1 << 20) - 1
@@ -63,7 +75,7 @@ def _min_size(X: np.ndarray) -> float:
 def count_voxels(X: np.ndarray, size: float) -> int:
     """Number of occupied voxels of edge ``size``."""
     size = max(size, _min_size(X))
-    return int(np.unique(_keys(_cells(X, X.min(axis=0), size))).size)
+    return int(_distinct(_keys(_cells(X, X.min(axis=0), size))).size)
 
 
 def auto_voxel_size(X: np.ndarray, target: int) -> float:
@@ -81,13 +93,13 @@ def auto_voxel_size(X: np.ndarray, target: int) -> float:
     if extent == 0.0:
         return 1.0
     fine = max(extent / 4096.0, _min_size(X))
-    fine_cells = _decode(np.unique(_keys(_cells(X, lo, fine))), X.shape[1])
+    fine_cells = _decode(_distinct(_keys(_cells(X, lo, fine))), X.shape[1])
     n_fine = fine_cells.shape[0]
     if n_fine <= target:
         return fine
 
     def occupied(factor: float) -> int:
-        return int(np.unique(_keys(np.floor(fine_cells / factor).astype(np.int64))).size)
+        return int(_distinct(_keys(np.floor(fine_cells / factor).astype(np.int64))).size)
 
     f0, n0 = 1.0, n_fine
     f = float(np.sqrt(n_fine / target))
