@@ -22,7 +22,7 @@ from kbs.evaluation import (
     load_ground_truth,
 )
 from kbs.evaluation.hoover import check_tolerance
-from kbs.io import read_cloud
+from kbs.io import read_cloud, read_result_json
 
 
 def _int_list(ctx: click.Context, param: click.Parameter, value: str | None) -> tuple[int, ...] | None:
@@ -48,10 +48,7 @@ def _label_names(result: Path) -> tuple[Path, list[str] | None]:
     js = result.with_suffix(".json")
     if not js.is_file():
         return js, None
-    try:
-        names = json.loads(js.read_text(encoding="utf-8"))["label_names"]
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as exc:
-        raise CloudFileError(str(js), f"not a kbs result file ({type(exc).__name__}: {exc})") from exc
+    names = read_result_json(js, require=("label_names",))["label_names"]
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise CloudFileError(str(js), "not a kbs result file ('label_names' is not a list of names)")
     return js, names

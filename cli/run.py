@@ -11,7 +11,7 @@ import numpy as np
 from kbs import __version__
 from kbs.cli.common import cloud_argument, write_result_ply
 from kbs.errors import CloudFileError, ExitCode
-from kbs.io import read_cloud
+from kbs.io import read_cloud, read_result_json
 from kbs.knowledge import Explanation, Interpreter, PredicateRegistry, load_rule_base
 from kbs.knowledge.predicates import UNITS, did_you_mean
 from kbs.knowledge.rulebase import RuleFileError, resolve, shipped_rule_bases
@@ -129,14 +129,10 @@ def _jsonable(o):
 @click.option("--cluster", "cluster_id", metavar="ID", help="Say why this cluster ended as it did (e.g. c0.2).")
 def explain(result: Path, cluster_id: str | None) -> None:
     """Print the explanation tree of a `kbs run` RESULT.json, or why one cluster ended as it did."""
+    doc = read_result_json(result, require=("explanation",))
     try:
-        doc = json.loads(result.read_text(encoding="utf-8"))
         expl = Explanation.from_dict(doc["explanation"])
-    except FileNotFoundError as exc:
-        raise CloudFileError(str(result), "no such file") from exc
-    except IsADirectoryError as exc:
-        raise CloudFileError(str(result), "is a directory, not a result file") from exc
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as exc:
+    except (KeyError, TypeError) as exc:
         raise CloudFileError(str(result), f"not a kbs result file ({type(exc).__name__}: {exc})") from exc
     if cluster_id is None:
         click.echo(f"rule base '{expl.rule_base}' ({expl.rule_file}), strategy {expl.strategy}; "

@@ -13,7 +13,6 @@ state, no display needed; ``fig.savefig`` renders with Agg):
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -55,18 +54,10 @@ def load_result(path: str | Path) -> Result:
     CloudFileError
         Either file is missing or is not a kbs result.
     """
-    from kbs.io import read_cloud
+    from kbs.io import read_cloud, read_result_json
 
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-        doc["clusters"], doc["label_names"]  # noqa: B018 -- a kbs result has both
-    except FileNotFoundError as exc:
-        raise CloudFileError(str(path), "no such file") from exc
-    except IsADirectoryError as exc:
-        raise CloudFileError(str(path), "is a directory, not a result file") from exc
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as exc:
-        raise CloudFileError(str(path), f"not a kbs result file ({type(exc).__name__}: {exc})") from exc
+    doc = read_result_json(path, require=("clusters", "label_names"))
     ply = path.with_suffix(".ply")
     if not ply.is_file():
         raise CloudFileError(str(ply), "no such file (the points of the result, written next to its .json)")
