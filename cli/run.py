@@ -198,7 +198,9 @@ def rules_list() -> None:
 def predicates(plugins: tuple[Path, ...]) -> None:
     """List every predicate a rule file may use, with unit, parameters and doc."""
     for p in _registry(plugins):
-        click.echo(f"{p.name}  [{p.unit}: {UNITS[p.unit]}]" + ("  (uses the ground)" if p.needs_ground else ""))
+        uses = ("  (uses the local ground surface: post.relabel only)" if p.needs_ground_model
+                else "  (uses the ground)" if p.needs_ground else "")
+        click.echo(f"{p.name}  [{p.unit}: {UNITS[p.unit]}]{uses}")
         lo, hi = p.value_range
         if lo is not None or hi is not None:
             click.echo(f"    values in [{'-inf' if lo is None else f'{lo:g}'}, {'inf' if hi is None else f'{hi:g}'}]")

@@ -86,6 +86,9 @@ class ClusterRecord:
     notes: list[str] = field(default_factory=list)
     output_index: int | None = None  #: value of the per-point 'cluster' property, None if none
     decisive: list[str] = field(default_factory=list)  #: checks of the condition that decided
+    #: set when a post.relabel rule changed the label: {rule, source, from, to, checks}
+    relabel: dict[str, Any] | None = None
+    contact: int = 0  #: points that left it for the ground (post.ground_contact)
 
     def decisive_checks(self) -> list[CheckRecord]:
         names = set(self.decisive)
@@ -175,10 +178,22 @@ class Explanation:
         if rec.action == "reject":
             return f"{head} rejected as noise: {why}{src}"
         if rec.action == "limit":
-            return f"{head} kept as {rec.label or 'it is'} ({'; '.join(rec.notes)}): {why}{src}"
+            return f"{head} kept as {rec.label or 'it is'} ({'; '.join(rec.notes)}): {why}{src}{self._relabel_text(rec)}"
         label = f" as {rec.label}" if rec.label else ""
+        if rec.relabel:
+            return f"{head} accepted as {rec.relabel['from']}{self._relabel_text(rec)}"
         why = why or "; ".join(c.sentence() for c in rec.checks) or "no check measured"
         return f"{head} accepted{label}: {why}"
+
+    @staticmethod
+    def _relabel_text(rec: ClusterRecord) -> str:
+        """', relabelled ground: height_above_local_ground = 0.08 m <= 0.25 m [outdoor.yaml:95 low_sheet]'."""
+        if not rec.relabel:
+            return ""
+        r = rec.relabel
+        names = set(r["checks"])
+        why = "; ".join(c.sentence() for c in rec.checks if c.check in names)
+        return f", relabelled {r['to']}: {why} [{r['source']} {r['rule']}]"
 
     def render(self, start: str | None = None) -> str:
         """The tree as indented text."""

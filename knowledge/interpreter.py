@@ -173,7 +173,7 @@ class Interpreter:
 
     def _ground(self, X: np.ndarray, candidates: list[tuple[Cluster, ClusterRecord]], info: dict) -> Ground | None:
         spec = self.rb.ground
-        if not self.rb.needs_ground and spec.normal is None and spec.candidate is None:
+        if not self.rb.needs_ground and spec.normal is None and spec.candidate is None and self.rb.ground_model is None:
             return None
         if spec.normal is not None:
             return self._plane_from_normal(X, np.asarray(spec.normal, float), "fixed", info)
@@ -434,6 +434,8 @@ class Interpreter:
         rb = self.rb
         for node, cl, rec in leaves:
             self._label(cl, scene, rec)
+        if rb.ground_model is not None and leaves:
+            leaves = self._post_ground(X, leaves, scene, ground_info)
         groups = self._merge(leaves)
         n = X.shape[0]
         cluster = np.full(n, -1, dtype=np.int32)
@@ -463,6 +465,93 @@ class Interpreter:
                            records=records, root="c", ground=ground_info, notes=notes)
         return Segmentation(cluster=cluster, label=label, membership=membership, label_names=rb.label_names,
                             explanation=expl, clusters=out_clusters, seconds=time.perf_counter() - t0)
+
+    # -- the local ground surface: relabel and ground contact ----------------------------------------
+
+    def _local_ground(self, X, leaves, scene: Scene):
+        from kbs.knowledge.groundmodel import LocalGround
+
+        spec = self.rb.ground_model
+        mine = [i for i, (_, _, rec) in enumerate(leaves) if rec.label == spec.label]
+        index = np.concatenate([leaves[i][0].idx for i in mine]) if mine else np.zeros(0, dtype=np.int64)
+        owner = np.concatenate([np.full(leaves[i][0].idx.size, i) for i in mine]) if mine else np.zeros(0, dtype=np.int64)
+        model = LocalGround.build(X, index, scene.ground.normal, scene.ground.point, neighbours=spec.neighbours,
+                                  radius=spec.radius)
+        return model, owner
+
+    def _post_ground(self, X, leaves, scene: Scene, ground_info: dict):
+        """post.ground_model: build the local ground surface from the clusters of its label, apply
+        post.relabel (whose conditions may measure against it), then post.ground_contact."""
+        rb = self.rb
+        spec = rb.ground_model
+        if scene.ground is None:  # the rule base has no way to orient the ground: say so, do nothing
+            ground_info["local_model"] = {"note": "no ground plane: post.ground_model skipped"}
+            return leaves
+        model, owner = self._local_ground(X, leaves, scene)
+        ground_info["local_model"] = {"label": spec.label, "points": model.n_points, "neighbours": spec.neighbours,
+                                      "radius": spec.radius, "source": spec.pos.short}
+        if rb.relabel:
+            post_scene = Scene(scene.sensor, scene.ground, scene.unit, ground_model=model)
+            changed = 0
+            for node, cl, rec in leaves:
+                for r in rb.relabel:
+                    if rec.label != r.source or not r.condition.evaluate(self._facts(cl, post_scene, rec)):
+                        continue
+                    names = self._names(r.condition)
+                    rec.relabel = {"rule": r.name, "source": r.pos.short, "from": r.source, "to": r.target,
+                                   "checks": names}
+                    rec.label = r.target
+                    changed += 1
+                    break
+            ground_info["local_model"]["relabelled"] = changed
+            if changed:
+                model, owner = self._local_ground(X, leaves, scene)
+                ground_info["local_model"]["points_after_relabel"] = model.n_points
+        if rb.contact is not None and model.n_points:
+            leaves = self._ground_contact(X, leaves, model, owner)
+        return leaves
+
+    def _ground_contact(self, X, leaves, model, owner):
+        spec = self.rb.contact
+        moved_in: dict[int, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
+        emptied = set()
+        total = 0
+        for li, (node, cl, rec) in enumerate(leaves):
+            if rec.label not in spec.sources or rec.label == self.rb.ground_model.label:
+                continue
+            P = X[node.idx]
+            ground, nearest = model.query(P)
+            h = (P - model.point) @ model.normal - ground
+            move = np.abs(np.nan_to_num(h, nan=np.inf)) <= spec.tolerance
+            n_move = int(move.sum())
+            if not n_move:
+                continue
+            targets = owner[nearest[move]]
+            for t in np.unique(targets):
+                sel = np.flatnonzero(move)[targets == t]
+                moved_in.setdefault(int(t), []).append((node.idx[sel], node.weight[sel], node.path[sel]))
+            dest = sorted({leaves[int(t)][2].id for t in np.unique(targets)})
+            rec.contact = n_move
+            rec.notes.append(f"{n_move:,} of its {node.idx.size:,} points lie within {spec.tolerance:g} "
+                             f"{self.rb.length_unit} of the local ground surface and joined "
+                             f"{self.rb.ground_model.label} cluster{'s' if len(dest) > 1 else ''} "
+                             f"{', '.join(dest[:5])}{' ...' if len(dest) > 5 else ''} [{spec.pos.short} ground_contact]")
+            keep = ~move
+            node.idx, node.weight, node.path = node.idx[keep], node.weight[keep], node.path[keep]
+            total += n_move
+            if not node.idx.size:
+                emptied.add(li)
+        for t, parts in moved_in.items():
+            node, _, rec = leaves[t]
+            n_in = sum(p[0].size for p in parts)
+            node.idx = np.concatenate([node.idx] + [p[0] for p in parts])
+            node.weight = np.concatenate([node.weight] + [p[1] for p in parts])
+            node.path = np.concatenate([node.path] + [p[2] for p in parts])
+            rec.notes.append(f"{n_in:,} points of other clusters in contact with it joined it "
+                             f"[{spec.pos.short} ground_contact]")
+        for li in emptied:
+            leaves[li][2].notes.append("every point of it joined the ground: no output cluster")
+        return [lf for li, lf in enumerate(leaves) if li not in emptied]
 
     @staticmethod
     def _group_descriptors(X, nodes: list[_Node]) -> dict[str, Any]:

@@ -100,6 +100,9 @@ class Scene:
     sensor: np.ndarray
     ground: Ground | None
     unit: str
+    #: the local ground surface (:class:`~kbs.knowledge.groundmodel.LocalGround`), built after the
+    #: clusters are labelled; only the rule base's ``post.relabel`` conditions can see it
+    ground_model: Any = None
 
 
 @dataclass(frozen=True)
@@ -156,6 +159,7 @@ class Predicate:
     value_range: tuple[float | None, float | None]
     needs_ground: bool
     origin: str
+    needs_ground_model: bool = False
 
     def measure(self, cluster: Cluster, scene: Scene, params: Mapping[str, Any]) -> Measurement:
         out = self.func(cluster, scene, **params)
@@ -180,6 +184,7 @@ def predicate(
     needs_ground: bool = False,
     bounds: Mapping[str, tuple[float | None, float | None]] | None = None,
     choices: Mapping[str, Iterable[str]] | None = None,
+    needs_ground_model: bool = False,
 ) -> Callable[[Callable], Predicate]:
     """Declare a predicate. The function is checked now, not when it is first called.
 
@@ -193,20 +198,25 @@ def predicate(
         The values it can return; thresholds outside are rejected when a rule file is loaded.
     needs_ground : bool
         Whether it uses ``scene.ground``.
+    needs_ground_model : bool
+        Whether it uses ``scene.ground_model``, the local ground surface built from the clusters
+        labelled ground (implies ``needs_ground``). Such a predicate can only be used after the
+        labelling: in the conditions of ``post.relabel``.
     bounds, choices : mapping
         Allowed ranges of numeric parameters, allowed values of string parameters.
     """
 
     def wrap(func: Callable) -> Predicate:
         return make_predicate(func, name=name or getattr(func, "__name__", ""), unit=unit, value_range=value_range,
-                              needs_ground=needs_ground, bounds=bounds or {}, choices=choices or {},
-                              origin=getattr(func, "__module__", "?"))
+                              needs_ground=needs_ground or needs_ground_model, bounds=bounds or {},
+                              choices=choices or {}, origin=getattr(func, "__module__", "?"),
+                              needs_ground_model=needs_ground_model)
 
     return wrap
 
 
 def make_predicate(func: Callable, *, name: str, unit: str, value_range, needs_ground: bool, bounds, choices,
-                   origin: str) -> Predicate:
+                   origin: str, needs_ground_model: bool = False) -> Predicate:
     """Check a function against the predicate contract and wrap it (raises PredicateError)."""
     where = f"predicate '{name}' ({origin})"
     if not isinstance(name, str) or not name.isidentifier():
@@ -242,7 +252,8 @@ def make_predicate(func: Callable, *, name: str, unit: str, value_range, needs_g
     if unknown:
         raise PredicateError(f"{where}: bounds or choices given for unknown parameters {sorted(unknown)}")
     return Predicate(name=name, func=func, unit=unit, doc=doc, params=params, value_range=(lo, hi),
-                     needs_ground=needs_ground, origin=origin)
+                     needs_ground=needs_ground or needs_ground_model, origin=origin,
+                     needs_ground_model=needs_ground_model)
 
 
 # --- the registry ---------------------------------------------------------------------------
@@ -406,5 +417,22 @@ def distance_to_sensor(cluster: Cluster, scene: Scene, *, to: str = "center") ->
     return float(np.sqrt(((cluster.X - scene.sensor) ** 2).sum(axis=1).min()))
 
 
+_STATS = {"max": np.max, "p90": lambda h: np.percentile(h, 90), "mean": np.mean, "median": np.median,
+          "p10": lambda h: np.percentile(h, 10), "min": np.min}
+
+
+@predicate(unit="length", needs_ground_model=True, choices={"stat": tuple(_STATS)})
+def height_above_local_ground(cluster: Cluster, scene: Scene, *, stat: str = "p90") -> float:
+    """Height of the cluster's points above the local ground surface (the median height of the
+    nearest points of the clusters labelled ground, see post.ground_model), along the ground
+    normal: their max, 90th percentile, mean, median, 10th percentile or min, over the points
+    with ground within the model's radius (above the ground plane when none has). Usable in
+    post.relabel conditions only (the surface exists once clusters are labelled)."""
+    h = scene.ground_model.height(cluster.X)
+    known = ~np.isnan(h)
+    h = h[known] if known.any() else scene.ground.height(cluster.X)
+    return float(_STATS[stat](h))
+
+
 BUILTINS: tuple[Predicate, ...] = (thickness, flatness, ground_angle, connexity, point_count, extent, height_above_ground,
-                                   distance_to_sensor)
+                                   distance_to_sensor, height_above_local_ground)

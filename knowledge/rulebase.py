@@ -223,6 +223,33 @@ class MergeSpec:
 
 
 @dataclass(frozen=True)
+class GroundModelSpec:
+    label: str
+    neighbours: int
+    radius: float
+    pos: SourcePos
+
+
+@dataclass(frozen=True)
+class Relabel:
+    """A post rule: a cluster labelled ``source`` whose condition holds takes label ``target``."""
+
+    name: str
+    source: str
+    target: str
+    condition: Condition
+    doc: str
+    pos: SourcePos
+
+
+@dataclass(frozen=True)
+class ContactSpec:
+    tolerance: float
+    sources: tuple[str, ...]  #: labels whose points may join the ground
+    pos: SourcePos
+
+
+@dataclass(frozen=True)
 class RuleBase:
     """A validated rule base."""
 
@@ -240,6 +267,9 @@ class RuleBase:
     merge: MergeSpec | None
     path: str
     text: str = field(repr=False)
+    ground_model: GroundModelSpec | None = None
+    relabel: tuple[Relabel, ...] = ()
+    contact: ContactSpec | None = None
 
     @property
     def label_names(self) -> list[str]:
@@ -394,13 +424,15 @@ class _Validator:
         sensor = scene.get("sensor", [0.0, 0.0, 0.0])
         ground = self._ground(scene.get("ground") if isinstance(scene.get("ground"), dict) else {}, checks)
         merge = self._merge(d.get("post"), labels)
+        gmodel, relabel, contact = self._post(d.get("post"), checks, labels)
+        self._model_checks_placed(checks, rules, labels)
         if self.problems:
             return None
         return RuleBase(
             name=d["name"], description=str(d.get("description", "")).strip(), units=d["units"], engine=engine,
             strategy=d["strategy"], limits=limits, sensor=tuple(float(x) for x in sensor), ground=ground,
             checks=checks, rules=tuple(rules), labels=tuple(labels), merge=merge, path=self.pos.file,
-            text="\n".join(self.pos.lines),
+            text="\n".join(self.pos.lines), ground_model=gmodel, relabel=tuple(relabel), contact=contact,
         )
 
     def _checks(self, raw: Any) -> dict[str, Check]:
@@ -558,6 +590,87 @@ class _Validator:
                      + (f" (did you mean '{hint}'?)" if hint else f"; labels: {', '.join(names)}"))
         return MergeSpec(label=str(m.get("label")), max_angle=float(m.get("max_angle", 10.0)),
                          max_offset=float(m.get("max_offset", 0.15)))
+
+
+    def _label_ref(self, path: tuple, name: Any, names: list[str]) -> None:
+        if isinstance(name, str) and name not in names:
+            hint = did_you_mean(name, names)
+            self.add(path, f"unknown label '{name}'" + (f" (did you mean '{hint}'?)" if hint else f"; labels: {', '.join(names)}"))
+
+    def _post(self, raw: Any, checks: Mapping[str, Check], labels: list[Label]):
+        """post.ground_model, post.relabel and post.ground_contact."""
+        if not isinstance(raw, dict):
+            raw = {}
+        names = [lb.name for lb in labels]
+        gm = raw.get("ground_model")
+        model = None
+        if isinstance(gm, dict) and isinstance(gm.get("label"), str):
+            self._label_ref(("post", "ground_model", "label"), gm["label"], names)
+            model = GroundModelSpec(label=gm["label"], neighbours=int(gm.get("neighbours", 8)),
+                                    radius=float(gm.get("radius", 3.0)), pos=self.pos.pos(("post", "ground_model"), key=True))
+        relabel: list[Relabel] = []
+        seen: set[str] = set()
+        raw_relabel = raw.get("relabel") if isinstance(raw.get("relabel"), list) else []
+        for i, spec in enumerate(raw_relabel):
+            path = ("post", "relabel", i)
+            if not isinstance(spec, dict) or not all(isinstance(spec.get(k), str) for k in ("name", "from", "to")):
+                continue  # the schema reported it
+            if spec["name"] in seen:
+                self.add(path + ("name",), f"relabel rule '{spec['name']}' is defined twice")
+            seen.add(spec["name"])
+            self._label_ref(path + ("from",), spec["from"], names)
+            self._label_ref(path + ("to",), spec["to"], names)
+            if spec["from"] == spec["to"]:
+                self.add(path + ("to",), f"relabel rule '{spec['name']}' changes nothing: from and to are both "
+                         f"'{spec['to']}'")
+            cond = self._condition(spec.get("if"), path + ("if",), checks) if "if" in spec else None
+            if cond is None:
+                continue
+            if model is None:
+                uses = [f.name for f in cond.facts() if f.name in checks and checks[f.name].predicate.needs_ground_model]
+                if uses:
+                    self.add(path + ("if",), f"relabel rule '{spec['name']}': check '{uses[0]}' needs the local ground "
+                             "surface, but post.ground_model does not declare it")
+            relabel.append(Relabel(spec["name"], spec["from"], spec["to"], cond, str(spec.get("doc", "")),
+                                   self.pos.pos(path)))
+        gc = raw.get("ground_contact")
+        contact = None
+        if isinstance(gc, dict) and isinstance(gc.get("tolerance"), (int, float)) and not isinstance(gc["tolerance"], bool):
+            if model is None:
+                self.add(("post", "ground_contact"), "ground_contact needs post.ground_model (the surface points are "
+                         "measured against)", key=True)
+            src = gc.get("from")
+            if isinstance(src, list):
+                for j, name in enumerate(src):
+                    self._label_ref(("post", "ground_contact", "from", j), name, names)
+                    if model is not None and name == model.label:
+                        self.add(("post", "ground_contact", "from", j), f"ground_contact from '{name}', the ground "
+                                 "model's own label, changes nothing")
+                sources = tuple(x for x in src if isinstance(x, str))
+            else:
+                sources = tuple(n for n in names if model is None or n != model.label)
+            contact = ContactSpec(float(gc["tolerance"]), sources, self.pos.pos(("post", "ground_contact"), key=True))
+        return model, relabel, contact
+
+    def _model_checks_placed(self, checks: Mapping[str, Check], rules: list[Rule], labels: list[Label]) -> None:
+        """A check on the local ground surface cannot decide splits or labels: the surface is made
+        of the labelled clusters."""
+        def bad(cond: Condition | None) -> list[str]:
+            return [] if cond is None else [f.name for f in cond.facts()
+                                           if f.name in checks and checks[f.name].predicate.needs_ground_model]
+
+        raw_rules = self.data.get("rules") if isinstance(self.data.get("rules"), list) else []
+        for i, spec in enumerate(raw_rules):
+            rule = next((r for r in rules if isinstance(spec, dict) and r.name == spec.get("name")), None)
+            for name in bad(rule.condition if rule else None)[:1]:
+                self.add(("rules", i, "if"), f"rule '{rule.name}': check '{name}' measures against the local ground "
+                         "surface, which exists only once clusters are labelled; use it in post.relabel")
+        raw_labels = self.data.get("labels") if isinstance(self.data.get("labels"), list) else []
+        for i, lab in enumerate(labels):
+            for name in bad(lab.condition)[:1]:
+                if i < len(raw_labels):
+                    self.add(("labels", i, "if"), f"label '{lab.name}': check '{name}' measures against the local "
+                             "ground surface, which is built from the labels; use it in post.relabel")
 
 
 def _article(t: Any) -> str:

@@ -1,0 +1,101 @@
+"""A local ground surface built from the points of the clusters that earned the ground label.
+
+One global plane (the scene's ``Ground``) cannot say whether a patch of grass beside a cambered
+road, or a strip of pavement at the foot of a wall, lies *on* the ground: the terrain bends and
+steps. The local model answers it the way a height map does, without gridding: the ground height
+under a point is the median height of its ``neighbours`` nearest ground points, found in the ground
+plane's own 2D coordinates within ``radius``. Heights are measured along the ground normal.
+
+Where no ground point lies within ``radius`` the local height is unknown (NaN in
+:meth:`LocalGround.height`); callers decide what that means (the predicate falls back to the
+global plane, the ground-contact step leaves such points alone).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def plane_basis(normal: np.ndarray) -> np.ndarray:
+    """Two orthonormal vectors (2, 3) spanning the plane of unit ``normal``."""
+    n = np.asarray(normal, dtype=np.float64)
+    a = np.eye(3)[int(np.argmin(np.abs(n)))]
+    e1 = np.cross(n, a)
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(n, e1)])
+
+
+@dataclass(frozen=True)
+class LocalGround:
+    """The ground points, indexed for "which ground is under this point" queries.
+
+    Attributes
+    ----------
+    normal, point : ndarray (3,)
+        The scene's ground plane (heights are along ``normal``, from ``point``).
+    index : ndarray (m,) int
+        Which points of the scene the model was built from (indices into the scene's cloud).
+    heights : ndarray (m,)
+        Their heights above the ground plane.
+    neighbours : int
+    radius : float
+    """
+
+    normal: np.ndarray
+    point: np.ndarray
+    index: np.ndarray
+    heights: np.ndarray
+    neighbours: int
+    radius: float
+    basis: np.ndarray
+    tree: object  # scipy.spatial.cKDTree over the ground points' plane coordinates
+
+    @classmethod
+    def build(cls, X: np.ndarray, index: np.ndarray, normal: np.ndarray, point: np.ndarray, *,
+              neighbours: int = 8, radius: float = 3.0) -> "LocalGround":
+        """A model from the points ``X[index]`` (the scene ``X`` (n, 3)) over the plane (normal,
+        point)."""
+        from scipy.spatial import cKDTree
+
+        normal = np.asarray(normal, dtype=np.float64)
+        point = np.asarray(point, dtype=np.float64)
+        basis = plane_basis(normal)
+        G = X[index] - point
+        return cls(normal=normal, point=point, index=np.asarray(index), heights=G @ normal,
+                   neighbours=int(neighbours), radius=float(radius), basis=basis,
+                   tree=cKDTree(G @ basis.T, balanced_tree=False, compact_nodes=False))
+
+    @property
+    def n_points(self) -> int:
+        return int(self.index.size)
+
+    def query(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For points ``P`` (q, 3): the local ground height under each (NaN where no ground point
+        lies within ``radius``) and the position in :attr:`index` of its nearest ground point (-1
+        where none)."""
+        P = np.asarray(P, dtype=np.float64).reshape(-1, 3) - self.point
+        q = P.shape[0]
+        ground = np.full(q, np.nan)
+        nearest = np.full(q, -1, dtype=np.int64)
+        if q == 0 or self.n_points == 0:
+            return ground, nearest
+        k = min(self.neighbours, self.n_points)
+        d, i = self.tree.query(P @ self.basis.T, k=k, distance_upper_bound=self.radius)
+        d, i = d.reshape(q, k), i.reshape(q, k)
+        nf = np.isfinite(d).sum(axis=1)  # neighbours found, nearest first
+        some = nf > 0
+        if some.any():  # the median of the found heights: sort with the missing ones last
+            hs = np.where(np.isfinite(d[some]), self.heights[np.minimum(i[some], self.n_points - 1)], np.inf)
+            hs.sort(axis=1)
+            r = np.arange(hs.shape[0])
+            m = nf[some]
+            ground[some] = 0.5 * (hs[r, (m - 1) // 2] + hs[r, m // 2])
+        nearest[some] = i[some, 0]
+        return ground, nearest
+
+    def height(self, P: np.ndarray) -> np.ndarray:
+        """Heights (q,) of points ``P`` above the local ground surface (NaN where it is unknown)."""
+        P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
+        ground, _ = self.query(P)
+        return (P - self.point) @ self.normal - ground
