@@ -29,6 +29,12 @@ def _vector3(ctx, param, value):
     return v
 
 
+def _jobs(ctx, param, value):
+    if value == 0:
+        raise click.BadParameter("0 processes: give a positive number, or -1 for one per core")
+    return value
+
+
 def _registry(plugins: tuple[Path, ...]) -> PredicateRegistry:
     reg = PredicateRegistry.default()
     for p in plugins:
@@ -54,9 +60,12 @@ plugin_option = click.option("--plugin", "plugins", multiple=True, type=click.Pa
               "(obstacle-<index>.ply) and the ground surface (ground.ply).")
 @click.option("--report", is_flag=True, help="Also write DIR/<stem>.html: a self-contained report (3D view by "
               "cluster or label, centres and eigen-boxes, APD curve, the explanation tree; opens offline).")
+@click.option("-j", "--jobs", type=click.IntRange(min=-1), default=-1, show_default=True, callback=_jobs,
+              help="Processes computing the UFP-ONC splits side by side; -1: one per available core. The result "
+              "does not depend on it.")
 @click.pass_context
 def run(ctx: click.Context, rules: str, cloud: Path, sensor, out_dir: Path, plugins: tuple[Path, ...],
-        color_by: str = "cluster", meshes: bool = False, report: bool = False) -> None:
+        color_by: str = "cluster", meshes: bool = False, report: bool = False, jobs: int = -1) -> None:
     """Segment CLOUD with a rule base; write DIR/<stem>.ply (per-vertex cluster, label, membership)
     and DIR/<stem>.json (label names, clusters, the explanation tree)."""
     quiet = ctx.obj.get("quiet", False)
@@ -64,7 +73,7 @@ def run(ctx: click.Context, rules: str, cloud: Path, sensor, out_dir: Path, plug
     rb = load_rule_base(rules, _registry(plugins))
     pc = read_cloud(cloud)
     t_read = time.perf_counter() - t0
-    seg = Interpreter(rb, sensor=sensor).run(pc.xyz)
+    seg = Interpreter(rb, sensor=sensor, jobs=jobs).run(pc.xyz)
     t1 = time.perf_counter()
     try:
         out_dir.mkdir(parents=True, exist_ok=True)

@@ -89,22 +89,31 @@ class Interpreter:
         Overrides the rule base's sensor position.
     progress : callable, optional
         Called with a short message after each decision.
+    jobs : int
+        Processes computing UFP-ONC splits (1: all in this process; -1: one per available core).
+        The splits of one level of the tree are independent, so they run side by side while this
+        process judges the clusters; the result is identical whatever ``jobs`` is.
     """
 
     def __init__(self, rule_base: RuleBase, *, sensor: Any = None,
-                 progress: Callable[[str], None] | None = None) -> None:
+                 progress: Callable[[str], None] | None = None, jobs: int = 1) -> None:
         self.rb = rule_base
         self.sensor = np.asarray(rule_base.sensor if sensor is None else sensor, dtype=np.float64)
         self.progress = progress
+        if not isinstance(jobs, (int, np.integer)) or jobs == 0 or jobs < -1:
+            raise ValueError(f"jobs must be a positive number of processes or -1 (one per core), got {jobs!r}")
+        self.jobs = available_cores() if jobs == -1 else int(jobs)
 
     # -- engine --------------------------------------------------------------------------------
 
-    def _ufp_onc(self, X: np.ndarray, stop: str, min_k: int = 1) -> UFPONCResult:
+    def _ufp_kwargs(self, stop: str, min_k: int = 1) -> dict[str, Any]:
         e = self.rb.engine
-        return ufp_onc(X, e["k_max"], m=e["m"], tol=e["tol"], max_iter=e["max_iter"],
-                       min_variance=e["min_variance"], max_condition=e["max_condition"],
-                       new_prototype=e["new_prototype"], stop=stop, min_k=min_k,
-                       max_fit_points=e["max_fit_points"])
+        return dict(k_max=e["k_max"], m=e["m"], tol=e["tol"], max_iter=e["max_iter"],
+                    min_variance=e["min_variance"], max_condition=e["max_condition"],
+                    new_prototype=e["new_prototype"], stop=stop, min_k=min_k, max_fit_points=e["max_fit_points"])
+
+    def _ufp_onc(self, X: np.ndarray, stop: str, min_k: int = 1) -> UFPONCResult:
+        return ufp_onc(X, **self._ufp_kwargs(stop, min_k))
 
     def _initial_k(self, res: UFPONCResult, notes: list[str]) -> int:
         ik = self.rb.engine["initial_k"]
@@ -278,47 +287,60 @@ class Interpreter:
         return self._children_from_memberships(root, u)
 
     def _run_divisive(self, X, root, res, k0, records, ground_info, notes):
+        """Breadth first, one level of the split tree (a wave) at a time: every cluster of the wave
+        is judged, the UFP-ONC splits it asks for are started (side by side when jobs > 1), then
+        the decisions are applied in order — exactly the order of a first-in first-out queue, so
+        the limits (max_clusters) stop the same clusters whatever the number of jobs."""
         rb = self.rb
         children = self._initial_children(X, root, res, k0)
         records["c"].children = [c.id for c in children]
-        pending = [(c, *self._record(c, X)) for c in children]
-        scene = Scene(self.sensor, self._ground(X, [(cl, rec) for _, cl, rec in pending], ground_info), rb.units)
+        wave = [(c, *self._record(c, X)) for c in children]
+        scene = Scene(self.sensor, self._ground(X, [(cl, rec) for _, cl, rec in wave], ground_info), rb.units)
         leaves: list[tuple[_Node, Cluster, ClusterRecord]] = []
-        n_clusters = len(pending)
-        while pending:
-            node, cl, rec = pending.pop(0)
-            records[node.id] = rec
-            action, rule = self._judge(cl, scene, rec)
-            if action == "reject":
-                rec.action = "reject"
-                continue
-            if action == "accept":
-                rec.action = "accept"
-                leaves.append((node, cl, rec))
-                continue
-            why_not = self._cannot_split(node, n_clusters)
-            kids: list[_Node] = []
-            if why_not is None:
-                try:
-                    kids = self._split(node, X, cl, rec, action, rule)
-                except FitError as exc:
-                    why_not = f"the split failed: {exc}"
-                if why_not is None and len(kids) < 2:
-                    why_not = "the split gave a single cluster"
-            if why_not is not None:
-                rec.action = "limit"
-                rec.notes.append(why_not)
-                leaves.append((node, cl, rec))
-                continue
-            rec.action = action
-            rec.children = [k.id for k in kids]
-            n_clusters += len(kids) - 1
-            children = [(k, *self._record(k, X)) for k in kids]
-            if action == "split_components":
-                self._inherit_connexity(rule, children)
-            pending.extend(children)
-            if self.progress:
-                self.progress(f"{node.id} split in {len(kids)}")
+        n_clusters = len(wave)
+        split_kw = self._ufp_kwargs("first_max", rb.engine["split_min_k"])
+        with _Splitter(self.jobs, split_kw) as splitter:
+            while wave:
+                judged = []
+                for node, cl, rec in wave:
+                    records[node.id] = rec
+                    action, rule = self._judge(cl, scene, rec)
+                    job = None
+                    if action == "split" and self._cannot_split(node, 0) is None:  # max_clusters is known later
+                        job = splitter.submit(X[node.idx])
+                    judged.append((node, cl, rec, action, rule, job))
+                wave = []
+                for node, cl, rec, action, rule, job in judged:
+                    if action == "reject":
+                        rec.action = "reject"
+                        continue
+                    if action == "accept":
+                        rec.action = "accept"
+                        leaves.append((node, cl, rec))
+                        continue
+                    why_not = self._cannot_split(node, n_clusters)
+                    kids: list[_Node] = []
+                    if why_not is None:
+                        try:
+                            kids = self._split(node, X, cl, rec, action, rule, job)
+                        except FitError as exc:
+                            why_not = f"the split failed: {exc}"
+                        if why_not is None and len(kids) < 2:
+                            why_not = "the split gave a single cluster"
+                    if why_not is not None:
+                        rec.action = "limit"
+                        rec.notes.append(why_not)
+                        leaves.append((node, cl, rec))
+                        continue
+                    rec.action = action
+                    rec.children = [k.id for k in kids]
+                    n_clusters += len(kids) - 1
+                    kid_records = [(k, *self._record(k, X)) for k in kids]
+                    if action == "split_components":
+                        self._inherit_connexity(rule, kid_records)
+                    wave.extend(kid_records)
+                    if self.progress:
+                        self.progress(f"{node.id} split in {len(kids)}")
         return leaves, scene
 
     def _inherit_connexity(self, rule, children) -> None:
@@ -357,9 +379,11 @@ class Interpreter:
             return f"limit reached: max_clusters = {lim['max_clusters']}"
         return None
 
-    def _split(self, node: _Node, X: np.ndarray, cl: Cluster, rec: ClusterRecord, action: str, rule) -> list[_Node]:
+    def _split(self, node: _Node, X: np.ndarray, cl: Cluster, rec: ClusterRecord, action: str, rule,
+               job: "_Job | None" = None) -> list[_Node]:
         if action == "split":
-            res = self._ufp_onc(X[node.idx], "first_max", min_k=self.rb.engine["split_min_k"])
+            res = job.result() if job is not None else \
+                self._ufp_onc(X[node.idx], "first_max", min_k=self.rb.engine["split_min_k"])
             k = res.chosen_k
             if k < 2:
                 if len(res.partitions) < 2:
@@ -588,6 +612,68 @@ class Interpreter:
         return list(out.values())
 
 
-def segment(X: np.ndarray, rule_base: RuleBase, *, sensor: Any = None) -> Segmentation:
+def segment(X: np.ndarray, rule_base: RuleBase, *, sensor: Any = None, jobs: int = 1) -> Segmentation:
     """Segment points ``X`` (n, 3) with a rule base (see :class:`Interpreter`)."""
-    return Interpreter(rule_base, sensor=sensor).run(X)
+    return Interpreter(rule_base, sensor=sensor, jobs=jobs).run(X)
+
+
+# -- running the splits of a wave side by side -------------------------------------------------------
+
+
+def available_cores() -> int:
+    """The cores this process may run on (its CPU affinity, where the system tells)."""
+    import os
+
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def _split_job(X: np.ndarray, kwargs: dict[str, Any]) -> tuple[str, Any]:
+    """In a worker: UFP-ONC on one cluster's points; a FitError travels back as its message."""
+    try:
+        return "ok", ufp_onc(X, **kwargs)
+    except FitError as exc:
+        return "error", str(exc)
+
+
+class _Job:
+    """A split under way: in a worker process (``future``) or not started yet (computed here, on
+    demand, when ``jobs`` is 1)."""
+
+    def __init__(self, X: np.ndarray, kwargs: dict[str, Any], future=None) -> None:
+        self.X, self.kwargs, self.future = X, kwargs, future
+
+    def result(self) -> UFPONCResult:
+        status, value = self.future.result() if self.future is not None else _split_job(self.X, self.kwargs)
+        if status == "error":
+            raise FitError(value)
+        return value
+
+
+class _Splitter:
+    """Starts the UFP-ONC splits of a wave: in a pool of ``jobs`` worker processes (forked, so
+    nothing is imported again), or lazily in this process when ``jobs`` is 1."""
+
+    def __init__(self, jobs: int, kwargs: dict[str, Any]) -> None:
+        self.jobs, self.kwargs, self.pool = jobs, kwargs, None
+
+    def __enter__(self) -> "_Splitter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(wait=True, cancel_futures=True)
+
+    def submit(self, X: np.ndarray) -> _Job:
+        if self.jobs <= 1:
+            return _Job(X, self.kwargs)
+        if self.pool is None:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            methods = multiprocessing.get_all_start_methods()
+            ctx = multiprocessing.get_context("fork" if "fork" in methods else None)
+            self.pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx)
+        return _Job(X, self.kwargs, self.pool.submit(_split_job, X, self.kwargs))

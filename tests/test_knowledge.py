@@ -370,3 +370,35 @@ def test_fixed_initial_k_is_honoured_or_its_shortfall_recorded():
                           PredicateRegistry.default())
     seg = Interpreter(far).run(blobs)
     assert any(n.startswith("initial_k = 9 could not be reached") for n in seg.explanation.notes)
+
+
+# --- splits side by side ---------------------------------------------------------------------------
+
+
+def test_parallel_splits_give_the_same_segmentation_and_explanation():
+    """jobs only changes where the UFP-ONC splits run: arrays and explanation are identical."""
+    X, _ = ground_with_small_obstacles()
+    rb = load_rule_base("outdoor")
+    one, two = Interpreter(rb, jobs=1).run(X), Interpreter(rb, jobs=2).run(X)
+    assert one.n_splits > 0
+    for a in ("cluster", "label", "membership"):
+        assert np.array_equal(getattr(one, a), getattr(two, a)), a
+    assert one.explanation.render() == two.explanation.render()
+    assert one.clusters == two.clusters
+
+
+def test_parallel_splits_on_semantickitti_stop_at_the_same_limits(shared_data):
+    """On the real scan max_clusters is reached: the same clusters are stopped whatever jobs is."""
+    X = np.load(shared_data / "semantickitti" / "000001.points.npy").astype(np.float64)
+    rb = load_rule_base("outdoor")
+    one, two = Interpreter(rb, jobs=1).run(X), Interpreter(rb, jobs=2).run(X)
+    limited = [r.id for r in one.explanation.records.values() if any("max_clusters" in n for n in r.notes)]
+    assert limited, "the scan reaches max_clusters"
+    assert limited == [r.id for r in two.explanation.records.values() if any("max_clusters" in n for n in r.notes)]
+    assert np.array_equal(one.cluster, two.cluster) and np.array_equal(one.label, two.label)
+
+
+@pytest.mark.parametrize("jobs", [0, -2, 1.5, "2"])
+def test_jobs_must_be_a_count(jobs):
+    with pytest.raises(ValueError, match="jobs must be"):
+        Interpreter(load_rule_base("outdoor"), jobs=jobs)

@@ -112,6 +112,8 @@ def test_broken_plugin_exits_7(tmp_path):
 @pytest.mark.parametrize("args, code", [
     (["--sensor", "1,2"], 2),
     (["--rules"], 2),
+    (["--jobs", "0"], 2),
+    (["-j", "-3"], 2),
 ])
 def test_bad_options_exit_2(args, code, tmp_path):
     base = ["run", "--rules", "outdoor", str(EXAMPLE), "--out", str(tmp_path)]
