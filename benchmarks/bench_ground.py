@@ -5,7 +5,9 @@ Prints markdown: one row per scan and method (precision, recall, F1, IoU of the 
 with unlabelled points ignored, ISPRS total error, wall time), then the median over the scans of
 each data set. Every method runs in this process on the same points.
 
-Usage: python benchmarks/bench_ground.py [--sets kitti gndnet isprs mosd]
+Usage: python benchmarks/bench_ground.py [--sets kitti gndnet isprs mosd] [--jobs N]
+kbs runs its splits in ``--jobs`` processes (default -1, one per core, as ``kbs run``); the peers
+run as their libraries do by default.
 Peers come with ``pip install .[bench]`` (open3d also needs the system library libusb-1.0);
 a missing peer is named and skipped.
 """
@@ -84,6 +86,7 @@ def scans(sets: list[str]) -> list[Scan]:
 
 
 ROOT = Path(__file__).resolve().parents[1]
+JOBS = {"kbs": -1}
 
 
 def kbs_with(rules: str, ground_label: str, only: str | None = None):
@@ -93,7 +96,7 @@ def kbs_with(rules: str, ground_label: str, only: str | None = None):
         if only is not None and scan.dataset != only:
             return None
         rb = load_rule_base(rules)
-        seg = Interpreter(rb, sensor=scan.sensor).run(scan.xyz)
+        seg = Interpreter(rb, sensor=scan.sensor, jobs=JOBS["kbs"]).run(scan.xyz)
         return seg.label == rb.label_names.index(ground_label)
 
     return run
@@ -111,7 +114,9 @@ METHODS: dict[str, tuple[str | None, Callable[[Scan], np.ndarray | None]]] = {
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sets", nargs="+", default=["kitti", "gndnet", "isprs", "mosd"])
+    ap.add_argument("--jobs", type=int, default=-1, help="kbs split processes (-1: one per core)")
     args = ap.parse_args()
+    JOBS["kbs"] = args.jobs
     if not DATA.is_dir():
         sys.exit(f"the benchmark needs the real scans in {DATA}")
     missing = {name: peers.available(mod) for name, (mod, _) in METHODS.items() if mod}
