@@ -646,7 +646,12 @@ class _Job:
         self.X, self.kwargs, self.future = X, kwargs, future
 
     def result(self) -> UFPONCResult:
-        status, value = self.future.result() if self.future is not None else _split_job(self.X, self.kwargs)
+        from concurrent.futures.process import BrokenProcessPool
+
+        try:
+            status, value = self.future.result() if self.future is not None else _split_job(self.X, self.kwargs)
+        except BrokenProcessPool:  # a worker died (killed, out of memory): do this split here
+            status, value = _split_job(self.X, self.kwargs)
         if status == "error":
             raise FitError(value)
         return value

@@ -211,3 +211,38 @@ def test_user_rule_file_with_the_post_steps_runs(tmp_path):
     doc = json.loads((tmp_path / "o" / "s.json").read_text())
     model = doc["explanation"]["ground"]["local_model"]
     assert model["label"] == "ground" and model["points"] > 10000 and model["source"] == "r.yaml:19"
+
+
+def test_no_ground_cluster_leaves_the_surface_empty_and_the_run_whole():
+    """A rule base whose ground label no cluster earns: the surface has no point, ground contact
+    moves nothing; with a relabel rule, the local-height check falls back to the ground plane and
+    the clusters it relabels make the surface for the contact step."""
+    X, _ = ground_and_rocks()
+    never = "[planar, not planar]"  # 'ground' can never hold
+    rb = _parse(label_if=never, post=POST_OK.replace(
+        "  relabel:\n    - {name: low_obstacles, from: obstacle, to: ground, if: low}\n", ""))
+    assert not rb.relabel and rb.contact is not None
+    seg = Interpreter(rb).run(X)
+    assert seg.explanation.ground["local_model"]["points"] == 0
+    assert sum(r.contact for r in seg.explanation.records.values()) == 0 and not (seg.label == 0).any()
+    seg = Interpreter(_parse(label_if=never, post=POST_OK)).run(X)
+    model = seg.explanation.ground["local_model"]
+    low = [c for r in seg.explanation.records.values() for c in r.checks if c.check == "low"]
+    assert model["points"] == 0 and low and model["relabelled"] == sum(c.passed for c in low) > 0
+    assert model["points_after_relabel"] > 0
+
+
+def test_a_worker_that_dies_does_not_lose_the_split(monkeypatch):
+    """If the worker pool breaks (a worker killed, out of memory), the split is done in process."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    import kbs.knowledge.interpreter as interp
+
+    class Broken:
+        def result(self):
+            raise BrokenProcessPool("a worker died")
+
+    X, _ = ground_and_rocks()
+    job = interp._Job(X[:3000], Interpreter(load_rule_base("outdoor"))._ufp_kwargs("first_max"), Broken())
+    res = job.result()
+    assert res.n_samples == 3000 and res.chosen_k >= 1
