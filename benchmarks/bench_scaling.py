@@ -4,7 +4,9 @@
 
 Data: the SemanticKITTI scan and the two GndNet scans of ../shared/data (288,173 real points),
 subsampled (a fixed stride) below that size and tiled side by side (copies shifted 250 m in x)
-above it. Each measurement runs in a fresh child process; its peak RSS is its own.
+above it. Each measurement runs in a fresh child process; its peak RSS is its own, and the
+largest of the split workers it forks (``--jobs``, default one per core as ``kbs run``) is given
+beside it.
 
 Usage: python benchmarks/bench_scaling.py [--sizes 10000 100000 1000000 3000000] [--repeats 3]
 """
@@ -33,12 +35,12 @@ def cloud(n: int) -> np.ndarray:
     return np.vstack(tiles)[:n]
 
 
-def _child(kind: str, n: int, queue) -> None:
+def _child(kind: str, n: int, queue, jobs: int) -> None:
     X = cloud(n)
     if kind == "kbs run":
         from kbs.knowledge import Interpreter, load_rule_base
 
-        it = Interpreter(load_rule_base("outdoor"))
+        it = Interpreter(load_rule_base("outdoor"), jobs=jobs)
         call = lambda: it.run(X)  # noqa: E731
     else:
         from kbs.inference import ufp_onc
@@ -49,35 +51,40 @@ def _child(kind: str, n: int, queue) -> None:
     dt = time.perf_counter() - t0
     extra = (f"{len(out.clusters)} clusters, {out.n_splits} splits" if kind == "kbs run"
              else f"K = {out.chosen_k}")
-    queue.put((dt, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024, extra))
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    workers = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024  # the largest split worker
+    queue.put((dt, rss, extra, workers))
 
 
-def measure(kind: str, n: int, repeats: int) -> tuple[float, float, str]:
+def measure(kind: str, n: int, repeats: int, jobs: int) -> tuple[float, float, str, float]:
     ctx = mp.get_context("spawn")
     runs = []
     for _ in range(repeats):
         q = ctx.Queue()
-        p = ctx.Process(target=_child, args=(kind, n, q))
+        p = ctx.Process(target=_child, args=(kind, n, q, jobs))
         p.start()
         runs.append(q.get())
         p.join()
-    return statistics.median(r[0] for r in runs), max(r[1] for r in runs), runs[0][2]
+    return statistics.median(r[0] for r in runs), max(r[1] for r in runs), runs[0][2], max(r[3] for r in runs)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 1_000_000, 3_000_000])
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--jobs", type=int, default=-1, help="kbs split processes (-1: one per core, as kbs run)")
     args = ap.parse_args()
     if not DATA.is_dir():
         sys.exit(f"the benchmark needs the real scans in {DATA}")
-    print("| points | what | median s (runs) | peak RSS MB | result |")
-    print("|---:|---|---:|---:|---|")
+    print(f"kbs run with jobs = {args.jobs}\n")
+    print("| points | what | median s (runs) | peak RSS MB | largest worker MB | result |")
+    print("|---:|---|---:|---:|---:|---|")
     for n in args.sizes:
         for kind in ("ufp_onc", "kbs run"):
             reps = args.repeats if n <= 1_000_000 else 1
-            dt, rss, extra = measure(kind, n, reps)
-            print(f"| {n:,} | {kind} | {dt:.2f} ({reps}) | {rss / 1e6:.0f} | {extra} |", flush=True)
+            dt, rss, extra, workers = measure(kind, n, reps, args.jobs)
+            w = f"{workers / 1e6:.0f}" if kind == "kbs run" and workers else "-"
+            print(f"| {n:,} | {kind} | {dt:.2f} ({reps}) | {rss / 1e6:.0f} | {w} | {extra} |", flush=True)
 
 
 if __name__ == "__main__":
