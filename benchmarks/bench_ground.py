@@ -104,6 +104,7 @@ def kbs_with(rules: str, ground_label: str, only: str | None = None):
 
 METHODS: dict[str, tuple[str | None, Callable[[Scan], np.ndarray | None]]] = {
     "kbs outdoor": (None, kbs_with("outdoor", "ground")),
+    "kbs airborne": (None, kbs_with("airborne", "ground", only="ISPRS")),
     "kbs tabletop": (None, kbs_with(str(ROOT / "examples" / "rules" / "tabletop.yaml"), "table", only="mOSD table")),
     "Patchwork++": ("pypatchworkpp", lambda s: peers.patchworkpp(s.xyz, s.frame)),
     "CSF": ("CSF", lambda s: peers.csf(s.xyz, s.frame)),

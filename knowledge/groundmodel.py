@@ -40,6 +40,10 @@ class LocalGround:
         Their heights above the ground plane.
     neighbours : int
     radius : float
+    owners : ndarray (m,) int
+        Which cluster each point came from (an index into ``owner_ids``), so that a cluster can be
+        compared with the ground *around* it, its own points left out.
+    owner_ids : tuple of str
     """
 
     normal: np.ndarray
@@ -50,12 +54,18 @@ class LocalGround:
     radius: float
     basis: np.ndarray
     tree: object  # scipy.spatial.cKDTree over the ground points' plane coordinates
+    owners: np.ndarray | None = None
+    owner_ids: tuple[str, ...] = ()
+
+    #: how many more neighbours are fetched when a cluster's own points are left out
+    EXCLUDE_FACTOR = 8
 
     @classmethod
     def build(cls, X: np.ndarray, index: np.ndarray, normal: np.ndarray, point: np.ndarray, *,
-              neighbours: int = 8, radius: float = 3.0) -> "LocalGround":
+              neighbours: int = 8, radius: float = 3.0, owners: np.ndarray | None = None,
+              owner_ids: tuple[str, ...] = ()) -> "LocalGround":
         """A model from the points ``X[index]`` (the scene ``X`` (n, 3)) over the plane (normal,
-        point)."""
+        point); ``owners``/``owner_ids`` say which cluster each point came from."""
         from scipy.spatial import cKDTree
 
         normal = np.asarray(normal, dtype=np.float64)
@@ -64,25 +74,38 @@ class LocalGround:
         G = X[index] - point
         return cls(normal=normal, point=point, index=np.asarray(index), heights=G @ normal,
                    neighbours=int(neighbours), radius=float(radius), basis=basis,
-                   tree=cKDTree(G @ basis.T, balanced_tree=False, compact_nodes=False))
+                   tree=cKDTree(G @ basis.T, balanced_tree=False, compact_nodes=False),
+                   owners=None if owners is None else np.asarray(owners), owner_ids=tuple(owner_ids))
 
     @property
     def n_points(self) -> int:
         return int(self.index.size)
 
-    def query(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def query(self, P: np.ndarray, exclude: str | None = None) -> tuple[np.ndarray, np.ndarray]:
         """For points ``P`` (q, 3): the local ground height under each (NaN where no ground point
         lies within ``radius``) and the position in :attr:`index` of its nearest ground point (-1
-        where none)."""
+        where none). With ``exclude`` (a cluster id), that cluster's own points are left out: among
+        the ``EXCLUDE_FACTOR x neighbours`` nearest, the nearest ``neighbours`` of other clusters
+        count."""
         P = np.asarray(P, dtype=np.float64).reshape(-1, 3) - self.point
         q = P.shape[0]
         ground = np.full(q, np.nan)
         nearest = np.full(q, -1, dtype=np.int64)
         if q == 0 or self.n_points == 0:
             return ground, nearest
-        k = min(self.neighbours, self.n_points)
+        own = -1
+        if exclude is not None and self.owners is not None and exclude in self.owner_ids:
+            own = self.owner_ids.index(exclude)
+        k = min(self.neighbours * (self.EXCLUDE_FACTOR if own >= 0 else 1), self.n_points)
         d, i = self.tree.query(P @ self.basis.T, k=k, distance_upper_bound=self.radius)
         d, i = d.reshape(q, k), i.reshape(q, k)
+        if own >= 0:  # leave the cluster's own points out, keep the nearest `neighbours` others
+            ok = np.isfinite(d)
+            ok[ok] = self.owners[i[ok]] != own
+            ok &= np.cumsum(ok, axis=1) <= self.neighbours
+            order = np.argsort(~ok, axis=1, kind="stable")  # kept ones first, still nearest first
+            d = np.where(ok, d, np.inf)
+            d, i = np.take_along_axis(d, order, axis=1), np.take_along_axis(i, order, axis=1)
         nf = np.isfinite(d).sum(axis=1)  # neighbours found, nearest first
         some = nf > 0
         if some.any():  # the median of the found heights: sort with the missing ones last
@@ -94,8 +117,9 @@ class LocalGround:
         nearest[some] = i[some, 0]
         return ground, nearest
 
-    def height(self, P: np.ndarray) -> np.ndarray:
-        """Heights (q,) of points ``P`` above the local ground surface (NaN where it is unknown)."""
+    def height(self, P: np.ndarray, exclude: str | None = None) -> np.ndarray:
+        """Heights (q,) of points ``P`` above the local ground surface (NaN where it is unknown);
+        ``exclude``: a cluster whose own points do not count (see :meth:`query`)."""
         P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
-        ground, _ = self.query(P)
+        ground, _ = self.query(P, exclude)
         return (P - self.point) @ self.normal - ground

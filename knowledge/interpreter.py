@@ -500,7 +500,8 @@ class Interpreter:
         index = np.concatenate([leaves[i][0].idx for i in mine]) if mine else np.zeros(0, dtype=np.int64)
         owner = np.concatenate([np.full(leaves[i][0].idx.size, i) for i in mine]) if mine else np.zeros(0, dtype=np.int64)
         model = LocalGround.build(X, index, scene.ground.normal, scene.ground.point, neighbours=spec.neighbours,
-                                  radius=spec.radius)
+                                  radius=spec.radius, owners=np.searchsorted(mine, owner) if mine else owner,
+                                  owner_ids=tuple(leaves[i][2].id for i in mine))
         return model, owner
 
     def _post_ground(self, X, leaves, scene: Scene, ground_info: dict):

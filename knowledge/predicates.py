@@ -422,13 +422,16 @@ _STATS = {"max": np.max, "p90": lambda h: np.percentile(h, 90), "mean": np.mean,
 
 
 @predicate(unit="length", needs_ground_model=True, choices={"stat": tuple(_STATS)})
-def height_above_local_ground(cluster: Cluster, scene: Scene, *, stat: str = "p90") -> float:
+def height_above_local_ground(cluster: Cluster, scene: Scene, *, stat: str = "p90", exclude_self: bool = False) -> float:
     """Height of the cluster's points above the local ground surface (the median height of the
     nearest points of the clusters labelled ground, see post.ground_model), along the ground
     normal: their max, 90th percentile, mean, median, 10th percentile or min, over the points
-    with ground within the model's radius (above the ground plane when none has). Usable in
-    post.relabel conditions only (the surface exists once clusters are labelled)."""
-    h = scene.ground_model.height(cluster.X)
+    with ground within the model's radius (above the ground plane when none has). With
+    exclude_self, the cluster's own points are not part of the surface: a ground cluster is
+    compared with the ground around it (a roof stands high above it); a point counts then only if
+    other clusters' points are among its (8 x the model's neighbours) nearest surface points. Usable in post.relabel
+    conditions only (the surface exists once clusters are labelled)."""
+    h = scene.ground_model.height(cluster.X, cluster.id if exclude_self else None)
     known = ~np.isnan(h)
     h = h[known] if known.any() else scene.ground.height(cluster.X)
     return float(_STATS[stat](h))

@@ -36,7 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # --- rule files --------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", ["outdoor", "planar_contest"])
+@pytest.mark.parametrize("name", ["outdoor", "planar_contest", "airborne"])
 def test_shipped_rule_bases_load_and_declare_their_schema(name):
     assert name in shipped_rule_bases()
     rb = load_rule_base(name)

@@ -75,7 +75,7 @@ def test_rules_show_and_list_and_check_shipped():
     r = kbs("rules", "show", "outdoor")
     assert r.returncode == 0 and r.stdout == (ROOT / "rules" / "outdoor.yaml").read_text()
     r = kbs("rules", "list")
-    assert r.returncode == 0 and "outdoor" in r.stdout and "planar_contest" in r.stdout
+    assert r.returncode == 0 and "outdoor" in r.stdout and "planar_contest" in r.stdout and "airborne" in r.stdout
     r = kbs("rules", "check", "outdoor", "planar_contest")
     assert r.returncode == 0 and r.stdout.count(": ok") == 2
 
