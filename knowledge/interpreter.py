@@ -533,16 +533,19 @@ class Interpreter:
                 model, owner = self._local_ground(X, leaves, scene)
                 ground_info["local_model"]["points_after_relabel"] = model.n_points
         if rb.contact is not None and model.n_points:
-            leaves = self._ground_contact(X, leaves, model, owner)
+            leaves = self._ground_contact(X, leaves, model, owner, Scene(scene.sensor, scene.ground, scene.unit,
+                                                                         ground_model=model))
         return leaves
 
-    def _ground_contact(self, X, leaves, model, owner):
+    def _ground_contact(self, X, leaves, model, owner, scene: Scene):
         spec = self.rb.contact
         moved_in: dict[int, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
         emptied = set()
         total = 0
         for li, (node, cl, rec) in enumerate(leaves):
             if rec.label not in spec.sources or rec.label == self.rb.ground_model.label:
+                continue
+            if spec.condition is not None and not spec.condition.evaluate(self._facts(cl, scene, rec)):
                 continue
             P = X[node.idx]
             ground, nearest = model.query(P)

@@ -247,6 +247,7 @@ class ContactSpec:
     tolerance: float
     sources: tuple[str, ...]  #: labels whose points may join the ground
     pos: SourcePos
+    condition: Condition | None = None  #: only clusters for which it holds give points
 
 
 @dataclass(frozen=True)
@@ -649,7 +650,9 @@ class _Validator:
                 sources = tuple(x for x in src if isinstance(x, str))
             else:
                 sources = tuple(n for n in names if model is None or n != model.label)
-            contact = ContactSpec(float(gc["tolerance"]), sources, self.pos.pos(("post", "ground_contact"), key=True))
+            cond = self._condition(gc["if"], ("post", "ground_contact", "if"), checks) if "if" in gc else None
+            contact = ContactSpec(float(gc["tolerance"]), sources, self.pos.pos(("post", "ground_contact"), key=True),
+                                  cond)
         return model, relabel, contact
 
     def _model_checks_placed(self, checks: Mapping[str, Check], rules: list[Rule], labels: list[Label]) -> None:

@@ -143,6 +143,8 @@ def test_post_steps_parse_with_defaults():
     (dict(post=POST_OK.replace("tolerance: 0.05", "tolerance: -1")), "post.ground_contact.tolerance"),
     (dict(post=POST_OK.replace("radius", "x").replace("{label: ground}", "{label: ground, radus: 2}")),
      "unknown key 'radus' in post.ground_model (did you mean 'radius'?)"),
+    (dict(post=POST_OK.replace("{tolerance: 0.05}", "{tolerance: 0.05, if: [not planr]}")),
+     "t.yaml:22:42: unknown check 'planr' (did you mean 'planar'?)"),
 ])
 def test_post_step_problems_are_positioned(kw, expected):
     with pytest.raises(RuleFileError) as err:
@@ -159,8 +161,10 @@ def test_ground_contact_moves_only_points_on_the_surface_and_says_so():
     the points the records count changed, all to the ground, all within the tolerance."""
     X, truth = ground_and_rocks()
     rb = load_rule_base("outdoor")
-    text = rb.text.replace("  ground_contact:", "  ground_contact_off:").replace("    tolerance: 0.05", "")
-    text = "\n".join(line for line in text.splitlines() if not line.startswith("  ground_contact_off"))
+    lines = rb.text.splitlines()
+    start = lines.index(next(line for line in lines if line.startswith("  ground_contact:")))
+    end = next((i for i in range(start + 1, len(lines)) if not lines[i].startswith("    ")), len(lines))
+    text = "\n".join(lines[:start] + lines[end:])  # the same rules without post.ground_contact
     rb_off = parse_rule_base(text, "outdoor.yaml", PredicateRegistry.default(entry_points_too=False))
     assert rb_off.contact is None and rb.contact is not None
     seg, seg_off = Interpreter(rb).run(X), Interpreter(rb_off).run(X)
@@ -288,3 +292,20 @@ def test_airborne_rules_tell_roofs_from_the_ground_on_isprs(shared_data, tmp_pat
     assert roofs and all(c["label"] == "object" for c in roofs)
     r = kbs("explain", str(tmp_path / "samp21-utm.json"), "--cluster", roofs[0]["id"])
     assert "relabelled object: height_above_local_ground = " in r.stdout and "roofs]" in r.stdout
+
+
+def test_ground_contact_only_from_the_clusters_its_condition_admits():
+    """post.ground_contact.if: a condition no cluster meets moves no point; the shipped outdoor
+    rules admit things standing on the ground (not level, or not a sheet) and say which."""
+    X, _ = ground_and_rocks()
+    never = _parse(post=POST_OK.replace("{tolerance: 0.05}", "{tolerance: 0.05, if: [planar, not planar]}"))
+    assert never.contact.condition is not None
+    seg = Interpreter(never).run(X)
+    assert sum(r.contact for r in seg.explanation.records.values()) == 0
+    rb = load_rule_base("outdoor")
+    assert str(rb.contact.condition) == "not level or not sheet"
+    seg = Interpreter(rb).run(X)
+    for r in seg.explanation.records.values():
+        if r.contact:
+            checks = {c.check: c.passed for c in r.checks}
+            assert not checks["level"] or not checks["sheet"]
