@@ -89,6 +89,7 @@ class ClusterRecord:
     #: set when a post.relabel rule changed the label: {rule, source, from, to, checks}
     relabel: dict[str, Any] | None = None
     contact: int = 0  #: points that left it for the ground (post.ground_contact)
+    released: int = 0  #: points that left this ground cluster, standing above the surface (post.ground_release)
 
     def decisive_checks(self) -> list[CheckRecord]:
         names = set(self.decisive)

@@ -506,7 +506,8 @@ class Interpreter:
 
     def _post_ground(self, X, leaves, scene: Scene, ground_info: dict):
         """post.ground_model: build the local ground surface from the clusters of its label, apply
-        post.relabel (whose conditions may measure against it), then post.ground_contact."""
+        post.relabel (whose conditions may measure against it), then post.ground_release and
+        post.ground_contact, both against the same surface."""
         rb = self.rb
         spec = rb.ground_model
         if scene.ground is None:  # the rule base has no way to orient the ground: say so, do nothing
@@ -532,18 +533,53 @@ class Interpreter:
             if changed:
                 model, owner = self._local_ground(X, leaves, scene)
                 ground_info["local_model"]["points_after_relabel"] = model.n_points
-        if rb.contact is not None and model.n_points:
-            leaves = self._ground_contact(X, leaves, model, owner, Scene(scene.sensor, scene.ground, scene.unit,
-                                                                         ground_model=model))
-        return leaves
+        if model.n_points:
+            post_scene = Scene(scene.sensor, scene.ground, scene.unit, ground_model=model)
+            if rb.release is not None:
+                self._ground_release(X, leaves, model, ground_info)
+            if rb.contact is not None:
+                self._ground_contact(X, leaves, model, owner, post_scene)
+        kept = []
+        for lf in leaves:
+            if lf[0].idx.size:
+                kept.append(lf)
+            else:
+                lf[2].notes.append("every point of it left for other clusters: no output cluster")
+        return kept
 
-    def _ground_contact(self, X, leaves, model, owner, scene: Scene):
+    @staticmethod
+    def _receive(leaves, moved_in: dict, note: str) -> None:
+        """Append moved points (idx, weight, path) to their destination leaves, with a note."""
+        for t, parts in moved_in.items():
+            node, _, rec = leaves[t]
+            n_in = sum(p[0].size for p in parts)
+            node.idx = np.concatenate([node.idx] + [p[0] for p in parts])
+            node.weight = np.concatenate([node.weight] + [p[1] for p in parts])
+            node.path = np.concatenate([node.path] + [p[2] for p in parts])
+            rec.notes.append(note.format(n=f"{n_in:,}"))
+
+    @staticmethod
+    def _give(node: _Node, move: np.ndarray, targets: np.ndarray, moved_in: dict) -> list[int]:
+        """Take the points ``move`` (mask) out of ``node``, bound for leaves ``targets``; returns
+        the destination leaves."""
+        dest = np.unique(targets)
+        pos = np.flatnonzero(move)
+        for t in dest:
+            sel = pos[targets == t]
+            moved_in.setdefault(int(t), []).append((node.idx[sel], node.weight[sel], node.path[sel]))
+        keep = ~move
+        node.idx, node.weight, node.path = node.idx[keep], node.weight[keep], node.path[keep]
+        return [int(t) for t in dest]
+
+    def _ground_contact(self, X, leaves, model, owner, scene: Scene) -> None:
+        """post.ground_contact: points of other clusters lying on the surface join the ground
+        cluster under them."""
         spec = self.rb.contact
-        moved_in: dict[int, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
-        emptied = set()
-        total = 0
-        for li, (node, cl, rec) in enumerate(leaves):
-            if rec.label not in spec.sources or rec.label == self.rb.ground_model.label:
+        gl = self.rb.ground_model.label
+        unit = self.rb.length_unit
+        moved_in: dict[int, list] = {}
+        for node, cl, rec in leaves:
+            if rec.label not in spec.sources or rec.label == gl or not node.idx.size:
                 continue
             if spec.condition is not None and not spec.condition.evaluate(self._facts(cl, scene, rec)):
                 continue
@@ -551,35 +587,54 @@ class Interpreter:
             ground, nearest = model.query(P)
             h = (P - model.point) @ model.normal - ground
             move = np.abs(np.nan_to_num(h, nan=np.inf)) <= spec.tolerance
-            n_move = int(move.sum())
+            n_move, size = int(move.sum()), node.idx.size
             if not n_move:
                 continue
-            targets = owner[nearest[move]]
-            for t in np.unique(targets):
-                sel = np.flatnonzero(move)[targets == t]
-                moved_in.setdefault(int(t), []).append((node.idx[sel], node.weight[sel], node.path[sel]))
-            dest = sorted({leaves[int(t)][2].id for t in np.unique(targets)})
+            dest = self._give(node, move, owner[nearest[move]], moved_in)
             rec.contact = n_move
-            rec.notes.append(f"{n_move:,} of its {node.idx.size:,} points lie within {spec.tolerance:g} "
-                             f"{self.rb.length_unit} of the local ground surface and joined "
-                             f"{self.rb.ground_model.label} cluster{'s' if len(dest) > 1 else ''} "
-                             f"{', '.join(dest[:5])}{' ...' if len(dest) > 5 else ''} [{spec.pos.short} ground_contact]")
-            keep = ~move
-            node.idx, node.weight, node.path = node.idx[keep], node.weight[keep], node.path[keep]
+            ids = [leaves[t][2].id for t in dest]
+            rec.notes.append(f"{n_move:,} of its {size:,} points lie within {spec.tolerance:g} {unit} of the local "
+                             f"ground surface and joined {gl} cluster{'s' if len(ids) > 1 else ''} "
+                             f"{', '.join(ids[:5])}{' ...' if len(ids) > 5 else ''} [{spec.pos.short} ground_contact]")
+        self._receive(leaves, moved_in, "{n} points of other clusters in contact with it joined it "
+                      f"[{spec.pos.short} ground_contact]")
+
+    def _ground_release(self, X, leaves, model, ground_info: dict) -> None:
+        """post.ground_release: points of the ground clusters standing above the surface (a tuft,
+        the bottom of a bush inside a ground cluster) join the nearest cluster of the target label."""
+        from scipy.spatial import cKDTree
+
+        spec = self.rb.release
+        gl = self.rb.ground_model.label
+        unit = self.rb.length_unit
+        targets = [li for li, (node, _, rec) in enumerate(leaves) if rec.label == spec.target and node.idx.size]
+        if not targets:
+            ground_info["local_model"]["release_note"] = f"no {spec.target} cluster to take released points"
+            return
+        t_idx = np.concatenate([leaves[li][0].idx for li in targets])
+        t_owner = np.concatenate([np.full(leaves[li][0].idx.size, li) for li in targets])
+        tree = cKDTree(X[t_idx])
+        moved_in: dict[int, list] = {}
+        total = 0
+        for node, cl, rec in leaves:
+            if rec.label != gl or not node.idx.size:
+                continue
+            h = model.height(X[node.idx])
+            move = np.nan_to_num(h, nan=-np.inf) > spec.tolerance
+            n_move, size = int(move.sum()), node.idx.size
+            if not n_move:
+                continue
+            _, j = tree.query(X[node.idx[move]])
+            dest = self._give(node, move, t_owner[j], moved_in)
+            rec.released = n_move
             total += n_move
-            if not node.idx.size:
-                emptied.add(li)
-        for t, parts in moved_in.items():
-            node, _, rec = leaves[t]
-            n_in = sum(p[0].size for p in parts)
-            node.idx = np.concatenate([node.idx] + [p[0] for p in parts])
-            node.weight = np.concatenate([node.weight] + [p[1] for p in parts])
-            node.path = np.concatenate([node.path] + [p[2] for p in parts])
-            rec.notes.append(f"{n_in:,} points of other clusters in contact with it joined it "
-                             f"[{spec.pos.short} ground_contact]")
-        for li in emptied:
-            leaves[li][2].notes.append("every point of it joined the ground: no output cluster")
-        return [lf for li, lf in enumerate(leaves) if li not in emptied]
+            ids = [leaves[t][2].id for t in dest]
+            rec.notes.append(f"{n_move:,} of its {size:,} points stand more than {spec.tolerance:g} {unit} above the "
+                             f"local ground surface and joined {spec.target} cluster{'s' if len(ids) > 1 else ''} "
+                             f"{', '.join(ids[:5])}{' ...' if len(ids) > 5 else ''} [{spec.pos.short} ground_release]")
+        ground_info["local_model"]["released"] = total
+        self._receive(leaves, moved_in, "{n} points released by ground clusters joined it (the nearest "
+                      f"{spec.target} cluster) [{spec.pos.short} ground_release]")
 
     @staticmethod
     def _group_descriptors(X, nodes: list[_Node]) -> dict[str, Any]:

@@ -251,6 +251,13 @@ class ContactSpec:
 
 
 @dataclass(frozen=True)
+class ReleaseSpec:
+    tolerance: float
+    target: str  #: the label of the clusters released points join
+    pos: SourcePos
+
+
+@dataclass(frozen=True)
 class RuleBase:
     """A validated rule base."""
 
@@ -271,6 +278,7 @@ class RuleBase:
     ground_model: GroundModelSpec | None = None
     relabel: tuple[Relabel, ...] = ()
     contact: ContactSpec | None = None
+    release: ReleaseSpec | None = None
 
     @property
     def label_names(self) -> list[str]:
@@ -425,7 +433,7 @@ class _Validator:
         sensor = scene.get("sensor", [0.0, 0.0, 0.0])
         ground = self._ground(scene.get("ground") if isinstance(scene.get("ground"), dict) else {}, checks)
         merge = self._merge(d.get("post"), labels)
-        gmodel, relabel, contact = self._post(d.get("post"), checks, labels)
+        gmodel, relabel, contact, release = self._post(d.get("post"), checks, labels)
         self._model_checks_placed(checks, rules, labels)
         if self.problems:
             return None
@@ -434,6 +442,7 @@ class _Validator:
             strategy=d["strategy"], limits=limits, sensor=tuple(float(x) for x in sensor), ground=ground,
             checks=checks, rules=tuple(rules), labels=tuple(labels), merge=merge, path=self.pos.file,
             text="\n".join(self.pos.lines), ground_model=gmodel, relabel=tuple(relabel), contact=contact,
+            release=release,
         )
 
     def _checks(self, raw: Any) -> dict[str, Check]:
@@ -653,7 +662,19 @@ class _Validator:
             cond = self._condition(gc["if"], ("post", "ground_contact", "if"), checks) if "if" in gc else None
             contact = ContactSpec(float(gc["tolerance"]), sources, self.pos.pos(("post", "ground_contact"), key=True),
                                   cond)
-        return model, relabel, contact
+        gr = raw.get("ground_release")
+        release = None
+        if isinstance(gr, dict) and isinstance(gr.get("tolerance"), (int, float)) and not isinstance(gr["tolerance"], bool) \
+                and isinstance(gr.get("to"), str):
+            if model is None:
+                self.add(("post", "ground_release"), "ground_release needs post.ground_model (the surface points are "
+                         "measured against)", key=True)
+            self._label_ref(("post", "ground_release", "to"), gr["to"], names)
+            if model is not None and gr["to"] == model.label:
+                self.add(("post", "ground_release", "to"), f"ground_release to '{gr['to']}', the ground model's own "
+                         "label, changes nothing")
+            release = ReleaseSpec(float(gr["tolerance"]), gr["to"], self.pos.pos(("post", "ground_release"), key=True))
+        return model, relabel, contact, release
 
     def _model_checks_placed(self, checks: Mapping[str, Check], rules: list[Rule], labels: list[Label]) -> None:
         """A check on the local ground surface cannot decide splits or labels: the surface is made

@@ -143,6 +143,11 @@ def test_post_steps_parse_with_defaults():
     (dict(post=POST_OK.replace("tolerance: 0.05", "tolerance: -1")), "post.ground_contact.tolerance"),
     (dict(post=POST_OK.replace("radius", "x").replace("{label: ground}", "{label: ground, radus: 2}")),
      "unknown key 'radus' in post.ground_model (did you mean 'radius'?)"),
+    (dict(post="  ground_release: {tolerance: 0.1, to: obstacle}"), "ground_release needs post.ground_model"),
+    (dict(post=POST_OK + "\n  ground_release: {tolerance: 0.1, to: obstacel}"),
+     "unknown label 'obstacel' (did you mean 'obstacle'?)"),
+    (dict(post=POST_OK + "\n  ground_release: {tolerance: 0.1, to: ground}"), "the ground model's own label, changes nothing"),
+    (dict(post=POST_OK + "\n  ground_release: {tolerance: 0.1}"), "post.ground_release is missing the required key 'to'"),
     (dict(post=POST_OK.replace("{tolerance: 0.05}", "{tolerance: 0.05, if: [not planr]}")),
      "t.yaml:22:42: unknown check 'planr' (did you mean 'planar'?)"),
 ])
@@ -309,3 +314,49 @@ def test_ground_contact_only_from_the_clusters_its_condition_admits():
         if r.contact:
             checks = {c.check: c.passed for c in r.checks}
             assert not checks["level"] or not checks["sheet"]
+
+
+def test_ground_release_moves_raised_ground_points_to_the_nearest_obstacle(shared_data):
+    """The SemanticKITTI scan with the shipped outdoor rules, against the same rules without
+    post.ground_release: exactly the counted points changed, from ground to obstacle, each standing
+    more than the tolerance above the surface the ground clusters made; the ground F1 rises."""
+    data = shared_data / "semantickitti"
+    X = np.load(data / "000001.points.npy").astype(np.float64)
+    gt = np.load(data / "000001.labels.npy").ravel()
+    rb = load_rule_base("outdoor")
+    lines = rb.text.splitlines()
+    start = lines.index(next(line for line in lines if line.startswith("  ground_release:")))
+    end = next(i for i in range(start + 1, len(lines)) if not lines[i].startswith("    "))
+    rb_off = parse_rule_base("\n".join(lines[:start] + lines[end:]), "outdoor.yaml",
+                             PredicateRegistry.default(entry_points_too=False))
+    assert rb_off.release is None and rb.release.tolerance == 0.10 and rb.release.target == "obstacle"
+    seg, seg_off = Interpreter(rb, jobs=2).run(X), Interpreter(rb_off, jobs=2).run(X)
+    released = sum(r.released for r in seg.explanation.records.values())
+    assert released > 0 and seg.explanation.ground["local_model"]["released"] == released
+    changed = seg.label != seg_off.label
+    # released points went ground -> obstacle; contact may differ only through them
+    to_obstacle = (seg_off.label == 0) & (seg.label == 1)
+    assert to_obstacle.sum() == released and changed.sum() == released
+    # the surface both steps measured against: the ground clusters before either moved a point
+    start = lines.index(next(line for line in lines if line.startswith("  ground_contact:")))
+    end = next((i for i in range(start + 1, len(lines)) if not lines[i].startswith("    ")), len(lines))
+    no_moves = [line for line in lines[:start] + lines[end:]]
+    s0 = no_moves.index(next(line for line in no_moves if line.startswith("  ground_release:")))
+    no_moves = no_moves[:s0] + no_moves[s0 + 3:]
+    rb_none = parse_rule_base("\n".join(no_moves), "outdoor.yaml", PredicateRegistry.default(entry_points_too=False))
+    assert rb_none.release is None and rb_none.contact is None
+    before = Interpreter(rb_none, jobs=2).run(X)
+    g = seg.explanation.ground
+    surface = LocalGround.build(X, np.flatnonzero(before.label == 0), np.array(g["normal"]), np.array(g["point"]),
+                                neighbours=rb.ground_model.neighbours, radius=rb.ground_model.radius)
+    assert np.all(surface.height(X[to_obstacle]) > rb.release.tolerance)
+    valid = gt != 0
+    truth = np.isin(gt, [9, 10, 11, 12, 17])[valid]
+
+    def f1(label):
+        p = (label == 0)[valid]
+        return 2 * (p & truth).sum() / (p.sum() + truth.sum())
+
+    assert f1(seg.label) > f1(seg_off.label)
+    for c in seg.clusters:
+        assert c["n_points"] == (seg.cluster == c["index"]).sum()
