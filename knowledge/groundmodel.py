@@ -63,7 +63,7 @@ class LocalGround:
     @classmethod
     def build(cls, X: np.ndarray, index: np.ndarray, normal: np.ndarray, point: np.ndarray, *,
               neighbours: int = 8, radius: float = 3.0, owners: np.ndarray | None = None,
-              owner_ids: tuple[str, ...] = ()) -> "LocalGround":
+              owner_ids: tuple[str, ...] = ()) -> LocalGround:
         """A model from the points ``X[index]`` (the scene ``X`` (n, 3)) over the plane (normal,
         point); ``owners``/``owner_ids`` say which cluster each point came from."""
         from scipy.spatial import cKDTree

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, Self
 
 import numpy as np
 
@@ -108,9 +108,9 @@ class Interpreter:
 
     def _ufp_kwargs(self, stop: str, min_k: int = 1) -> dict[str, Any]:
         e = self.rb.engine
-        return dict(k_max=e["k_max"], m=e["m"], tol=e["tol"], max_iter=e["max_iter"],
-                    min_variance=e["min_variance"], max_condition=e["max_condition"],
-                    new_prototype=e["new_prototype"], stop=stop, min_k=min_k, max_fit_points=e["max_fit_points"])
+        return {"k_max": e["k_max"], "m": e["m"], "tol": e["tol"], "max_iter": e["max_iter"],
+                "min_variance": e["min_variance"], "max_condition": e["max_condition"],
+                "new_prototype": e["new_prototype"], "stop": stop, "min_k": min_k, "max_fit_points": e["max_fit_points"]}
 
     def _ufp_onc(self, X: np.ndarray, stop: str, min_k: int = 1) -> UFPONCResult:
         return ufp_onc(X, **self._ufp_kwargs(stop, min_k))
@@ -380,7 +380,7 @@ class Interpreter:
         return None
 
     def _split(self, node: _Node, X: np.ndarray, cl: Cluster, rec: ClusterRecord, action: str, rule,
-               job: "_Job | None" = None) -> list[_Node]:
+               job: _Job | None = None) -> list[_Node]:
         if action == "split":
             res = job.result() if job is not None else \
                 self._ufp_onc(X[node.idx], "first_max", min_k=self.rb.engine["split_min_k"])
@@ -723,7 +723,7 @@ class _Splitter:
     def __init__(self, jobs: int, kwargs: dict[str, Any]) -> None:
         self.jobs, self.kwargs, self.pool = jobs, kwargs, None
 
-    def __enter__(self) -> "_Splitter":
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc) -> None:
