@@ -534,11 +534,11 @@ class Interpreter:
                 model, owner = self._local_ground(X, leaves, scene)
                 ground_info["local_model"]["points_after_relabel"] = model.n_points
         if model.n_points:
-            post_scene = Scene(scene.sensor, scene.ground, scene.unit, ground_model=model)
             if rb.release is not None:
                 self._ground_release(X, leaves, model, ground_info)
             if rb.contact is not None:
-                self._ground_contact(X, leaves, model, owner, post_scene)
+                self._ground_contact(X, leaves, model, owner,
+                                     Scene(scene.sensor, scene.ground, scene.unit, ground_model=model))
         kept = []
         for lf in leaves:
             if lf[0].idx.size:

@@ -593,14 +593,9 @@ class _Validator:
         if not isinstance(raw, dict) or not isinstance(raw.get("merge_coplanar"), dict):
             return None
         m = raw["merge_coplanar"]
-        names = [lb.name for lb in labels]
-        if isinstance(m.get("label"), str) and m["label"] not in names:
-            hint = did_you_mean(m["label"], names)
-            self.add(("post", "merge_coplanar", "label"), f"unknown label '{m['label']}'"
-                     + (f" (did you mean '{hint}'?)" if hint else f"; labels: {', '.join(names)}"))
+        self._label_ref(("post", "merge_coplanar", "label"), m.get("label"), [lb.name for lb in labels])
         return MergeSpec(label=str(m.get("label")), max_angle=float(m.get("max_angle", 10.0)),
                          max_offset=float(m.get("max_offset", 0.15)))
-
 
     def _label_ref(self, path: tuple, name: Any, names: list[str]) -> None:
         if isinstance(name, str) and name not in names:
@@ -608,7 +603,7 @@ class _Validator:
             self.add(path, f"unknown label '{name}'" + (f" (did you mean '{hint}'?)" if hint else f"; labels: {', '.join(names)}"))
 
     def _post(self, raw: Any, checks: Mapping[str, Check], labels: list[Label]):
-        """post.ground_model, post.relabel and post.ground_contact."""
+        """post.ground_model, post.relabel, post.ground_contact and post.ground_release."""
         if not isinstance(raw, dict):
             raw = {}
         names = [lb.name for lb in labels]
@@ -618,10 +613,16 @@ class _Validator:
             self._label_ref(("post", "ground_model", "label"), gm["label"], names)
             model = GroundModelSpec(label=gm["label"], neighbours=int(gm.get("neighbours", 8)),
                                     radius=float(gm.get("radius", 3.0)), pos=self.pos.pos(("post", "ground_model"), key=True))
-        relabel: list[Relabel] = []
+        relabel = self._relabel(raw.get("relabel"), checks, names, model)
+        contact = self._contact(raw.get("ground_contact"), checks, names, model)
+        release = self._release(raw.get("ground_release"), names, model)
+        return model, relabel, contact, release
+
+    def _relabel(self, raw: Any, checks: Mapping[str, Check], names: list[str],
+                 model: GroundModelSpec | None) -> list[Relabel]:
+        out: list[Relabel] = []
         seen: set[str] = set()
-        raw_relabel = raw.get("relabel") if isinstance(raw.get("relabel"), list) else []
-        for i, spec in enumerate(raw_relabel):
+        for i, spec in enumerate(raw if isinstance(raw, list) else []):
             path = ("post", "relabel", i)
             if not isinstance(spec, dict) or not all(isinstance(spec.get(k), str) for k in ("name", "from", "to")):
                 continue  # the schema reported it
@@ -641,40 +642,46 @@ class _Validator:
                 if uses:
                     self.add(path + ("if",), f"relabel rule '{spec['name']}': check '{uses[0]}' needs the local ground "
                              "surface, but post.ground_model does not declare it")
-            relabel.append(Relabel(spec["name"], spec["from"], spec["to"], cond, str(spec.get("doc", "")),
-                                   self.pos.pos(path)))
-        gc = raw.get("ground_contact")
-        contact = None
-        if isinstance(gc, dict) and isinstance(gc.get("tolerance"), (int, float)) and not isinstance(gc["tolerance"], bool):
-            if model is None:
-                self.add(("post", "ground_contact"), "ground_contact needs post.ground_model (the surface points are "
-                         "measured against)", key=True)
-            src = gc.get("from")
-            if isinstance(src, list):
-                for j, name in enumerate(src):
-                    self._label_ref(("post", "ground_contact", "from", j), name, names)
-                    if model is not None and name == model.label:
-                        self.add(("post", "ground_contact", "from", j), f"ground_contact from '{name}', the ground "
-                                 "model's own label, changes nothing")
-                sources = tuple(x for x in src if isinstance(x, str))
-            else:
-                sources = tuple(n for n in names if model is None or n != model.label)
-            cond = self._condition(gc["if"], ("post", "ground_contact", "if"), checks) if "if" in gc else None
-            contact = ContactSpec(float(gc["tolerance"]), sources, self.pos.pos(("post", "ground_contact"), key=True),
-                                  cond)
-        gr = raw.get("ground_release")
-        release = None
-        if isinstance(gr, dict) and isinstance(gr.get("tolerance"), (int, float)) and not isinstance(gr["tolerance"], bool) \
-                and isinstance(gr.get("to"), str):
-            if model is None:
-                self.add(("post", "ground_release"), "ground_release needs post.ground_model (the surface points are "
-                         "measured against)", key=True)
-            self._label_ref(("post", "ground_release", "to"), gr["to"], names)
-            if model is not None and gr["to"] == model.label:
-                self.add(("post", "ground_release", "to"), f"ground_release to '{gr['to']}', the ground model's own "
-                         "label, changes nothing")
-            release = ReleaseSpec(float(gr["tolerance"]), gr["to"], self.pos.pos(("post", "ground_release"), key=True))
-        return model, relabel, contact, release
+            out.append(Relabel(spec["name"], spec["from"], spec["to"], cond, str(spec.get("doc", "")),
+                               self.pos.pos(path)))
+        return out
+
+    def _surface_step(self, key: str, raw: Any, model: GroundModelSpec | None) -> bool:
+        """Whether post.<key> is there with a numeric tolerance; it needs post.ground_model."""
+        tol = raw.get("tolerance") if isinstance(raw, dict) else None
+        if not isinstance(tol, (int, float)) or isinstance(tol, bool):
+            return False  # absent, or the schema reported it
+        if model is None:
+            self.add(("post", key), f"{key} needs post.ground_model (the surface points are measured against)",
+                     key=True)
+        return True
+
+    def _own_label(self, path: tuple, what: str, name: Any, model: GroundModelSpec | None) -> None:
+        if model is not None and name == model.label:
+            self.add(path, f"{what} '{name}', the ground model's own label, changes nothing")
+
+    def _contact(self, raw: Any, checks: Mapping[str, Check], names: list[str],
+                 model: GroundModelSpec | None) -> ContactSpec | None:
+        if not self._surface_step("ground_contact", raw, model):
+            return None
+        src = raw.get("from")
+        if isinstance(src, list):
+            for j, name in enumerate(src):
+                self._label_ref(("post", "ground_contact", "from", j), name, names)
+                self._own_label(("post", "ground_contact", "from", j), "ground_contact from", name, model)
+            sources = tuple(x for x in src if isinstance(x, str))
+        else:
+            sources = tuple(n for n in names if model is None or n != model.label)
+        cond = self._condition(raw["if"], ("post", "ground_contact", "if"), checks) if "if" in raw else None
+        return ContactSpec(float(raw["tolerance"]), sources, self.pos.pos(("post", "ground_contact"), key=True), cond)
+
+    def _release(self, raw: Any, names: list[str], model: GroundModelSpec | None) -> ReleaseSpec | None:
+        if not isinstance(raw, dict) or not isinstance(raw.get("to"), str) \
+                or not self._surface_step("ground_release", raw, model):
+            return None
+        self._label_ref(("post", "ground_release", "to"), raw["to"], names)
+        self._own_label(("post", "ground_release", "to"), "ground_release to", raw["to"], model)
+        return ReleaseSpec(float(raw["tolerance"]), raw["to"], self.pos.pos(("post", "ground_release"), key=True))
 
     def _model_checks_placed(self, checks: Mapping[str, Check], rules: list[Rule], labels: list[Label]) -> None:
         """A check on the local ground surface cannot decide splits or labels: the surface is made

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import textwrap
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -164,7 +163,7 @@ def test_ground_contact_moves_only_points_on_the_surface_and_says_so():
     """The rocks stand on flat ground (z = -1.5, 5 mm noise): the lowest points of their clusters
     lie on the ground surface and join it. Against the same rules without ground_contact, exactly
     the points the records count changed, all to the ground, all within the tolerance."""
-    X, truth = ground_and_rocks()
+    X, _ = ground_and_rocks()
     rb = load_rule_base("outdoor")
     lines = rb.text.splitlines()
     start = lines.index(next(line for line in lines if line.startswith("  ground_contact:")))
