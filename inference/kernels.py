@@ -13,6 +13,7 @@ so that every reduction over clusters is an element-wise operation between conti
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -80,6 +81,8 @@ class Moments:
 
     @classmethod
     def build(cls, X: np.ndarray, w: np.ndarray, scatter: np.ndarray | None = None) -> "Moments":
+        X = np.ascontiguousarray(X, dtype=np.float64)
+        w = np.ascontiguousarray(w, dtype=np.float64)
         n, D = X.shape
         second = (w[:, None, None] * (X[:, :, None] * X[:, None, :])).reshape(n, D * D)
         if scatter is not None:
@@ -87,6 +90,12 @@ class Moments:
         first = np.column_stack([w, X * w[:, None]])
         return cls(X=X, XT=np.ascontiguousarray(X.T), w=w, first=first,
                    stats=np.ascontiguousarray(np.column_stack([first, second])))
+
+    @cached_property
+    def rows(self) -> np.ndarray:
+        """The moments as (10, n) rows ``[w, w x (3), w x x^T + scatter (6: xx xy xz yy yz zz)]``
+        for 3D points: the layout of the compiled kernels."""
+        return np.ascontiguousarray(self.stats[:, [0, 1, 2, 3, 4, 5, 6, 8, 9, 12]].T)
 
     @property
     def n(self) -> int:

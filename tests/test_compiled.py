@@ -1,0 +1,122 @@
+"""The compiled kernels (kbs.inference._compiled, numba) against the plain-numpy reference of
+the same iterations (kbs.inference.engine with jit=False)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kbs.inference import _compiled as C
+from kbs.inference import ufp_onc
+from kbs.inference.engine import fcm_fit, gg_fit, gg_memberships, new_prototype_memberships
+from kbs.inference.kernels import Moments, floor_covariances
+from kbs.inference.voxel import voxel_reduce
+
+
+def _blobs(seed: int, n: int = 1500) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=(n // 3, 3)) * [2.0, 2.0, 0.05]  # a sheet
+    b = rng.normal(size=(n // 3, 3)) * 0.4 + [3.0, 1.0, 1.0]  # a blob
+    c = rng.normal(size=(n - 2 * (n // 3), 3)) * [0.1, 1.5, 0.1] + [-3.0, 0.0, 0.5]  # a rod
+    return np.vstack([a, b, c])
+
+
+def _moments(X: np.ndarray, weighted: bool) -> Moments:
+    if weighted:
+        red = voxel_reduce(X - X.mean(axis=0), 0.3)
+        return Moments.build(red.centroids, red.weights, red.scatter)
+    return Moments.build(X - X.mean(axis=0), np.ones(len(X)))
+
+
+def _start(mom: Moments, k: int, m: float) -> np.ndarray:
+    centers = mom.X[np.linspace(0, mom.n - 1, k - 1).astype(int)]
+    d0 = 10.0 * float(np.trace(np.cov(mom.X.T)))
+    return new_prototype_memberships(mom.XT, centers, d0, m)
+
+
+def test_exp_row_matches_numpy():
+    x = np.concatenate([-np.geomspace(1e-12, 707.0, 5000), [0.0, -0.5, -1e-300]])
+    out = np.empty_like(x)
+    C._exp_row(x, np.empty(x.size, dtype=np.int64), out)
+    ref = np.exp(x)
+    assert np.max(np.abs(out - ref) / ref) < 2e-15
+    far = np.array([-708.5, -800.0, -1e6])
+    out = np.empty(3)
+    C._exp_row(far, np.empty(3, dtype=np.int64), out)
+    assert np.all(out == 0.0)
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+@pytest.mark.parametrize("m", [2.0, 1.6])
+@pytest.mark.parametrize("k", [2, 4])
+def test_fcm_compiled_equals_reference(weighted, m, k):
+    mom = _moments(_blobs(1), weighted)
+    u0 = _start(mom, k, m)
+    kw = dict(m=m, tol=1e-4, max_iter=200, min_mass=4.0)
+    a = fcm_fit(mom, u0, jit=True, **kw)
+    b = fcm_fit(mom, u0, jit=False, **kw)
+    assert a.n_iter == b.n_iter and a.converged == b.converged
+    np.testing.assert_allclose(a.memberships, b.memberships, atol=1e-9)
+    np.testing.assert_allclose(a.centers, b.centers, atol=1e-9)
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+@pytest.mark.parametrize("accelerate", [True, False])
+@pytest.mark.parametrize("m,power", [(2.0, 2.0), (2.0, 1.0), (1.7, 1.7)])
+def test_gg_compiled_equals_reference(weighted, accelerate, m, power):
+    mom = _moments(_blobs(2), weighted)
+    u0 = fcm_fit(mom, _start(mom, 3, m), m=m, tol=1e-3, max_iter=100, min_mass=4.0, jit=False).memberships
+    kw = dict(m=m, center_power=power, tol=1e-5, max_iter=150, min_variance=1e-6, max_condition=1e4, min_mass=4.0,
+              accelerate=accelerate)
+    a = gg_fit(mom, u0, jit=True, **kw)
+    b = gg_fit(mom, u0, jit=False, **kw)
+    assert a.n_iter == b.n_iter and a.converged == b.converged
+    np.testing.assert_allclose(a.memberships, b.memberships, atol=1e-8)
+    np.testing.assert_allclose(a.maha, b.maha, rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(a.centers, b.centers, atol=1e-8)
+    np.testing.assert_allclose(a.priors, b.priors, atol=1e-9)
+    np.testing.assert_allclose(a.gaussians.covariances, b.gaussians.covariances, rtol=1e-7, atol=1e-10)
+    np.testing.assert_allclose(a.gaussians.logdet, b.gaussians.logdet, rtol=1e-9, atol=1e-9)
+
+
+def test_a_dying_cluster_is_recorded_as_by_the_reference():
+    """The compiled loop hands a drop over to the reference, which records it."""
+    mom = _moments(_blobs(3, 600), False)
+    u0 = _start(mom, 4, 2.0)
+    kw = dict(m=2.0, tol=1e-3, max_iter=100, min_mass=0.3 * mom.n)  # most clusters cannot keep 30 %
+    a = fcm_fit(mom, u0, jit=True, **kw)
+    b = fcm_fit(mom, u0, jit=False, **kw)
+    assert b.dropped and [str(d) for d in a.dropped] == [str(d) for d in b.dropped]
+    u1 = _start(mom, 3, 2.0)
+    kw = dict(m=2.0, center_power=2.0, tol=1e-3, max_iter=100, min_variance=1e-6, max_condition=1e4,
+              min_mass=0.4 * mom.n)
+    a = gg_fit(mom, u1, jit=True, **kw)
+    b = gg_fit(mom, u1, jit=False, **kw)
+    assert b.dropped and [str(d) for d in a.dropped] == [str(d) for d in b.dropped]
+    np.testing.assert_allclose(a.memberships, b.memberships, atol=1e-9)
+
+
+def test_predicted_memberships_match():
+    rng = np.random.default_rng(4)
+    XT = np.ascontiguousarray(rng.normal(size=(3, 5000)) * 3.0)
+    cov = np.stack([np.diag([1.0, 0.5, 1e-9]), np.eye(3) * 4.0, np.diag([0.01, 2.0, 2.0])])
+    gauss = floor_covariances(cov, 1e-6, 1e4)
+    centers = np.array([[0.0, 0.0, 0.0], [5.0, 1.0, -2.0], [-3.0, 3.0, 0.0]])
+    priors = np.array([0.5, 0.3, 0.2])
+    for m in (2.0, 1.5):
+        a = C.gg_predict(XT, centers, gauss.whitening, gauss.logdet, priors, m)
+        from kbs.inference.kernels import gg_memberships_from_maha, mahalanobis_sq
+
+        b = gg_memberships_from_maha(mahalanobis_sq(XT, centers, gauss.whitening), gauss.logdet, np.log(priors), m)
+        np.testing.assert_allclose(a, b, atol=1e-12)
+        np.testing.assert_allclose(gg_memberships(XT, centers, gauss, priors, m), b, atol=1e-12)
+
+
+def test_ufp_onc_sweep_same_with_and_without_compiled_kernels(monkeypatch):
+    X = _blobs(5, 9000) * [1.0, 1.0, 1.0] + [100.0, -50.0, 3.0]
+    a = ufp_onc(X, 6, max_fit_points=2000)
+    monkeypatch.setenv("KBS_JIT", "0")
+    b = ufp_onc(X, 6, max_fit_points=2000)
+    assert a.chosen_k == b.chosen_k and a.stop_reason == b.stop_reason
+    assert [(p.n_iter_fcm, p.n_iter_gg) for p in a.partitions] == [(p.n_iter_fcm, p.n_iter_gg) for p in b.partitions]
+    np.testing.assert_allclose([p.apd for p in a.partitions], [p.apd for p in b.partitions], rtol=1e-8)
+    np.testing.assert_allclose(a.memberships, b.memberships, atol=1e-8)
