@@ -198,23 +198,81 @@ def fcm_run(XT, w, R, u0, m, tol, max_iter, min_mass):
 # -- Gath-Geva -------------------------------------------------------------------------------
 
 
+@njit(cache=True, nogil=True, fastmath=_FAST)
+def _gg_sums(uk, R, power, S):
+    """One pass over the points for one cluster: ``S[0:4] = sum u^p [w, w x]`` (the centre) and
+    ``S[4:14] = sum u R`` (mass, first and second moments)."""
+    n = uk.shape[0]
+    a0 = a1 = a2 = a3 = 0.0
+    b0 = b1 = b2 = b3 = b4 = b5 = b6 = b7 = b8 = b9 = 0.0
+    r0 = R[0]
+    r1 = R[1]
+    r2 = R[2]
+    r3 = R[3]
+    r4 = R[4]
+    r5 = R[5]
+    r6 = R[6]
+    r7 = R[7]
+    r8 = R[8]
+    r9 = R[9]
+    for j in range(n):
+        u = uk[j]
+        if power == 2.0:
+            p = u * u
+        elif power == 1.0:
+            p = u
+        else:
+            p = u ** power
+        a0 += p * r0[j]
+        a1 += p * r1[j]
+        a2 += p * r2[j]
+        a3 += p * r3[j]
+        b0 += u * r0[j]
+        b1 += u * r1[j]
+        b2 += u * r2[j]
+        b3 += u * r3[j]
+        b4 += u * r4[j]
+        b5 += u * r5[j]
+        b6 += u * r6[j]
+        b7 += u * r7[j]
+        b8 += u * r8[j]
+        b9 += u * r9[j]
+    S[0] = a0
+    S[1] = a1
+    S[2] = a2
+    S[3] = a3
+    S[4] = b0
+    S[5] = b1
+    S[6] = b2
+    S[7] = b3
+    S[8] = b4
+    S[9] = b5
+    S[10] = b6
+    S[11] = b7
+    S[12] = b8
+    S[13] = b9
+
+
 @njit(cache=True, nogil=True)
 def _gg_params(u, R, power, total, min_variance, max_condition, min_mass, tmp):
     """Centres, floored Gaussians and priors from memberships ``u`` (K, n): one Gath-Geva
     update's parameters. ``status`` 1 when a cluster dies."""
     K = u.shape[0]
-    centers = _centers(u, R, power, tmp)
+    centers = np.empty((K, 3))
+    SS = np.empty((K, 14))
+    for k in range(K):
+        _gg_sums(u[k], R, power, SS[k])
+        den = max(SS[k, 0], TINY)
+        for d in range(3):
+            centers[k, d] = SS[k, 1 + d] / den
     lam_all = np.empty((K, 3))
     vec_all = np.empty((K, 3, 3))
     whit = np.empty((K, 3, 3))
     logdet = np.empty(K)
     priors = np.empty(K)
     cov = np.empty((3, 3))
-    S = np.empty(10)
     for k in range(K):
-        uk = u[k]
-        for r in range(10):
-            S[r] = _dot(uk, R[r])
+        S = SS[k, 4:]
         mass = S[0]
         if mass < min_mass:
             return centers, lam_all, vec_all, whit, logdet, priors, 1
@@ -302,10 +360,12 @@ def _softmax(z, zmax, tot, ibuf, u_new):
         _exp_row(zk, ibuf, uk)
         for j in range(n):
             tot[j] += uk[j]
+    for j in range(n):
+        tot[j] = 1.0 / tot[j]
     for k in range(K):
         uk = u_new[k]
         for j in range(n):
-            uk[j] = uk[j] / tot[j]
+            uk[j] = uk[j] * tot[j]
 
 
 @njit(cache=True, nogil=True)
@@ -436,3 +496,119 @@ def gg_run(XT, w, R, u0, m, power, tol, max_iter, min_variance, max_condition, m
             converged = True
             break
     return centers, lam, vec, whit, logdet, priors, u, maha, it, converged, 0
+
+
+# -- voxel grids: distinct int64 keys by open addressing (O(n), no sort of the points) ---------
+#
+# The tables start small and double when half full, so that counting a few thousand distinct
+# cells among 10^5 points stays in the cache.
+
+_EMPTY = np.int64(-1)  # keys are non-negative
+
+
+@njit(cache=True, nogil=True)
+def _slot(key, mask):
+    """Fibonacci hashing: the top bits of the key times 2^64 / golden ratio."""
+    bits = 0
+    while (1 << bits) <= mask:
+        bits += 1
+    h = (np.uint64(key) * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(64 - bits)
+    return np.int64(h)
+
+
+@njit(cache=True, nogil=True)
+def _grow(table, group):
+    size = table.shape[0] * 2
+    mask = size - 1
+    t2 = np.full(size, _EMPTY)
+    g2 = np.empty(size, dtype=np.int64)
+    for i in range(table.shape[0]):
+        key = table[i]
+        if key != _EMPTY:
+            s = _slot(key, mask)
+            while t2[s] != _EMPTY:
+                s = (s + 1) & mask
+            t2[s] = key
+            g2[s] = group[i]
+    return t2, g2
+
+
+@njit(cache=True, nogil=True)
+def _insert(table, group, key, m):
+    """Find or insert ``key``; returns its group (``m`` when new) and whether it was new."""
+    mask = table.shape[0] - 1
+    s = _slot(key, mask)
+    while True:
+        t = table[s]
+        if t == key:
+            return group[s], False
+        if t == _EMPTY:
+            table[s] = key
+            group[s] = m
+            return m, True
+        s = (s + 1) & mask
+
+
+@njit(cache=True, nogil=True)
+def unique_inverse(keys):
+    """``(distinct keys sorted, inverse)`` as ``np.unique(keys, return_inverse=True)`` for
+    non-negative int64 keys: a hash table gives each key a group in order of first appearance,
+    then only the distinct keys are sorted."""
+    n = keys.shape[0]
+    table = np.full(1024, _EMPTY)
+    group = np.empty(1024, dtype=np.int64)
+    first_keys = np.empty(n, dtype=np.int64)
+    inv = np.empty(n, dtype=np.int64)
+    m = 0
+    for j in range(n):
+        g, new = _insert(table, group, keys[j], m)
+        inv[j] = g
+        if new:
+            first_keys[m] = keys[j]
+            m += 1
+            if 2 * m > table.shape[0]:
+                table, group = _grow(table, group)
+    distinct = first_keys[:m]
+    order = np.argsort(distinct)
+    rank = np.empty(m, dtype=np.int64)
+    for i in range(m):
+        rank[order[i]] = i
+    for j in range(n):
+        inv[j] = rank[inv[j]]
+    return distinct[order], inv
+
+
+@njit(cache=True, nogil=True)
+def count_coarse_cells(cells, factor):
+    """Number of distinct rows of ``floor(cells / factor)`` (cells (n, D <= 3) non-negative
+    int64), the 20-bit-per-axis keys of :mod:`kbs.inference.voxel`."""
+    n, D = cells.shape
+    table = np.full(1024, _EMPTY)
+    group = np.empty(1024, dtype=np.int64)
+    m = 0
+    for j in range(n):
+        key = np.int64(0)
+        for d in range(D):
+            key = (key << 20) | np.int64(math.floor(cells[j, d] / factor))
+        g, new = _insert(table, group, key, m)
+        if new:
+            m += 1
+            if 2 * m > table.shape[0]:
+                table, group = _grow(table, group)
+    return m
+
+
+@njit(cache=True, nogil=True)
+def bounds(X):
+    """Per-column minimum and maximum of ``X`` (n, D) in one pass."""
+    n, D = X.shape
+    lo = X[0].copy()
+    hi = X[0].copy()
+    for j in range(1, n):
+        for d in range(D):
+            v = X[j, d]
+            if v < lo[d]:
+                lo[d] = v
+            if v > hi[d]:
+                hi[d] = v
+    return lo, hi

@@ -70,32 +70,50 @@ class Moments:
     ``stats`` holds, per sample, ``[w, w x, w x x^T + scatter]`` (1 + D + D*D columns; the
     within-voxel scatter is added when the set is a voxel reduction), so that centres and fuzzy
     covariances are one matrix product per iteration each, whatever the number of clusters.
-    ``X`` should be centred (the driver does it) to keep the moment formula exact.
+    ``rows`` is the same for 3D points as (10, n) rows, the layout of the compiled kernels. Both
+    are computed when first used. ``X`` should be centred (the driver does it) to keep the moment
+    formula exact.
     """
 
     X: np.ndarray  # (n, D)
     XT: np.ndarray  # (D, n)
     w: np.ndarray  # (n,)
-    first: np.ndarray  # (n, 1 + D): [w, w x]
-    stats: np.ndarray  # (n, 1 + D + D*D): [w, w x, w x x^T + scatter]
+    scatter: np.ndarray | None = None  # (n, D, D)
 
     @classmethod
     def build(cls, X: np.ndarray, w: np.ndarray, scatter: np.ndarray | None = None) -> "Moments":
         X = np.ascontiguousarray(X, dtype=np.float64)
         w = np.ascontiguousarray(w, dtype=np.float64)
-        n, D = X.shape
+        return cls(X=X, XT=np.ascontiguousarray(X.T), w=w, scatter=scatter)
+
+    @cached_property
+    def first(self) -> np.ndarray:
+        """(n, 1 + D): ``[w, w x]``."""
+        return np.column_stack([self.w, self.X * self.w[:, None]])
+
+    @cached_property
+    def stats(self) -> np.ndarray:
+        """(n, 1 + D + D*D): ``[w, w x, w x x^T + scatter]``."""
+        n, D = self.X.shape
+        X, w = self.X, self.w
         second = (w[:, None, None] * (X[:, :, None] * X[:, None, :])).reshape(n, D * D)
-        if scatter is not None:
-            second = second + scatter.reshape(n, D * D)
-        first = np.column_stack([w, X * w[:, None]])
-        return cls(X=X, XT=np.ascontiguousarray(X.T), w=w, first=first,
-                   stats=np.ascontiguousarray(np.column_stack([first, second])))
+        if self.scatter is not None:
+            second = second + self.scatter.reshape(n, D * D)
+        return np.ascontiguousarray(np.column_stack([self.first, second]))
 
     @cached_property
     def rows(self) -> np.ndarray:
         """The moments as (10, n) rows ``[w, w x (3), w x x^T + scatter (6: xx xy xz yy yz zz)]``
         for 3D points: the layout of the compiled kernels."""
-        return np.ascontiguousarray(self.stats[:, [0, 1, 2, 3, 4, 5, 6, 8, 9, 12]].T)
+        XT, w = self.XT, self.w
+        R = np.empty((10, self.n))
+        R[0] = w
+        np.multiply(XT, w, out=R[1:4])
+        for r, (a, b) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)), start=4):
+            np.multiply(R[1 + a], XT[b], out=R[r])
+            if self.scatter is not None:
+                R[r] += self.scatter[:, a, b]
+        return R
 
     @property
     def n(self) -> int:

@@ -29,7 +29,7 @@ from kbs.inference.engine import (
     worst_point_memberships,
 )
 from kbs.inference.kernels import FlooredGaussians, Moments, validity
-from kbs.inference.voxel import auto_voxel_size, voxel_reduce
+from kbs.inference.voxel import auto_voxel_size, bounds, voxel_reduce
 
 #: Allowed values of the engine settings, declared as data.
 ENGINE_CONSTRAINTS: dict[str, list] = {
@@ -174,7 +174,8 @@ def prepare_fit_set(X: np.ndarray, w: np.ndarray, *, max_fit_points: int | None,
                     voxel_size: float | None) -> FitSet:
     """Centre on the bounding-box middle, reduce on a voxel grid when the cloud is large, and put
     the fitting set in a canonical order (so the result does not depend on the point order)."""
-    offset = 0.5 * (X.min(axis=0) + X.max(axis=0))
+    lo, hi = bounds(X)
+    offset = 0.5 * (lo + hi)
     Xc = X - offset
     reduce = voxel_size is not None or (max_fit_points is not None and X.shape[0] > max_fit_points)
     if reduce and X.shape[1] <= 3:
