@@ -1,12 +1,15 @@
-"""Benchmark: the main command end to end, ``kbs run --rules outdoor SCAN``, as a user runs it (a new
-process each time: start-up, imports, reading, segmentation, writing the PLY and the JSON).
+"""Benchmark: kbs at sensor rate. Per-frame latency of the loaded segmenter (``kbs.Segmenter``,
+built once, then ``segment(points)`` frame after frame) on the real vehicle scans, with one
+process (``jobs=1``) and with ``jobs=2``, against Patchwork++'s segmentation of the same points in
+the same run; then the whole ``kbs run`` process (start-up, imports, reading, segmentation,
+writing) against a whole Patchwork++ process that reads the same file.
 
-Prints a markdown table: for each ``--jobs`` value, the median, min and max wall time over the
-runs, and the ratio to ``-j 1`` measured in the same run (the machine is shared: compare ratios,
-not absolute times across runs). Runs alternate between the settings so that a busy spell hits
-both alike.
+Prints markdown tables: medians over ``--repeats`` frames (after one warm-up frame that is not
+counted), min and max, and the ratio to Patchwork++ measured in the same run. The machine is
+shared: compare ratios, not absolute times across runs.
 
-Usage: python benchmarks/bench_run.py [--scan PATH] [--repeats 5] [--jobs 1 2]
+Usage: python benchmarks/bench_run.py [--repeats 5] [--jobs 1 2] [--process-repeats 5]
+Patchwork++ comes with ``pip install .[bench]``; without it the ratios are left out, saying why.
 """
 from __future__ import annotations
 
@@ -19,6 +22,11 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import peers  # noqa: E402
+
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
@@ -27,33 +35,126 @@ def kbs_command() -> list[str]:
     return [exe] if exe else [sys.executable, "-m", "kbs.cli.main"]
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scan", type=Path, default=DATA / "semantickitti" / "000001.points.npy")
-    ap.add_argument("--rules", default="outdoor")
-    ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--jobs", type=int, nargs="+", default=[1, 2])
-    args = ap.parse_args()
-    if not args.scan.is_file():
-        sys.exit(f"no scan at {args.scan}")
-    times: dict[int, list[float]] = {j: [] for j in args.jobs}
-    with tempfile.TemporaryDirectory() as out:
-        for _ in range(args.repeats):
-            for j in args.jobs:
+def frames() -> list[tuple[str, Path, np.ndarray, np.ndarray]]:
+    """(name, file, points in the sensor frame as kbs reads them, the sensor position)."""
+    from kbs.io import read_cloud
+
+    out = []
+    p = DATA / "semantickitti" / "000001.points.npy"
+    out.append(("SemanticKITTI 000001", p, read_cloud(p).xyz, np.zeros(3)))
+    for s in ("000000", "000001"):
+        p = DATA / "gndnet" / f"{s}.points.npy"
+        # GndNet shifted its scans so that the ground is near z = 0: the sensor is 1.73 m up
+        out.append((f"GndNet {s}", p, read_cloud(p).xyz, np.array([0.0, 0.0, 1.73])))
+    for i in range(3):
+        p = DATA / "semantickitti-seq00" / f"seq00_00000{i}.bin"
+        out.append((f"SemanticKITTI seq00 {i} (full res.)", p, read_cloud(p).xyz, np.zeros(3)))
+    return out
+
+
+def _pw_points(X: np.ndarray, sensor: np.ndarray) -> np.ndarray:
+    """Points for Patchwork++: its frame is the sensor's (z up, sensor at the origin)."""
+    return X - sensor
+
+
+def latency(repeats: int, jobs_list: list[int]) -> None:
+    import kbs
+
+    pw_missing = peers.available("pypatchworkpp")
+    if pw_missing:
+        print(f"> Patchwork++ is not available, no ratios: {pw_missing}\n")
+    print(f"Loaded segmenter, rule base 'outdoor': ms per frame, median of {repeats} frames after one warm-up "
+          "(min-max), and the ratio to Patchwork++'s segmentation of the same points, same run\n")
+    head = "| scan | points |" + "".join(f" kbs -j {j} ms |" for j in jobs_list) + " Patchwork++ ms |" + \
+        "".join(f" -j {j} / Patchwork++ |" for j in jobs_list)
+    print(head)
+    print("|---|---:|" + "---:|" * (2 * len(jobs_list) + 1))
+    segs = {j: {} for j in jobs_list}
+    for name, _, X, sensor in frames():
+        cells = []
+        meds = {}
+        for j in jobs_list:
+            seg = segs[j].get(tuple(sensor))
+            if seg is None:
+                seg = segs[j][tuple(sensor)] = kbs.Segmenter("outdoor", jobs=j, sensor=sensor)
+            seg.segment(X)  # warm-up: compiled kernels loaded, worker processes started
+            ts = []
+            for _ in range(repeats):
                 t0 = time.perf_counter()
-                r = subprocess.run(kbs_command() + ["-q", "run", "--rules", args.rules, str(args.scan), "--out", out,
-                                                    "-j", str(j)], capture_output=True, text=True)
+                seg.segment(X)
+                ts.append(1e3 * (time.perf_counter() - t0))
+            meds[j] = statistics.median(ts)
+            cells.append(f" {meds[j]:.0f} ({min(ts):.0f}-{max(ts):.0f}) |")
+        if pw_missing:
+            pw_cell, ratios = " - |", " - |" * len(jobs_list)
+        else:
+            P = _pw_points(X, sensor)
+            frame = peers.Frame(np.eye(3), float(sensor[2]) if sensor[2] else 1.73)
+            peers.patchworkpp(P, frame)
+            ts = []
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                peers.patchworkpp(P, frame)
+                ts.append(1e3 * (time.perf_counter() - t0))
+            pw = statistics.median(ts)
+            pw_cell = f" {pw:.1f} |"
+            ratios = "".join(f" {meds[j] / pw:.0f}x |" for j in jobs_list)
+        print(f"| {name} | {len(X):,} |" + "".join(cells) + pw_cell + ratios, flush=True)
+    for d in segs.values():
+        for s in d.values():
+            close = getattr(s, "close", None)
+            if close is not None:
+                close()
+
+
+PW_PROCESS = """
+import sys, numpy as np
+sys.path.insert(0, {bench!r})
+import peers
+from kbs.io import read_cloud
+X = read_cloud({path!r}).xyz
+print(int(peers.patchworkpp(X, peers.Frame(np.eye(3), 1.73)).sum()))
+"""
+
+
+def process(repeats: int, jobs_list: list[int]) -> None:
+    p = DATA / "semantickitti" / "000001.points.npy"
+    cmds = {f"kbs run -j {j}": kbs_command() + ["-q", "run", "--rules", "outdoor", str(p), "--out", "{out}", "-j",
+                                                 str(j)] for j in jobs_list}
+    if not peers.available("pypatchworkpp"):
+        code = PW_PROCESS.format(bench=str(Path(__file__).resolve().parent), path=str(p))
+        cmds["Patchwork++ process (read with kbs.io)"] = [sys.executable, "-c", code]
+    times: dict[str, list[float]] = {k: [] for k in cmds}
+    with tempfile.TemporaryDirectory() as out:
+        for _ in range(repeats):  # alternate, so that a busy spell hits all alike
+            for k, cmd in cmds.items():
+                t0 = time.perf_counter()
+                r = subprocess.run([c.replace("{out}", out) for c in cmd], capture_output=True, text=True)
                 dt = time.perf_counter() - t0
                 if r.returncode != 0:
-                    sys.exit(f"kbs run failed ({r.returncode}): {r.stderr}")
-                times[j].append(dt)
-    base = statistics.median(times[args.jobs[0]])
-    print(f"`kbs run --rules {args.rules} {args.scan.name}`, {args.repeats} runs each, wall time of the process\n")
-    print(f"| jobs | median s | min s | max s | ratio to -j {args.jobs[0]} |")
-    print("|---:|---:|---:|---:|---:|")
-    for j in args.jobs:
-        med = statistics.median(times[j])
-        print(f"| {j} | {med:.2f} | {min(times[j]):.2f} | {max(times[j]):.2f} | {med / base:.2f} |")
+                    sys.exit(f"{k} failed ({r.returncode}): {r.stderr}")
+                times[k].append(dt)
+    print(f"\nWhole process on `{p.name}` ({repeats} runs each, wall time; kbs writes the PLY and the JSON)\n")
+    ref = next((k for k in times if k.startswith("Patchwork")), None)
+    print("| command | median s | min s | max s |" + (" ratio to Patchwork++ |" if ref else ""))
+    print("|---|---:|---:|---:|" + ("---:|" if ref else ""))
+    for k, ts in times.items():
+        med = statistics.median(ts)
+        ratio = f" {med / statistics.median(times[ref]):.1f}x |" if ref else ""
+        print(f"| {k} | {med:.2f} | {min(ts):.2f} | {max(ts):.2f} |{ratio}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeats", type=int, default=5, help="frames timed per scan and setting")
+    ap.add_argument("--process-repeats", type=int, default=5, help="whole-process runs per command (0: skip)")
+    ap.add_argument("--jobs", type=int, nargs="+", default=[1, 2])
+    args = ap.parse_args()
+    if not DATA.is_dir():
+        sys.exit(f"the benchmark needs the real scans in {DATA}")
+    latency(args.repeats, args.jobs)
+    if args.process_repeats:
+        process(args.process_repeats, args.jobs)
 
 
 if __name__ == "__main__":

@@ -1,19 +1,25 @@
-"""Benchmark: how kbs scales. Wall time and peak memory of a whole `kbs run` segmentation
-(outdoor rules, reading and writing excluded) and of the inference motor alone
-(`ufp_onc`, K = 1 .. 10), at 10^4, 10^5, 10^6 and 3 x 10^6 points.
+"""Benchmark: how a whole kbs segmentation scales with the number of points, for the outdoor
+rules on tiled vehicle scans and the airborne rules on tiled airborne samples: wall time, peak
+resident memory, output clusters, splits and limits reached (by kind), from 10^4 to 10^7 points.
 
-Data: the SemanticKITTI scan and the two GndNet scans of ../shared/data (288,173 real points),
-subsampled (a fixed stride) below that size and tiled side by side (copies shifted 250 m in x)
-above it. Each measurement runs in a fresh child process; its peak RSS is its own, and the
-largest of the split workers it forks (``--jobs``, default one per core as ``kbs run``) is given
-beside it.
+Data (real scans of ../shared/data, tiled; nothing is written to the repository):
+- outdoor: the SemanticKITTI scan and the two GndNet scans (288,173 points), subsampled with a
+  fixed stride below that size, tiled side by side above it (copies shifted 250 m in x);
+- airborne: the six ISPRS samples (184,856 points), each moved to its own 600 m cell of a grid
+  (8 cells a row), copies added cell after cell, 1 cm of seeded jitter, cut at the size wanted;
+  below 184,856 points a fixed stride of the same pool.
 
-Usage: python benchmarks/bench_scaling.py [--sizes 10000 100000 1000000 3000000] [--repeats 3]
+Each measurement runs in a fresh child process (its peak RSS is its own; the largest of the
+split workers it forks is given beside it). Reading and writing files are not included.
+
+Usage: python benchmarks/bench_scaling.py [--sizes 10000 100000 1000000 10000000]
+           [--rules outdoor airborne] [--repeats 1] [--jobs -1] [--timeout 1800]
 """
 from __future__ import annotations
 
 import argparse
 import multiprocessing as mp
+import queue as queue_mod
 import resource
 import statistics
 import sys
@@ -25,66 +31,100 @@ import numpy as np
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
-def cloud(n: int) -> np.ndarray:
-    pool = np.vstack([np.load(DATA / "semantickitti" / "000001.points.npy")[:, :3],
-                      np.load(DATA / "gndnet" / "000000.points.npy")[:, :3] - [0, 0, 1.73],
-                      np.load(DATA / "gndnet" / "000001.points.npy")[:, :3] - [0, 0, 1.73]]).astype(np.float64)
-    if n <= len(pool):
-        return pool[np.linspace(0, len(pool) - 1, n).astype(np.int64)]
-    tiles = [pool + [250.0 * i, 0.0, 0.0] for i in range(int(np.ceil(n / len(pool))))]
-    return np.vstack(tiles)[:n]
+def _pool(rules: str) -> list[np.ndarray]:
+    if rules == "outdoor":
+        return [np.load(DATA / "semantickitti" / "000001.points.npy")[:, :3].astype(np.float64),
+                np.load(DATA / "gndnet" / "000000.points.npy")[:, :3].astype(np.float64) - [0, 0, 1.73],
+                np.load(DATA / "gndnet" / "000001.points.npy")[:, :3].astype(np.float64) - [0, 0, 1.73]]
+    from kbs.io import read_cloud
+
+    names = ["samp11.txt", "samp12.txt", "samp21-utm.pcd", "samp31-utm.pcd", "samp51-utm.pcd", "samp61-utm.pcd"]
+    out = []
+    for f in names:
+        X = read_cloud(DATA / "isprs" / f).xyz
+        out.append(X - X.min(axis=0))
+    return out
 
 
-def _child(kind: str, n: int, queue, jobs: int) -> None:
-    X = cloud(n)
-    if kind == "kbs run":
-        from kbs.knowledge import Interpreter, load_rule_base
+def cloud(rules: str, n: int) -> np.ndarray:
+    parts = _pool(rules)
+    total = sum(len(p) for p in parts)
+    if rules == "outdoor":
+        pool = np.vstack(parts)
+        if n <= total:
+            return pool[np.linspace(0, total - 1, n).astype(np.int64)]
+        tiles = [pool + [250.0 * i, 0.0, 0.0] for i in range(int(np.ceil(n / total)))]
+        return np.vstack(tiles)[:n]
+    rng = np.random.default_rng(0)
+    if n <= total:
+        cells = [p + [600.0 * i, 0.0, 0.0] for i, p in enumerate(parts)]
+        pool = np.vstack(cells)
+        return pool[np.linspace(0, total - 1, n).astype(np.int64)]
+    out, have, i = [], 0, 0
+    while have < n:
+        p = parts[i % len(parts)]
+        out.append(p + [600.0 * (i % 8), 600.0 * (i // 8), 0.0] + rng.normal(scale=0.01, size=p.shape))
+        have += len(p)
+        i += 1
+    return np.vstack(out)[:n]
 
-        it = Interpreter(load_rule_base("outdoor"), jobs=jobs)
-        call = lambda: it.run(X)  # noqa: E731
-    else:
-        from kbs.inference import ufp_onc
 
-        call = lambda: ufp_onc(X, 10)  # noqa: E731
+def _child(rules: str, n: int, q, jobs: int) -> None:
+    import kbs
+
+    X = cloud(rules, n)
+    seg = kbs.Segmenter(rules, jobs=jobs, sensor=[0.0, 0.0, 0.0] if rules == "outdoor" else None)
     t0 = time.perf_counter()
-    out = call()
+    out = seg.segment(X)
     dt = time.perf_counter() - t0
-    extra = (f"{len(out.clusters)} clusters, {out.n_splits} splits" if kind == "kbs run"
-             else f"K = {out.chosen_k}")
+    s = out.summary()
+    kinds = s.get("limits_by_kind") or {}
+    lim = ", ".join(f"{k} {v['count'] if isinstance(v, dict) else v}" for k, v in kinds.items()) or "-"
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-    workers = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024  # the largest split worker
-    queue.put((dt, rss, extra, workers))
+    workers = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024
+    q.put((dt, rss, workers, s["clusters"], s["splits"], s["limits"], lim))
 
 
-def measure(kind: str, n: int, repeats: int, jobs: int) -> tuple[float, float, str, float]:
+def measure(rules: str, n: int, repeats: int, jobs: int, timeout: float):
     ctx = mp.get_context("spawn")
     runs = []
     for _ in range(repeats):
         q = ctx.Queue()
-        p = ctx.Process(target=_child, args=(kind, n, q, jobs))
+        p = ctx.Process(target=_child, args=(rules, n, q, jobs))
         p.start()
-        runs.append(q.get())
+        try:
+            runs.append(q.get(timeout=timeout))
+        except queue_mod.Empty:
+            p.kill()
+            p.join()
+            return None
         p.join()
-    return statistics.median(r[0] for r in runs), max(r[1] for r in runs), runs[0][2], max(r[3] for r in runs)
+    return (statistics.median(r[0] for r in runs), max(r[1] for r in runs), max(r[2] for r in runs)) + runs[0][3:]
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 1_000_000, 3_000_000])
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 1_000_000, 10_000_000])
+    ap.add_argument("--rules", nargs="+", default=["outdoor", "airborne"])
+    ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--jobs", type=int, default=-1, help="kbs split processes (-1: one per core, as kbs run)")
+    ap.add_argument("--timeout", type=float, default=1800.0, help="seconds before a measurement is given up")
     args = ap.parse_args()
     if not DATA.is_dir():
         sys.exit(f"the benchmark needs the real scans in {DATA}")
-    print(f"kbs run with jobs = {args.jobs}\n")
-    print("| points | what | median s (runs) | peak RSS MB | largest worker MB | result |")
-    print("|---:|---|---:|---:|---:|---|")
-    for n in args.sizes:
-        for kind in ("ufp_onc", "kbs run"):
-            reps = args.repeats if n <= 1_000_000 else 1
-            dt, rss, extra, workers = measure(kind, n, reps, args.jobs)
-            w = f"{workers / 1e6:.0f}" if kind == "kbs run" and workers else "-"
-            print(f"| {n:,} | {kind} | {dt:.2f} ({reps}) | {rss / 1e6:.0f} | {w} | {extra} |", flush=True)
+    print(f"whole segmentation (kbs.Segmenter, jobs = {args.jobs}), reading and writing excluded\n")
+    print("| rules | points | seconds | s per 10^5 points | peak RSS MB | largest worker MB | clusters | splits | "
+          "limits | limits by kind |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---|")
+    for rules in args.rules:
+        for n in args.sizes:
+            r = measure(rules, n, args.repeats if n <= 1_000_000 else 1, args.jobs, args.timeout)
+            if r is None:
+                print(f"| {rules} | {n:,} | > {args.timeout:.0f} (given up) | | | | | | | |", flush=True)
+                continue
+            dt, rss, workers, clusters, splits, limits, kinds = r
+            print(f"| {rules} | {n:,} | {dt:.2f} | {dt / n * 1e5:.3f} | {rss / 1e6:.0f} | "
+                  f"{workers / 1e6:.0f} | {clusters:,} | {splits:,} | {limits:,} | {kinds} |", flush=True)
 
 
 if __name__ == "__main__":

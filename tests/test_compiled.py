@@ -120,3 +120,34 @@ def test_ufp_onc_sweep_same_with_and_without_compiled_kernels(monkeypatch):
     assert [(p.n_iter_fcm, p.n_iter_gg) for p in a.partitions] == [(p.n_iter_fcm, p.n_iter_gg) for p in b.partitions]
     np.testing.assert_allclose([p.apd for p in a.partitions], [p.apd for p in b.partitions], rtol=1e-8)
     np.testing.assert_allclose(a.memberships, b.memberships, atol=1e-8)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_compiled_voxel_grids_give_the_reference_fitting_set(monkeypatch, seed):
+    """Hash-table voxel counting and reduction: the same voxel size and the same moments as the
+    sort-based reference (identical arrays, not merely close)."""
+    from kbs.inference.ufp_onc import prepare_fit_set
+    from kbs.inference.voxel import auto_voxel_size, count_voxels
+
+    rng = np.random.default_rng(seed)
+    X = np.vstack([_blobs(seed, 30000) * 5.0, rng.uniform(-20, 20, size=(5000, 3))]) + [3e5, 5e6, 40.0]
+    w = rng.integers(1, 4, size=len(X)).astype(float)
+    a = prepare_fit_set(X, w, max_fit_points=2500, voxel_size=None)
+    sizes_a = auto_voxel_size(X - X.mean(axis=0), 1000), count_voxels(X, 0.7)
+    monkeypatch.setenv("KBS_JIT", "0")
+    b = prepare_fit_set(X, w, max_fit_points=2500, voxel_size=None)
+    sizes_b = auto_voxel_size(X - X.mean(axis=0), 1000), count_voxels(X, 0.7)
+    assert a.voxel_size == b.voxel_size and sizes_a == sizes_b
+    assert np.array_equal(a.offset, b.offset)
+    assert np.array_equal(a.moments.X, b.moments.X) and np.array_equal(a.moments.w, b.moments.w)
+    assert np.array_equal(a.moments.stats, b.moments.stats)
+
+
+def test_unique_inverse_is_numpys():
+    rng = np.random.default_rng(7)
+    keys = rng.integers(0, 2**40, size=3000)[rng.integers(0, 3000, size=50000)]
+    k, inv = C.unique_inverse(keys)
+    k2, inv2 = np.unique(keys, return_inverse=True)
+    assert np.array_equal(k, k2) and np.array_equal(inv, inv2)
+    lo, hi = C.bounds(np.ascontiguousarray(keys.reshape(-1, 2).astype(float)))
+    assert np.array_equal(lo, keys.reshape(-1, 2).min(axis=0)) and np.array_equal(hi, keys.reshape(-1, 2).max(axis=0))
