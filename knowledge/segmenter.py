@@ -169,8 +169,8 @@ def as_points(points: Any) -> np.ndarray:
     finite = np.isfinite(X).all(axis=1)
     if not finite.all():
         bad = int(X.shape[0] - np.count_nonzero(finite))
-        raise ParameterError(f"{bad:,} of the {X.shape[0]:,} points have a NaN or infinite coordinate (first: "
-                             f"row {int(np.argmin(finite))}); drop them first (points[np.isfinite(points).all(axis=1)])")
+        raise ParameterError(f"{bad:,} of the {X.shape[0]:,} points have a NaN or infinite coordinate (first: row "
+                             f"{int(np.argmin(finite))}); drop them first: points[np.isfinite(points).all(axis=1)]")
     return X
 
 
