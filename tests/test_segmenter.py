@@ -263,3 +263,15 @@ def test_one_scan_prints_as_before_without_a_table(tmp_path):
     assert lines[2] == "  ground: cluster c0"
     assert re.fullmatch(r"  time: \d+\.\d\d s \(read \d+\.\d\d, segment \d+\.\d\d, write \d+\.\d\d\)", lines[3])
     assert lines[4] == f"wrote {tmp_path}/outdoor.ply and {tmp_path}/outdoor.json"
+
+
+def test_the_readme_python_example_runs():
+    readme = (ROOT / "README.md").read_text()
+    section = readme[readme.index("### Several scans, one rule base"):]
+    code, shown = re.search(r"```python\n(.*?)```\n\n```\n(.*?)```", section, re.S).groups()
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 0, r.stderr
+    out, shown = r.stdout.splitlines(), shown.splitlines()
+    assert out[0] == shown[0] and len(out) == len(shown) == 3  # the counts may move with the rules: the shape may not
+    for line in out[1:]:
+        assert re.fullmatch(r"examples/data/\w+\.ply: \d+ clusters, [\d,]+ ground points, \d+ noise", line), line
