@@ -6,6 +6,9 @@ The package is laid out as in the seed paper's architecture:
 - :mod:`kbs.knowledge` -- rule bases, predicates, interpreter and explanations;
 - :mod:`kbs.io` -- point-cloud readers and writers;
 - :mod:`kbs.cli` -- the ``kbs`` command.
+
+:class:`kbs.Segmenter` (from :mod:`kbs.knowledge`) segments clouds with a rule base loaded once;
+it is imported on first use, so ``import kbs`` stays cheap.
 """
 from __future__ import annotations
 
@@ -24,4 +27,17 @@ from kbs.errors import (  # noqa: E402
     ParameterError,
 )
 
-__all__ = ["__version__", "KbsError", "CloudFileError", "ParameterError", "FitError", "ExitCode"]
+__all__ = ["__version__", "KbsError", "CloudFileError", "ParameterError", "FitError", "ExitCode", "Segmenter"]
+
+
+def __getattr__(name: str):
+    """``kbs.Segmenter`` is imported when first used (it pulls in the engine: numpy, scipy, ...)."""
+    if name == "Segmenter":
+        from kbs.knowledge.segmenter import Segmenter
+
+        return Segmenter
+    raise AttributeError(f"module 'kbs' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | {"Segmenter"})

@@ -3,16 +3,17 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import click
 import numpy as np
 
 from kbs import __version__
-from kbs.cli.common import cloud_argument, write_result_ply
-from kbs.errors import CloudFileError, ExitCode
-from kbs.io import read_cloud, read_result_json
-from kbs.knowledge import Explanation, Interpreter, PredicateRegistry, load_rule_base
+from kbs.cli.common import write_result_ply
+from kbs.errors import CloudFileError, ExitCode, KbsError
+from kbs.io import SUPPORTED_EXTENSIONS, read_cloud, read_result_json
+from kbs.knowledge import Explanation, PredicateRegistry, Segmenter, load_rule_base
 from kbs.knowledge.predicates import UNITS, did_you_mean
 from kbs.knowledge.rulebase import RuleFileError, resolve, shipped_rule_bases
 
@@ -46,49 +47,80 @@ plugin_option = click.option("--plugin", "plugins", multiple=True, type=click.Pa
                              help="A Python file declaring extra predicates (repeatable).")
 
 
-@click.command()
-@click.option("--rules", "rules", required=True, metavar="NAME|FILE",
-              help=f"A shipped rule base ({', '.join(shipped_rule_bases())}) or a rule file.")
-@cloud_argument
-@click.option("--sensor", callback=_vector3, metavar="X,Y,Z", help="Sensor position (overrides the rule base's).")
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=Path("kbs-out"),
-              show_default=True, help="Directory for <stem>.ply and <stem>.json.")
-@plugin_option
-@click.option("--color-by", "color_by", type=click.Choice(["cluster", "label"]), default="cluster", show_default=True,
-              help="Colour of each vertex (red green blue) in <stem>.ply: one per output cluster or per label.")
-@click.option("--meshes", is_flag=True, help="Also write DIR/<stem>-meshes/: a convex hull per obstacle cluster "
-              "(obstacle-<index>.ply) and the ground surface (ground.ply).")
-@click.option("--report", is_flag=True, help="Also write DIR/<stem>.html: a self-contained report (3D view by "
-              "cluster or label, centres and eigen-boxes, APD curve, the explanation tree; opens offline).")
-@click.option("-j", "--jobs", type=click.IntRange(min=-1), default=-1, show_default=True, callback=_jobs,
-              help="Processes computing the UFP-ONC splits side by side; -1: one per available core. The result "
-              "does not depend on it.")
-@click.pass_context
-def run(ctx: click.Context, rules: str, cloud: Path, sensor, out_dir: Path, plugins: tuple[Path, ...],
-        color_by: str = "cluster", meshes: bool = False, report: bool = False, jobs: int = -1) -> None:
-    """Segment CLOUD with a rule base; write DIR/<stem>.ply (per-vertex cluster, label, membership)
-    and DIR/<stem>.json (label names, clusters, the explanation tree)."""
-    quiet = ctx.obj.get("quiet", False)
-    t0 = time.perf_counter()
-    rb = load_rule_base(rules, _registry(plugins))
+@dataclass(frozen=True)
+class ScanResult:
+    """What `kbs run` did with one scan: its size, cluster count and where the time went (s)."""
+
+    cloud: Path
+    points: int
+    clusters: int
+    read: float
+    segment: float
+    write: float
+
+
+@dataclass(frozen=True)
+class ScanFailure:
+    """A scan `kbs run` could not do (reported on stderr as it happened), and its exit code."""
+
+    cloud: Path
+    exit_code: int
+
+
+def scan_paths(clouds: tuple[Path, ...]) -> list[Path]:
+    """The scans named by CLOUD arguments: a file as given, a directory as every file directly
+    inside it with a supported extension (:data:`kbs.io.SUPPORTED_EXTENSIONS`), in name order.
+    Two scans with the same stem would write the same result files: a usage error."""
+    scans: list[Path] = []
+    for arg in clouds:
+        if not arg.is_dir():
+            scans.append(arg)  # the reader says what is wrong with it, if anything
+            continue
+        try:
+            found = sorted((p for p in arg.iterdir() if p.suffix.lower() in SUPPORTED_EXTENSIONS and p.is_file()),
+                           key=lambda p: p.name)
+        except OSError as exc:
+            raise CloudFileError(str(arg), f"cannot list the directory: {exc.strerror or exc}") from exc
+        if not found:
+            raise CloudFileError(str(arg), f"no point-cloud file in this directory (extensions: "
+                                 f"{', '.join(SUPPORTED_EXTENSIONS)})")
+        scans.extend(found)
+    seen: dict[str, Path] = {}
+    for scan in scans:
+        if scan.stem in seen:
+            first = seen[scan.stem]
+            what = (f"{scan} is given twice" if first.resolve() == scan.resolve() else
+                    f"{first} and {scan} would both write {scan.stem}.ply and {scan.stem}.json; give scans with "
+                    f"different names (or run them apart with different --out)")
+            raise click.BadParameter(what, param_hint="CLOUD")
+        seen[scan.stem] = scan
+    return scans
+
+
+def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path, *, color_by: str = "cluster", meshes: bool = False,
+             report: bool = False, quiet: bool = False, t0: float | None = None) -> ScanResult:
+    """Read one scan, segment it, write DIR/<stem>.ply and DIR/<stem>.json (and the meshes and the
+    report when asked) and print what was done; ``t0`` is when its clock started (default: now)."""
+    t0 = time.perf_counter() if t0 is None else t0
+    rb = segmenter.rule_base
     pc = read_cloud(cloud)
     t_read = time.perf_counter() - t0
-    seg = Interpreter(rb, sensor=sensor, jobs=jobs).run(pc.xyz)
+    ply, js = out_dir / f"{cloud.stem}.ply", out_dir / f"{cloud.stem}.json"
+    if ply.resolve() == cloud.resolve():
+        raise CloudFileError(str(ply), "the output would overwrite the input; choose another --out")
+    seg = segmenter.segment(pc.xyz)
     t1 = time.perf_counter()
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise CloudFileError(str(out_dir), f"cannot create the output directory: {exc.strerror or exc}") from exc
-    ply, js = out_dir / f"{cloud.stem}.ply", out_dir / f"{cloud.stem}.json"
-    if ply.resolve() == cloud.resolve():
-        raise CloudFileError(str(ply), "the output would overwrite the input; choose another --out")
     from kbs.report.colors import rgb_fields
 
     write_result_ply(ply, pc, {"cluster": seg.cluster, "label": seg.label, "membership": seg.membership,
                                **rgb_fields(seg.cluster if color_by == "cluster" else seg.label)})
     doc = {
         "kbs_version": __version__, "input": str(cloud), "n_points": len(pc), "n_dropped": pc.n_dropped,
-        "rule_base": rb.name, "rule_file": rb.path, "units": rb.units, "sensor": list(map(float, sensor or rb.sensor)),
+        "rule_base": rb.name, "rule_file": rb.path, "units": rb.units, "sensor": list(segmenter.sensor),
         "label_names": seg.label_names, "summary": seg.summary(), "clusters": seg.clusters,
         "explanation": seg.explanation.to_dict(),
     }
@@ -123,6 +155,77 @@ def run(ctx: click.Context, rules: str, cloud: Path, sensor, out_dir: Path, plug
     if not quiet:
         for note in seg.explanation.notes + ([seg.explanation.ground["note"]] if "note" in seg.explanation.ground else []):
             click.echo(f"note: {note}", err=True)
+    return ScanResult(cloud, len(pc), s["clusters"], t_read, seg.seconds, t_write)
+
+
+def time_table(results: list[ScanResult | ScanFailure], t_load: float, t_total: float) -> str:
+    """The per-scan time table `kbs run` prints after several scans (aligned columns, then the
+    median segmentation time and the total, which includes loading the rule base)."""
+    name_w = max([len("scan")] + [len(r.cloud.name) for r in results])
+    head = f"{'scan':<{name_w}}  {'points':>10}  {'clusters':>8}  {'read s':>6}  {'segment s':>9}  {'write s':>7}"
+    lines = [head]
+    for r in results:
+        if isinstance(r, ScanResult):
+            lines.append(f"{r.cloud.name:<{name_w}}  {r.points:>10,}  {r.clusters:>8,}  {r.read:>6.2f}  "
+                         f"{r.segment:>9.2f}  {r.write:>7.2f}")
+        else:
+            lines.append(f"{r.cloud.name:<{name_w}}  {'-':>10}  {'-':>8}  {'-':>6}  {'-':>9}  {'-':>7}  "
+                         f"failed: exit code {r.exit_code}")
+    done = [r.segment for r in results if isinstance(r, ScanResult)]
+    failed = len(results) - len(done)
+    head = f"{len(results)} scans" + (f" ({failed} failed)" if failed else "")
+    median = f"segment median {float(np.median(done)):.2f} s, " if done else ""
+    lines.append(f"{head}: {median}total {t_total:.2f} s (rule base loaded once, {t_load:.2f} s)")
+    return "\n".join(lines)
+
+
+@click.command()
+@click.option("--rules", "rules", required=True, metavar="NAME|FILE",
+              help=f"A shipped rule base ({', '.join(shipped_rule_bases())}) or a rule file.")
+@click.argument("clouds", nargs=-1, required=True, type=click.Path(path_type=Path), metavar="CLOUD...")
+@click.option("--sensor", callback=_vector3, metavar="X,Y,Z", help="Sensor position (overrides the rule base's).")
+@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=Path("kbs-out"),
+              show_default=True, help="Directory for <stem>.ply and <stem>.json.")
+@plugin_option
+@click.option("--color-by", "color_by", type=click.Choice(["cluster", "label"]), default="cluster", show_default=True,
+              help="Colour of each vertex (red green blue) in <stem>.ply: one per output cluster or per label.")
+@click.option("--meshes", is_flag=True, help="Also write DIR/<stem>-meshes/: a convex hull per obstacle cluster "
+              "(obstacle-<index>.ply) and the ground surface (ground.ply).")
+@click.option("--report", is_flag=True, help="Also write DIR/<stem>.html: a self-contained report (3D view by "
+              "cluster or label, centres and eigen-boxes, APD curve, the explanation tree; opens offline).")
+@click.option("-j", "--jobs", type=click.IntRange(min=-1), default=-1, show_default=True, callback=_jobs,
+              help="Processes computing the UFP-ONC splits side by side; -1: one per available core. The result "
+              "does not depend on it.")
+@click.pass_context
+def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_dir: Path, plugins: tuple[Path, ...],
+        color_by: str = "cluster", meshes: bool = False, report: bool = False, jobs: int = -1) -> None:
+    """Segment each CLOUD with a rule base; write DIR/<stem>.ply (per-vertex cluster, label,
+    membership) and DIR/<stem>.json (label names, clusters, the explanation tree).
+
+    A CLOUD that is a directory stands for every point-cloud file directly inside it, in name
+    order. The rule base is loaded once for all the scans; with several, a table of the time each
+    took follows. A scan that fails is reported and the others go on; the exit code is then the
+    first failure's."""
+    quiet = ctx.obj.get("quiet", False)
+    t0 = time.perf_counter()
+    scans = scan_paths(clouds)
+    segmenter = Segmenter(rules, jobs=jobs, sensor=sensor, plugins=plugins)
+    options = {"color_by": color_by, "meshes": meshes, "report": report, "quiet": quiet}
+    if len(scans) == 1:  # the clock starts with the command: its read time includes loading the rule base
+        run_scan(segmenter, scans[0], out_dir, t0=t0, **options)
+        return
+    t_load = time.perf_counter() - t0
+    results: list[ScanResult | ScanFailure] = []
+    for scan in scans:
+        try:
+            results.append(run_scan(segmenter, scan, out_dir, **options))
+        except KbsError as exc:  # as the command would report it alone; the other scans go on
+            click.echo(f"kbs: error: {exc}", err=True)
+            results.append(ScanFailure(scan, int(exc.exit_code)))
+    click.echo(time_table(results, t_load, time.perf_counter() - t0))
+    failures = [r.exit_code for r in results if isinstance(r, ScanFailure)]
+    if failures:
+        raise click.exceptions.Exit(failures[0])
 
 
 def _jsonable(o):

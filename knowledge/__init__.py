@@ -18,9 +18,10 @@ from kbs.knowledge.predicates import (
     predicate,
 )
 from kbs.knowledge.rulebase import RuleBase, RuleFileError, load_rule_base, shipped_rule_bases
+from kbs.knowledge.segmenter import Segmenter
 
 __all__ = [
     "APDCurve", "CheckRecord", "ClusterRecord", "Explanation", "Interpreter", "Segmentation", "segment",
     "Cluster", "Ground", "Measurement", "Predicate", "PredicateError", "PredicateRegistry", "Scene", "predicate",
-    "RuleBase", "RuleFileError", "load_rule_base", "shipped_rule_bases",
+    "RuleBase", "RuleFileError", "load_rule_base", "shipped_rule_bases", "Segmenter",
 ]

@@ -1,0 +1,192 @@
+"""A segmenter that stays loaded: the rule base parsed and validated once, the interpreter built
+once, then any number of clouds segmented with it, frame after frame.
+
+>>> import numpy as np
+>>> from kbs import Segmenter
+>>> seg = Segmenter("outdoor")                       # doctest: +SKIP
+>>> result = seg.segment(np.load("000001.points.npy"))  # doctest: +SKIP
+>>> result.cluster, result.label, result.membership, result.label_names  # doctest: +SKIP
+
+The result of :meth:`Segmenter.segment` is the :class:`~kbs.knowledge.interpreter.Segmentation`
+``kbs run`` writes: the same arrays for the same points, whatever was segmented before.
+"""
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kbs.errors import ParameterError
+from kbs.knowledge.interpreter import Interpreter, Segmentation
+from kbs.knowledge.predicates import PredicateRegistry
+from kbs.knowledge.rulebase import RuleBase, load_rule_base
+
+
+class Segmenter:
+    """Segments point clouds with one rule base, loaded once and reused for every cloud.
+
+    Parameters
+    ----------
+    rules : str, os.PathLike or RuleBase
+        A shipped rule base name (``"outdoor"``, ``"airborne"``, ``"planar_contest"``; see
+        :func:`~kbs.knowledge.rulebase.shipped_rule_bases`), the path of a rule file, or a rule
+        base already loaded with :func:`~kbs.knowledge.rulebase.load_rule_base`.
+    jobs : int, default 1
+        Processes computing the UFP-ONC splits (1: everything in this process; -1: one per
+        available core), as :class:`~kbs.knowledge.interpreter.Interpreter`. The result does not
+        depend on it.
+    sensor : array-like (3,), optional
+        The sensor position, overriding the rule base's.
+    plugins : iterable of str or os.PathLike, default ()
+        Python files declaring extra predicates (as ``kbs run --plugin``), added to the default
+        registry before the rule file is parsed. Only meaningful when ``rules`` is a name or a
+        path: a loaded ``RuleBase`` already holds its predicates.
+
+    Attributes
+    ----------
+    rule_base : RuleBase
+        The validated rule base every cloud is segmented with.
+    jobs : int
+        As given (-1 stays -1).
+    sensor : tuple of 3 float
+        The sensor position used: ``sensor`` if given, else the rule base's.
+    plugins : tuple of str
+        The plugin files loaded.
+
+    Raises
+    ------
+    RuleFileError
+        The rule file is missing or invalid (every problem, positioned).
+    PredicateError
+        A plugin file is missing, fails to import or breaks the predicate contract.
+    ParameterError
+        ``jobs``, ``sensor``, ``rules`` or ``plugins`` is not a valid value.
+
+    Examples
+    --------
+    >>> seg = Segmenter("outdoor", jobs=2)               # doctest: +SKIP
+    >>> for frame in frames:                             # doctest: +SKIP
+    ...     out = seg.segment(frame)                     # (n, 3) points
+    ...     ground = frame[out.label == out.label_names.index("ground")]
+    """
+
+    def __init__(self, rules: str | os.PathLike[str] | RuleBase, *, jobs: int = 1, sensor: Any = None,
+                 plugins: Iterable[str | os.PathLike[str]] = ()) -> None:
+        self.jobs = _check_jobs(jobs)
+        if isinstance(plugins, (str, os.PathLike)):
+            raise ParameterError(f"plugins must be a list of plugin files, got the single path {plugins!r}; "
+                                 f"pass [{os.fspath(plugins)!r}]")
+        self.plugins: tuple[str, ...] = tuple(os.fspath(p) for p in plugins)
+        if isinstance(rules, RuleBase):
+            if self.plugins:
+                raise ParameterError("plugins are used when a rule file is parsed; this rule base is already "
+                                     "loaded: pass the rule file's name or path instead, or load it with "
+                                     "load_rule_base(path, registry) using a registry holding the plugins")
+            self.rule_base = rules
+        elif isinstance(rules, (str, os.PathLike)):
+            registry = PredicateRegistry.default()
+            for p in self.plugins:
+                registry.add_plugin_file(Path(p))
+            self.rule_base = load_rule_base(os.fspath(rules), registry)
+        else:
+            raise ParameterError(f"rules must be a shipped rule base name, a rule file path or a RuleBase, "
+                                 f"got {type(rules).__name__}")
+        self.sensor: tuple[float, float, float] = (
+            tuple(map(float, self.rule_base.sensor)) if sensor is None else _check_sensor(sensor))
+        self._interpreter = Interpreter(self.rule_base, sensor=self.sensor, jobs=self.jobs)
+
+    @property
+    def label_names(self) -> list[str]:
+        """The rule base's labels: ``label`` values index this list (-1 is noise)."""
+        return self.rule_base.label_names
+
+    def segment(self, points: Any) -> Segmentation:
+        """Segment one cloud.
+
+        Parameters
+        ----------
+        points : array-like, shape (n_points, 3)
+            Finite x y z coordinates, any real dtype (float32 and float64 give the same result
+            once float32 is read as float64, as ``kbs run`` does). Drop other columns first
+            (``points[:, :3]``) and non-finite points (``kbs.io.read_cloud`` does).
+
+        Returns
+        -------
+        Segmentation
+            Per point ``cluster`` (n_points,) int32, ``label`` (n_points,) int32 (index into
+            ``label_names``; -1 = noise) and ``membership`` (n_points,) float32, plus
+            ``label_names``, the output ``clusters`` and the ``explanation`` tree.
+
+        Raises
+        ------
+        ParameterError
+            ``points`` is not a non-empty (n_points, 3) array of finite real numbers.
+        FitError
+            The engine could not fit the data.
+        """
+        return self._interpreter.run(as_points(points))
+
+    def __repr__(self) -> str:
+        rb = self.rule_base
+        sensor = ", ".join(f"{v:g}" for v in self.sensor)
+        plugins = f", plugins={list(self.plugins)}" if self.plugins else ""
+        return (f"Segmenter(rule base '{rb.name}' from {rb.path}, {rb.strategy}, labels "
+                f"{'/'.join(rb.label_names)}; jobs={self.jobs}, sensor=({sensor}){plugins})")
+
+
+def as_points(points: Any) -> np.ndarray:
+    """``points`` as a C-contiguous float64 (n_points, 3) array, checked.
+
+    Parameters
+    ----------
+    points : array-like, shape (n_points, 3)
+
+    Returns
+    -------
+    ndarray, shape (n_points, 3), float64
+        ``points`` itself when it already is one (never modified), else a converted copy.
+
+    Raises
+    ------
+    ParameterError
+        Not a 2-D array of real numbers with 3 columns, no point, or a NaN/Inf coordinate.
+    """
+    try:
+        X = np.asarray(points)
+    except (ValueError, TypeError) as exc:
+        raise ParameterError(f"points must be an (n_points, 3) array of coordinates: {exc}") from exc
+    if X.dtype.kind not in "fiu":
+        raise ParameterError(f"points must be real numbers (float32, float64, integers), got dtype {X.dtype}")
+    if X.ndim != 2 or X.shape[1] != 3:
+        hint = "; keep x y z only (points[:, :3])" if X.ndim == 2 and X.shape[1] > 3 else ""
+        raise ParameterError(f"points must be an array of shape (n_points, 3), got shape {X.shape}{hint}")
+    if X.shape[0] == 0:
+        raise ParameterError("points holds no point: shape (0, 3)")
+    X = np.ascontiguousarray(X, dtype=np.float64)
+    finite = np.isfinite(X).all(axis=1)
+    if not finite.all():
+        bad = int(X.shape[0] - np.count_nonzero(finite))
+        raise ParameterError(f"{bad:,} of the {X.shape[0]:,} points have a NaN or infinite coordinate (first: row "
+                             f"{int(np.argmin(finite))}); drop them first: points[np.isfinite(points).all(axis=1)]")
+    return X
+
+
+def _check_jobs(jobs: Any) -> int:
+    if isinstance(jobs, bool) or not isinstance(jobs, (int, np.integer)) or jobs == 0 or jobs < -1:
+        raise ParameterError(f"The 'jobs' parameter of Segmenter must be a positive number of processes or -1 "
+                             f"(one per available core). Got {jobs!r} instead.")
+    return int(jobs)
+
+
+def _check_sensor(sensor: Any) -> tuple[float, float, float]:
+    try:
+        v = np.asarray(sensor, dtype=np.float64)
+    except (ValueError, TypeError):
+        v = np.zeros(0)
+    if v.shape != (3,) or not np.isfinite(v).all():
+        raise ParameterError(f"The 'sensor' parameter of Segmenter must be three finite numbers (x, y, z). "
+                             f"Got {sensor!r} instead.")
+    return (float(v[0]), float(v[1]), float(v[2]))

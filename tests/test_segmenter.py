@@ -1,0 +1,277 @@
+"""kbs.Segmenter (a rule base loaded once, clouds segmented frame after frame) and `kbs run` over
+several scans with one Segmenter."""
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import kbs
+from kbs.errors import ExitCode, ParameterError
+from kbs.io import read_cloud
+from kbs.knowledge import PredicateError, RuleFileError, Segmentation, load_rule_base
+from scenes import ground_and_boxes, ground_and_rocks, ground_with_small_obstacles
+from test_cli import EXAMPLE, ROOT, kbs as kbs_command
+
+POLYHEDRAL = ROOT / "examples" / "data" / "polyhedral.ply"
+PER_POINT = ("cluster", "label", "membership")
+
+
+def _same(a: Segmentation, b: Segmentation) -> None:
+    """Two segmentations are identical: per-point arrays (values and dtypes), labels, output
+    clusters and the whole explanation tree."""
+    for name in PER_POINT:
+        x, y = getattr(a, name), getattr(b, name)
+        assert x.dtype == y.dtype and np.array_equal(x, y), name
+    assert a.label_names == b.label_names
+    assert json.dumps(a.clusters, default=float) == json.dumps(b.clusters, default=float)
+    assert json.dumps(a.explanation.to_dict(), default=float) == json.dumps(b.explanation.to_dict(), default=float)
+
+
+def _equals_written(seg: Segmentation, ply: Path) -> None:
+    """``seg`` holds exactly the per-point arrays `kbs run` wrote to ``ply``."""
+    written = read_cloud(ply)
+    for name in PER_POINT:
+        values = written.fields[name]
+        assert values.dtype == getattr(seg, name).dtype and np.array_equal(values, getattr(seg, name)), name
+    assert json.loads(ply.with_suffix(".json").read_text())["label_names"] == seg.label_names
+
+
+# -- the library ---------------------------------------------------------------------------------
+
+
+def test_exported_lazily_from_kbs_and_from_kbs_knowledge():
+    import kbs.knowledge
+
+    assert kbs.Segmenter is kbs.knowledge.Segmenter and "Segmenter" in kbs.__all__ and "Segmenter" in dir(kbs)
+    code = "import sys, kbs; assert 'numpy' not in sys.modules and 'kbs.knowledge' not in sys.modules; kbs.Segmenter"
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+
+
+def test_attributes_and_repr():
+    seg = kbs.Segmenter("outdoor", jobs=2, sensor=[0, 0, 1.73])
+    assert seg.rule_base.name == "outdoor" and seg.jobs == 2 and seg.sensor == (0.0, 0.0, 1.73)
+    assert seg.label_names == ["ground", "obstacle"]
+    assert repr(seg) == ("Segmenter(rule base 'outdoor' from outdoor.yaml, divisive, labels ground/obstacle; "
+                         "jobs=2, sensor=(0, 0, 1.73))")
+    assert kbs.Segmenter("airborne").sensor == tuple(map(float, load_rule_base("airborne").sensor))
+
+
+def test_rules_by_name_path_or_loaded_rule_base_give_the_same_result():
+    X = ground_and_rocks()[0]
+    by_name = kbs.Segmenter("outdoor").segment(X)
+    _same(by_name, kbs.Segmenter(load_rule_base("outdoor")).segment(X))
+    by_path = kbs.Segmenter(ROOT / "rules" / "outdoor.yaml")
+    assert by_path.rule_base.path == str(ROOT / "rules" / "outdoor.yaml")
+    for name in PER_POINT:
+        assert np.array_equal(getattr(by_name, name), getattr(by_path.segment(X), name))
+
+
+def test_plugins_are_loaded_before_the_rule_file_is_parsed():
+    poles = ROOT / "examples" / "rules" / "poles.yaml"
+    with pytest.raises(RuleFileError, match="unknown predicate 'elongation'"):
+        kbs.Segmenter(poles)
+    seg = kbs.Segmenter(poles, plugins=[ROOT / "examples" / "plugins" / "elongation.py"])
+    assert seg.label_names == ["ground", "pole", "obstacle"] and "elongation.py" in repr(seg)
+    with pytest.raises(PredicateError, match="plugin file not found"):
+        kbs.Segmenter("outdoor", plugins=["no-such-plugin.py"])
+
+
+def test_one_segmenter_frame_after_frame_equals_a_fresh_one_per_frame():
+    frames = [ground_and_rocks()[0], ground_with_small_obstacles()[0], ground_and_boxes()]
+    loaded = kbs.Segmenter("outdoor")
+    in_a_row = [loaded.segment(X) for X in frames] + [loaded.segment(frames[0])]
+    for X, seg in zip(frames + frames[:1], in_a_row):
+        _same(seg, kbs.Segmenter("outdoor").segment(X))
+    assert len({len(s.clusters) for s in in_a_row[:3]}) > 1  # the frames differ, and so do their results
+
+
+def test_jobs_2_equals_jobs_1():
+    X = read_cloud(EXAMPLE).xyz
+    _same(kbs.Segmenter("outdoor", jobs=2).segment(X), kbs.Segmenter("outdoor", jobs=1).segment(X))
+
+
+def test_float32_points_are_read_as_float64_and_the_input_is_left_alone():
+    X = ground_and_rocks()[0].astype(np.float32)
+    before = X.copy()
+    seg = kbs.Segmenter("outdoor")
+    _same(seg.segment(X), seg.segment(X.astype(np.float64)))
+    assert np.array_equal(X, before)
+
+
+@pytest.mark.parametrize("points, needle", [
+    (np.zeros((10, 4)), r"shape \(n_points, 3\), got shape \(10, 4\); keep x y z only"),
+    (np.zeros((10, 2)), r"shape \(n_points, 3\), got shape \(10, 2\)"),
+    (np.zeros(3), r"shape \(n_points, 3\), got shape \(3,\)"),
+    (np.zeros((0, 3)), "holds no point"),
+    (np.array([[0.0, 0.0, 0.0], [1.0, np.nan, 0.0], [2.0, 0.0, np.inf]]), "2 of the 3 points have a NaN or infinite"),
+    ([[1, 2, 3], [4, 5]], r"\(n_points, 3\) array"),
+    (np.array([["a", "b", "c"]]), "real numbers"),
+])
+def test_bad_points_raise_the_parameter_error(points, needle):
+    with pytest.raises(ParameterError, match=needle) as info:
+        kbs.Segmenter("outdoor").segment(points)
+    assert info.value.exit_code == ExitCode.PARAMETER
+
+
+@pytest.mark.parametrize("kwargs, needle", [
+    ({"jobs": 0}, "'jobs' parameter"), ({"jobs": -2}, "'jobs' parameter"), ({"jobs": 1.5}, "'jobs' parameter"),
+    ({"sensor": [1, 2]}, "'sensor' parameter"), ({"sensor": [0, 0, np.nan]}, "'sensor' parameter"),
+    ({"plugins": "elongation.py"}, "a list of plugin files"),
+])
+def test_bad_settings_raise_the_parameter_error(kwargs, needle):
+    with pytest.raises(ParameterError, match=needle):
+        kbs.Segmenter("outdoor", **kwargs)
+
+
+def test_bad_rules_raise_the_project_errors():
+    with pytest.raises(RuleFileError, match="did you mean 'outdoor'"):
+        kbs.Segmenter("outdor")
+    with pytest.raises(ParameterError, match="rules must be"):
+        kbs.Segmenter(3)
+    with pytest.raises(ParameterError, match="already loaded"):
+        kbs.Segmenter(load_rule_base("outdoor"), plugins=[ROOT / "examples" / "plugins" / "elongation.py"])
+
+
+# -- equal to what `kbs run` writes ---------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def two_bundled(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
+    """`kbs run` on the two bundled scenes at once."""
+    out = tmp_path_factory.mktemp("two")
+    r = kbs_command("run", "--rules", "outdoor", str(EXAMPLE), str(POLYHEDRAL), "--out", str(out))
+    return out, r
+
+
+def test_segmenter_equals_kbs_run_on_the_bundled_examples(two_bundled):
+    out, r = two_bundled
+    assert r.returncode == 0, r.stderr
+    seg = kbs.Segmenter("outdoor")
+    for scan in (EXAMPLE, POLYHEDRAL):
+        _equals_written(seg.segment(read_cloud(scan).xyz), out / f"{scan.stem}.ply")
+
+
+def test_segmenter_equals_kbs_run_on_semantickitti(shared_data, tmp_path):
+    scan = shared_data / "semantickitti" / "000001.points.npy"
+    r = kbs_command("run", "--rules", "outdoor", str(scan), "--out", str(tmp_path))
+    assert r.returncode == 0, r.stderr
+    points = np.load(scan)  # float32 (N, 3), as a user has it
+    _equals_written(kbs.Segmenter("outdoor", jobs=2).segment(points), tmp_path / "000001.points.ply")
+
+
+# -- `kbs run` over several scans -----------------------------------------------------------------
+
+SCAN_LINE = re.compile(r"^(?P<path>\S+): [\d,]+ points, rule base 'outdoor' \(divisive\)$")
+TIME_ROW = re.compile(r"^(?P<name>\S+) +(?P<points>[\d,]+) +(?P<clusters>\d+) +\d+\.\d\d +\d+\.\d\d +\d+\.\d\d$")
+
+
+def _table(stdout: str) -> list[str]:
+    lines = stdout.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.split() == ["scan", "points", "clusters", "read", "s",
+                                                                          "segment", "s", "write", "s"])
+    return lines[start:]
+
+
+def test_run_two_files_writes_both_pairs_then_the_time_table(two_bundled):
+    out, r = two_bundled
+    assert r.returncode == 0, r.stderr
+    for scan in (EXAMPLE, POLYHEDRAL):
+        assert (out / f"{scan.stem}.ply").is_file() and (out / f"{scan.stem}.json").is_file()
+        assert json.loads((out / f"{scan.stem}.json").read_text())["input"] == str(scan)
+        assert f"wrote {out / scan.stem}.ply and {out / scan.stem}.json" in r.stdout
+    assert [m["path"] for m in map(SCAN_LINE.match, r.stdout.splitlines()) if m] == [str(EXAMPLE), str(POLYHEDRAL)]
+    assert r.stdout.count("  time: ") == 2
+    table = _table(r.stdout)
+    assert len(table) == 4 and len({len(line) for line in table[:3]}) == 1  # aligned
+    rows = [TIME_ROW.match(line) for line in table[1:3]]
+    assert [m["name"] for m in rows] == ["outdoor.ply", "polyhedral.ply"]
+    for m, scan in zip(rows, (EXAMPLE, POLYHEDRAL)):
+        doc = json.loads((out / f"{scan.stem}.json").read_text())
+        assert int(m["points"].replace(",", "")) == doc["n_points"] and int(m["clusters"]) == len(doc["clusters"])
+    assert re.fullmatch(r"2 scans: segment median \d+\.\d\d s, total \d+\.\d\d s \(rule base loaded once, "
+                        r"\d+\.\d\d s\)", table[3])
+
+
+def test_run_a_directory_takes_its_point_cloud_files_in_name_order(tmp_path):
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    shutil.copy(POLYHEDRAL, scans / "b.ply")
+    shutil.copy(EXAMPLE, scans / "a.ply")
+    (scans / "notes.md").write_text("not a cloud\n")
+    (scans / "sub").mkdir()
+    out = tmp_path / "out"
+    r = kbs_command("run", "--rules", "outdoor", "-j", "1", str(scans), "--out", str(out), "--meshes", "--report")
+    assert r.returncode == 0, r.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["a-meshes", "a.html", "a.json", "a.ply",
+                                                     "b-meshes", "b.html", "b.json", "b.ply"]
+    assert (out / "a-meshes" / "ground.ply").is_file() and (out / "b-meshes" / "ground.ply").is_file()
+    assert [m["path"] for m in map(SCAN_LINE.match, r.stdout.splitlines()) if m] == [str(scans / "a.ply"),
+                                                                                     str(scans / "b.ply")]
+    assert [TIME_ROW.match(line)["name"] for line in _table(r.stdout)[1:3]] == ["a.ply", "b.ply"]
+    r = kbs_command("run", "--rules", "outdoor", str(scans / "sub"), "--out", str(out))
+    assert r.returncode == 3 and "no point-cloud file in this directory" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize("case", ["same stem", "given twice", "directory and file"])
+def test_duplicate_stems_exit_2_before_any_work(tmp_path, capsys, case):
+    from kbs.cli.main import main  # the same entry point, in-process (each subprocess costs ~1 s)
+
+    other = tmp_path / "outdoor.npy"
+    np.save(other, read_cloud(EXAMPLE).xyz)
+    args = {"same stem": [str(EXAMPLE), str(other)], "given twice": [str(EXAMPLE), str(EXAMPLE)],
+            "directory and file": [str(tmp_path), str(EXAMPLE)]}[case]
+    out = tmp_path / "out"
+    assert main(["run", "--rules", "outdoor", *args, "--out", str(out)]) == 2
+    r = capsys.readouterr()
+    assert ("is given twice" if case == "given twice" else "would both write outdoor.ply and outdoor.json") in r.err
+    assert not out.exists() and r.out == ""
+
+
+def test_one_unreadable_scan_among_good_ones_the_others_are_written_exit_3(tmp_path):
+    broken = tmp_path / "broken.ply"
+    broken.write_bytes(EXAMPLE.read_bytes()[:2000])
+    out = tmp_path / "out"
+    r = kbs_command("run", "--rules", "outdoor", "-j", "1", str(broken), str(tmp_path / "missing.xyz"), str(EXAMPLE),
+                    "--out", str(out))
+    assert r.returncode == 3, r.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["outdoor.json", "outdoor.ply"]
+    errors = r.stderr.strip().splitlines()
+    assert len(errors) == 2 and "Traceback" not in r.stderr
+    assert errors[0].startswith(f"kbs: error: {broken}") and errors[1] == f"kbs: error: {tmp_path / 'missing.xyz'}: no such file"
+    table = _table(r.stdout)
+    assert table[1].startswith("broken.ply ") and table[1].endswith("failed: exit code 3")
+    assert table[2].startswith("missing.xyz ") and TIME_ROW.match(table[3])["name"] == "outdoor.ply"
+    assert table[4].startswith("3 scans (2 failed): segment median ")
+
+
+def test_one_scan_prints_as_before_without_a_table(tmp_path):
+    r = kbs_command("run", "--rules", "outdoor", "examples/data/outdoor.ply", "--out", str(tmp_path), cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    assert len(lines) == 5
+    assert lines[0] == "examples/data/outdoor.ply: 26,233 points, rule base 'outdoor' (divisive)"
+    assert re.fullmatch(r"  \d+ clusters, \d+ splits, \d+ limits reached; points: ground [\d,]+, obstacle [\d,]+, "
+                        r"noise [\d,]+", lines[1])
+    assert lines[2] == "  ground: cluster c0"
+    assert re.fullmatch(r"  time: \d+\.\d\d s \(read \d+\.\d\d, segment \d+\.\d\d, write \d+\.\d\d\)", lines[3])
+    assert lines[4] == f"wrote {tmp_path}/outdoor.ply and {tmp_path}/outdoor.json"
+
+
+def test_the_readme_python_example_runs():
+    readme = (ROOT / "README.md").read_text()
+    section = readme[readme.index("### Several scans, one rule base"):]
+    code, shown = re.search(r"```python\n(.*?)```\n\n```\n(.*?)```", section, re.S).groups()
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 0, r.stderr
+    out, shown = r.stdout.splitlines(), shown.splitlines()
+    assert out[0] == shown[0] and len(out) == len(shown) == 3  # the counts may move with the rules: the shape may not
+    for line in out[1:]:
+        assert re.fullmatch(r"examples/data/\w+\.ply: \d+ clusters, [\d,]+ ground points, \d+ noise", line), line
