@@ -209,8 +209,11 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
     quiet = ctx.obj.get("quiet", False)
     t0 = time.perf_counter()
     scans = scan_paths(clouds)
-    segmenter = Segmenter(rules, jobs=jobs, sensor=sensor, plugins=plugins)
-    options = {"color_by": color_by, "meshes": meshes, "report": report, "quiet": quiet}
+    with Segmenter(rules, jobs=jobs, sensor=sensor, plugins=plugins) as segmenter:  # workers kept for all scans
+        _run_scans(segmenter, scans, out_dir, t0, color_by=color_by, meshes=meshes, report=report, quiet=quiet)
+
+
+def _run_scans(segmenter, scans, out_dir: Path, t0: float, **options) -> None:
     if len(scans) == 1:  # the clock starts with the command: its read time includes loading the rule base
         run_scan(segmenter, scans[0], out_dir, t0=t0, **options)
         return

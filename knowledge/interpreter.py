@@ -104,6 +104,39 @@ class Interpreter:
             raise ValueError(f"jobs must be a positive number of processes or -1 (one per core), got {jobs!r}")
         self.jobs = available_cores() if jobs == -1 else int(jobs)
 
+    # -- worker processes ------------------------------------------------------------------------
+
+    def _worker_pool(self):
+        """The pool of split workers (``jobs`` > 1), started when first needed and kept until
+        :meth:`close`, so that frame after frame reuses it."""
+        pool = getattr(self, "_pool", None)
+        if pool is None:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            methods = multiprocessing.get_all_start_methods()
+            ctx = multiprocessing.get_context("fork" if "fork" in methods else None)
+            pool = self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx)
+        return pool
+
+    def close(self) -> None:
+        """Stop the worker processes, if any were started (they start again when needed)."""
+        pool = getattr(self, "_pool", None)
+        self._pool = None
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        pool = getattr(self, "_pool", None)
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)
+
     # -- engine --------------------------------------------------------------------------------
 
     def _ufp_kwargs(self, stop: str, min_k: int = 1) -> dict[str, Any]:
@@ -299,7 +332,7 @@ class Interpreter:
         leaves: list[tuple[_Node, Cluster, ClusterRecord]] = []
         n_clusters = len(wave)
         split_kw = self._ufp_kwargs("first_max", rb.engine["split_min_k"])
-        with _Splitter(self.jobs, split_kw) as splitter:
+        with _Splitter(self, split_kw) as splitter:
             while wave:
                 judged = []
                 for node, cl, rec in wave:
@@ -717,27 +750,36 @@ class _Job:
 
 
 class _Splitter:
-    """Starts the UFP-ONC splits of a wave: in a pool of ``jobs`` worker processes (forked, so
-    nothing is imported again), or lazily in this process when ``jobs`` is 1."""
+    """Starts the UFP-ONC splits of a wave: in the interpreter's pool of ``jobs`` worker
+    processes (forked, so nothing is imported again; started at the first split and kept for
+    the next runs, so a loaded segmenter does not fork again frame after frame), or lazily in
+    this process when ``jobs`` is 1."""
 
-    def __init__(self, jobs: int, kwargs: dict[str, Any]) -> None:
-        self.jobs, self.kwargs, self.pool = jobs, kwargs, None
+    def __init__(self, owner: "Interpreter", kwargs: dict[str, Any]) -> None:
+        self.owner, self.jobs, self.kwargs = owner, owner.jobs, kwargs
+        self.jobs_started: list[_Job] = []
 
     def __enter__(self) -> Self:
         return self
 
-    def __exit__(self, *exc) -> None:
-        if self.pool is not None:
-            self.pool.shutdown(wait=True, cancel_futures=True)
+    def __exit__(self, exc_type, *exc) -> None:
+        if exc_type is not None:  # interrupted or failed: do not leave splits running for the next run
+            for job in self.jobs_started:
+                if job.future is not None:
+                    job.future.cancel()
+            if exc_type is not FitError and not issubclass(exc_type, KbsError):
+                self.owner.close()
 
     def submit(self, X: np.ndarray) -> _Job:
         if self.jobs <= 1:
             return _Job(X, self.kwargs)
-        if self.pool is None:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
+        from concurrent.futures.process import BrokenProcessPool
 
-            methods = multiprocessing.get_all_start_methods()
-            ctx = multiprocessing.get_context("fork" if "fork" in methods else None)
-            self.pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx)
-        return _Job(X, self.kwargs, self.pool.submit(_split_job, X, self.kwargs))
+        try:
+            future = self.owner._worker_pool().submit(_split_job, X, self.kwargs)
+        except BrokenProcessPool:  # a worker died in an earlier wave or run: split here, fresh pool next run
+            self.owner.close()
+            return _Job(X, self.kwargs)
+        job = _Job(X, self.kwargs, future)
+        self.jobs_started.append(job)
+        return job

@@ -129,6 +129,17 @@ class Segmenter:
         """
         return self._interpreter.run(as_points(points))
 
+    def close(self) -> None:
+        """Stop the split worker processes (``jobs`` > 1); they are started once, at the first
+        split, and kept frame after frame until then. Using the segmenter again restarts them."""
+        self._interpreter.close()
+
+    def __enter__(self) -> Segmenter:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
     def __repr__(self) -> str:
         rb = self.rule_base
         sensor = ", ".join(f"{v:g}" for v in self.sensor)

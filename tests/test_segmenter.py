@@ -98,6 +98,36 @@ def test_jobs_2_equals_jobs_1():
     _same(kbs.Segmenter("outdoor", jobs=2).segment(X), kbs.Segmenter("outdoor", jobs=1).segment(X))
 
 
+def test_worker_processes_are_kept_frame_after_frame_and_closed():
+    X = read_cloud(EXAMPLE).xyz
+    ref = kbs.Segmenter("outdoor", jobs=1).segment(X)
+    with kbs.Segmenter("outdoor", jobs=2) as seg:
+        first = seg.segment(X)
+        pool = seg._interpreter._pool
+        assert pool is not None  # the bundled example splits: the workers were started
+        pids = set(pool._processes)
+        second = seg.segment(X)
+        assert seg._interpreter._pool is pool and set(pool._processes) == pids  # not forked again
+        _same(first, ref)
+        _same(second, ref)
+    assert seg._interpreter._pool is None  # closed with the block
+    _same(seg.segment(X), ref)  # used again: started again
+    seg.close()
+
+
+def test_a_broken_pool_is_replaced_at_the_next_frame():
+    X = read_cloud(EXAMPLE).xyz
+    ref = kbs.Segmenter("outdoor", jobs=1).segment(X)
+    with kbs.Segmenter("outdoor", jobs=2) as seg:
+        seg.segment(X)
+        pool = seg._interpreter._pool
+        for p in list(pool._processes.values()):  # a worker killed between two frames
+            p.kill()
+            p.join()
+        _same(seg.segment(X), ref)
+        _same(seg.segment(X), ref)
+
+
 def test_float32_points_are_read_as_float64_and_the_input_is_left_alone():
     X = ground_and_rocks()[0].astype(np.float32)
     before = X.copy()
