@@ -171,7 +171,8 @@ def _fcm_memberships(XT, centers, m, d2, dmin, tot, u_new):
 @njit(cache=True, nogil=True)
 def fcm_run(XT, w, R, u0, m, tol, max_iter, min_mass):
     """Fuzzy c-means from ``u0`` (K, n). Returns ``(centers, u, n_iter, converged, status)``;
-    ``status`` 1 means a cluster died (the caller reruns the reference)."""
+    ``status`` 1 means a cluster died in update ``n_iter``: ``u`` are then that update's new
+    memberships (their effective sizes say which)."""
     K, n = u0.shape
     u = u0.copy()
     un = np.empty_like(u)
@@ -437,7 +438,9 @@ def gg_run(XT, w, R, u0, m, power, tol, max_iter, min_variance, max_condition, m
     extrapolation of :func:`kbs.inference.engine._iterate`.
 
     Returns ``(centers, eigenvalues, eigenvectors, whitening, logdet, priors, u, maha, n_iter,
-    converged, status)``; the memberships were computed from the returned parameters.
+    converged, status)``; the memberships were computed from the returned parameters. With
+    ``status`` 1 (a cluster died in update ``n_iter``), ``u`` are the memberships that update
+    started from (their effective sizes say which clusters died).
     """
     K, n = u0.shape
     total = 0.0
@@ -475,7 +478,7 @@ def gg_run(XT, w, R, u0, m, power, tol, max_iter, min_variance, max_condition, m
         centers, lam, vec, whit, logdet, priors, status = _gg_params(s1u, R, power, total, min_variance,
                                                                       max_condition, min_mass, tmp)
         if status:
-            return centers, lam, vec, whit, logdet, priors, u, maha, it, False, 1
+            return centers, lam, vec, whit, logdet, priors, s1u, maha, it, False, 1
         _gg_memberships(XT, centers, whit, logdet, priors, m, s2u, maha, z, zmax, tot, ibuf)
         nr, nv = _squarem_norms(u, s1u, s2u, w)
         nv = math.sqrt(nv)
@@ -488,7 +491,7 @@ def gg_run(XT, w, R, u0, m, power, tol, max_iter, min_variance, max_condition, m
         centers, lam, vec, whit, logdet, priors, status = _gg_params(ua, R, power, total, min_variance,
                                                                       max_condition, min_mass, tmp)
         if status:
-            return centers, lam, vec, whit, logdet, priors, u, maha, it, False, 1
+            return centers, lam, vec, whit, logdet, priors, ua, maha, it, False, 1
         _gg_memberships(XT, centers, whit, logdet, priors, m, s2u, maha, z, zmax, tot, ibuf)
         delta = _max_abs_diff(s2u, ua)
         u, s2u = s2u, u
@@ -612,3 +615,70 @@ def bounds(X):
             if v > hi[d]:
                 hi[d] = v
     return lo, hi
+
+
+# -- criteria and cluster geometry ----------------------------------------------------------
+
+
+@njit(cache=True, nogil=True, fastmath=_FAST)
+def central_sums(u, w, maha):
+    """``S_i = sum_j w_j u_ij [maha_ij < 1]`` (K,): the weighted memberships of each cluster's
+    central members (Gath-Geva's validity criteria)."""
+    K, n = u.shape
+    out = np.zeros(K)
+    for k in range(K):
+        uk = u[k]
+        mk = maha[k]
+        s = 0.0
+        for j in range(n):
+            if mk[j] < 1.0:
+                s += uk[j] * w[j]
+        out[k] = s
+    return out
+
+
+@njit(cache=True, nogil=True)
+def geometry3(X, u, w, power):
+    """Fuzzy centre (3,) (weights ``w u^power``), fuzzy covariance (3, 3) (weights ``w u``, two
+    passes), its eigenvalues (ascending) and eigenvectors, and the effective size, of points
+    ``X`` (n, 3)."""
+    n = X.shape[0]
+    c0 = c1 = c2 = 0.0
+    den = 0.0
+    mass = 0.0
+    for j in range(n):
+        uw = u[j] * w[j]
+        p = (u[j] * u[j] if power == 2.0 else u[j] ** power) * w[j]
+        den += p
+        mass += uw
+        c0 += p * X[j, 0]
+        c1 += p * X[j, 1]
+        c2 += p * X[j, 2]
+    c0 /= den
+    c1 /= den
+    c2 /= den
+    s00 = s01 = s02 = s11 = s12 = s22 = 0.0
+    for j in range(n):
+        uw = u[j] * w[j]
+        d0 = X[j, 0] - c0
+        d1 = X[j, 1] - c1
+        d2 = X[j, 2] - c2
+        s00 += uw * d0 * d0
+        s01 += uw * d0 * d1
+        s02 += uw * d0 * d2
+        s11 += uw * d1 * d1
+        s12 += uw * d1 * d2
+        s22 += uw * d2 * d2
+    cov = np.empty((3, 3))
+    cov[0, 0] = s00 / mass
+    cov[0, 1] = cov[1, 0] = s01 / mass
+    cov[0, 2] = cov[2, 0] = s02 / mass
+    cov[1, 1] = s11 / mass
+    cov[1, 2] = cov[2, 1] = s12 / mass
+    cov[2, 2] = s22 / mass
+    lam, vec = np.linalg.eigh(cov)
+    center = np.empty(3)
+    center[0] = c0
+    center[1] = c1
+    center[2] = c2
+    return center, cov, lam, vec, mass

@@ -90,12 +90,24 @@ def validate_params(owner: str, params: Mapping[str, Any], constraints: Mapping[
     The message reads: "The 'tol' parameter of GathGeva must be a float in the range [0, inf).
     Got -1 instead."
     """
+    try:  # the same settings again (a split tree calls ufp_onc hundreds of times): checked once
+        key = (owner, id(constraints), tuple((k, type(v), v) for k, v in params.items()))
+        if key in _VALID:
+            return
+    except TypeError:  # an unhashable value: check it every time
+        key = None
     for name, allowed in constraints.items():
         value = params[name]
         if any(c.accepts(value) for c in allowed):
             continue
         expected = " or ".join(c.describe() for c in allowed)
         raise ParameterError(f"The {name!r} parameter of {owner} must be {expected}. Got {value!r} instead.")
+    if key is not None and len(_VALID) < 1024:
+        _VALID.add(key)
+
+
+#: settings already found valid (owner, constraints, values with their types)
+_VALID: set = set()
 
 
 def check_points(X: Any, *, owner: str, min_samples: int = 1) -> np.ndarray:

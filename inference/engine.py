@@ -89,7 +89,7 @@ class _Step:
 
 
 def _iterate(step, u0: np.ndarray, w: np.ndarray, *, tol: float, max_iter: int,
-             accelerate: bool) -> tuple[_Step, np.ndarray, int, bool, list]:
+             accelerate: bool, stop_at_drop: bool = False) -> tuple[_Step, np.ndarray, int, bool, list]:
     """Iterate ``u <- step(u)`` until an update changes no membership by ``tol`` or more, or
     ``max_iter`` updates. Returns (last step, memberships, updates, converged, drops).
 
@@ -97,12 +97,16 @@ def _iterate(step, u0: np.ndarray, w: np.ndarray, *, tol: float, max_iter: int,
     updates give a direction, a step is extrapolated along it (memberships clipped to [0, 1] and
     renormalised) and one more update is applied there. Fixed points and stopping test are those
     of the plain iteration; norms are weighted by ``w``, so a weight acts as repeated points.
+    With ``stop_at_drop``, the first update in which a cluster dies ends the iteration (a caller
+    that gives up on this K then does not pay for the rest).
     """
     u, dropped, it, converged = u0, [], 0, False
     last = None
     while it < max_iter:
         it += 1
         s1 = last = step(u, it)
+        if s1.dead and stop_at_drop:
+            return s1, s1.u, it, False, dropped + s1.dead
         if s1.dead:
             dropped += s1.dead
             u = u[s1.alive]
@@ -114,6 +118,8 @@ def _iterate(step, u0: np.ndarray, w: np.ndarray, *, tol: float, max_iter: int,
             continue
         it += 1
         s2 = last = step(s1.u, it)
+        if s2.dead and stop_at_drop:
+            return s2, s2.u, it, False, dropped + s2.dead
         if s2.dead:  # a cluster died on the way: carry on plainly
             dropped += s2.dead
             u = s2.u
@@ -130,6 +136,8 @@ def _iterate(step, u0: np.ndarray, w: np.ndarray, *, tol: float, max_iter: int,
         ua /= np.maximum(ua.sum(axis=0), TINY)
         it += 1
         s3 = last = step(ua, it)
+        if s3.dead and stop_at_drop:
+            return s3, s3.u, it, False, dropped + s3.dead
         if s3.dead:
             dropped += s3.dead
             ua = ua[s3.alive]
@@ -154,7 +162,7 @@ def _compiled():
 
 
 def fcm_fit(mom: Moments, u0: np.ndarray, *, m: float, tol: float, max_iter: int, min_mass: float,
-            accelerate: bool = False, jit: bool | None = None) -> FCMState:
+            accelerate: bool = False, jit: bool | None = None, stop_at_drop: bool = False) -> FCMState:
     """Fuzzy c-means from initial memberships ``u0`` (K, n): alternate centres (weights
     ``w u^m``) and memberships from squared Euclidean distances (see :func:`_iterate` for the
     stopping test and the optional acceleration: measured on the SemanticKITTI run it saved
@@ -165,7 +173,10 @@ def fcm_fit(mom: Moments, u0: np.ndarray, *, m: float, tol: float, max_iter: int
                                                                 float(m), float(tol), int(max_iter), float(min_mass))
         if status == 0:
             return FCMState(centers=centers, memberships=u, n_iter=it, converged=converged)
-        # a cluster died: the reference below records the drop
+        if stop_at_drop:  # u: the new memberships of the update in which a cluster died
+            _, dead = _drop_dead(u @ mom.w, min_mass, "fcm", it)
+            return FCMState(centers=centers, memberships=u, n_iter=it, converged=False, dropped=tuple(dead))
+        # a cluster died: the reference below records the drop and carries on
 
     def step(u: np.ndarray, it: int) -> _Step:
         centers = mom.centers(u, m)
@@ -177,13 +188,14 @@ def fcm_fit(mom: Moments, u0: np.ndarray, *, m: float, tol: float, max_iter: int
             un /= un.sum(axis=0)
         return _Step(un, alive, dead, (centers,))
 
-    last, u, it, converged, dropped = _iterate(step, u0, mom.w, tol=tol, max_iter=max_iter, accelerate=accelerate)
+    last, u, it, converged, dropped = _iterate(step, u0, mom.w, tol=tol, max_iter=max_iter, accelerate=accelerate,
+                                               stop_at_drop=stop_at_drop)
     return FCMState(centers=last.params[0], memberships=u, n_iter=it, converged=converged, dropped=tuple(dropped))
 
 
 def gg_fit(mom: Moments, u0: np.ndarray, *, m: float, center_power: float, tol: float, max_iter: int,
            min_variance: float, max_condition: float, min_mass: float, accelerate: bool = True,
-           jit: bool | None = None) -> GGState:
+           jit: bool | None = None, stop_at_drop: bool = False) -> GGState:
     """Gath-Geva iterations from initial memberships ``u0`` (K, n).
 
     Each update: centres (weights ``w u^p``), fuzzy covariances and priors (weights ``w u``),
@@ -200,7 +212,11 @@ def gg_fit(mom: Moments, u0: np.ndarray, *, m: float, center_power: float, tol: 
             gauss = FlooredGaussians(eigenvalues=lam, eigenvectors=vec, whitening=whit, logdet=logdet)
             return GGState(centers=centers, gaussians=gauss, priors=priors, memberships=u, maha=maha, n_iter=it,
                            converged=converged)
-        # a cluster died: the reference below records the drop
+        if stop_at_drop:  # u: the memberships the update in which a cluster died started from
+            _, dead = _drop_dead(u @ mom.w, min_mass, "gg", it)
+            return GGState(centers=centers, gaussians=FlooredGaussians(lam, vec, whit, logdet), priors=priors,
+                           memberships=u, maha=maha, n_iter=it, converged=False, dropped=tuple(dead))
+        # a cluster died: the reference below records the drop and carries on
     total = float(mom.w.sum())
 
     def step(u: np.ndarray, it: int) -> _Step:
@@ -215,7 +231,8 @@ def gg_fit(mom: Moments, u0: np.ndarray, *, m: float, center_power: float, tol: 
         un = gg_memberships_from_maha(maha, gauss.logdet, np.log(priors), m)
         return _Step(un, alive, dead, (centers, gauss, priors, maha))
 
-    last, u, it, converged, dropped = _iterate(step, u0, mom.w, tol=tol, max_iter=max_iter, accelerate=accelerate)
+    last, u, it, converged, dropped = _iterate(step, u0, mom.w, tol=tol, max_iter=max_iter, accelerate=accelerate,
+                                               stop_at_drop=stop_at_drop)
     centers, gauss, priors, maha = last.params
     return GGState(centers=centers, gaussians=gauss, priors=priors, memberships=u, maha=maha, n_iter=it,
                    converged=converged, dropped=tuple(dropped))

@@ -12,6 +12,7 @@ so that every reduction over clusters is an element-wise operation between conti
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -198,7 +199,12 @@ def validity(u: np.ndarray, w: np.ndarray, maha: np.ndarray, logdet: np.ndarray)
     ``S_i`` is the sum of their (weighted) memberships.
     FHV = sum_i sqrt(det F_i); PD = sum_i S_i / FHV; APD = mean_i S_i / sqrt(det F_i).
     """
-    central = np.where(maha < 1.0, u, 0.0) @ w
+    if os.environ.get("KBS_JIT", "1") != "0" and u.flags.c_contiguous and maha.flags.c_contiguous:
+        from kbs.inference._compiled import central_sums
+
+        central = central_sums(u, np.ascontiguousarray(w), maha)
+    else:
+        central = np.where(maha < 1.0, u, 0.0) @ w
     sqrt_det = np.exp(0.5 * logdet)
     fhv = float(sqrt_det.sum())
     pd = float(central.sum() / fhv)

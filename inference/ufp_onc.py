@@ -295,11 +295,12 @@ def ufp_onc(
                 u0 = new_prototype_memberships(mom.XT, prev.centers, d0, m)
             else:
                 u0 = worst_point_memberships(mom.X, prev.centers, prev.memberships, m)
-            fcm = fcm_fit(mom, u0, m=m, tol=fcm_tol, max_iter=fcm_max_iter, min_mass=min_mass)
+            # a cluster that dies ends the sweep: the layers stop at the first drop, which the note names
+            fcm = fcm_fit(mom, u0, m=m, tol=fcm_tol, max_iter=fcm_max_iter, min_mass=min_mass, stop_at_drop=True)
             n_fcm = fcm.n_iter
             dropped: tuple[DroppedCluster, ...] = fcm.dropped
             if not dropped:
-                state = gg_fit(mom, fcm.memberships, **gg_kw)
+                state = gg_fit(mom, fcm.memberships, stop_at_drop=True, **gg_kw)
                 dropped = state.dropped
             if dropped:
                 notes.append(

@@ -9,6 +9,8 @@ references between checks, rules and labels, and contradictory settings.
 """
 from __future__ import annotations
 
+import functools
+
 import json
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -50,7 +52,12 @@ class SourcePos:
     @property
     def short(self) -> str:
         """'outdoor.yaml:31' for explanations."""
-        return f"{Path(self.file).name}:{self.line}"
+        return _short(self.file, self.line)
+
+
+@functools.lru_cache(maxsize=4096)
+def _short(file: str, line: int) -> str:
+    return f"{Path(file).name}:{line}"
 
 
 @dataclass(frozen=True)

@@ -151,3 +151,43 @@ def test_unique_inverse_is_numpys():
     assert np.array_equal(k, k2) and np.array_equal(inv, inv2)
     lo, hi = C.bounds(np.ascontiguousarray(keys.reshape(-1, 2).astype(float)))
     assert np.array_equal(lo, keys.reshape(-1, 2).min(axis=0)) and np.array_equal(hi, keys.reshape(-1, 2).max(axis=0))
+
+
+def test_stop_at_drop_names_the_same_first_drop_with_and_without_compiled_kernels():
+    mom = _moments(_blobs(3, 600), False)
+    u0 = _start(mom, 4, 2.0)
+    kw = dict(m=2.0, tol=1e-3, max_iter=100, min_mass=0.3 * mom.n, stop_at_drop=True)
+    a = fcm_fit(mom, u0, jit=True, **kw)
+    b = fcm_fit(mom, u0, jit=False, **kw)
+    full = fcm_fit(mom, u0, jit=False, **{**kw, "stop_at_drop": False})
+    assert a.dropped and [str(d) for d in a.dropped] == [str(d) for d in b.dropped]
+    assert a.n_iter == b.n_iter == full.dropped[0].iteration  # stopped at the first drop
+    u1 = _start(mom, 3, 2.0)
+    kw = dict(m=2.0, center_power=2.0, tol=1e-3, max_iter=100, min_variance=1e-6, max_condition=1e4,
+              min_mass=0.4 * mom.n, stop_at_drop=True)
+    a = gg_fit(mom, u1, jit=True, **kw)
+    b = gg_fit(mom, u1, jit=False, **kw)
+    assert a.dropped and [str(d) for d in a.dropped] == [str(d) for d in b.dropped]
+
+
+@pytest.mark.parametrize("power", [2.0, 1.0, 1.5])
+def test_compiled_cluster_geometry_and_criteria_match_numpy(monkeypatch, power):
+    from kbs.inference import cluster_geometry
+    from kbs.inference.kernels import validity
+
+    rng = np.random.default_rng(8)
+    X = _blobs(8, 3000) + [4e5, 5.4e6, 120.0]
+    u, w = rng.random(len(X)), rng.integers(1, 5, len(X)).astype(float)
+    a = cluster_geometry(X, u, w, center_power=power)
+    maha, uu = rng.random((3, 4000)) * 3, rng.random((3, 4000))
+    w4 = rng.random(4000)
+    va = validity(uu, w4, maha, np.array([0.1, -2.0, 3.0]))
+    monkeypatch.setenv("KBS_JIT", "0")
+    b = cluster_geometry(X, u, w, center_power=power)
+    vb = validity(uu, w4, maha, np.array([0.1, -2.0, 3.0]))
+    np.testing.assert_allclose(a.center, b.center, rtol=1e-12)
+    np.testing.assert_allclose(a.covariance, b.covariance, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(a.eigenvalues, b.eigenvalues, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(np.abs(a.eigenvectors.T @ b.eigenvectors), np.eye(3), atol=1e-8)
+    assert a.thickness == pytest.approx(b.thickness, rel=1e-8) and a.mass == pytest.approx(b.mass, rel=1e-12)
+    np.testing.assert_allclose(va, vb, rtol=1e-12)
