@@ -8,10 +8,11 @@ recording each drop. Memberships are clusters-first, (K, n), as in the kernels.
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from kbs.inference import _flags
 
 from kbs.errors import FitError
 from kbs.inference.kernels import (
@@ -151,8 +152,8 @@ def _iterate(step, u0: np.ndarray, w: np.ndarray, *, tol: float, max_iter: int,
 
 def jit_enabled() -> bool:
     """Whether the compiled kernels (:mod:`kbs.inference._compiled`, numba) are used: yes unless
-    the environment sets ``KBS_JIT=0`` (the plain-numpy reference then runs; same iterations)."""
-    return os.environ.get("KBS_JIT", "1") != "0"
+    the environment set ``KBS_JIT=0`` when kbs was imported (see :mod:`kbs.inference._flags`)."""
+    return _flags.JIT
 
 
 def _compiled():

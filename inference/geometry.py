@@ -6,10 +6,11 @@ device of the clustering, and must not hide how thin a planar cluster really is.
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 
 import numpy as np
+
+from kbs.inference import _flags
 
 from kbs.errors import FitError
 
@@ -87,7 +88,7 @@ def cluster_geometry(
     mass = float(uw.sum())
     if n == 0 or mass <= 0.0:
         raise FitError("cannot describe an empty cluster (no point with a positive membership)")
-    if X.shape[1] == 3 and os.environ.get("KBS_JIT", "1") != "0":  # compiled: one call, no numpy overhead
+    if X.shape[1] == 3 and _flags.JIT:  # compiled: one call, no numpy overhead
         from kbs.inference._compiled import geometry3
 
         center, cov, lam, vec, _ = geometry3(np.ascontiguousarray(X), np.ascontiguousarray(u),

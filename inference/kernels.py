@@ -12,11 +12,12 @@ so that every reduction over clusters is an element-wise operation between conti
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
+
+from kbs.inference import _flags
 
 #: the smallest positive normal float64: squared distances are clamped here, so that a point
 #: sitting exactly on a prototype gets a finite (dominant) membership instead of a division by 0.
@@ -199,7 +200,7 @@ def validity(u: np.ndarray, w: np.ndarray, maha: np.ndarray, logdet: np.ndarray)
     ``S_i`` is the sum of their (weighted) memberships.
     FHV = sum_i sqrt(det F_i); PD = sum_i S_i / FHV; APD = mean_i S_i / sqrt(det F_i).
     """
-    if os.environ.get("KBS_JIT", "1") != "0" and u.flags.c_contiguous and maha.flags.c_contiguous:
+    if _flags.JIT and u.flags.c_contiguous and maha.flags.c_contiguous:
         from kbs.inference._compiled import central_sums
 
         central = central_sums(u, np.ascontiguousarray(w), maha)

@@ -7,10 +7,11 @@ voxel. The reduced set comes out sorted by voxel key: it does not depend on the 
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 
 import numpy as np
+
+from kbs.inference import _flags
 
 _MAX_AXIS_CELLS = 1 << 20  # 3 axes x 20 bits fit one int64 key
 
@@ -52,7 +53,7 @@ def _keys(cells: np.ndarray) -> np.ndarray:
 
 def _jit():
     """The compiled voxel kernels, or None when ``KBS_JIT=0`` (see :func:`kbs.inference.engine.jit_enabled`)."""
-    if os.environ.get("KBS_JIT", "1") == "0":
+    if not _flags.JIT:
         return None
     from kbs.inference import _compiled
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from kbs.inference import _compiled as C
+from kbs.inference import _flags
 from kbs.inference import ufp_onc
 from kbs.inference.engine import fcm_fit, gg_fit, gg_memberships, new_prototype_memberships
 from kbs.inference.kernels import Moments, floor_covariances
@@ -114,7 +115,7 @@ def test_predicted_memberships_match():
 def test_ufp_onc_sweep_same_with_and_without_compiled_kernels(monkeypatch):
     X = _blobs(5, 9000) * [1.0, 1.0, 1.0] + [100.0, -50.0, 3.0]
     a = ufp_onc(X, 6, max_fit_points=2000)
-    monkeypatch.setenv("KBS_JIT", "0")
+    monkeypatch.setattr(_flags, "JIT", False)
     b = ufp_onc(X, 6, max_fit_points=2000)
     assert a.chosen_k == b.chosen_k and a.stop_reason == b.stop_reason
     assert [(p.n_iter_fcm, p.n_iter_gg) for p in a.partitions] == [(p.n_iter_fcm, p.n_iter_gg) for p in b.partitions]
@@ -134,7 +135,7 @@ def test_compiled_voxel_grids_give_the_reference_fitting_set(monkeypatch, seed):
     w = rng.integers(1, 4, size=len(X)).astype(float)
     a = prepare_fit_set(X, w, max_fit_points=2500, voxel_size=None)
     sizes_a = auto_voxel_size(X - X.mean(axis=0), 1000), count_voxels(X, 0.7)
-    monkeypatch.setenv("KBS_JIT", "0")
+    monkeypatch.setattr(_flags, "JIT", False)
     b = prepare_fit_set(X, w, max_fit_points=2500, voxel_size=None)
     sizes_b = auto_voxel_size(X - X.mean(axis=0), 1000), count_voxels(X, 0.7)
     assert a.voxel_size == b.voxel_size and sizes_a == sizes_b
@@ -182,7 +183,7 @@ def test_compiled_cluster_geometry_and_criteria_match_numpy(monkeypatch, power):
     maha, uu = rng.random((3, 4000)) * 3, rng.random((3, 4000))
     w4 = rng.random(4000)
     va = validity(uu, w4, maha, np.array([0.1, -2.0, 3.0]))
-    monkeypatch.setenv("KBS_JIT", "0")
+    monkeypatch.setattr(_flags, "JIT", False)
     b = cluster_geometry(X, u, w, center_power=power)
     vb = validity(uu, w4, maha, np.array([0.1, -2.0, 3.0]))
     np.testing.assert_allclose(a.center, b.center, rtol=1e-12)
