@@ -31,13 +31,18 @@ _BASE = np.array(_TAB20_DARK + _TAB20_LIGHT, dtype=np.uint8)
 _GOLDEN = 0.618033988749895
 
 
+#: colours made from the golden-ratio hue sequence; past them (very large scenes), a bijective
+#: scramble of the 24-bit colour space, so that any number of clusters costs O(n) and stays distinct
+_GOLDEN_COUNT = 1000
+
+
 def palette(n: int) -> np.ndarray:
     """The first ``n`` colours of the palette, as an (n, 3) uint8 array (deterministic, pairwise
     distinct, never grey)."""
     if n <= len(_BASE):
         return _BASE[:max(n, 0)].copy()
     extra = []
-    for i in range(n - len(_BASE)):
+    for i in range(min(n, len(_BASE) + _GOLDEN_COUNT) - len(_BASE)):
         h = (0.11 + i * _GOLDEN) % 1.0
         s, v = (0.85, 0.80) if i % 2 == 0 else (0.55, 0.95)
         extra.append([round(255 * c) for c in colorsys.hsv_to_rgb(h, s, v)])
@@ -48,6 +53,17 @@ def palette(n: int) -> np.ndarray:
         while tuple(int(c) for c in out[i]) in seen:
             out[i, 2] = (int(out[i, 2]) + 1) % 256
         seen.add(tuple(int(c) for c in out[i]))
+    if n > out.shape[0]:
+        rest, j = [], 0
+        while len(rest) < n - out.shape[0]:
+            j += 1
+            c = (j * 0x9E3779) & 0xFFFFFF  # an odd multiplier: a bijection of the 24-bit colours
+            rgb = (c >> 16, (c >> 8) & 255, c & 255)
+            if rgb[0] == rgb[1] == rgb[2] or rgb in seen:  # greys are for noise
+                continue
+            seen.add(rgb)
+            rest.append(rgb)
+        out = np.vstack([out, np.array(rest, dtype=np.uint8)])
     return out
 
 
