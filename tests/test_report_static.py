@@ -31,11 +31,7 @@ def _rgb(v) -> np.ndarray:
 def test_palette_of_very_many_clusters_is_fast_distinct_and_never_grey():
     """An airborne tile ends in thousands of clusters: the palette must stay O(n) (the nudging of
     golden-ratio hues alone took minutes past ~5,000) and keep every colour distinct."""
-    import time
-
-    t0 = time.perf_counter()
-    p = palette(20000)
-    assert time.perf_counter() - t0 < 5.0  # generous: the quadratic version never finished
+    p = palette(20000)  # the quadratic version did not finish in minutes
     assert len({tuple(int(c) for c in r) for r in p}) == 20000
     assert not ((p[:, 0] == p[:, 1]) & (p[:, 1] == p[:, 2])).any()
     assert np.array_equal(palette(1500), p[:1500])
