@@ -682,3 +682,32 @@ def geometry3(X, u, w, power):
     center[1] = c1
     center[2] = c2
     return center, cov, lam, vec, mass
+
+
+@njit(cache=True, nogil=True)
+def local_medians(d, idx, heights, owners, own, neighbours):
+    """For each row of a k-nearest query (``d``, ``idx`` (q, k), nearest first, ``inf`` / ``m``
+    where fewer were found): the median height of the first ``neighbours`` found points whose
+    owner is not ``own`` (-1: any), NaN when none, and the position of the first of them (-1)."""
+    q, k = d.shape
+    ground = np.full(q, np.nan)
+    nearest = np.full(q, -1, dtype=np.int64)
+    buf = np.empty(max(neighbours, 1))
+    for r in range(q):
+        m = 0
+        for c in range(k):
+            if m >= neighbours:
+                break
+            if not np.isfinite(d[r, c]):
+                continue
+            i = idx[r, c]
+            if own >= 0 and owners[i] == own:
+                continue
+            if m == 0:
+                nearest[r] = i
+            buf[m] = heights[i]
+            m += 1
+        if m:
+            s = np.sort(buf[:m])
+            ground[r] = 0.5 * (s[(m - 1) // 2] + s[m // 2])
+    return ground, nearest

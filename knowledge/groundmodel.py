@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kbs.inference import _compiled, _flags
+
 
 def plane_basis(normal: np.ndarray) -> np.ndarray:
     """Two orthonormal vectors (2, 3) spanning the plane of unit ``normal``."""
@@ -99,6 +101,11 @@ class LocalGround:
         k = min(self.neighbours * (self.EXCLUDE_FACTOR if own >= 0 else 1), self.n_points)
         d, i = self.tree.query(P @ self.basis.T, k=k, distance_upper_bound=self.radius)
         d, i = d.reshape(q, k), i.reshape(q, k)
+        if _flags.JIT:  # the same medians, compiled: one pass over the rows, no (q, k) temporaries
+            owners = self.owners if self.owners is not None else np.zeros(0, dtype=np.int64)
+            return _compiled.local_medians(np.ascontiguousarray(d), np.ascontiguousarray(i, dtype=np.int64),
+                                           self.heights, np.ascontiguousarray(owners, dtype=np.int64), own,
+                                           self.neighbours)
         if own >= 0:  # leave the cluster's own points out, keep the nearest `neighbours` others
             ok = np.isfinite(d)
             ok[ok] = self.owners[i[ok]] != own

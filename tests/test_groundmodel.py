@@ -124,6 +124,24 @@ POST_OK = """\
   ground_contact: {tolerance: 0.05}"""
 
 
+@pytest.mark.parametrize("exclude", [None, "c1", "c9"])
+def test_compiled_medians_equal_the_numpy_reference(monkeypatch, exclude):
+    from kbs.inference import _flags
+
+    rng = np.random.default_rng(11)
+    X = np.column_stack([rng.uniform(0, 40, 6000), rng.uniform(0, 40, 6000), rng.normal(0, 0.2, 6000)])
+    owners = (X[:, 0] // 10).astype(int)  # four strips: c0 .. c3
+    model = LocalGround.build(X, np.arange(0, 6000, 2), np.array([0.0, 0.0, 1.0]), np.zeros(3), neighbours=7,
+                              radius=2.5, owners=owners[::2], owner_ids=("c0", "c1", "c2", "c3"))
+    P = np.vstack([X[1::2], [[100.0, 100.0, 0.0], [20.0, 20.0, 5.0]]])
+    g1, n1 = model.query(P, exclude)
+    monkeypatch.setattr(_flags, "JIT", False)
+    g0, n0 = model.query(P, exclude)
+    assert np.array_equal(np.isnan(g1), np.isnan(g0)) and np.isnan(g1[-2])
+    np.testing.assert_array_equal(g1[~np.isnan(g1)], g0[~np.isnan(g0)])
+    np.testing.assert_array_equal(n1, n0)
+
+
 def test_post_steps_parse_with_defaults():
     rb = _parse(post=POST_OK)
     assert rb.ground_model.label == "ground" and rb.ground_model.neighbours == 8 and rb.ground_model.radius == 3.0
