@@ -40,7 +40,7 @@ _FAST = {"nnan", "ninf", "nsz", "arcp", "contract", "afn", "reassoc"}
 _VEC = {"contract"}  # loops without reductions: fused multiply-adds only
 
 
-@njit(cache=True, nogil=True, fastmath=_VEC)
+@njit(nogil=True, fastmath=_VEC)
 def _exp_row(x, ibuf, out):
     """``out[j] = exp(x[j])`` for ``x[j] <= 0`` (values below -708 give 0, as they would
     underflow to subnormals): vectorisable."""
@@ -72,7 +72,7 @@ def _exp_row(x, ibuf, out):
         out[j] = out[j] * fbuf[j] if x[j] >= -708.0 else 0.0
 
 
-@njit(cache=True, nogil=True, fastmath=_FAST)
+@njit(nogil=True, fastmath=_FAST)
 def _dot(a, b):
     s = 0.0
     for j in range(a.shape[0]):
@@ -80,7 +80,7 @@ def _dot(a, b):
     return s
 
 
-@njit(cache=True, nogil=True, fastmath=_VEC)
+@njit(nogil=True, fastmath=_VEC)
 def _power_row(u, power, out):
     n = u.shape[0]
     if power == 2.0:
@@ -94,7 +94,7 @@ def _power_row(u, power, out):
             out[j] = u[j] ** power
 
 
-@njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _centers(u, R, power, tmp):
     """Centres (K, 3) ``sum w u^p x / sum w u^p``."""
     K = u.shape[0]
@@ -107,7 +107,7 @@ def _centers(u, R, power, tmp):
     return centers
 
 
-@njit(cache=True, nogil=True, fastmath=_FAST)
+@njit(nogil=True, fastmath=_FAST)
 def _max_abs_diff(a, b):
     K, n = a.shape
     delta = 0.0
@@ -122,7 +122,7 @@ def _max_abs_diff(a, b):
 # -- fuzzy c-means ---------------------------------------------------------------------------
 
 
-@njit(cache=True, nogil=True, fastmath=_VEC)
+@njit(nogil=True, fastmath=_VEC)
 def _fcm_memberships(XT, centers, m, d2, dmin, tot, u_new):
     """Memberships from squared Euclidean distances, as
     :func:`~kbs.inference.kernels.memberships_from_sq_dist`; ``d2``, ``dmin``, ``tot`` are
@@ -199,7 +199,7 @@ def fcm_run(XT, w, R, u0, m, tol, max_iter, min_mass):
 # -- Gath-Geva -------------------------------------------------------------------------------
 
 
-@njit(cache=True, nogil=True, fastmath=_FAST)
+@njit(nogil=True, fastmath=_FAST)
 def _gg_sums(uk, R, power, S):
     """One pass over the points for one cluster: ``S[0:4] = sum u^p [w, w x]`` (the centre) and
     ``S[4:14] = sum u R`` (mass, first and second moments)."""
@@ -254,7 +254,7 @@ def _gg_sums(uk, R, power, S):
     S[13] = b9
 
 
-@njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _gg_params(u, R, power, total, min_variance, max_condition, min_mass, tmp):
     """Centres, floored Gaussians and priors from memberships ``u`` (K, n): one Gath-Geva
     update's parameters. ``status`` 1 when a cluster dies."""
@@ -305,7 +305,7 @@ def _gg_params(u, R, power, total, min_variance, max_condition, min_mass, tmp):
     return centers, lam_all, vec_all, whit, logdet, priors, 0
 
 
-@njit(cache=True, nogil=True, fastmath=_VEC)
+@njit(nogil=True, fastmath=_VEC)
 def _gg_z(XT, centers, whit, logdet, priors, m, maha, z, zmax):
     """Squared Mahalanobis distances into ``maha`` (K, n), the softmax arguments
     ``-log d_e2 / (m - 1)`` into ``z`` (K, n) and their maximum over clusters into ``zmax``."""
@@ -347,7 +347,7 @@ def _gg_z(XT, centers, whit, logdet, priors, m, maha, z, zmax):
             zmax[j] = max(zmax[j], t)
 
 
-@njit(cache=True, nogil=True, fastmath=_VEC)
+@njit(nogil=True, fastmath=_VEC)
 def _softmax(z, zmax, tot, ibuf, u_new):
     """``u_new[k] = exp(z[k] - zmax) / sum_k exp(z[k] - zmax)``; ``z`` is overwritten."""
     K, n = z.shape
@@ -369,7 +369,7 @@ def _softmax(z, zmax, tot, ibuf, u_new):
             uk[j] = uk[j] * tot[j]
 
 
-@njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _gg_memberships(XT, centers, whit, logdet, priors, m, u_new, maha, z, zmax, tot, ibuf):
     _gg_z(XT, centers, whit, logdet, priors, m, maha, z, zmax)
     _softmax(z, zmax, tot, ibuf, u_new)
@@ -388,7 +388,7 @@ def gg_predict(XT, centers, whit, logdet, priors, m):
     return u
 
 
-@njit(cache=True, nogil=True, fastmath=_FAST)
+@njit(nogil=True, fastmath=_FAST)
 def _squarem_norms(u, s1, s2, w):
     K, n = u.shape
     nr = 0.0
@@ -405,7 +405,7 @@ def _squarem_norms(u, s1, s2, w):
     return nr, nv
 
 
-@njit(cache=True, nogil=True, fastmath=_VEC)
+@njit(nogil=True, fastmath=_VEC)
 def _extrapolate(u, s1, s2, alpha, tot, out):
     """``out = u - 2 alpha r + alpha^2 v`` (r = s1 - u, v = s2 - 2 s1 + u), clipped to [0, 1]
     and renormalised over clusters."""
@@ -509,7 +509,7 @@ def gg_run(XT, w, R, u0, m, power, tol, max_iter, min_variance, max_condition, m
 _EMPTY = np.int64(-1)  # keys are non-negative
 
 
-@njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _slot(key, mask):
     """Fibonacci hashing: the top bits of the key times 2^64 / golden ratio."""
     bits = 0
@@ -519,7 +519,7 @@ def _slot(key, mask):
     return np.int64(h)
 
 
-@njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _grow(table, group):
     size = table.shape[0] * 2
     mask = size - 1
@@ -536,7 +536,7 @@ def _grow(table, group):
     return t2, g2
 
 
-@njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _insert(table, group, key, m):
     """Find or insert ``key``; returns its group (``m`` when new) and whether it was new."""
     mask = table.shape[0] - 1

@@ -1,0 +1,47 @@
+"""Compile and cache every compiled kernel (numba) by calling each the way kbs calls it, on small
+data, then write the marker that tells later processes the cache is warm (see
+:mod:`kbs.inference._flags`). Started in the background by the first kbs process that finds the
+cache cold; ``python -m kbs.inference._warmup`` runs it by hand (in the foreground)."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+
+def warm() -> None:
+    import numpy as np
+
+    from kbs.inference import _flags
+
+    _flags.JIT = True
+    from kbs.inference import _compiled as C
+    from kbs.inference import cluster_geometry, ufp_onc
+
+    rng = np.random.default_rng(0)
+    X = np.vstack([rng.normal(size=(3000, 3)) * [4.0, 4.0, 0.05], rng.normal(size=(1500, 3)) * 0.5 + [6, 0, 1],
+                   rng.normal(size=(1500, 3)) * [0.2, 2.0, 0.2] + [-6, 0, 0.5]])
+    ufp_onc(X, 6, max_fit_points=2000)  # voxel grids, both layers, memberships, criteria
+    ufp_onc(X[:900], 4, stop="first_max")  # a split: no reduction
+    cluster_geometry(X, rng.random(len(X)))
+    d = np.sort(rng.random((50, 16)), axis=1)
+    d[:, -3:] = np.inf
+    idx = rng.integers(0, 100, (50, 16)).astype(np.int64)
+    C.local_medians(d, idx, rng.random(100), rng.integers(0, 3, 100).astype(np.int64), 1, 8)
+    C.local_medians(d, idx, rng.random(100), np.zeros(0, dtype=np.int64), -1, 8)
+    _flags.marker().write_text(_flags._stamp())
+
+
+def main() -> None:
+    lock = Path(sys.argv[1]) if len(sys.argv) > 1 else None
+    try:
+        warm()
+    finally:
+        if lock is not None:
+            try:
+                lock.unlink()
+            except OSError:
+                pass
+
+
+if __name__ == "__main__":
+    main()

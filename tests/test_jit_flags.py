@@ -1,0 +1,65 @@
+"""The switch between the compiled kernels and the numpy reference, and the background warm-up
+that compiles them once so that no run pays for it (kbs.inference._flags)."""
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+
+import pytest
+
+from kbs.inference import _flags
+
+
+@pytest.fixture
+def state(tmp_path, monkeypatch):
+    monkeypatch.setattr(_flags, "_state_dir", lambda: tmp_path)
+    return tmp_path
+
+
+def test_explicit_settings(monkeypatch, state):
+    monkeypatch.setenv("KBS_JIT", "0")
+    assert _flags._decide() is False
+    monkeypatch.setenv("KBS_JIT", "1")
+    assert _flags._decide() is True
+    assert not list(state.iterdir())  # neither starts a warm-up
+
+
+def test_auto_uses_the_compiled_kernels_only_once_the_warm_up_has_cached_them(monkeypatch, state):
+    monkeypatch.setenv("KBS_JIT", "auto")
+    started = []
+    monkeypatch.setattr(_flags, "start_warmup", lambda: started.append(1) or True)
+    assert _flags._decide() is False and started == [1]  # cold: numpy now, warm-up started
+    (state / "kbs-jit-ready").write_text("a stale stamp")
+    assert _flags._decide() is False and started == [1, 1]  # the kernels changed since
+    (state / "kbs-jit-ready").write_text(_flags._stamp())
+    assert _flags._decide() is True and started == [1, 1]
+
+
+def test_one_warm_up_at_a_time_and_it_writes_the_marker(state):
+    lock = state / "kbs-jit-warmup.lock"
+    lock.touch()
+    assert _flags.start_warmup() is False  # another one is running
+    lock.unlink()
+    # run it in the foreground as the background process does (the cache is warm in CI by now,
+    # so this mostly loads it); it removes its lock and leaves the marker
+    lock.touch()
+    r = subprocess.run([sys.executable, "-c", "import kbs.inference._flags as f, pathlib;"
+                        f"f._state_dir = lambda: pathlib.Path({str(state)!r});"
+                        "import kbs.inference._warmup as w, sys; sys.argv = ['w', sys.argv[1]]; w.main()", str(lock)],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert not lock.exists()
+    assert (state / "kbs-jit-ready").read_text() == _flags._stamp()
+
+
+def test_a_stale_lock_does_not_block_for_ever(state, monkeypatch):
+    lock = state / "kbs-jit-warmup.lock"
+    lock.touch()
+    old = time.time() - 2 * _flags._LOCK_SECONDS
+    import os
+
+    os.utime(lock, (old, old))
+    popen = []
+    monkeypatch.setattr(_flags.subprocess, "Popen", lambda *a, **k: popen.append(a))
+    assert _flags.start_warmup() is True and len(popen) == 1
