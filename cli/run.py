@@ -13,6 +13,7 @@ from kbs.cli.common import cloud_argument, write_result_ply
 from kbs.errors import CloudFileError, ExitCode
 from kbs.io import read_cloud, read_result_json
 from kbs.knowledge import Explanation, Interpreter, PredicateRegistry, load_rule_base
+from kbs.knowledge.explain import limit_lines
 from kbs.knowledge.predicates import UNITS, did_you_mean
 from kbs.knowledge.rulebase import RuleFileError, resolve, shipped_rule_bases
 
@@ -101,6 +102,8 @@ def run(ctx: click.Context, rules: str, cloud: Path, sensor, out_dir: Path, plug
     per_label = ", ".join(f"{k} {v:,}" for k, v in s["points_per_label"].items())
     click.echo(f"{cloud}: {len(pc):,} points, rule base '{rb.name}' ({rb.strategy})")
     click.echo(f"  {s['clusters']} clusters, {s['splits']} splits, {s['limits']} limits reached; points: {per_label}")
+    for line in limit_lines(s["limits_by_kind"], Path(rb.path).name, result=str(js)):
+        click.echo(f"  {line}")
     click.echo(f"  ground: {seg.explanation.ground.get('source', 'not used')}")
     click.echo(f"  time: {time.perf_counter() - t0:.2f} s (read {t_read:.2f}, segment {seg.seconds:.2f}, "
                f"write {t_write:.2f})")
