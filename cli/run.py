@@ -14,6 +14,7 @@ from kbs.cli.common import write_result_ply
 from kbs.errors import CloudFileError, ExitCode, KbsError
 from kbs.io import SUPPORTED_EXTENSIONS, read_cloud, read_result_json
 from kbs.knowledge import Explanation, PredicateRegistry, Segmenter, load_rule_base
+from kbs.knowledge.explain import limit_lines
 from kbs.knowledge.predicates import UNITS, did_you_mean
 from kbs.knowledge.rulebase import RuleFileError, resolve, shipped_rule_bases
 
@@ -133,6 +134,8 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path, *, color_by: str 
     per_label = ", ".join(f"{k} {v:,}" for k, v in s["points_per_label"].items())
     click.echo(f"{cloud}: {len(pc):,} points, rule base '{rb.name}' ({rb.strategy})")
     click.echo(f"  {s['clusters']} clusters, {s['splits']} splits, {s['limits']} limits reached; points: {per_label}")
+    for line in limit_lines(s["limits_by_kind"], Path(rb.path).name, result=str(js)):
+        click.echo(f"  {line}")
     click.echo(f"  ground: {seg.explanation.ground.get('source', 'not used')}")
     click.echo(f"  time: {time.perf_counter() - t0:.2f} s (read {t_read:.2f}, segment {seg.seconds:.2f}, "
                f"write {t_write:.2f})")

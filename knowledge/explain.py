@@ -90,6 +90,9 @@ class ClusterRecord:
     relabel: dict[str, Any] | None = None
     contact: int = 0  #: points that left it for the ground (post.ground_contact)
     released: int = 0  #: points that left this ground cluster, standing above the surface (post.ground_release)
+    #: set when action is 'limit': what stopped the split, {kind, setting, value}, e.g.
+    #: {'kind': 'max_depth', 'setting': 'limits.max_depth', 'value': 12} (kinds: interpreter.STOP_KINDS)
+    limit: dict[str, Any] | None = None
 
     def decisive_checks(self) -> list[CheckRecord]:
         names = set(self.decisive)
@@ -244,4 +247,43 @@ def _record_dict(r: ClusterRecord) -> dict[str, Any]:
     d["checks"] = [dict(vars(c)) for c in r.checks]
     d["apd"] = None if r.apd is None else {"ks": list(r.apd.ks), "apd": list(r.apd.apd), "chosen": r.apd.chosen}
     d["children"], d["notes"], d["decisive"] = list(r.children), list(r.notes), list(r.decisive)
+    d["limit"] = None if r.limit is None else dict(r.limit)
     return d
+
+
+#: For each kind of stop (``Segmentation.limits_by_kind``): the words of its summary line.
+_STOP_TEXT: dict[str, str] = {
+    "max_depth": "raise {setting} in {file} to split them",
+    "min_points": "lower {setting} in {file} to split them",
+    "max_clusters": "raise or remove {setting} in {file} (a cap on the whole file: results depend on its size)",
+    "k_max": "raise {setting} in {file}, or use strategy: divisive",
+}
+_NOT_SPLIT_TEXT: dict[str, str] = {
+    "split_failed": "the split failed",
+    "single_cluster": "the split gave a single cluster",
+    "unpartitioned": "the engine could not partition the scene",
+}
+
+
+def limit_lines(limits_by_kind: dict[str, dict[str, Any]], rule_file: str, *, result: str | None = None,
+                show: int = 3) -> list[str]:
+    """One line per kind of stop, for the summary of a run (``Segmentation.summary()['limits_by_kind']``):
+
+    'limits: min_points (40) stopped 17 clusters, 512 points (c0.1.2.3, c1.4, c1.0.2, ...): lower
+    limits.min_points in outdoor.yaml to split them'; the cases that are not settings of the file
+    (the split failed, or gave a single cluster) say so: 'not split: the split failed for 3 clusters,
+    ...: kbs explain RESULT --cluster c1.2 says why' (``result``: the result file, when there is one).
+    """
+    out = []
+    for kind, e in limits_by_kind.items():
+        n, ids = e["count"], e["clusters"]
+        where = ", ".join(ids[:show]) + (", ..." if len(ids) > show else "")
+        what = f"{n:,} cluster{'s' if n != 1 else ''}, {e['points']:,} points ({where})"
+        if kind in _STOP_TEXT:
+            todo = _STOP_TEXT[kind].format(setting=e["setting"], file=rule_file)
+            out.append(f"limits: {kind} ({e['value']}) stopped {what}: {todo}")
+        else:
+            why = (f"kbs explain {result} --cluster {ids[0]} says why" if result else
+                   f"the explanation of {ids[0]} says why")
+            out.append(f"not split: {_NOT_SPLIT_TEXT.get(kind, kind)} for {what}: {why}")
+    return out

@@ -11,7 +11,12 @@ Strategies (ALGORITHMS.md section 3):
 
 Either way: rejected clusters become noise, accepted ones take the first label whose condition
 holds, and clusters of the merge label whose planes agree are merged. Every limit reached is
-recorded; the run always terminates (depth, cluster count and minimum size are bounded).
+recorded, with its kind; the run always terminates (depth and minimum size are bounded).
+
+The limits are per cluster (``max_depth``, ``min_points``): the subtree of a cluster depends only on
+its points and the scene (sensor, ground plane), not on how much else the file holds. The optional
+``max_clusters`` is the exception: a cap on the clusters of the whole split tree, counted in wave
+order, so with it a point's result depends on the rest of the file.
 """
 from __future__ import annotations
 
@@ -61,12 +66,48 @@ class Segmentation:
     def n_splits(self) -> int:
         return sum(r.action in ("split", "split_components") for r in self.explanation.records.values())
 
+    def limits_by_kind(self) -> dict[str, dict[str, Any]]:
+        """The clusters a rule wanted split but that were kept, grouped by what stopped them.
+
+        Keys are the kinds of :data:`STOP_KINDS`, in that order (only those that occurred). Each
+        value: ``setting`` (the rule-file key that decides it, e.g. ``'limits.max_depth'``, or None
+        when it is not a setting: the split failed, or gave a single cluster), ``value`` (that
+        setting's value), ``count``, ``points`` (their points when judged) and ``clusters`` (their
+        ids, the largest first).
+        """
+        out: dict[str, dict[str, Any]] = {}
+        stopped = sorted((r for r in self.explanation.records.values() if r.action == "limit"),
+                         key=lambda r: (-r.n_points, r.id))
+        for r in stopped:
+            lim = r.limit or {"kind": "other", "setting": None, "value": None}
+            e = out.setdefault(lim["kind"], {"setting": lim["setting"], "value": lim["value"], "count": 0,
+                                             "points": 0, "clusters": []})
+            e["count"] += 1
+            e["points"] += r.n_points
+            e["clusters"].append(r.id)
+        order = list(STOP_KINDS)
+        return dict(sorted(out.items(), key=lambda kv: order.index(kv[0]) if kv[0] in order else len(order)))
+
     def summary(self) -> dict[str, Any]:
         counts = {name: int((self.label == i).sum()) for i, name in enumerate(self.label_names)}
         counts["noise"] = int((self.label < 0).sum())
         return {"points": int(self.cluster.size), "clusters": len(self.clusters), "splits": self.n_splits,
                 "limits": sum(r.action == "limit" for r in self.explanation.records.values()),
+                "limits_by_kind": self.limits_by_kind(),
                 "points_per_label": counts, "seconds": round(self.seconds, 3)}
+
+
+#: Why a cluster that a rule wanted split was kept (``ClusterRecord.limit['kind']``), and the
+#: rule-file setting that decides it (None: not a setting of the file).
+STOP_KINDS: dict[str, str | None] = {
+    "max_depth": "limits.max_depth",          # the cluster is max_depth splits below the scene
+    "min_points": "limits.min_points",        # it has fewer points
+    "max_clusters": "limits.max_clusters",    # the whole split tree has that many clusters (optional cap)
+    "k_max": "engine.k_max",                  # strategy global: no partition of the scene beyond K = k_max
+    "split_failed": None,                     # the engine could not split its points
+    "single_cluster": None,                   # the split put all its points in one cluster
+    "unpartitioned": None,                    # the scene could not be partitioned (further, for global)
+}
 
 
 @dataclass
@@ -323,7 +364,8 @@ class Interpreter:
         """Breadth first, one level of the split tree (a wave) at a time: every cluster of the wave
         is judged, the UFP-ONC splits it asks for are started (side by side when jobs > 1), then
         the decisions are applied in order — exactly the order of a first-in first-out queue, so
-        the limits (max_clusters) stop the same clusters whatever the number of jobs."""
+        the optional max_clusters, when a rule file sets it, stops the same clusters whatever the
+        number of jobs. Without it, what happens under a cluster depends on its points alone."""
         rb = self.rb
         children = self._initial_children(X, root, res, k0)
         records["c"].children = [c.id for c in children]
@@ -339,7 +381,7 @@ class Interpreter:
                     records[node.id] = rec
                     action, rule = self._judge(cl, scene, rec)
                     job = None
-                    if action == "split" and self._cannot_split(node, 0) is None:  # max_clusters is known later
+                    if action == "split" and self._cannot_split(node, 0) is None:  # max_clusters: known later
                         job = splitter.submit(X[node.idx])
                     judged.append((node, cl, rec, action, rule, job))
                 wave = []
@@ -357,12 +399,11 @@ class Interpreter:
                         try:
                             kids = self._split(node, X, cl, rec, action, rule, job)
                         except FitError as exc:
-                            why_not = f"the split failed: {exc}"
+                            why_not = "split_failed", f"the split failed: {exc}"
                         if why_not is None and len(kids) < 2:
-                            why_not = "the split gave a single cluster"
+                            why_not = "single_cluster", "the split gave a single cluster"
                     if why_not is not None:
-                        rec.action = "limit"
-                        rec.notes.append(why_not)
+                        self._stop(rec, *why_not)
                         leaves.append((node, cl, rec))
                         continue
                     rec.action = action
@@ -397,20 +438,33 @@ class Interpreter:
         partitioned at all)."""
         action, _ = self._judge(cl, scene, rec)
         if action in ("split", "split_components"):
-            rec.action = "limit"
-            rec.notes.append("it cannot be split: the engine could not partition these points")
+            self._stop(rec, "unpartitioned", "it cannot be split: the engine could not partition these points")
         else:
             rec.action = action
 
-    def _cannot_split(self, node: _Node, n_clusters: int) -> str | None:
+    def _cannot_split(self, node: _Node, n_clusters: int) -> tuple[str, str] | None:
+        """(kind, note) of the limit that keeps ``node`` from being split, or None. ``n_clusters``
+        counts the clusters of the whole tree so far; only the optional max_clusters uses it."""
         lim = self.rb.limits
         if node.depth >= lim["max_depth"]:
-            return f"limit reached: max_depth = {lim['max_depth']}"
+            return "max_depth", f"limit reached: max_depth = {lim['max_depth']}"
         if node.idx.size < lim["min_points"]:
-            return f"limit reached: {node.idx.size} points < min_points = {lim['min_points']}"
-        if n_clusters >= lim["max_clusters"]:
-            return f"limit reached: max_clusters = {lim['max_clusters']}"
+            return "min_points", f"limit reached: {node.idx.size} points < min_points = {lim['min_points']}"
+        cap = lim.get("max_clusters")
+        if cap is not None and n_clusters >= cap:
+            return "max_clusters", f"limit reached: max_clusters = {cap}"
         return None
+
+    def _stop(self, rec: ClusterRecord, kind: str, note: str) -> None:
+        """Keep a cluster a rule wanted split, saying what stopped it."""
+        setting = STOP_KINDS[kind]
+        value = None
+        if setting is not None:
+            section, key = setting.split(".")
+            value = (self.rb.limits if section == "limits" else self.rb.engine).get(key)
+        rec.action = "limit"
+        rec.limit = {"kind": kind, "setting": setting, "value": value}
+        rec.notes.append(note)
 
     def _split(self, node: _Node, X: np.ndarray, cl: Cluster, rec: ClusterRecord, action: str, rule,
                job: _Job | None = None) -> list[_Node]:
@@ -478,9 +532,13 @@ class Interpreter:
         for node, cl, rec in judged:
             records[node.id] = rec
             if rec.action in ("split", "split_components"):
-                rec.notes.append(f"limit reached: no partition of the scene beyond K = {k} (k_max = {rb.engine['k_max']}"
-                                 f", or the sweep stopped)")
-                rec.action = "limit"
+                if k >= rb.engine["k_max"]:
+                    self._stop(rec, "k_max", f"limit reached: no partition of the scene beyond K = {k} "
+                                             f"(k_max = {rb.engine['k_max']})")
+                else:
+                    self._stop(rec, "unpartitioned", f"it cannot be split: no partition of the scene beyond K = {k} "
+                                                     f"(the sweep stopped before k_max = {rb.engine['k_max']}: "
+                                                     f"{res.stop_reason})")
             if rec.action != "reject":
                 leaves.append((node, cl, rec))
         return leaves, scene

@@ -31,7 +31,9 @@ ENGINE_DEFAULTS: dict[str, Any] = {
     "m": 2.0, "k_max": 10, "initial_k": "first_apd_max", "max_fit_points": 6000, "min_variance": 1e-6,
     "max_condition": 1e4, "tol": 1e-3, "max_iter": 100, "new_prototype": "distance", "split_min_k": 1,
 }
-LIMIT_DEFAULTS: dict[str, Any] = {"max_depth": 8, "max_clusters": 400, "min_points": 30}
+#: Limits are per cluster. max_clusters (None: absent) is an optional cap on the whole split tree,
+#: which makes a point's result depend on the rest of the file; no shipped rule base sets it.
+LIMIT_DEFAULTS: dict[str, Any] = {"max_depth": 8, "min_points": 30, "max_clusters": None}
 GROUND_DEFAULTS: dict[str, Any] = {"normal": "auto", "candidate": None, "min_points": 500, "fallback": [0.0, 0.0, 1.0]}
 
 

@@ -27,6 +27,7 @@ from kbs.knowledge import (
     predicate,
     shipped_rule_bases,
 )
+from kbs.knowledge.explain import limit_lines
 from kbs.knowledge.rulebase import parse_rule_base, schema
 from scenes import anisotropic_blobs, box_on_table, ground_and_rocks, ground_with_small_obstacles
 
@@ -327,7 +328,98 @@ def test_limits_are_recorded_not_silent():
     seg = Interpreter(tight).run(X)
     limited = [r for r in seg.explanation.records.values() if r.action == "limit"]
     assert limited and all(any("max_depth = 1" in n for n in r.notes) for r in limited)
+    assert all(r.limit == {"kind": "max_depth", "setting": "limits.max_depth", "value": 1} for r in limited)
     assert (seg.cluster[np.isin(seg.cluster, [r.output_index for r in limited])] >= 0).all()
+    by_kind = seg.summary()["limits_by_kind"]
+    assert list(by_kind) == ["max_depth"] and by_kind["max_depth"]["count"] == len(limited) == seg.summary()["limits"]
+    assert sorted(by_kind["max_depth"]["clusters"]) == sorted(r.id for r in limited)
+    assert by_kind["max_depth"]["points"] == sum(r.n_points for r in limited)
+    sizes = [seg.explanation[c].n_points for c in by_kind["max_depth"]["clusters"]]
+    assert sizes == sorted(sizes, reverse=True)  # the largest first
+
+
+def test_limit_lines_say_which_limit_where_and_what_to_change():
+    by_kind = {
+        "max_depth": {"setting": "limits.max_depth", "value": 12, "count": 2, "points": 300, "clusters": ["c1.0", "c0.2"]},
+        "min_points": {"setting": "limits.min_points", "value": 40, "count": 5, "points": 120,
+                       "clusters": ["c0.1", "c1.4", "c1.5", "c2.0", "c2.1"]},
+        "single_cluster": {"setting": None, "value": None, "count": 1, "points": 80, "clusters": ["c3.1"]},
+    }
+    assert limit_lines(by_kind, "outdoor.yaml", result="out/scan.json") == [
+        "limits: max_depth (12) stopped 2 clusters, 300 points (c1.0, c0.2): raise limits.max_depth in outdoor.yaml "
+        "to split them",
+        "limits: min_points (40) stopped 5 clusters, 120 points (c0.1, c1.4, c1.5, ...): lower limits.min_points in "
+        "outdoor.yaml to split them",
+        "not split: the split gave a single cluster for 1 cluster, 80 points (c3.1): kbs explain out/scan.json "
+        "--cluster c3.1 says why",
+    ]
+    assert limit_lines({}, "outdoor.yaml") == []
+
+
+def _two_tables() -> np.ndarray:
+    """Two boxes on two tables 5 m apart: split once into pieces, some split again."""
+    return np.vstack([box_on_table(5)[0], box_on_table(6)[0] + [5.0, 0.0, 0.0]])
+
+
+def _far_away(n_tables: int) -> np.ndarray:
+    """What else a file may hold, 100 km away: a flat patch that needs no split (0), or scenes that
+    split into many clusters."""
+    if not n_tables:
+        rng = np.random.default_rng(0)
+        return np.column_stack([rng.uniform(0, 1, 2000), rng.uniform(0, 1, 2000), np.zeros(2000)]) + [1e5, 0.0, 0.0]
+    return np.vstack([box_on_table(10 + i)[0] + [1e5 + 20.0 * i, 0.0, 0.0] for i in range(n_tables)])
+
+
+def _subtree(seg, n_points: int) -> list[tuple]:
+    """The records under the scene's first-level cluster of ``n_points`` points, ids relative to it."""
+    e = seg.explanation
+    (top,) = [c for c in e["c"].children if e[c].n_points == n_points]
+    return [(r.id[len(top):], r.n_points, r.action, r.rule, r.label, (r.limit or {}).get("kind"),
+             [(c.check, c.value) for c in r.checks]) for r in e.walk(top)]
+
+
+def _contest(cap: int | None = None):
+    """The contest rules (no ground plane), the scene's first partition in two; optionally a
+    global max_clusters."""
+    text = load_rule_base("planar_contest").text.replace("initial_k: first_apd_max", "initial_k: 2")
+    text = re.sub(r"\n *max_clusters: \d+", "", text)
+    if cap is not None:
+        text = text.replace("limits:\n", f"limits:\n  max_clusters: {cap}\n")
+    return parse_rule_base(text, "contest.yaml", PredicateRegistry.default())
+
+
+def test_a_clusters_subtree_depends_on_its_points_alone():
+    """Limits are per cluster: the same points A, beside a patch that needs no split or beside
+    three scenes that split into many clusters (far away, so that the scene's first partition puts
+    them apart from A), get the same subtree: splits, sizes, measured values, labels, limits."""
+    A = _two_tables()
+    rb = _contest()
+    assert rb.limits["max_clusters"] is None
+    alone = Interpreter(rb).run(np.vstack([A, _far_away(0)]))
+    crowded = Interpreter(rb).run(np.vstack([_far_away(3), A]))
+    assert len(crowded.explanation.records) > 2 * len(alone.explanation.records)
+    mine = _subtree(alone, len(A))
+    assert sum(a == "split" for _, _, a, *_ in mine) >= 2 and max(i.count(".") for i, *_ in mine) >= 2
+    assert _subtree(crowded, len(A)) == mine
+
+
+def test_a_rule_file_with_max_clusters_still_stops_at_it():
+    """max_clusters, when a rule file sets it, caps the clusters of the whole file: the same points
+    A are cut short when the file holds more (the reason it is no longer in the shipped rules)."""
+    A = _two_tables()
+    alone = Interpreter(_contest()).run(np.vstack([A, _far_away(0)]))
+    cap = len(alone.explanation.leaves())  # just what A beside the patch needs: not reached there
+    rb = _contest(cap)
+    assert _subtree(Interpreter(rb).run(np.vstack([A, _far_away(0)])), len(A)) == _subtree(alone, len(A))
+    crowded = Interpreter(rb).run(np.vstack([_far_away(3), A]))
+    mine = _subtree(crowded, len(A))
+    assert mine != _subtree(alone, len(A)) and "max_clusters" in [k for *_, k, _ in mine]
+    e = crowded.explanation
+    assert len(e.leaves()) < cap + rb.engine["k_max"]  # a split under way when the cap is reached may exceed it
+    by_kind = crowded.summary()["limits_by_kind"]
+    assert by_kind["max_clusters"]["value"] == cap and by_kind["max_clusters"]["setting"] == "limits.max_clusters"
+    stopped = [r for r in e.records.values() if r.limit and r.limit["kind"] == "max_clusters"]
+    assert stopped and all(f"limit reached: max_clusters = {cap}" in r.notes for r in stopped)
 
 
 def test_explanation_round_trips_through_json():
@@ -388,9 +480,12 @@ def test_parallel_splits_give_the_same_segmentation_and_explanation():
 
 
 def test_parallel_splits_on_semantickitti_stop_at_the_same_limits(shared_data):
-    """On the real scan max_clusters is reached: the same clusters are stopped whatever jobs is."""
+    """With a rule file that sets max_clusters (the shipped ones do not), the real scan reaches it:
+    the same clusters are stopped whatever jobs is."""
     X = np.load(shared_data / "semantickitti" / "000001.points.npy").astype(np.float64)
-    rb = load_rule_base("outdoor")
+    text = re.sub(r"\n *max_clusters: \d+", "", load_rule_base("outdoor").text)
+    rb = parse_rule_base(re.sub(r"max_depth: \d+", "max_depth: 12\n  max_clusters: 250", text), "o.yaml",
+                         PredicateRegistry.default())
     one, two = Interpreter(rb, jobs=1).run(X), Interpreter(rb, jobs=2).run(X)
     limited = [r.id for r in one.explanation.records.values() if any("max_clusters" in n for n in r.notes)]
     assert limited, "the scan reaches max_clusters"
