@@ -321,6 +321,18 @@ def test_global_strategy_goes_on_with_k_until_the_rules_hold():
     assert all(seg.explanation[c].action in ("accept", "limit", "reject") for c in root.children)
 
 
+def test_the_global_strategy_says_k_max_stopped_it():
+    X, _ = box_on_table()
+    rb = load_rule_base("planar_contest")
+    text = rb.text.replace("strategy: divisive", "strategy: global").replace("k_max: 10", "k_max: 2")
+    seg = Interpreter(parse_rule_base(text, "g.yaml", PredicateRegistry.default())).run(X)
+    stopped = [r for r in seg.explanation.records.values() if r.action == "limit"]
+    assert stopped and all(r.limit == {"kind": "k_max", "setting": "engine.k_max", "value": 2} for r in stopped)
+    (line,) = limit_lines(seg.summary()["limits_by_kind"], "g.yaml")
+    assert line.startswith("limits: k_max (2) stopped ") and line.endswith("raise engine.k_max in g.yaml, or use "
+                                                                            "strategy: divisive")
+
+
 def test_limits_are_recorded_not_silent():
     X, _ = ground_and_rocks()
     rb = load_rule_base("outdoor")

@@ -3,6 +3,7 @@ real command."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -50,6 +51,24 @@ def test_run_writes_ply_and_json_and_explains_the_cah_split(rocks_scan, tmp_path
     r = kbs("explain", str(tmp_path / "rocks.json"), "--cluster", cid + ".0")
     assert r.returncode == 0 and line.strip() in r.stdout and "accepted as obstacle" in r.stdout
     assert "FAIL  sheet: flatness = " in r.stdout and "pass  level: ground_angle = " in r.stdout
+
+
+def test_run_says_which_limit_stopped_which_clusters(rocks_scan, tmp_path):
+    scan, _ = rocks_scan
+    text = kbs("rules", "show", "outdoor").stdout
+    rules = tmp_path / "shallow.yaml"
+    rules.write_text(re.sub(r"max_depth: \d+", "max_depth: 1", text))
+    r = kbs("run", "--rules", str(rules), str(scan), "--out", str(tmp_path))
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    i = [n for n, ln in enumerate(lines) if "limits reached;" in ln][0]
+    n_limits = int(lines[i].split(" limits reached;")[0].split()[-1])
+    assert n_limits > 0
+    assert re.fullmatch(r"  limits: max_depth \(1\) stopped \d+ clusters?, [\d,]+ points \(c\d[^)]*\): "
+                        r"raise limits\.max_depth in shallow\.yaml to split them", lines[i + 1]), lines[i + 1]
+    by_kind = json.loads((tmp_path / "rocks.json").read_text())["summary"]["limits_by_kind"]
+    assert sum(e["count"] for e in by_kind.values()) == n_limits
+    assert by_kind["max_depth"]["setting"] == "limits.max_depth" and by_kind["max_depth"]["value"] == 1
 
 
 def test_explain_unknown_cluster_suggests_one(rocks_scan, tmp_path):
