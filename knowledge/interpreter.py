@@ -155,28 +155,29 @@ class Interpreter:
             import multiprocessing
             from concurrent.futures import ProcessPoolExecutor
 
+            from multiprocessing.util import Finalize
+
             methods = multiprocessing.get_all_start_methods()
             ctx = multiprocessing.get_context("fork" if "fork" in methods else None)
             pool = self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx)
+            # stopped when this interpreter is collected or the process exits, before
+            # multiprocessing joins its children (in a process that is itself a multiprocessing
+            # child, that join comes first and would wait for ever on idle workers)
+            self._pool_finalizer = Finalize(self, _shutdown_pool, args=(pool,), exitpriority=10)
         return pool
 
     def close(self) -> None:
         """Stop the worker processes, if any were started (they start again when needed)."""
-        pool = getattr(self, "_pool", None)
-        self._pool = None
-        if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
+        fin = getattr(self, "_pool_finalizer", None)
+        self._pool, self._pool_finalizer = None, None
+        if fin is not None:
+            fin()
 
     def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-    def __del__(self) -> None:
-        pool = getattr(self, "_pool", None)
-        if pool is not None:
-            pool.shutdown(wait=False, cancel_futures=True)
 
     # -- engine --------------------------------------------------------------------------------
 
@@ -778,6 +779,10 @@ def available_cores() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except (AttributeError, OSError):
         return max(1, os.cpu_count() or 1)
+
+
+def _shutdown_pool(pool) -> None:
+    pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _split_job(X: np.ndarray, kwargs: dict[str, Any]) -> tuple[str, Any]:

@@ -305,3 +305,28 @@ def test_the_readme_python_example_runs():
     assert out[0] == shown[0] and len(out) == len(shown) == 3  # the counts may move with the rules: the shape may not
     for line in out[1:]:
         assert re.fullmatch(r"examples/data/\w+\.ply: \d+ clusters, [\d,]+ ground points, \d+ noise", line), line
+
+
+def _segment_without_closing(path: str, q) -> None:
+    seg = kbs.Segmenter("outdoor", jobs=2)
+    q.put(len(seg.segment(read_cloud(path).xyz).clusters))  # no close(): the process must still end
+
+
+def test_a_process_that_never_closes_its_segmenter_still_exits():
+    """In a multiprocessing child (a benchmark, a Dask worker), multiprocessing joins the child's
+    own children before Python's exit handlers stop the pool: idle split workers would be waited
+    for for ever. The pool is stopped before that join."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    q = ctx.Queue()
+    p = ctx.Process(target=_segment_without_closing, args=(str(EXAMPLE), q))
+    p.start()
+    try:
+        assert q.get(timeout=300) > 1
+        p.join(120)
+        assert p.exitcode == 0, "the process did not exit on its own"
+    finally:
+        if p.is_alive():
+            p.kill()
+            p.join()
