@@ -81,6 +81,7 @@ def _child(rules: str, n: int, q, jobs: int) -> None:
     kinds = s.get("limits_by_kind") or {}
     lim = ", ".join(f"{k} {v['count'] if isinstance(v, dict) else v}" for k, v in kinds.items()) or "-"
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    seg.close()  # the split workers end here: their peak RSS is then known
     workers = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024
     q.put((dt, rss, workers, s["clusters"], s["splits"], s["limits"], lim))
 
