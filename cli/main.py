@@ -27,6 +27,7 @@ COMMANDS = {
     "synth": "kbs.cli.synth:synth",
     "segcomp": "kbs.cli.segcomp:segcomp",
     "render": "kbs.cli.render:render",
+    "warmup": "kbs.cli.warmup:warmup",
 }
 
 

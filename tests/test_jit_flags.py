@@ -63,3 +63,16 @@ def test_a_stale_lock_does_not_block_for_ever(state, monkeypatch):
     popen = []
     monkeypatch.setattr(_flags.subprocess, "Popen", lambda *a, **k: popen.append(a))
     assert _flags.start_warmup() is True and len(popen) == 1
+
+
+def test_kbs_warmup_compiles_in_the_foreground_then_says_it_is_done(state):
+    from click.testing import CliRunner
+
+    from kbs.cli.main import cli
+
+    r = CliRunner().invoke(cli, ["warmup"])
+    assert r.exit_code == 0, r.output
+    assert "compiled and cached the kernels" in r.output
+    assert (state / "kbs-jit-ready").read_text() == _flags._stamp()
+    r = CliRunner().invoke(cli, ["warmup"])
+    assert r.exit_code == 0 and "already cached" in r.output
