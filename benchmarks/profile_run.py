@@ -348,17 +348,7 @@ def write_json(path: Path, spec: dict, rb, pc, seg) -> None:
     """What cli/run.py writes: label names, summary, clusters and the explanation tree."""
     from kbs import __version__
 
-    try:
-        from kbs.cli.run import _jsonable
-    except ImportError:
-        def _jsonable(o):
-            import numpy as np
-
-            if isinstance(o, np.generic):
-                return o.item()
-            if isinstance(o, np.ndarray):
-                return o.tolist()
-            raise TypeError(type(o).__name__)
+    from kbs.cli.run import _jsonable
     doc = {
         "kbs_version": __version__, "input": spec["scan"], "n_points": len(pc), "n_dropped": getattr(pc, "n_dropped", 0),
         "rule_base": rb.name, "rule_file": rb.path, "units": rb.units, "sensor": list(map(float, rb.sensor)),

@@ -507,20 +507,19 @@ def gg_run(XT, w, R, u0, m, power, tol, max_iter, min_variance, max_condition, m
 # cells among 10^5 points stays in the cache.
 
 _EMPTY = np.int64(-1)  # keys are non-negative
+_START_SIZE = 1024
+_START_SHIFT = 64 - 10  # 64 - log2(_START_SIZE); one less each time the table doubles
 
 
 @njit(nogil=True)
-def _slot(key, mask):
-    """Fibonacci hashing: the top bits of the key times 2^64 / golden ratio."""
-    bits = 0
-    while (1 << bits) <= mask:
-        bits += 1
-    h = (np.uint64(key) * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(64 - bits)
-    return np.int64(h)
+def _slot(key, shift):
+    """Fibonacci hashing: the top ``64 - shift`` bits of the key times 2^64 / golden ratio."""
+    return np.int64((np.uint64(key) * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(shift))
 
 
 @njit(nogil=True)
-def _grow(table, group):
+def _grow(table, group, shift):
+    """The table twice as large (its shift is ``shift - 1``), every key moved."""
     size = table.shape[0] * 2
     mask = size - 1
     t2 = np.full(size, _EMPTY)
@@ -528,7 +527,7 @@ def _grow(table, group):
     for i in range(table.shape[0]):
         key = table[i]
         if key != _EMPTY:
-            s = _slot(key, mask)
+            s = _slot(key, shift - 1)
             while t2[s] != _EMPTY:
                 s = (s + 1) & mask
             t2[s] = key
@@ -537,10 +536,10 @@ def _grow(table, group):
 
 
 @njit(nogil=True)
-def _insert(table, group, key, m):
+def _insert(table, group, key, m, shift):
     """Find or insert ``key``; returns its group (``m`` when new) and whether it was new."""
     mask = table.shape[0] - 1
-    s = _slot(key, mask)
+    s = _slot(key, shift)
     while True:
         t = table[s]
         if t == key:
@@ -558,19 +557,21 @@ def unique_inverse(keys):
     non-negative int64 keys: a hash table gives each key a group in order of first appearance,
     then only the distinct keys are sorted."""
     n = keys.shape[0]
-    table = np.full(1024, _EMPTY)
-    group = np.empty(1024, dtype=np.int64)
+    table = np.full(_START_SIZE, _EMPTY)
+    group = np.empty(_START_SIZE, dtype=np.int64)
+    shift = _START_SHIFT
     first_keys = np.empty(n, dtype=np.int64)
     inv = np.empty(n, dtype=np.int64)
     m = 0
     for j in range(n):
-        g, new = _insert(table, group, keys[j], m)
+        g, new = _insert(table, group, keys[j], m, shift)
         inv[j] = g
         if new:
             first_keys[m] = keys[j]
             m += 1
             if 2 * m > table.shape[0]:
-                table, group = _grow(table, group)
+                table, group = _grow(table, group, shift)
+                shift -= 1
     distinct = first_keys[:m]
     order = np.argsort(distinct)
     rank = np.empty(m, dtype=np.int64)
@@ -586,18 +587,20 @@ def count_coarse_cells(cells, factor):
     """Number of distinct rows of ``floor(cells / factor)`` (cells (n, D <= 3) non-negative
     int64), the 20-bit-per-axis keys of :mod:`kbs.inference.voxel`."""
     n, D = cells.shape
-    table = np.full(1024, _EMPTY)
-    group = np.empty(1024, dtype=np.int64)
+    table = np.full(_START_SIZE, _EMPTY)
+    group = np.empty(_START_SIZE, dtype=np.int64)
+    shift = _START_SHIFT
     m = 0
     for j in range(n):
         key = np.int64(0)
         for d in range(D):
             key = (key << 20) | np.int64(math.floor(cells[j, d] / factor))
-        g, new = _insert(table, group, key, m)
+        g, new = _insert(table, group, key, m, shift)
         if new:
             m += 1
             if 2 * m > table.shape[0]:
-                table, group = _grow(table, group)
+                table, group = _grow(table, group, shift)
+                shift -= 1
     return m
 
 
