@@ -271,7 +271,7 @@ def child(spec: dict) -> dict:
 
     import kbs.cli.run  # noqa: F401  what `kbs run` has imported before it starts working
     import kbs.inference  # noqa: F401
-    import kbs.knowledge
+    import kbs.knowledge  # noqa: F401
     t_imports = time.perf_counter() - t_start
     for m in ("kbs.inference.ufp_onc", "kbs.inference.engine", "kbs.inference.voxel", "kbs.inference.kernels",
               "kbs.inference.geometry", "kbs.knowledge.connexity", "kbs.knowledge.groundmodel",
