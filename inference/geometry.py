@@ -69,7 +69,8 @@ def cluster_geometry(
     *,
     center_power: float = 2.0,
 ) -> ClusterGeometry:
-    """Geometry of one cluster from its points and (optional) memberships.
+    """Geometry of one cluster from its points and (optional) memberships; its arrays are
+    read-only (a result).
 
     Parameters
     ----------
@@ -93,16 +94,21 @@ def cluster_geometry(
 
         center, cov, lam, vec, _ = geometry3(np.ascontiguousarray(X), np.ascontiguousarray(u),
                                              np.ascontiguousarray(w), float(center_power))
-        return ClusterGeometry(center=center, covariance=cov, eigenvalues=np.maximum(lam, 0.0),
-                               eigenvectors=vec, mass=mass)
+        return _frozen(center, cov, np.maximum(lam, 0.0), vec, mass)
     upw = (u**center_power) * w
     center = (upw @ X) / upw.sum()
     diff = X - center
     cov = (diff * uw[:, None]).T @ diff / mass
     cov = 0.5 * (cov + cov.T)
     lam, vec = np.linalg.eigh(cov)
-    return ClusterGeometry(center=center, covariance=cov, eigenvalues=np.maximum(lam, 0.0),
-                           eigenvectors=vec, mass=mass)
+    return _frozen(center, cov, np.maximum(lam, 0.0), vec, mass)
+
+
+def _frozen(center, cov, lam, vec, mass: float) -> ClusterGeometry:
+    """A ClusterGeometry over arrays made here, set read-only."""
+    for a in (center, cov, lam, vec):
+        a.flags.writeable = False
+    return ClusterGeometry(center=center, covariance=cov, eigenvalues=lam, eigenvectors=vec, mass=mass)
 
 
 def angle_between_planes(n1: np.ndarray, n2: np.ndarray) -> float:

@@ -10,11 +10,13 @@ and plugin files (``kbs run --plugin my_predicates.py``).
 """
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import importlib.util
 import inspect
 import math
 import sys
+import traceback
 from dataclasses import dataclass, field
 from functools import cached_property
 from importlib.metadata import entry_points
@@ -51,9 +53,24 @@ class PredicateError(KbsError):
 # --- what a predicate sees ------------------------------------------------------------------
 
 
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """A view of ``a`` that cannot be written through (``flags.writeable`` False); ``a`` itself
+    stays as it was."""
+    v = a.view()
+    v.flags.writeable = False
+    return v
+
+
+def _frozen_copy(a: Any) -> np.ndarray:
+    """A float64 copy of a small vector that nobody can write into."""
+    out = np.array(a, dtype=np.float64)
+    out.flags.writeable = False
+    return out
+
+
 @dataclass(eq=False)
 class Cluster:
-    """One cluster as the predicates see it.
+    """One cluster as the interpreter holds it; predicates see it through :meth:`view`.
 
     Attributes
     ----------
@@ -76,26 +93,93 @@ class Cluster:
 
     @cached_property
     def geometry(self) -> ClusterGeometry:
-        """Fuzzy centre, fuzzy covariance and its eigen-decomposition (memberships as weights)."""
+        """Fuzzy centre, fuzzy covariance and its eigen-decomposition (memberships as weights);
+        its arrays are read-only."""
         return cluster_geometry(self.X, self.weights)
+
+    def view(self) -> "ClusterView":
+        """The read-only view a predicate is given."""
+        return ClusterView(self)
+
+
+class ClusterView:
+    """What a predicate sees of a cluster: ``id``, ``X`` (n, 3), ``weights`` (n,), ``n_points``
+    and ``geometry`` (:class:`~kbs.inference.ClusterGeometry`), all read-only. A predicate
+    measures; writing into these arrays or assigning an attribute raises, and the run stops with
+    a plugin error naming the predicate."""
+
+    __slots__ = ("_cluster", "id", "X", "weights")
+
+    def __init__(self, cluster: Cluster) -> None:
+        object.__setattr__(self, "_cluster", cluster)
+        object.__setattr__(self, "id", cluster.id)
+        object.__setattr__(self, "X", _read_only(np.asarray(cluster.X)))
+        object.__setattr__(self, "weights", _read_only(np.asarray(cluster.weights)))
+
+    @property
+    def n_points(self) -> int:
+        return int(self.X.shape[0])
+
+    @property
+    def geometry(self) -> ClusterGeometry:
+        return self._cluster.geometry
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        raise AttributeError(f"cannot set '{name}': a predicate sees the cluster read-only")
+
+    def __delattr__(self, name: str) -> None:
+        raise AttributeError(f"cannot delete '{name}': a predicate sees the cluster read-only")
+
+    def __repr__(self) -> str:
+        return f"ClusterView(id={self.id!r}, n_points={self.n_points})"
 
 
 @dataclass(frozen=True)
 class Ground:
-    """The ground plane: unit normal (pointing up, away from the ground) and a point on it."""
+    """The ground plane: unit normal (pointing up, away from the ground) and a point on it (both
+    kept as read-only copies)."""
 
     normal: np.ndarray
     point: np.ndarray
     source: str  #: where it came from ('cluster c0', 'fixed', 'fallback')
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "normal", _frozen_copy(self.normal))
+        object.__setattr__(self, "point", _frozen_copy(self.point))
 
     def height(self, X: np.ndarray) -> np.ndarray:
         """Signed heights (n,) of points above the ground plane."""
         return (X - self.point) @ self.normal
 
 
+class _ReadOnlyObject:
+    """A read-only stand-in for an object a predicate may query (the local ground surface): its
+    methods work, its array attributes come as read-only views, nothing can be assigned."""
+
+    __slots__ = ("_target",)
+
+    def __init__(self, target: Any) -> None:
+        object.__setattr__(self, "_target", target)
+
+    def __getattr__(self, name: str) -> Any:
+        value = getattr(object.__getattribute__(self, "_target"), name)
+        return _read_only(value) if isinstance(value, np.ndarray) else value
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        raise AttributeError(f"cannot set '{name}': a predicate sees the scene read-only")
+
+    def __delattr__(self, name: str) -> None:
+        raise AttributeError(f"cannot delete '{name}': a predicate sees the scene read-only")
+
+    def __repr__(self) -> str:
+        return f"read-only {object.__getattribute__(self, '_target')!r}"
+
+
 @dataclass(frozen=True)
 class Scene:
-    """What predicates may know about the whole scene."""
+    """What predicates may know about the whole scene (read-only: the sensor is a read-only
+    copy, the ground plane a frozen :class:`Ground`, the local ground surface a read-only
+    stand-in)."""
 
     sensor: np.ndarray
     ground: Ground | None
@@ -103,6 +187,11 @@ class Scene:
     #: the local ground surface (:class:`~kbs.knowledge.groundmodel.LocalGround`), built after the
     #: clusters are labelled; only the rule base's ``post.relabel`` conditions can see it
     ground_model: Any = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "sensor", _frozen_copy(self.sensor))
+        if self.ground_model is not None and not isinstance(self.ground_model, _ReadOnlyObject):
+            object.__setattr__(self, "ground_model", _ReadOnlyObject(self.ground_model))
 
 
 @dataclass(frozen=True)
@@ -158,15 +247,65 @@ class Predicate:
     params: Mapping[str, Param]
     value_range: tuple[float | None, float | None]
     needs_ground: bool
+    #: where it comes from: its module for the built-ins, else its file and line ('my_plugin.py:12')
     origin: str
     needs_ground_model: bool = False
 
+    @property
+    def builtin(self) -> bool:
+        return self.origin == __name__
+
+    @property
+    def where(self) -> str:
+        """"predicate 'name'" and, for a plugin, its file and line."""
+        return f"predicate '{self.name}'" + ("" if self.builtin else f" ({self.origin})")
+
     def measure(self, cluster: Cluster, scene: Scene, params: Mapping[str, Any]) -> Measurement:
-        out = self.func(cluster, scene, **params)
-        m = out if isinstance(out, Measurement) else Measurement(float(out))
+        """Measure ``cluster`` in ``scene``. The predicate is given read-only views of both.
+
+        Raises :class:`PredicateError` when it fails, changes what it is given, exits or returns
+        something else than a number; ``KeyboardInterrupt`` goes through (Ctrl-C stops the run).
+        """
+        seen = cluster.view() if isinstance(cluster, Cluster) else cluster
+        try:
+            out = self.func(seen, scene, **params)
+        except KeyboardInterrupt:
+            raise
+        except KbsError as exc:
+            if self.builtin:  # e.g. connexity's own parameter errors: as they are
+                raise
+            raise PredicateError(f"{self.where} failed on cluster {cluster.id} ({cluster.n_points:,} points)"
+                                 f"{self._line(exc)}: {type(exc).__name__}: {exc}") from exc
+        except SystemExit as exc:
+            raise PredicateError(f"{self.where} called sys.exit({exc.code!r}){self._line(exc)} on cluster {cluster.id} "
+                                 f"({cluster.n_points:,} points): a predicate returns a number or raises an "
+                                 "exception; it must not end the program") from None
+        except BaseException as exc:  # its bug: name the predicate, its file and line, and the cluster
+            hint = ("; a predicate must not change the cluster or the scene it is given (they are read-only)"
+                    if _is_mutation(exc) else "")
+            raise PredicateError(f"{self.where} failed on cluster {cluster.id} ({cluster.n_points:,} points)"
+                                 f"{self._line(exc)}: {type(exc).__name__}: {exc}{hint}") from exc
+        if isinstance(out, Measurement):
+            m = out
+        else:
+            try:
+                m = Measurement(float(out))
+            except (TypeError, ValueError):
+                m = Measurement(out)
         if not isinstance(m.value, (int, float, np.floating, np.integer)) or math.isnan(float(m.value)):
-            raise PredicateError(f"predicate '{self.name}' returned {m.value!r} for cluster {cluster.id}, not a number")
+            raise PredicateError(f"{self.where} returned {m.value!r} for cluster {cluster.id}, not a number")
         return Measurement(float(m.value), m.details)
+
+    def _line(self, exc: BaseException) -> str:
+        """' at my_plugin.py:17': the last line of the predicate's own file the error went
+        through ('' for a built-in, or when there is none)."""
+        if self.builtin:
+            return ""
+        code = getattr(inspect.unwrap(self.func), "__code__", None)
+        if code is None:
+            return ""
+        frames = [f for f in traceback.extract_tb(exc.__traceback__) if f.filename == code.co_filename]
+        return f" at {frames[-1].filename}:{frames[-1].lineno}" if frames else ""
 
     def unit_label(self, length_unit: str) -> str:
         return {"length": length_unit, "deg": "deg", "count": "", "points": "pts", "ratio": ""}[self.unit]
@@ -174,6 +313,34 @@ class Predicate:
     @property
     def summary(self) -> str:
         return self.doc.strip().splitlines()[0]
+
+
+def _is_mutation(exc: BaseException) -> bool:
+    """Whether ``exc`` is what writing into a read-only view or a frozen object raises."""
+    if isinstance(exc, dataclasses.FrozenInstanceError):
+        return True
+    text = str(exc)
+    return (isinstance(exc, ValueError) and "read-only" in text) or \
+        (isinstance(exc, AttributeError) and "read-only" in text)
+
+
+def origin_of(func: Callable) -> str:
+    """Where a predicate function is declared: its module for the built-ins (and anything of
+    kbs), else its file and line ('my_plugin.py:12', the line of its decorator), else what is
+    known (its module's file or name)."""
+    module = getattr(func, "__module__", None) or "?"
+    if module == "kbs" or module.startswith("kbs."):
+        return module
+    code = getattr(inspect.unwrap(func), "__code__", None)
+    if code is not None:
+        return f"{code.co_filename}:{code.co_firstlineno}"
+    return getattr(sys.modules.get(module), "__file__", None) or module
+
+
+def _file_and_line(origin: str) -> tuple[str | None, int | None]:
+    """('my_plugin.py', 12) for an origin 'my_plugin.py:12', else (None, None)."""
+    file, sep, line = origin.rpartition(":")
+    return (file, int(line)) if sep and file and line.isdigit() else (None, None)
 
 
 def predicate(
@@ -209,7 +376,7 @@ def predicate(
     def wrap(func: Callable) -> Predicate:
         return make_predicate(func, name=name or getattr(func, "__name__", ""), unit=unit, value_range=value_range,
                               needs_ground=needs_ground or needs_ground_model, bounds=bounds or {},
-                              choices=choices or {}, origin=getattr(func, "__module__", "?"),
+                              choices=choices or {}, origin=origin_of(func),
                               needs_ground_model=needs_ground_model)
 
     return wrap
@@ -218,7 +385,8 @@ def predicate(
 def make_predicate(func: Callable, *, name: str, unit: str, value_range, needs_ground: bool, bounds, choices,
                    origin: str, needs_ground_model: bool = False) -> Predicate:
     """Check a function against the predicate contract and wrap it (raises PredicateError)."""
-    where = f"predicate '{name}' ({origin})"
+    file, line = _file_and_line(origin)
+    where = f"{file}: predicate '{name}' (line {line})" if file else f"predicate '{name}' ({origin})"
     if not isinstance(name, str) or not name.isidentifier():
         raise PredicateError(f"{where}: the name must be an identifier")
     if not callable(func):
@@ -275,8 +443,11 @@ class PredicateRegistry:
             for ep in entry_points(group=ENTRY_POINT_GROUP):
                 try:
                     obj = ep.load()
-                except Exception as exc:  # a broken third-party package must say who it is
-                    raise PredicateError(f"entry point '{ep.name}' ({ep.value}) failed to load: {exc}") from exc
+                except KeyboardInterrupt:
+                    raise
+                except BaseException as exc:  # a broken third-party package must say who it is (sys.exit too)
+                    what = f"called sys.exit({exc.code!r})" if isinstance(exc, SystemExit) else f"failed to load: {exc}"
+                    raise PredicateError(f"entry point '{ep.name}' ({ep.value}) {what}") from exc
                 reg.add_object(obj, origin=f"entry point {ep.name}")
         return reg
 
@@ -304,7 +475,12 @@ class PredicateRegistry:
         raise PredicateError(f"{origin}: expected a predicate or a module of predicates, got {type(obj).__name__}")
 
     def add_plugin_file(self, path: str | Path) -> int:
-        """Import a Python file and add the predicates it declares."""
+        """Import a Python file and add the predicates it declares.
+
+        Every problem is a :class:`PredicateError` naming the file (and the line where known):
+        a missing file, an import that fails or exits (``sys.exit``), a predicate that breaks the
+        contract. ``KeyboardInterrupt`` goes through.
+        """
         path = Path(path)
         if not path.is_file():
             raise PredicateError(f"{path}: plugin file not found")
@@ -317,9 +493,15 @@ class PredicateRegistry:
         try:
             spec.loader.exec_module(module)
         except PredicateError as exc:
-            raise PredicateError(f"{path}: {exc}") from exc
-        except Exception as exc:
-            raise PredicateError(f"{path}: the plugin failed to import: {type(exc).__name__}: {exc}") from exc
+            raise PredicateError(str(exc) if str(exc).startswith(f"{path}:") else f"{path}: {exc}") from exc
+        except KeyboardInterrupt:
+            raise
+        except SystemExit as exc:
+            raise PredicateError(f"{_at_line(path, exc)}: the plugin called sys.exit({exc.code!r}) while being "
+                                 "imported: a plugin file declares predicates; it must not end the program") from None
+        except BaseException as exc:
+            raise PredicateError(f"{_at_line(path, exc)}: the plugin failed to import: "
+                                 f"{type(exc).__name__}: {exc}") from exc
         return self.add_object(module, origin=str(path))
 
     def get(self, name: str) -> Predicate:
@@ -337,6 +519,16 @@ class PredicateRegistry:
     def suggest(self, name: str) -> str | None:
         """The closest known name, for 'did you mean'."""
         return did_you_mean(name, self.names())
+
+
+def _at_line(path: Path, exc: BaseException) -> str:
+    """'my_plugin.py:7': the file and the last line of it that ``exc`` went through ('my_plugin.py'
+    alone when unknown)."""
+    line = getattr(exc, "lineno", None) if isinstance(exc, SyntaxError) else None
+    if line is None:
+        frames = [f for f in traceback.extract_tb(exc.__traceback__) if f.filename == str(path)]
+        line = frames[-1].lineno if frames else None
+    return f"{path}:{line}" if line else str(path)
 
 
 def did_you_mean(name: str, candidates: Iterable[str]) -> str | None:
