@@ -318,6 +318,7 @@ def predicates(plugins: tuple[Path, ...]) -> None:
     for p in _registry(plugins):
         uses = ("  (uses the local ground surface: post.relabel only)" if p.needs_ground_model
                 else "  (uses the ground)" if p.needs_ground else "")
+        uses += "  (needs a plane: undefined on a degenerate cluster)" if p.needs_plane else ""
         click.echo(f"{p.name}  [{p.unit}: {UNITS[p.unit]}]{uses}")
         lo, hi = p.value_range
         if lo is not None or hi is not None:

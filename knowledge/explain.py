@@ -17,7 +17,7 @@ class CheckRecord:
 
     check: str
     predicate: str
-    value: float
+    value: float | None  #: None: undefined (e.g. the ground angle of a cluster with no plane), ``note`` says why
     unit: str
     min: float | None
     max: float | None
@@ -33,13 +33,18 @@ class CheckRecord:
         return (">=" if self.value >= self.min else "<"), self.min
 
     def comparison(self) -> str:
-        """'0.021 m <= 0.05 m'."""
+        """'0.021 m <= 0.05 m' ('undefined' when there is no value)."""
+        if self.value is None:
+            return "undefined"
         op, b = self.bound()
         u = f" {self.unit}" if self.unit else ""
         return f"{self.value:.4g}{u} {op} {b:g}{u}"
 
     def sentence(self) -> str:
-        """'connexity = 3 components > 1', 'thickness = 0.12 m > 0.05 m'."""
+        """'connexity = 3 components > 1', 'thickness = 0.12 m > 0.05 m', 'ground_angle undefined
+        (degenerate: its points lie on a line, no plane)'."""
+        if self.value is None:
+            return f"{self.predicate} undefined" + (f" ({self.note})" if self.note else "")
         op, b = self.bound()
         u = f" {self.unit}" if self.unit else ""
         if self.predicate == "connexity":

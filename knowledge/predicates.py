@@ -196,10 +196,20 @@ class Scene:
 
 @dataclass(frozen=True)
 class Measurement:
-    """A predicate's value with optional details an action can reuse (e.g. the components)."""
+    """A predicate's value with optional details an action can reuse (e.g. the components).
+
+    ``undefined`` says why there is no value (then ``value`` is NaN), e.g. the ground angle of a
+    cluster whose points lie on a line: its check fails whatever its thresholds (so ``not CHECK``
+    holds), and the explanation gives the reason.
+    """
 
     value: float
     details: Any = None
+    undefined: str | None = None
+
+    @property
+    def defined(self) -> bool:
+        return self.undefined is None
 
 
 # --- the contract ---------------------------------------------------------------------------
@@ -250,6 +260,9 @@ class Predicate:
     #: where it comes from: its module for the built-ins, else its file and line ('my_plugin.py:12')
     origin: str
     needs_ground_model: bool = False
+    #: it measures the best approximating plane's orientation, which a degenerate cluster (all its
+    #: points on a line or at one position) does not have: the value is then undefined
+    needs_plane: bool = False
 
     @property
     def builtin(self) -> bool:
@@ -266,6 +279,10 @@ class Predicate:
         Raises :class:`PredicateError` when it fails, changes what it is given, exits or returns
         something else than a number; ``KeyboardInterrupt`` goes through (Ctrl-C stops the run).
         """
+        if self.needs_plane:
+            geo = cluster.geometry
+            if geo.degenerate:
+                return Measurement(math.nan, undefined=f"degenerate: {geo.degeneracy}, no plane")
         seen = cluster.view() if isinstance(cluster, Cluster) else cluster
         try:
             out = self.func(seen, scene, **params)
@@ -292,8 +309,11 @@ class Predicate:
                 m = Measurement(float(out))
             except (TypeError, ValueError):
                 m = Measurement(out)
+        if not m.defined:
+            return Measurement(math.nan, m.details, str(m.undefined))
         if not isinstance(m.value, (int, float, np.floating, np.integer)) or math.isnan(float(m.value)):
-            raise PredicateError(f"{self.where} returned {m.value!r} for cluster {cluster.id}, not a number")
+            raise PredicateError(f"{self.where} returned {m.value!r} for cluster {cluster.id}, not a number "
+                                 "(when there is none, return Measurement(nan, undefined='why'))")
         return Measurement(float(m.value), m.details)
 
     def _line(self, exc: BaseException) -> str:
@@ -352,6 +372,7 @@ def predicate(
     bounds: Mapping[str, tuple[float | None, float | None]] | None = None,
     choices: Mapping[str, Iterable[str]] | None = None,
     needs_ground_model: bool = False,
+    needs_plane: bool = False,
 ) -> Callable[[Callable], Predicate]:
     """Declare a predicate. The function is checked now, not when it is first called.
 
@@ -369,6 +390,11 @@ def predicate(
         Whether it uses ``scene.ground_model``, the local ground surface built from the clusters
         labelled ground (implies ``needs_ground``). Such a predicate can only be used after the
         labelling: in the conditions of ``post.relabel``.
+    needs_plane : bool
+        Whether it measures the orientation of the cluster's best approximating plane (its
+        normal, the ratio of its spreads). A degenerate cluster (``cluster.geometry.degenerate``:
+        its points on a line or at one position) has none: the predicate is not called, its
+        value is undefined, its check fails and the explanation says why.
     bounds, choices : mapping
         Allowed ranges of numeric parameters, allowed values of string parameters.
     """
@@ -377,13 +403,13 @@ def predicate(
         return make_predicate(func, name=name or getattr(func, "__name__", ""), unit=unit, value_range=value_range,
                               needs_ground=needs_ground or needs_ground_model, bounds=bounds or {},
                               choices=choices or {}, origin=origin_of(func),
-                              needs_ground_model=needs_ground_model)
+                              needs_ground_model=needs_ground_model, needs_plane=needs_plane)
 
     return wrap
 
 
 def make_predicate(func: Callable, *, name: str, unit: str, value_range, needs_ground: bool, bounds, choices,
-                   origin: str, needs_ground_model: bool = False) -> Predicate:
+                   origin: str, needs_ground_model: bool = False, needs_plane: bool = False) -> Predicate:
     """Check a function against the predicate contract and wrap it (raises PredicateError)."""
     file, line = _file_and_line(origin)
     where = f"{file}: predicate '{name}' (line {line})" if file else f"predicate '{name}' ({origin})"
@@ -421,7 +447,7 @@ def make_predicate(func: Callable, *, name: str, unit: str, value_range, needs_g
         raise PredicateError(f"{where}: bounds or choices given for unknown parameters {sorted(unknown)}")
     return Predicate(name=name, func=func, unit=unit, doc=doc, params=params, value_range=(lo, hi),
                      needs_ground=needs_ground or needs_ground_model, origin=origin,
-                     needs_ground_model=needs_ground_model)
+                     needs_ground_model=needs_ground_model, needs_plane=bool(needs_plane))
 
 
 # --- the registry ---------------------------------------------------------------------------
@@ -546,18 +572,19 @@ def thickness(cluster: Cluster, scene: Scene) -> float:
     return cluster.geometry.thickness
 
 
-@predicate(unit="ratio", value_range=(0.0, 1.0))
+@predicate(unit="ratio", value_range=(0.0, 1.0), needs_plane=True)
 def flatness(cluster: Cluster, scene: Scene) -> float:
     """sqrt(mu1 / mu2): the spread across the best approximating plane relative to the smaller
-    spread along it; 0 for a sheet, 1 when the cluster is as thick as it is wide (a blob)."""
+    spread along it; 0 for a sheet, 1 when the cluster is as thick as it is wide (a blob).
+    Undefined when its points lie on a line (0 / 0)."""
     mu = cluster.geometry.eigenvalues
     return float(np.sqrt(mu[0] / mu[1])) if mu[1] > 0 else 0.0
 
 
-@predicate(unit="deg", value_range=(0.0, 90.0), needs_ground=True)
+@predicate(unit="deg", value_range=(0.0, 90.0), needs_ground=True, needs_plane=True)
 def ground_angle(cluster: Cluster, scene: Scene) -> float:
     """Angle in degrees between the cluster's best approximating plane and the ground plane
-    (0 = parallel)."""
+    (0 = parallel). Undefined when its points lie on a line: no plane."""
     return math.degrees(angle_between_planes(cluster.geometry.normal, scene.ground.normal))
 
 
