@@ -515,9 +515,15 @@ class PredicateRegistry:
         if spec is None or spec.loader is None:
             raise PredicateError(f"{path}: not an importable Python file")
         module = importlib.util.module_from_spec(spec)
+        try:
+            source = path.read_bytes()
+        except OSError as exc:
+            raise PredicateError(f"{path}: cannot read the plugin file: {exc.strerror or exc}") from exc
         sys.modules[mod_name] = module
         try:
-            spec.loader.exec_module(module)
+            # compiled under the path as the user gave it, so that every message (the predicates'
+            # origins, the lines of errors) names the file they know
+            exec(compile(source, str(path), "exec"), module.__dict__)
         except PredicateError as exc:
             raise PredicateError(str(exc) if str(exc).startswith(f"{path}:") else f"{path}: {exc}") from exc
         except KeyboardInterrupt:

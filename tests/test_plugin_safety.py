@@ -223,3 +223,19 @@ def test_a_plugin_raising_a_kbs_error_is_still_named(tmp_path):
     assert r.returncode == 7
     assert f"predicate 'picky' ({plugin}:5) failed on cluster c0 (19,359 points) at {plugin}:9: FitError: " \
            "too few points for me" in r.stderr, r.stderr
+
+
+def test_a_relative_plugin_path_is_named_as_given(tmp_path):
+    (tmp_path / "plugins").mkdir()
+    (tmp_path / "plugins" / "nodoc.py").write_text("from kbs.knowledge import predicate\n\n\n@predicate(unit='ratio')\n"
+                                                   "def nodoc(cluster, scene):\n    return 1.0\n")
+    r = kbs("predicates", "--plugin", "plugins/nodoc.py", cwd=tmp_path)
+    assert r.returncode == 7
+    assert r.stderr.startswith("kbs: error: plugins/nodoc.py: predicate 'nodoc' (line 4): a docstring"), r.stderr
+    assert str(tmp_path) not in r.stderr
+    _plugin(tmp_path, "broken", "return 1 / 0\n")
+    r = kbs("run", "--rules", str(_rules(tmp_path, "broken")), str(EXAMPLE), "--plugin", "broken_plugin.py",
+            "--out", "out", "-j", "1", cwd=tmp_path)
+    assert r.returncode == 7
+    assert "predicate 'broken' (broken_plugin.py:5) failed on cluster c0 (19,359 points) at broken_plugin.py:8: " \
+           "ZeroDivisionError" in r.stderr, r.stderr
