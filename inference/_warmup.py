@@ -28,6 +28,9 @@ def warm() -> None:
     idx = rng.integers(0, 100, (50, 16)).astype(np.int64)
     C.local_medians(d, idx, rng.random(100), rng.integers(0, 3, 100).astype(np.int64), 1, 8)
     C.local_medians(d, idx, rng.random(100), np.zeros(0, dtype=np.int64), -1, 8)
+    from kbs.knowledge.connexity import connexity
+
+    connexity(X[:3000], X[:3000].mean(axis=0), np.array([0.0, 0.0, 1.0]))  # the opening and the components
     _flags.marker().write_text(_flags._stamp())
 
 
