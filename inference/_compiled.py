@@ -644,25 +644,33 @@ def central_sums(u, w, maha):
 def geometry3(X, u, w, power):
     """Fuzzy centre (3,) (weights ``w u^power``), fuzzy covariance (3, 3) (weights ``w u``, two
     passes), its eigenvalues (ascending) and eigenvectors, and the effective size, of points
-    ``X`` (n, 3)."""
+    ``X`` (n, 3). An empty ``u`` or ``w`` stands for all ones. When the effective size or the
+    centre's total weight is not positive, the size alone is meaningful (the rest is zeros)."""
     n = X.shape[0]
+    has_u = u.shape[0] > 0
+    has_w = w.shape[0] > 0
     c0 = c1 = c2 = 0.0
     den = 0.0
     mass = 0.0
     for j in range(n):
-        uw = u[j] * w[j]
-        p = (u[j] * u[j] if power == 2.0 else u[j] ** power) * w[j]
+        uj = u[j] if has_u else 1.0
+        wj = w[j] if has_w else 1.0
+        p = (uj * uj if power == 2.0 else uj ** power) * wj
         den += p
-        mass += uw
+        mass += uj * wj
         c0 += p * X[j, 0]
         c1 += p * X[j, 1]
         c2 += p * X[j, 2]
+    center = np.zeros(3)
+    cov = np.zeros((3, 3))
+    if not (den > 0.0 and mass > 0.0):
+        return center, cov, np.zeros(3), np.eye(3), mass
     c0 /= den
     c1 /= den
     c2 /= den
     s00 = s01 = s02 = s11 = s12 = s22 = 0.0
     for j in range(n):
-        uw = u[j] * w[j]
+        uw = (u[j] if has_u else 1.0) * (w[j] if has_w else 1.0)
         d0 = X[j, 0] - c0
         d1 = X[j, 1] - c1
         d2 = X[j, 2] - c2
@@ -672,7 +680,6 @@ def geometry3(X, u, w, power):
         s11 += uw * d1 * d1
         s12 += uw * d1 * d2
         s22 += uw * d2 * d2
-    cov = np.empty((3, 3))
     cov[0, 0] = s00 / mass
     cov[0, 1] = cov[1, 0] = s01 / mass
     cov[0, 2] = cov[2, 0] = s02 / mass
@@ -680,7 +687,6 @@ def geometry3(X, u, w, power):
     cov[1, 2] = cov[2, 1] = s12 / mass
     cov[2, 2] = s22 / mass
     lam, vec = np.linalg.eigh(cov)
-    center = np.empty(3)
     center[0] = c0
     center[1] = c1
     center[2] = c2

@@ -99,8 +99,15 @@ class LocalGround:
         if exclude is not None and self.owners is not None and exclude in self.owner_ids:
             own = self.owner_ids.index(exclude)
         k = min(self.neighbours * (self.EXCLUDE_FACTOR if own >= 0 else 1), self.n_points)
-        d, i = self.tree.query(P @ self.basis.T, k=k, distance_upper_bound=self.radius)
-        d, i = d.reshape(q, k), i.reshape(q, k)
+        Q = P @ self.basis.T
+        order = self._spatial_order(Q)
+        if order is None:
+            d, i = self.tree.query(Q, k=k, distance_upper_bound=self.radius)
+            d, i = d.reshape(q, k), i.reshape(q, k)
+        else:  # the same answers, asked in an order that keeps the tree's nodes in cache
+            ds, js = self.tree.query(Q[order], k=k, distance_upper_bound=self.radius)
+            d, i = np.empty((q, k)), np.empty((q, k), dtype=js.dtype)
+            d[order], i[order] = ds.reshape(q, k), js.reshape(q, k)
         if _flags.JIT:  # the same medians, compiled: one pass over the rows, no (q, k) temporaries
             owners = self.owners if self.owners is not None else np.zeros(0, dtype=np.int64)
             return _compiled.local_medians(np.ascontiguousarray(d), np.ascontiguousarray(i, dtype=np.int64),
@@ -123,6 +130,25 @@ class LocalGround:
             ground[some] = 0.5 * (hs[r, (m - 1) // 2] + hs[r, m // 2])
         nearest[some] = i[some, 0]
         return ground, nearest
+
+    def _spatial_order(self, Q: np.ndarray) -> np.ndarray | None:
+        """An order of the query points (q, 2) cell by cell (cells of about 16 ground points),
+        or None for few queries: k-d tree queries in a spatially coherent order run 1.2-2.5x
+        faster than in scan order, with the same answers."""
+        q = Q.shape[0]
+        if q < 2048:
+            return None
+        lo, hi = self.tree.mins, self.tree.maxes
+        extent = hi - lo
+        area = float(np.prod(np.maximum(extent, extent.max() * 1e-3)))
+        side = 4.0 * np.sqrt(area / self.n_points)
+        if not side > 0.0:
+            return None
+        ij = np.floor((Q - Q.min(axis=0)) / side)
+        if not np.isfinite(ij).all() or ij.max() >= 2.0**30:
+            return None
+        key = ij[:, 0] * (ij[:, 1].max() + 1.0) + ij[:, 1]
+        return np.argsort(key, kind="stable")
 
     def height(self, P: np.ndarray, exclude: str | None = None) -> np.ndarray:
         """Heights (q,) of points ``P`` above the local ground surface (NaN where it is unknown);
