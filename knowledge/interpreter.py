@@ -670,14 +670,19 @@ class Interpreter:
         gl = self.rb.ground_model.label
         unit = self.rb.length_unit
         moved_in: dict[int, list] = {}
-        for node, cl, rec in leaves:
-            if rec.label not in spec.sources or rec.label == gl or not node.idx.size:
-                continue
-            if spec.condition is not None and not spec.condition.evaluate(self._facts(cl, scene, rec)):
-                continue
-            P = X[node.idx]
-            ground, nearest = model.query(P)
-            h = (P - model.point) @ model.normal - ground
+        todo = [lf for lf in leaves if lf[2].label in spec.sources and lf[2].label != gl and lf[0].idx.size
+                and (spec.condition is None or spec.condition.evaluate(self._facts(lf[1], scene, lf[2])))]
+        if not todo:
+            return
+        # one query for all their points (the surface does not change while points move: they are
+        # received after the loop)
+        P_all = X[np.concatenate([lf[0].idx for lf in todo])]
+        ground_all, nearest_all = model.query(P_all)
+        h_all = (P_all - model.point) @ model.normal - ground_all
+        ends = np.cumsum([lf[0].idx.size for lf in todo])
+        for (node, cl, rec), stop in zip(todo, ends.tolist()):
+            start = stop - node.idx.size
+            h, nearest = h_all[start:stop], nearest_all[start:stop]
             move = np.abs(np.nan_to_num(h, nan=np.inf)) <= spec.tolerance
             n_move, size = int(move.sum()), node.idx.size
             if not n_move:
@@ -708,15 +713,21 @@ class Interpreter:
         tree = cKDTree(X[t_idx])
         moved_in: dict[int, list] = {}
         total = 0
-        for node, cl, rec in leaves:
-            if rec.label != gl or not node.idx.size:
-                continue
-            h = model.height(X[node.idx])
-            move = np.nan_to_num(h, nan=-np.inf) > spec.tolerance
-            n_move, size = int(move.sum()), node.idx.size
+        todo = [lf for lf in leaves if lf[2].label == gl and lf[0].idx.size]
+        # one query for all their points (points move only after the loop)
+        idx_all = np.concatenate([lf[0].idx for lf in todo]) if todo else np.zeros(0, dtype=np.int64)
+        up_all = np.nan_to_num(model.height(X[idx_all]), nan=-np.inf) > spec.tolerance
+        ends = np.cumsum([lf[0].idx.size for lf in todo], dtype=np.int64)
+        sizes = np.array([lf[0].idx.size for lf in todo], dtype=np.int64)
+        n_up = np.add.reduceat(up_all.astype(np.int64), ends - sizes) if todo else np.zeros(0, dtype=np.int64)
+        j_up = tree.query(X[idx_all[up_all]])[1] if up_all.any() else np.zeros(0, dtype=np.int64)
+        j_ends = np.cumsum(n_up)
+        for li, (node, cl, rec) in enumerate(todo):
+            n_move, size = int(n_up[li]), node.idx.size
             if not n_move:
                 continue
-            _, j = tree.query(X[node.idx[move]])
+            move = up_all[ends[li] - size:ends[li]]
+            j = j_up[j_ends[li] - n_move:j_ends[li]]
             dest = self._give(node, move, t_owner[j], moved_in)
             rec.released = n_move
             total += n_move
