@@ -61,6 +61,9 @@ class LocalGround:
 
     #: how many more neighbours are fetched when a cluster's own points are left out
     EXCLUDE_FACTOR = 8
+    #: neighbours fetched per k-d tree query call (16 bytes each): queries go in chunks of
+    #: ``QUERY_BUDGET // k`` points
+    QUERY_BUDGET = 1 << 20
 
     @classmethod
     def build(cls, X: np.ndarray, index: np.ndarray, normal: np.ndarray, point: np.ndarray, *,
@@ -102,17 +105,27 @@ class LocalGround:
         Q = P @ self.basis.T
         order = self._spatial_order(Q)
         if order is None:
-            d, i = self.tree.query(Q, k=k, distance_upper_bound=self.radius)
-            d, i = d.reshape(q, k), i.reshape(q, k)
-        else:  # the same answers, asked in an order that keeps the tree's nodes in cache
-            ds, js = self.tree.query(Q[order], k=k, distance_upper_bound=self.radius)
-            d, i = np.empty((q, k)), np.empty((q, k), dtype=js.dtype)
-            d[order], i[order] = ds.reshape(q, k), js.reshape(q, k)
+            order = np.arange(q)
+        # in chunks of the spatial order: the same answers, asked in an order that keeps the
+        # tree's nodes in cache, with the (chunk, k) temporaries bounded whatever q
+        step = max(1, self.QUERY_BUDGET // k)
+        for s in range(0, q, step):
+            sel = order[s:s + step]
+            d, i = self.tree.query(Q[sel], k=k, distance_upper_bound=self.radius)
+            ground[sel], nearest[sel] = self._medians(d.reshape(sel.size, k), i.reshape(sel.size, k), own)
+        return ground, nearest
+
+    def _medians(self, d: np.ndarray, i: np.ndarray, own: int) -> tuple[np.ndarray, np.ndarray]:
+        """The median heights and nearest positions of a k-nearest query (``d``, ``i`` (q, k),
+        nearest first), ``own`` the owner left out (-1: none)."""
+        q = d.shape[0]
         if _flags.JIT:  # the same medians, compiled: one pass over the rows, no (q, k) temporaries
             owners = self.owners if self.owners is not None else np.zeros(0, dtype=np.int64)
             return _compiled.local_medians(np.ascontiguousarray(d), np.ascontiguousarray(i, dtype=np.int64),
                                            self.heights, np.ascontiguousarray(owners, dtype=np.int64), own,
                                            self.neighbours)
+        ground = np.full(q, np.nan)
+        nearest = np.full(q, -1, dtype=np.int64)
         if own >= 0:  # leave the cluster's own points out, keep the nearest `neighbours` others
             ok = np.isfinite(d)
             ok[ok] = self.owners[i[ok]] != own
