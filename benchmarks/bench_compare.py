@@ -10,8 +10,9 @@ differs when they are not; a changed result is the signal to run the quality ben
 
 The other side is a git revision (``--base``, default ``HEAD``: the last commit, against the
 uncommitted changes) extracted with ``git archive`` into a temporary folder and imported from
-there (``PYTHONPATH``), with this venv's packages. Its compiled kernels are cached separately:
-its warm-up frame of its first round includes compiling them.
+there (``PYTHONPATH``), with this venv's packages. Both sides run the compiled kernels
+(``KBS_JIT=1``); the base's are cached separately, so its warm-up frame of the first round
+compiles them (without ``KBS_JIT=1`` it would run the numpy reference, its cache being cold).
 
 Usage: python benchmarks/bench_compare.py [--base REV] [--repeats 5] [--rounds 2] [--scan NAME ...]
 """
@@ -62,7 +63,7 @@ print(json.dumps({"times": times, "kbs": kbs.__file__, "clusters": int(res.clust
 
 def run_side(pythonpath: str | None, scan: str, repeats: int, out: Path) -> dict:
     path, rules, sensor = SCANS[scan]
-    env = dict(os.environ)
+    env = dict(os.environ, KBS_JIT="1")  # compiled on both sides (the base's cache is cold: its warm-up compiles)
     if pythonpath:
         env["PYTHONPATH"] = pythonpath
     proc = subprocess.run([sys.executable, "-c", CHILD, str(path), rules, json.dumps(sensor), str(repeats), str(out)],

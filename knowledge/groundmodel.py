@@ -92,7 +92,7 @@ class LocalGround:
         where none). With ``exclude`` (a cluster id), that cluster's own points are left out: among
         the ``EXCLUDE_FACTOR x neighbours`` nearest, the nearest ``neighbours`` of other clusters
         count."""
-        P = np.asarray(P, dtype=np.float64).reshape(-1, 3) - self.point
+        P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
         q = P.shape[0]
         ground = np.full(q, np.nan)
         nearest = np.full(q, -1, dtype=np.int64)
@@ -102,7 +102,9 @@ class LocalGround:
         if exclude is not None and self.owners is not None and exclude in self.owner_ids:
             own = self.owner_ids.index(exclude)
         k = min(self.neighbours * (self.EXCLUDE_FACTOR if own >= 0 else 1), self.n_points)
-        Q = P @ self.basis.T
+        Q = np.empty((q, 2))
+        for s in range(0, q, 1 << 16):  # plane coordinates, without a (q, 3) temporary
+            Q[s:s + (1 << 16)] = (P[s:s + (1 << 16)] - self.point) @ self.basis.T
         order = self._spatial_order(Q)
         if order is None:
             order = np.arange(q)

@@ -663,6 +663,30 @@ class Interpreter:
         node.idx, node.weight, node.path = node.idx[keep], node.weight[keep], node.path[keep]
         return [int(t) for t in dest]
 
+    #: points per batch of surface queries in the post steps
+    SURFACE_BATCH = 1 << 18
+
+    @classmethod
+    def _surface_batches(cls, X, todo, model):
+        """For each leaf of ``todo`` in order: (heights above the local surface, positions of the
+        nearest surface points) of its points, asked for batches of leaves of about
+        ``SURFACE_BATCH`` points together (few small queries, bounded temporaries)."""
+        batch: list = []
+        size = 0
+        for i, lf in enumerate(todo):
+            batch.append(lf)
+            size += lf[0].idx.size
+            if size < cls.SURFACE_BATCH and i + 1 < len(todo):
+                continue
+            P = X[np.concatenate([b[0].idx for b in batch])]
+            ground, nearest = model.query(P)
+            h = (P - model.point) @ model.normal - ground
+            stop = 0
+            for b in batch:
+                start, stop = stop, stop + b[0].idx.size
+                yield h[start:stop], nearest[start:stop]
+            batch, size = [], 0
+
     def _ground_contact(self, X, leaves, model, owner, scene: Scene) -> None:
         """post.ground_contact: points of other clusters lying on the surface join the ground
         cluster under them."""
@@ -672,17 +696,9 @@ class Interpreter:
         moved_in: dict[int, list] = {}
         todo = [lf for lf in leaves if lf[2].label in spec.sources and lf[2].label != gl and lf[0].idx.size
                 and (spec.condition is None or spec.condition.evaluate(self._facts(lf[1], scene, lf[2])))]
-        if not todo:
-            return
-        # one query for all their points (the surface does not change while points move: they are
-        # received after the loop)
-        P_all = X[np.concatenate([lf[0].idx for lf in todo])]
-        ground_all, nearest_all = model.query(P_all)
-        h_all = (P_all - model.point) @ model.normal - ground_all
-        ends = np.cumsum([lf[0].idx.size for lf in todo])
-        for (node, cl, rec), stop in zip(todo, ends.tolist()):
-            start = stop - node.idx.size
-            h, nearest = h_all[start:stop], nearest_all[start:stop]
+        # queries for batches of clusters (the surface does not change while points move: they
+        # are received after the loop)
+        for (node, cl, rec), (h, nearest) in zip(todo, self._surface_batches(X, todo, model)):
             move = np.abs(np.nan_to_num(h, nan=np.inf)) <= spec.tolerance
             n_move, size = int(move.sum()), node.idx.size
             if not n_move:
@@ -714,20 +730,13 @@ class Interpreter:
         moved_in: dict[int, list] = {}
         total = 0
         todo = [lf for lf in leaves if lf[2].label == gl and lf[0].idx.size]
-        # one query for all their points (points move only after the loop)
-        idx_all = np.concatenate([lf[0].idx for lf in todo]) if todo else np.zeros(0, dtype=np.int64)
-        up_all = np.nan_to_num(model.height(X[idx_all]), nan=-np.inf) > spec.tolerance
-        ends = np.cumsum([lf[0].idx.size for lf in todo], dtype=np.int64)
-        sizes = np.array([lf[0].idx.size for lf in todo], dtype=np.int64)
-        n_up = np.add.reduceat(up_all.astype(np.int64), ends - sizes) if todo else np.zeros(0, dtype=np.int64)
-        j_up = tree.query(X[idx_all[up_all]])[1] if up_all.any() else np.zeros(0, dtype=np.int64)
-        j_ends = np.cumsum(n_up)
-        for li, (node, cl, rec) in enumerate(todo):
-            n_move, size = int(n_up[li]), node.idx.size
+        # queries for batches of clusters (points move only after the loop)
+        for (node, cl, rec), (h, _) in zip(todo, self._surface_batches(X, todo, model)):
+            move = np.nan_to_num(h, nan=-np.inf) > spec.tolerance
+            n_move, size = int(move.sum()), node.idx.size
             if not n_move:
                 continue
-            move = up_all[ends[li] - size:ends[li]]
-            j = j_up[j_ends[li] - n_move:j_ends[li]]
+            _, j = tree.query(X[node.idx[move]])
             dest = self._give(node, move, t_owner[j], moved_in)
             rec.released = n_move
             total += n_move
