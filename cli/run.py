@@ -10,7 +10,7 @@ import click
 import numpy as np
 
 from kbs import __version__
-from kbs.cli.common import ProgressLines, check_writable_folder, force_option, result_fields
+from kbs.cli.common import ProgressLines, check_writable_folder, force_option, progress_interval, result_fields
 from kbs.errors import CloudFileError, ExitCode, KbsError
 from kbs.io import SUPPORTED_EXTENSIONS, read_cloud, read_result_json
 from kbs.io.atomic import replacing
@@ -259,6 +259,8 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
     prints nothing but errors."""
     quiet = ctx.obj.get("quiet", False)
     t0 = time.perf_counter()
+    if not quiet:
+        progress_interval()  # a bad KBS_PROGRESS_SECONDS is a usage error before any work
 
     def skipped(path: Path, why: str) -> None:
         if not quiet:
