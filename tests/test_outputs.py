@@ -115,7 +115,7 @@ def test_ctrl_c_between_the_two_files_leaves_the_previous_pair(out, monkeypatch,
 
     before = _snapshot(out)
     monkeypatch.setattr(json, "dumps", interrupted)
-    assert main([*RUN, "--sensor", "0,0,5", str(EXAMPLE), "--out", str(out)]) == 130
+    assert main([*RUN, "--color-by", "label", str(EXAMPLE), "--out", str(out)]) == 130  # another PLY
     assert "kbs: aborted" in capsys.readouterr().err
     assert _snapshot(out) == before
 
