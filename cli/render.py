@@ -8,6 +8,7 @@ import click
 
 from kbs.errors import CloudFileError
 from kbs.io.atomic import replacing
+from kbs.io.result import InputFiles, check_output
 
 KINDS = ("series", "map", "clusters")
 
@@ -43,9 +44,13 @@ def render(result: Path, out: Path | None, kind: str, max_points: int, dpi: int)
     from kbs.report import figures
 
     t0 = time.perf_counter()
+    outputs = _outputs(result, out, kind)
+    sources = InputFiles((result, result.with_suffix(".ply")))
+    for path in outputs.values():  # a figure never replaces the result it is drawn from
+        check_output(path, inputs=sources, force=True)
     res = figures.load_result(result)
     stem = result.stem
-    for k, path in _outputs(result, out, kind).items():
+    for k, path in outputs.items():
         t = time.perf_counter()
         if k == "series":
             fig = figures.series_figure(res.X, max_points=max_points, title=f"{stem}: UFP-ONC partitions, top view")

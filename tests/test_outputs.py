@@ -262,6 +262,15 @@ def test_cluster_replaces_its_own_output_but_not_another_file(tmp_path, capsys):
     assert main(["cluster", str(EXAMPLE), "--k-max", "2", "--out", str(target)]) == 0  # its own: replaced
 
 
+def test_render_never_draws_over_the_result_it_reads(out, capsys):
+    before = _snapshot(out)
+    assert main(["render", str(out / "outdoor.json"), "--kind", "map", "--out", str(out / "outdoor.ply")]) == 3
+    assert "outdoor.ply: is the input" in capsys.readouterr().err
+    assert _snapshot(out) == before
+    assert main(["render", str(out / "outdoor.json"), "--kind", "map", "--out", str(out / "figure")]) == 0
+    assert (out / "figure").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"  # no suffix: PNG, at the name given
+
+
 def test_an_unusable_out_folder_is_reported_before_any_segmentation(tmp_path, monkeypatch, capsys):
     import kbs.knowledge.segmenter
 
