@@ -106,11 +106,10 @@ def scan_paths(clouds: tuple[Path, ...], *,
         for p in found:
             scan = _companion_of(p, names)
             problem = None if scan else why_not_a_scan(p)
-            why = f"a companion of {scan}, not a scan" if scan else problem and f"not a point cloud ({problem})"
-            if why is None:
+            if scan is None and problem is None:
                 kept.append(p)
             elif on_skip is not None:
-                on_skip(p, why)
+                on_skip(p, f"a companion of {scan}, not a scan" if scan else f"not a point cloud ({problem})")
         if not kept:
             skipped = f"; {len(found)} skipped, not point clouds" if found else ""
             raise CloudFileError(str(arg), f"no point-cloud file in this directory (extensions: "
