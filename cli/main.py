@@ -44,7 +44,8 @@ class LazyGroup(click.Group):
 
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="kbs")
-@click.option("-q", "--quiet", is_flag=True, help="Only errors on stderr (no progress, no notes).")
+@click.option("-q", "--quiet", is_flag=True,
+              help="Only errors on stderr (no progress, no notes); `kbs run` prints no summary either.")
 @click.pass_context
 def cli(ctx: click.Context, quiet: bool) -> None:
     """kbs: knowledge-based partitioning of unorganised 3D point clouds.

@@ -69,6 +69,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from kbs.errors import FitError, ParameterError
+from kbs.inference import _flags
 
 __all__ = ["Connexity", "assign_to_nearest", "connexity", "graph_components", "project_on_plane"]
 
@@ -501,6 +502,36 @@ def _opening(D: _Distinct, r: float, erosion_fraction: float) -> np.ndarray:
     return kept
 
 
+def _compiled_opening_components(D: _Distinct, r: float, erosion_fraction: float, opening: bool):
+    """The opening (:func:`_opening`) and the components (:func:`graph_components`) in two
+    compiled passes over a grid of cells of side ``r``: ``(idx, comp, n_comp)``, the kept
+    positions, their components and how many; None when the extent is absurd for ``r`` (the
+    grid would hold more than ``4 m + 4096`` cells), where the k-d tree version runs instead.
+    The same degrees, ``k_min``, dilation and components as the k-d tree version."""
+    from kbs.inference import _compiled
+
+    U, mult = D.points, D.mult
+    m = U.shape[0]
+    max_cells = 4.0 * m + 4096.0
+    dilate = False
+    if opening:
+        degree = _compiled.connexity_degrees(U, mult, r, max_cells)
+        if degree.size == 0:
+            return None
+        sample = _median_sample(U)
+        k_min = erosion_fraction * float(np.median(np.repeat(degree[sample], mult[sample])))
+        kept = degree >= k_min
+        n_kept = int(np.count_nonzero(kept))
+        dilate = 0 < n_kept < m
+    else:
+        kept = np.ones(m, dtype=bool)
+    kept, comp, n_comp = _compiled.connexity_components(U, kept, r, dilate, max_cells)
+    if n_comp < 0:
+        return None
+    idx = np.flatnonzero(kept)
+    return idx, comp[idx], int(n_comp)
+
+
 def _number_by_size(n_comp: int, comp: np.ndarray, size: np.ndarray, Q: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Renumber components by decreasing size; ties go to the component holding the
@@ -615,9 +646,13 @@ def connexity(
 
     # Size of each distinct position: its multiplicity, or its summed weight.
     size = mult if w is None else np.bincount(D.point_of, weights=w[D.order])
-    kept = _opening(D, 2.0 * alpha, erosion_fraction) if opening else np.ones(U.shape[0], dtype=bool)
-    idx = np.flatnonzero(kept)
-    n_comp, comp = graph_components(U[idx], 2.0 * alpha)
+    found = _compiled_opening_components(D, 2.0 * alpha, erosion_fraction, opening) if _flags.JIT else None
+    if found is not None:
+        idx, comp, n_comp = found
+    else:
+        kept = _opening(D, 2.0 * alpha, erosion_fraction) if opening else np.ones(U.shape[0], dtype=bool)
+        idx = np.flatnonzero(kept)
+        n_comp, comp = graph_components(U[idx], 2.0 * alpha)
     # An isolated point (a component of one point: no other point within 2 alpha) is no component.
     alone = (np.bincount(comp, weights=mult[idx], minlength=n_comp) == 1)[comp]
     if alone.any():

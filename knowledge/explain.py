@@ -17,7 +17,9 @@ class CheckRecord:
 
     check: str
     predicate: str
-    value: float | None  #: None: undefined (e.g. the ground angle of a cluster with no plane), ``note`` says why
+    #: None: undefined (e.g. the ground angle of a cluster with no plane; ``note`` says why), or, read
+    #: back from a result file, not finite (a result JSON writes NaN and infinities as null)
+    value: float | None
     unit: str
     min: float | None
     max: float | None
@@ -32,10 +34,16 @@ class CheckRecord:
             return ("<=" if self.value <= self.max else ">"), self.max
         return (">=" if self.value >= self.min else "<"), self.min
 
+    def _unknown(self) -> str:
+        """For a value read back as null (a result JSON writes NaN and infinities so): what is known."""
+        u = f" {self.unit}" if self.unit else ""
+        bounds = " and ".join(f"{op} {b:g}{u}" for op, b in ((">=", self.min), ("<=", self.max)) if b is not None)
+        return f"not finite (null in the result file), {'passes' if self.passed else 'fails'} {bounds}"
+
     def comparison(self) -> str:
         """'0.021 m <= 0.05 m' ('undefined' when there is no value)."""
         if self.value is None:
-            return "undefined"
+            return "undefined" if self.note else self._unknown()
         op, b = self.bound()
         u = f" {self.unit}" if self.unit else ""
         return f"{self.value:.4g}{u} {op} {b:g}{u}"
@@ -44,7 +52,7 @@ class CheckRecord:
         """'connexity = 3 components > 1', 'thickness = 0.12 m > 0.05 m', 'ground_angle undefined
         (degenerate: its points lie on a line, no plane)'."""
         if self.value is None:
-            return f"{self.predicate} undefined" + (f" ({self.note})" if self.note else "")
+            return f"{self.predicate} undefined ({self.note})" if self.note else f"{self.predicate} = {self._unknown()}"
         op, b = self.bound()
         u = f" {self.unit}" if self.unit else ""
         if self.predicate == "connexity":
@@ -64,7 +72,8 @@ class APDCurve:
     chosen: int
 
     def text(self) -> str:
-        return ", ".join(f"K={k}{'*' if k == self.chosen else ''}: {a:.4g}" for k, a in zip(self.ks, self.apd))
+        return ", ".join(f"K={k}{'*' if k == self.chosen else ''}: {'null' if a is None else f'{a:.4g}'}"
+                         for k, a in zip(self.ks, self.apd))
 
 
 @dataclass
