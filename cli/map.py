@@ -11,6 +11,19 @@ from kbs.knowledge import Segmenter
 from kbs.knowledge.rulebase import shipped_rule_bases
 
 
+def _crs(ctx, param, value):
+    if value is None:
+        return None
+    from kbs.errors import ParameterError
+    from kbs.maps.files import check_crs
+
+    try:
+        check_crs(value)  # before any frame is segmented
+    except ParameterError as exc:
+        raise click.BadParameter(str(exc)) from exc
+    return value
+
+
 @click.command("map")
 @click.option("--rules", "rules", required=True, metavar="NAME|FILE",
               help=f"A shipped rule base ({', '.join(shipped_rule_bases())}) or a rule file; its label 'ground' is "
@@ -30,7 +43,7 @@ from kbs.knowledge.rulebase import shipped_rule_bases
               help="Voxel side of the fused cloud and of the objects' points, metres.")
 @click.option("--max-gap", type=click.IntRange(1, None), default=1, show_default=True,
               help="Obstacle clusters of frames up to this many frames apart that overlap are one object.")
-@click.option("--crs", metavar="CRS", help="The CRS the poses are in (e.g. EPSG:32632), for the GeoTIFF. Default: "
+@click.option("--crs", metavar="CRS", callback=_crs, help="The CRS the poses are in (e.g. EPSG:32632), for the GeoTIFF. Default: "
               "the drive's local frame, written as a local engineering CRS.")
 @click.option("--sensor", callback=_vector3, metavar="X,Y,Z", help="Sensor position in each frame (overrides the "
               "rule base's).")

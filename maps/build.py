@@ -190,7 +190,7 @@ def _check(name: str, value: Any, low: float, integer: bool = False, low_open: b
 def map_drive(segmenter: Any, drive: Drive | Iterable[np.ndarray], poses: Poses | np.ndarray | None = None, *,
               cell_size: float = 0.2, voxel_size: float = 0.1, min_obstacle_points: int = 1,
               l_obstacle: float = 0.85, l_ground: float = -0.4, l_clamp: float = 3.5, max_gap: int = 1,
-              min_object_points: int = 20, alpha: float | None = None,
+              min_object_points: int = 40, alpha: float | None = None,
               progress: Callable[[FrameRecord], None] | None = None) -> DriveMap:
     """Segment every frame of a drive with ``segmenter`` and fuse the frames into a map.
 
@@ -212,7 +212,11 @@ def map_drive(segmenter: Any, drive: Drive | Iterable[np.ndarray], poses: Poses 
     max_gap : int
         Obstacle clusters of frames up to this many frames apart that overlap are one object.
     min_object_points : int
-        Smaller obstacle clusters are not tracked as objects (they still vote in the grid).
+        Pieces of obstacle clusters with fewer points are not tracked as objects (they still vote
+        in the grid). 40, the outdoor rule base's ``limits.min_points``: below it the rule base
+        does not split a cluster any more, and a piece that small is mostly a fragment of an
+        object seen better in another frame (on the generated 20-frame drive of
+        docs/BENCHMARKS.md, 20 gave 3 true objects split in two, 40 none).
     alpha : float, optional
         Alpha-shape radius of the objects' meshes, metres (default ``3 voxel_size``).
     progress : callable, optional

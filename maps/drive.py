@@ -138,14 +138,21 @@ def scan_files(paths: Iterable[str | os.PathLike[str]]) -> list[Path]:
     Raises
     ------
     CloudFileError
-        A folder without any point-cloud file, or that cannot be listed.
+        A missing file or one of an unknown extension; a folder without any point-cloud file, or
+        that cannot be listed.
     """
     from kbs.io import SUPPORTED_EXTENSIONS
 
     out: list[Path] = []
     for arg in map(Path, paths):
         if not arg.is_dir():
-            out.append(arg)  # the reader says what is wrong with it, if anything
+            # checked before any frame is segmented: a drive fails at once, not after minutes
+            if not arg.exists():
+                raise CloudFileError(str(arg), "no such file")
+            if arg.suffix.lower() not in SUPPORTED_EXTENSIONS:
+                raise CloudFileError(str(arg), f"unknown extension {arg.suffix!r} (supported: "
+                                     f"{', '.join(SUPPORTED_EXTENSIONS)})" if arg.suffix else "no file extension")
+            out.append(arg)
             continue
         try:
             found = sorted((p for p in arg.iterdir() if p.suffix.lower() in SUPPORTED_EXTENSIONS and p.is_file()),

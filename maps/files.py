@@ -62,6 +62,25 @@ def _transform(m: DriveMap) -> tuple[float, float, float, float, float, float]:
     return (s, 0.0, x0, 0.0, -s, y1)
 
 
+def check_crs(crs: str) -> Any:
+    """``crs`` as a rasterio CRS.
+
+    Raises
+    ------
+    ParameterError
+        rasterio is not installed, or ``crs`` is not a CRS it knows.
+    """
+    try:
+        from rasterio.crs import CRS
+    except ImportError as exc:
+        raise ParameterError("a CRS is for the GeoTIFF, which needs rasterio: pip install 'kbs[map]'") from exc
+    try:
+        return CRS.from_user_input(crs)
+    except Exception as exc:  # noqa: BLE001 - CRSError, ValueError (an EPSG code that is not a number) ...
+        raise ParameterError(f"not a CRS: {crs!r} ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") \
+            from exc
+
+
 def write_geotiff(m: DriveMap, path: Path, crs: str | None = None) -> str:
     """Write the grid's bands as a GeoTIFF; returns what the CRS is (one line).
 
@@ -79,7 +98,6 @@ def write_geotiff(m: DriveMap, path: Path, crs: str | None = None) -> str:
     try:
         import rasterio
         from rasterio.crs import CRS
-        from rasterio.errors import CRSError
         from rasterio.transform import Affine
     except ImportError as exc:
         raise ParameterError("writing a GeoTIFF needs rasterio: pip install 'kbs[map]'") from exc
@@ -88,10 +106,7 @@ def write_geotiff(m: DriveMap, path: Path, crs: str | None = None) -> str:
         crs_note = ("local engineering CRS: the world frame of the drive's poses (metres, x east, y north by "
                     "convention); not georeferenced")
     else:
-        try:
-            crs_obj = CRS.from_user_input(crs)
-        except CRSError as exc:
-            raise ParameterError(f"not a CRS: {crs!r} ({exc})") from exc
+        crs_obj = check_crs(crs)
         crs_note = f"{crs} (as given: the poses are taken to be in this CRS)"
     bands = m.grid.bands()
     a, b, c, d, e, f = _transform(m)
