@@ -5,6 +5,7 @@ import time
 from pathlib import Path
 
 import click
+import numpy as np
 
 from kbs.cli.run import _jobs, _vector3, plugin_option
 from kbs.knowledge import Segmenter
@@ -33,6 +34,9 @@ def _crs(ctx, param, value):
               help="One pose per frame (sensor to world): KITTI poses.txt (12 numbers a line; a calib.txt beside it "
               "turns camera poses into LiDAR poses), .json (a list of 4x4) or .csv (16 numbers a row). Default: a "
               "KITTI folder's poses.txt, else identity (scans already in one world frame).")
+@click.option("--estimate-poses", is_flag=True,
+              help="Estimate the poses from the scans with KISS-ICP (the map extra) instead of reading them; the "
+              "residual of each frame against the previous one is printed and kept in map.json.")
 @click.option("--calib", type=click.Path(path_type=Path), metavar="FILE",
               help="The KITTI calib.txt of a KITTI poses file (default: the one beside it, if any).")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=Path("kbs-map"),
@@ -51,7 +55,8 @@ def _crs(ctx, param, value):
 @click.option("-j", "--jobs", type=click.IntRange(min=-1), default=-1, show_default=True, callback=_jobs,
               help="Processes computing the UFP-ONC splits; -1: one per available core.")
 @click.pass_context
-def map_(ctx: click.Context, rules: str, scans: tuple[Path, ...], poses: Path | None, calib: Path | None,
+def map_(ctx: click.Context, rules: str, scans: tuple[Path, ...], poses: Path | None, estimate_poses: bool,
+         calib: Path | None,
          out_dir: Path, cell_size: float, voxel_size: float, max_gap: int, crs: str | None, sensor,
          plugins: tuple[Path, ...], jobs: int) -> None:
     """Segment every frame of a drive (SCANS: scan files and folders of scans in name order, or one
@@ -64,7 +69,23 @@ def map_(ctx: click.Context, rules: str, scans: tuple[Path, ...], poses: Path | 
 
     quiet = ctx.obj.get("quiet", False)
     t0 = time.perf_counter()
+    if estimate_poses and poses is not None:
+        raise click.UsageError("--estimate-poses and --poses: give one of them")
     drive = read_drive(scans, poses, calib=calib)
+    if estimate_poses:
+        from dataclasses import replace
+
+        from kbs.maps.odometry import estimate_poses as estimate
+
+        t1 = time.perf_counter()
+        est = estimate(drive)
+        drive = replace(drive, poses=est)
+        click.echo(f"poses: estimated with KISS-ICP in {time.perf_counter() - t1:.2f} s")
+        for i, r in enumerate(est.residuals, start=1):
+            step = est.matrices[i, :3, 3] - est.matrices[i - 1, :3, 3]
+            click.echo(f"  frame {i + 1}/{len(drive)} {drive.frames[i].name}: moved {np.linalg.norm(step):.2f} m "
+                       f"({', '.join(f'{v:+.2f}' for v in step)}); residual median {r.median:.3f} m, overlap "
+                       f"{r.overlap:.0%} (no motion: {r.median_identity:.3f} m, {r.overlap_identity:.0%})")
     click.echo(f"drive: {drive.source}; poses: {drive.poses.source}")
     if drive.poses.note and not quiet:
         click.echo(f"note: {drive.poses.note}", err=True)

@@ -192,7 +192,9 @@ def _index(m: DriveMap, files: dict[str, Any], crs_note: str) -> dict[str, Any]:
     return {
         "kbs_map": MAP_FORMAT, "kbs_version": __version__, "source": m.source, "rule_base": m.rule_base,
         "rule_file": m.rule_file, "label_names": m.label_names, "params": m.params,
-        "poses": {"source": m.poses.source, "path": m.poses.path, "note": m.poses.note},
+        "poses": {"source": m.poses.source, "path": m.poses.path, "note": m.poses.note,
+                  "residuals": [{"frame": i + 1, **{k: round(v, 4) for k, v in r.__dict__.items()}}
+                                for i, r in enumerate(m.poses.residuals)]},
         "notes": list(m.notes), "files": {k: v for k, v in files.items() if k != "objects"},
         "grid": {"cell_size": g.cell_size, "origin": list(g.origin), "bounds": list(g.bounds),
                  "shape": {"rows": g.shape[1], "cols": g.shape[0]}, "transform": [a, b, c, d, e, f],

@@ -103,31 +103,29 @@ class GridAccumulator:
         """
         p = self.params
         ij = np.floor(xyz[:, :2] / p.cell_size).astype(np.int64)
-        lo, hi = ij.min(axis=0), ij.max(axis=0)
-        self._ensure(lo, hi)
-        w, h = int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1)
-        flat = (ij[:, 0] - lo[0]) * h + (ij[:, 1] - lo[1])  # within the frame's own box
-        size = w * h
-        n_all = np.bincount(flat, minlength=size)
-        n_g = np.bincount(flat[ground], minlength=size)
-        n_o = np.bincount(flat[obstacle], minlength=size)
-        zsum = np.bincount(flat[ground], weights=xyz[ground, 2], minlength=size)
-        zmax = np.full(size, -np.inf)
-        np.maximum.at(zmax, flat[obstacle], xyz[obstacle, 2])
+        self._ensure(ij.min(axis=0), ij.max(axis=0))
+        ny = self.shape[1]
+        # the frame's cells (sorted unique flat indices into the grid): the cost follows the
+        # points, not the frame's extent (a 120 m wide LiDAR frame spans 360,000 cells)
+        cells, inv = np.unique((ij[:, 0] - self.ix0) * ny + (ij[:, 1] - self.iy0), return_inverse=True)
+        m = len(cells)
+        n_g = np.bincount(inv[ground], minlength=m)
+        n_o = np.bincount(inv[obstacle], minlength=m)
+        zsum = np.bincount(inv[ground], weights=xyz[ground, 2], minlength=m)
+        zmax = np.full(m, -np.inf)
+        np.maximum.at(zmax, inv[obstacle], xyz[obstacle, 2])
         votes_o = n_o >= p.min_obstacle_points
         votes_g = ~votes_o & (n_g > 0)
         delta = np.where(votes_o, p.l_obstacle, np.where(votes_g, p.l_ground, 0.0))
-        sx, sy = int(lo[0] - self.ix0), int(lo[1] - self.iy0)
-        win = (slice(sx, sx + w), slice(sy, sy + h))
-        L = self.layers
-        L["log_odds"][win] = np.clip(L["log_odds"][win] + delta.reshape(w, h), -p.l_clamp, p.l_clamp)
-        L["frames_seen"][win] += (n_all > 0).reshape(w, h)
-        L["frames_obstacle"][win] += votes_o.reshape(w, h)
-        L["frames_ground"][win] += votes_g.reshape(w, h)
-        L["n_ground"][win] += n_g.reshape(w, h)
-        L["n_obstacle"][win] += n_o.reshape(w, h)
-        L["ground_zsum"][win] += zsum.reshape(w, h)
-        np.maximum(L["obstacle_zmax"][win], zmax.reshape(w, h), out=L["obstacle_zmax"][win])
+        L = {k: v.reshape(-1) for k, v in self.layers.items()}  # views of the C-contiguous arrays
+        L["log_odds"][cells] = np.clip(L["log_odds"][cells] + delta, -p.l_clamp, p.l_clamp)
+        L["frames_seen"][cells] += 1
+        L["frames_obstacle"][cells] += votes_o
+        L["frames_ground"][cells] += votes_g
+        L["n_ground"][cells] += n_g
+        L["n_obstacle"][cells] += n_o
+        L["ground_zsum"][cells] += zsum
+        L["obstacle_zmax"][cells] = np.maximum(L["obstacle_zmax"][cells], zmax)
 
     def result(self) -> GridMap:
         """The fused grid, cropped to the cells seen (plus nothing)."""

@@ -14,25 +14,29 @@ from dataclasses import dataclass
 
 import numpy as np
 
-_OFF2 = np.int64(1 << 31)
-_OFF3 = np.int64(1 << 20)
+_OFF = np.int64(1 << 20)
+
+
+def _indices(X: np.ndarray, size: float) -> np.ndarray:
+    """Integer cell indices of ``X`` at ``size``, offset to be non-negative (21 bits each)."""
+    ij = np.floor(np.asarray(X) / size).astype(np.int64)
+    if ij.size and (np.abs(ij).max() >= _OFF):
+        from kbs.errors import ParameterError
+
+        raise ParameterError(f"coordinates beyond {int(_OFF) * size:g} m from the world origin at cell or voxel "
+                             f"size {size:g}: centre the poses (subtract the first position) or use larger cells")
+    return ij + _OFF
 
 
 def cell_keys(xy: np.ndarray, size: float) -> np.ndarray:
-    """One int64 key per 2D cell of side ``size`` (world x, y)."""
-    ij = np.floor(np.asarray(xy)[:, :2] / size).astype(np.int64) + _OFF2
-    return (ij[:, 0] << np.int64(32)) | ij[:, 1]
+    """One int64 key per 2D cell of side ``size`` (world x, y): ``ix << 21 | iy`` (offset)."""
+    ij = _indices(np.asarray(xy)[:, :2], size)
+    return (ij[:, 0] << np.int64(21)) | ij[:, 1]
 
 
 def voxel_keys(xyz: np.ndarray, size: float) -> np.ndarray:
     """One int64 key per 3D voxel of side ``size`` (|coordinate| < 2^20 voxels)."""
-    ijk = np.floor(np.asarray(xyz) / size).astype(np.int64)
-    if ijk.size and (np.abs(ijk).max() >= _OFF3):
-        from kbs.errors import ParameterError
-
-        raise ParameterError(f"coordinates beyond {int(_OFF3) * size:g} m from the world origin at voxel size "
-                             f"{size:g}: centre the poses (subtract the first position) or use larger voxels")
-    ijk += _OFF3
+    ijk = _indices(xyz, size)
     return (ijk[:, 0] << np.int64(42)) | (ijk[:, 1] << np.int64(21)) | ijk[:, 2]
 
 
@@ -101,7 +105,10 @@ class ObjectTracker:
         """Add one frame's obstacle clusters; returns the node id of each point (-1: none).
 
         A cluster is first cut into its connected pieces on the footprint grid (8-connected
-        cells): a cluster that gathers look-alike obstacles far apart is several objects.
+        cells): a cluster that gathers look-alike obstacles far apart is several objects. All the
+        clusters of the frame are cut at once: the (cluster, cell) pairs are the vertices of a
+        graph whose edges join 8-neighbour cells of one cluster, and its connected components
+        (scipy.sparse.csgraph) are the pieces.
 
         Parameters
         ----------
@@ -113,42 +120,65 @@ class ObjectTracker:
         obstacle : np.ndarray (n,) bool
             Whether each point is labelled an obstacle.
         """
-        from scipy.ndimage import label as cc_label
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
 
         node_of_point = np.full(len(xyz), -1, dtype=np.int64)
-        keys_all, nodes_all = [], []
         sel = np.flatnonzero(obstacle & (cluster >= 0))
         if sel.size:
-            cl = cluster[sel]
-            order = np.argsort(cl, kind="stable")
-            sel, cl = sel[order], cl[order]
-            for part in np.split(np.arange(len(cl)), np.flatnonzero(np.diff(cl)) + 1):
-                idx = sel[part]
-                if len(idx) < self.min_points:
-                    continue
-                c = int(cluster[idx[0]])
-                ij = np.floor(xyz[idx, :2] / self.cell_size).astype(np.int64)
-                lo = ij.min(axis=0)
-                ij -= lo
-                occ = np.zeros(tuple(ij.max(axis=0) + 1), dtype=bool)
-                occ[ij[:, 0], ij[:, 1]] = True
-                comp, n_comp = cc_label(occ, structure=np.ones((3, 3), dtype=bool))
-                piece = comp[ij[:, 0], ij[:, 1]]
-                for k in range(1, n_comp + 1):
-                    pts_idx = idx[piece == k]
-                    if len(pts_idx) < self.min_points:
-                        continue
-                    node = self._uf.add()
-                    self.nodes.append(Node(frame, c, len(pts_idx)))
-                    self.points.append(voxel_mean(xyz[pts_idx], self.voxel_size))
-                    keys = np.unique(cell_keys(xyz[pts_idx], self.cell_size))
-                    keys_all.append(keys)
-                    nodes_all.append(np.full(len(keys), node, dtype=np.int64))
-                    node_of_point[pts_idx] = node
-        if not keys_all:
+            big = np.bincount(cluster[sel])[cluster[sel]] >= self.min_points
+            sel = sel[big]
+        if sel.size == 0:
             self._frames.append((frame, np.zeros(0, np.int64), np.zeros(0, np.int64)))
             return node_of_point
-        nk, nn = np.concatenate(keys_all), np.concatenate(nodes_all)
+        cl = cluster[sel].astype(np.int64)
+        cells = cell_keys(xyz[sel], self.cell_size)  # 2D cell keys: 21 bits per axis
+        pair, inv = np.unique((cl << np.int64(42)) | cells, return_inverse=True)
+        inv = inv.ravel()
+        m = len(pair)
+        rows, cols = [], []
+        for dx, dy in ((1, 0), (0, 1), (1, 1), (1, -1)):
+            nb = pair + (np.int64(dx) << np.int64(21)) + np.int64(dy)
+            pos = np.minimum(np.searchsorted(pair, nb), m - 1)
+            hit = pair[pos] == nb
+            rows.append(np.flatnonzero(hit))
+            cols.append(pos[hit])
+        r, c = np.concatenate(rows), np.concatenate(cols)
+        graph = coo_matrix((np.ones(len(r), dtype=np.int8), (r, c)), shape=(m, m))
+        n_comp, comp = connected_components(graph, directed=False)
+        comp_pt = comp[inv]
+        size = np.bincount(comp_pt, minlength=n_comp)
+        kept = np.flatnonzero(size >= self.min_points)
+        if kept.size == 0:
+            self._frames.append((frame, np.zeros(0, np.int64), np.zeros(0, np.int64)))
+            return node_of_point
+        base = len(self.nodes)
+        node_of_comp = np.full(n_comp, -1, dtype=np.int64)
+        node_of_comp[kept] = base + np.arange(len(kept))
+        comp_cluster = np.zeros(n_comp, dtype=np.int64)
+        comp_cluster[comp] = pair >> np.int64(42)
+        for k in kept:
+            self._uf.add()
+            self.nodes.append(Node(frame, int(comp_cluster[k]), int(size[k])))
+        nodes_pt = node_of_comp[comp_pt]
+        node_of_point[sel] = nodes_pt
+        # each node's points, voxel-downsampled: the mean of each (node, voxel)
+        keep = nodes_pt >= 0
+        P, npt = xyz[sel][keep], nodes_pt[keep]
+        vk = voxel_keys(P, self.voxel_size)
+        order = np.lexsort((vk, npt))
+        npt, vk, P = npt[order], vk[order], P[order]
+        start = np.flatnonzero(np.r_[True, (np.diff(npt) != 0) | (np.diff(vk) != 0)])
+        group = np.cumsum(np.r_[False, (np.diff(npt) != 0) | (np.diff(vk) != 0)])
+        cnt = np.bincount(group).astype(np.float64)
+        means = np.column_stack([np.bincount(group, weights=P[:, d]) / cnt for d in range(3)])
+        gnode = npt[start]
+        cuts = np.flatnonzero(np.diff(gnode)) + 1
+        self.points.extend(np.split(means, cuts))
+        # footprints: the cells of each node
+        pk = pair & np.int64((1 << 42) - 1)  # the cell part of each (cluster, cell) key
+        pn = node_of_comp[comp]
+        nk, nn = pk[pn >= 0], pn[pn >= 0]
         self._link(frame, nk, nn)
         self._frames.append((frame, nk, nn))
         return node_of_point

@@ -61,12 +61,15 @@ class Poses:
         The file read, if any.
     note : str
         One line for the user: what the poses are taken as.
+    residuals : tuple
+        Estimated poses: one :class:`kbs.maps.odometry.FrameResidual` per frame after the first.
     """
 
     matrices: np.ndarray
     source: str
     path: str | None = None
     note: str = ""
+    residuals: tuple = ()
 
     def __post_init__(self) -> None:
         m = np.array(self.matrices, dtype=np.float64)
