@@ -374,3 +374,72 @@ def test_map_drive_in_python_takes_arrays_and_poses(two_scans):
             map_drive(seg, frames, bad)
         with pytest.raises(ParameterError, match="'cell_size' parameter of map_drive"):
             map_drive(seg, frames, poses, cell_size=-1)
+
+
+# --- poses estimated with KISS-ICP ---------------------------------------------------------------
+
+def _brute_force_forward_motion(X0: np.ndarray, X1: np.ndarray) -> float:
+    """An independent reference: the forward translation (no rotation) that puts frame 1's
+    structure (no ground, within 30 m) nearest to frame 0's, searched on a 1 cm grid."""
+    from scipy.spatial import cKDTree
+
+    def structure(X):
+        return X[(np.linalg.norm(X[:, :2], axis=1) < 30) & (X[:, 2] > -1.3)]
+
+    tree, S = cKDTree(structure(X0)), structure(X1)[::5]
+    shifts = np.arange(0.4, 1.2, 0.01)
+    cost = []
+    for tx in shifts:
+        d, _ = tree.query(S + [tx, 0, 0], distance_upper_bound=0.5)
+        cost.append(np.median(d[np.isfinite(d)]))
+    return float(shifts[int(np.argmin(cost))])
+
+
+def test_kbs_map_estimates_the_poses_of_three_semantickitti_frames(shared_data, tmp_path, capsys):
+    pytest.importorskip("kiss_icp", reason="estimating poses needs KISS-ICP: pip install 'kbs[map]'")
+    from kbs.io import read_cloud
+
+    seq = shared_data / "semantickitti-seq00"
+    code, out, err = run(capsys, "map", "--rules", "outdoor", seq, "--estimate-poses", "--out", tmp_path, "-j", "1")
+    assert code == 0, err
+    assert "poses: estimated with KISS-ICP" in out and "residual median" in out
+    assert "poses estimated with KISS-ICP" in err  # the note, with the residuals
+    doc = json.loads((tmp_path / "map.json").read_text())
+    assert doc["poses"]["source"] == "estimated" and [f["name"] for f in doc["frames"]] == [
+        "seq00_000000.bin", "seq00_000001.bin", "seq00_000002.bin"]
+    P = np.array([f["pose"] for f in doc["frames"]])
+    np.testing.assert_allclose(P[0], np.eye(4), atol=1e-9)
+    steps = np.diff(P[:, :3, 3], axis=0)
+    # the car drives forward (x), a plausible ~1 m a frame, and little else
+    assert ((steps[:, 0] > 0.5) & (steps[:, 0] < 1.0)).all() and (np.abs(steps[:, 1:]) < 0.1).all(), steps
+    X = [read_cloud(seq / f"seq00_00000{i}.bin").xyz for i in range(2)]
+    assert steps[0, 0] == pytest.approx(_brute_force_forward_motion(X[0], X[1]), abs=0.05)
+    for r in doc["poses"]["residuals"]:  # registration lays each frame on the previous one
+        assert r["overlap"] > 0.9 > r["overlap_identity"] and r["median"] < 0.1
+    assert doc["objects"] and doc["grid"]["counts"]["obstacle"] > 0
+    rasterio = pytest.importorskip("rasterio", reason="the GeoTIFF needs the map extra: pip install 'kbs[map]'")
+    with rasterio.open(tmp_path / "map.tif") as src:
+        assert src.count == len(doc["grid"]["bands"]) and src.crs is not None
+        cls = src.read(1)
+    assert int((cls == OBSTACLE).sum()) == doc["grid"]["counts"]["obstacle"]
+
+
+def test_estimated_poses_fail_clearly(shared_data, two_scans, tmp_path, capsys):
+    pytest.importorskip("kiss_icp", reason="estimating poses needs KISS-ICP: pip install 'kbs[map]'")
+    from kbs.errors import FitError
+    from kbs.io import read_cloud
+    from kbs.maps.odometry import estimate_poses
+
+    # the generated rover drive: flat ground and a few rocks, along which ICP slides
+    code, _, err = run(capsys, "map", "--rules", "outdoor", two_scans / "scans", "--estimate-poses", "--out",
+                       tmp_path / "o")
+    assert code == 5 and "cannot be registered reliably" in err and "--poses" in err
+    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "o").exists()
+    # two frames of different places: the registration cannot make them overlap
+    a = read_cloud(shared_data / "semantickitti-seq00" / "seq00_000000.bin").xyz
+    b = read_cloud(shared_data / "semantickitti" / "000001.points.npy").xyz
+    with pytest.raises(FitError, match=r"registration of frame 1 \(frame 1\) failed: after it only \d+% "):
+        estimate_poses([a, b])
+    code, _, err = run(capsys, "map", "--rules", "outdoor", two_scans / "scans", "--estimate-poses", "--poses",
+                       two_scans / "poses.txt")
+    assert code == 2 and "give one of them" in err
