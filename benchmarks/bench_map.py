@@ -13,6 +13,9 @@ Fusion cost: the time map_drive spends per frame after segmentation (the world t
 grid's votes, the tracker and the fused cloud), median over the frames, on a drive whose frames
 hold about 100k points (--fusion-resolution).
 
+Estimated poses: the same drives with poses from KISS-ICP (the map extra), the pose error
+against the true poses and the map built on them.
+
 Usage: python benchmarks/bench_map.py [--seeds 0 1 2] [--frames 20] [--fusion-frames 5]
        [--jobs N]
 """
@@ -30,6 +33,37 @@ from kbs.maps.score import score_grid, score_objects
 from kbs.synth.drive import outdoor_drive
 
 
+def _estimated(seg, d) -> str:
+    """The cells of the estimated-poses table for one drive (KISS-ICP must be installed)."""
+    from kbs.errors import FitError
+    from kbs.maps.odometry import estimate_poses, kiss_icp_available
+
+    if not kiss_icp_available():
+        return "KISS-ICP not installed (pip install 'kbs[map]') |" + " |" * 9
+    frames = [f.xyz for f in d.frames]
+    try:
+        estimate_poses(frames)
+        refused = "not refused"
+    except FitError as exc:
+        refused = str(exc).split(": ", 1)[-1].split(" (at least")[0]
+    try:
+        est = estimate_poses(frames, min_constraint=0.0, min_overlap=0.0)
+    except FitError as exc:
+        return f"{refused} | failed: {exc} |" + " |" * 8
+    true = np.linalg.inv(d.poses[0])[None] @ d.poses  # in the first pose's frame, as the estimate
+    err = np.linalg.norm(est.matrices[:, :3, 3] - true[:, :3, 3], axis=1)
+    yaw = np.degrees(np.arctan2(est.matrices[-1, 1, 0], est.matrices[-1, 0, 0]) -
+                     np.arctan2(true[-1, 1, 0], true[-1, 0, 0]))
+    step = np.median(np.linalg.norm(np.diff(est.matrices[:, :3, 3], axis=0), axis=1))
+    # the map on the estimated poses, scored in the true world frame (estimated poses from the true first one)
+    m = map_drive(seg, frames, d.poses[0][None] @ est.matrices)
+    gs = score_grid(m.grid, d.truth)
+    os_ = score_objects(m.objects, d.truth, [f.objects for f in d.frames], min_points=40)
+    return (f"{refused} | {step:.2f} | {np.sqrt((err ** 2).mean()):.2f} | {err[-1]:.2f} | {yaw:.1f} | "
+            f"{gs.accuracy:.4f} | {gs.obstacle_precision:.3f} | {gs.obstacle_recall:.3f} | {os_.mapped_objects} | "
+            f"{os_.false}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
@@ -45,6 +79,7 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     with Segmenter("outdoor", jobs=args.jobs) as seg:
         seg.segment(outdoor_drive(0, n_frames=1, resolution=(60, 100)).frames[0].xyz)  # compile before timing
+        drives = []
         for seed in args.seeds:
             d = outdoor_drive(seed, n_frames=args.frames)
             m = map_drive(seg, [f.xyz for f in d.frames], d.poses)
@@ -55,6 +90,16 @@ def main() -> None:
                   f"| {baseline:.4f} | {gs.obstacle_precision:.3f} | {gs.obstacle_recall:.3f} | {os_.true_objects} "
                   f"| {os_.mapped_objects} | {os_.matched} | {os_.split} | {os_.false} "
                   f"| {statistics.median(f.segment_seconds for f in m.frames):.2f} | {m.fuse_ms_per_frame:.1f} |")
+            drives.append(d)
+        print(f"\n### The same drives with poses estimated by KISS-ICP\n")
+        print("KISS-ICP (kbs.maps.odometry.estimate_poses, voxel 1 m) refuses these frames as too flat to register; "
+              "forced (min_constraint=0), its poses and the map built on them:\n")
+        print("| seed | refused because | est. motion m/frame (true 1.0) | position error RMS m | final position error m "
+              "| final yaw error deg | accuracy | obstacle precision | obstacle recall | mapped objects | invented |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|")
+        for seed, d in zip(args.seeds, drives):
+            est_row = _estimated(seg, d)
+            print(f"| {seed} | {est_row} |")
         rows, cols = args.fusion_resolution
         d = outdoor_drive(0, n_frames=args.fusion_frames, resolution=(rows, cols))
         t0 = time.perf_counter()
