@@ -34,6 +34,8 @@ def _crs(ctx, param, value):
               help="One pose per frame (sensor to world): KITTI poses.txt (12 numbers a line; a calib.txt beside it "
               "turns camera poses into LiDAR poses), .json (a list of 4x4) or .csv (16 numbers a row). Default: a "
               "KITTI folder's poses.txt, else identity (scans already in one world frame).")
+@click.option("--topic", metavar="TOPIC", help="For a ROS 1/2 bag: the sensor_msgs/PointCloud2 topic (default: the "
+              "bag's only one).")
 @click.option("--estimate-poses", is_flag=True,
               help="Estimate the poses from the scans with KISS-ICP (the map extra) instead of reading them; the "
               "residual of each frame against the previous one is printed and kept in map.json.")
@@ -55,12 +57,13 @@ def _crs(ctx, param, value):
 @click.option("-j", "--jobs", type=click.IntRange(min=-1), default=-1, show_default=True, callback=_jobs,
               help="Processes computing the UFP-ONC splits; -1: one per available core.")
 @click.pass_context
-def map_(ctx: click.Context, rules: str, scans: tuple[Path, ...], poses: Path | None, estimate_poses: bool,
+def map_(ctx: click.Context, rules: str, scans: tuple[Path, ...], poses: Path | None, topic: str | None,
+         estimate_poses: bool,
          calib: Path | None,
          out_dir: Path, cell_size: float, voxel_size: float, max_gap: int, crs: str | None, sensor,
          plugins: tuple[Path, ...], jobs: int) -> None:
-    """Segment every frame of a drive (SCANS: scan files and folders of scans in name order, or one
-    KITTI sequence folder holding velodyne/*.bin and poses.txt) with one rule base, bring each into
+    """Segment every frame of a drive (SCANS: scan files and folders of scans in name order, one
+    KITTI sequence folder holding velodyne/*.bin and poses.txt, or one ROS 1/2 bag) with one rule base, bring each into
     the world frame with its pose and fuse them into DIR/: an obstacle grid in log-odds (map.tif,
     map.npy, map.png), the obstacles tracked across frames with a mesh each (objects/), a fused
     labelled cloud (cloud.ply) and an index of frames, objects and cells (map.json)."""
@@ -71,7 +74,12 @@ def map_(ctx: click.Context, rules: str, scans: tuple[Path, ...], poses: Path | 
     t0 = time.perf_counter()
     if estimate_poses and poses is not None:
         raise click.UsageError("--estimate-poses and --poses: give one of them")
-    drive = read_drive(scans, poses, calib=calib)
+    from kbs.maps.bags import TopicError
+
+    try:
+        drive = read_drive(scans, poses, calib=calib, topic=topic)
+    except TopicError as exc:
+        raise click.BadParameter(str(exc), param_hint="--topic") from exc
     if estimate_poses:
         from dataclasses import replace
 

@@ -167,7 +167,7 @@ def scan_files(paths: Iterable[str | os.PathLike[str]]) -> list[Path]:
 
 
 def read_drive(scans: Sequence[str | os.PathLike[str]], poses: str | os.PathLike[str] | None = None, *,
-               calib: str | os.PathLike[str] | None = None) -> Drive:
+               calib: str | os.PathLike[str] | None = None, topic: str | None = None) -> Drive:
     """The drive named by ``scans`` (files and folders of scans, or one KITTI sequence folder)
     with its poses.
 
@@ -182,6 +182,9 @@ def read_drive(scans: Sequence[str | os.PathLike[str]], poses: str | os.PathLike
         identity.
     calib : path, optional
         A KITTI ``calib.txt`` for a KITTI poses file (default: the one beside it, if any).
+    topic : str, optional
+        For a ROS bag (a single ``scans`` entry, see :mod:`kbs.maps.bags`): the PointCloud2
+        topic (default: the bag's only one).
 
     Raises
     ------
@@ -192,6 +195,19 @@ def read_drive(scans: Sequence[str | os.PathLike[str]], poses: str | os.PathLike
     scans = [Path(s) for s in scans]
     if not scans:
         raise ParameterError("no scan given")
+    from kbs.maps.bags import is_bag
+
+    if topic is not None and not (len(scans) == 1 and is_bag(scans[0])):
+        from kbs.maps.bags import TopicError
+
+        raise TopicError("a topic is for a ROS bag: give one bag (a .bag, .db3 or .mcap file, or a rosbag2 folder)")
+    if len(scans) == 1 and is_bag(scans[0]):
+        from kbs.maps.bags import read_bag
+
+        frames, topic = read_bag(scans[0], topic)
+        p = read_poses(poses, calib=calib) if poses is not None else None
+        return Drive(tuple(frames), p if p is not None else Poses.identity(len(frames)),
+                     f"ROS bag {scans[0]}, topic {topic} ({len(frames)} point clouds)")
     if len(scans) == 1 and is_kitti_sequence(scans[0]):
         seq = scans[0]
         files = sorted((p for p in (seq / "velodyne").iterdir() if p.suffix.lower() == ".bin" and p.is_file()),

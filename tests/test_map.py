@@ -443,3 +443,91 @@ def test_estimated_poses_fail_clearly(shared_data, two_scans, tmp_path, capsys):
     code, _, err = run(capsys, "map", "--rules", "outdoor", two_scans / "scans", "--estimate-poses", "--poses",
                        two_scans / "poses.txt")
     assert code == 2 and "give one of them" in err
+
+
+# --- ROS bags ------------------------------------------------------------------------------------
+
+def _write_bag(path: Path, frames: list[np.ndarray], *, ros: int, topic: str, float32: bool = False,
+               extra_topic: bool = False) -> None:
+    """A bag written with rosbags' own writer: one PointCloud2 per frame (x y z, then intensity,
+    in float32 or float64), and optionally an unrelated topic."""
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE if ros == 2 else Stores.ROS1_NOETIC)
+    T = ts.types
+    pc2, field, header, stamp = (T["sensor_msgs/msg/PointCloud2"], T["sensor_msgs/msg/PointField"],
+                                 T["std_msgs/msg/Header"], T["builtin_interfaces/msg/Time"])
+    kind, size, code = ("<f4", 4, 7) if float32 else ("<f8", 8, 8)
+    step = 4 * size + 4  # x y z intensity and 4 bytes of padding
+    fields = [field(name=n, offset=i * size, datatype=code, count=1) for i, n in enumerate(("x", "y", "z", "intensity"))]
+
+    def message(i: int, X: np.ndarray):
+        rec = np.zeros(len(X), dtype=np.dtype({"names": list("xyz") + ["intensity"], "formats": [kind] * 4,
+                                               "offsets": [0, size, 2 * size, 3 * size], "itemsize": step}))
+        rec["x"], rec["y"], rec["z"], rec["intensity"] = X[:, 0], X[:, 1], X[:, 2], 1.0
+        h = header(stamp=stamp(sec=i, nanosec=0), frame_id="lidar") if ros == 2 else \
+            header(seq=i, stamp=stamp(sec=i, nanosec=0), frame_id="lidar")
+        return pc2(header=h, height=1, width=len(X), fields=fields, is_bigendian=False, point_step=step,
+                   row_step=step * len(X), data=np.frombuffer(rec.tobytes(), dtype=np.uint8), is_dense=True)
+
+    if ros == 2:
+        from rosbags.rosbag2 import Writer
+
+        writer, serialize = Writer(path, version=9), ts.serialize_cdr
+    else:
+        from rosbags.rosbag1 import Writer
+
+        writer, serialize = Writer(path), ts.serialize_ros1
+    with writer as w:
+        conn = w.add_connection(topic, pc2.__msgtype__, typestore=ts)
+        other = w.add_connection("/chatter", T["std_msgs/msg/String"].__msgtype__, typestore=ts) if extra_topic else None
+        for i, X in enumerate(frames):
+            w.write(conn, (i + 1) * 100_000_000, serialize(message(i, X), pc2.__msgtype__))
+            if other is not None:
+                w.write(other, (i + 1) * 100_000_000 + 1, serialize(T["std_msgs/msg/String"](data="hi"),
+                                                                    "std_msgs/msg/String"))
+
+
+def test_kbs_map_reads_a_ros2_bag_as_the_scans_it_holds(drive_map, tmp_path, capsys):
+    pytest.importorskip("rosbags", reason="ROS bags need rosbags: pip install 'kbs[map]'")
+    from kbs.io import read_cloud
+
+    scans = sorted((drive_map / "drive" / "scans").glob("*.ply"))
+    _write_bag(tmp_path / "drive_bag", [read_cloud(p).xyz for p in scans], ros=2, topic="/rover/points")
+    code, out, err = run(capsys, "map", "--rules", "outdoor", tmp_path / "drive_bag", "--poses",
+                         drive_map / "drive" / "poses.txt", "--out", tmp_path / "map", "-j", "1")
+    assert code == 0, err
+    assert "ROS bag" in out and "topic /rover/points (5 point clouds)" in out
+    # the same points (float64 in the bag), the same poses: the same map as from the scan files
+    np.testing.assert_array_equal(np.load(tmp_path / "map" / "map.npy"), np.load(drive_map / "map" / "map.npy"))
+    a = json.loads((tmp_path / "map" / "map.json").read_text())
+    b = json.loads((drive_map / "map" / "map.json").read_text())
+    assert [o["clusters"] for o in a["objects"]] == [o["clusters"] for o in b["objects"]]
+    assert [f["name"] for f in a["frames"]] == [f"/rover/points#{i}" for i in range(5)]
+
+
+def test_ros1_bag_frames_topics_and_errors(two_scans, tmp_path, capsys):
+    pytest.importorskip("rosbags", reason="ROS bags need rosbags: pip install 'kbs[map]'")
+    from kbs.io import read_cloud
+    from kbs.maps import read_drive
+
+    frames = [read_cloud(p).xyz for p in sorted((two_scans / "scans").glob("*.ply"))]
+    bag = tmp_path / "drive.bag"
+    _write_bag(bag, frames, ros=1, topic="/velodyne_points", float32=True, extra_topic=True)
+    drive = read_drive([bag], two_scans / "poses.txt")  # the only PointCloud2 topic
+    assert len(drive) == 2 and drive.poses.source == "kitti"
+    for f, X in zip(drive.frames, frames):
+        np.testing.assert_array_equal(f.load(), X.astype(np.float32).astype(np.float64))
+    code, _, err = run(capsys, "map", "--rules", "outdoor", bag, "--topic", "/chatter", "--out", tmp_path / "o")
+    assert code == 2 and "topic '/chatter' is std_msgs/msg/String, not PointCloud2" in err and "/velodyne_points" in err
+    assert "--topic" in err
+    code, _, err = run(capsys, "map", "--rules", "outdoor", bag, "--topic", "/nope", "--out", tmp_path / "o")
+    assert code == 2 and "'/nope' is not in the bag" in err
+    bad = tmp_path / "broken.bag"
+    bad.write_bytes(b"#ROSBAG V2.0\n" + b"\x00" * 40)
+    code, _, err = run(capsys, "map", "--rules", "outdoor", bad, "--out", tmp_path / "o")
+    assert code == 3 and "not a readable ROS bag" in err and len(err.strip().splitlines()) == 1
+    code, _, err = run(capsys, "map", "--rules", "outdoor", two_scans / "scans", "--topic", "/x", "--out",
+                       tmp_path / "o")
+    assert code == 2 and "a topic is for a ROS bag" in err
+    assert not (tmp_path / "o").exists()
