@@ -177,6 +177,15 @@ class _CloudAccumulator:
                           frames.astype(np.int32), count.astype(np.int32))
 
 
+def to_world(X: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """``X`` (n, 3) moved by the 4x4 ``T``: ``R x + t`` per point (column by column: a 3x3
+    matrix product through BLAS costs more in thread start-up than in arithmetic)."""
+    W = np.empty_like(X, dtype=np.float64)
+    for k in range(3):
+        W[:, k] = X[:, 0] * T[k, 0] + X[:, 1] * T[k, 1] + X[:, 2] * T[k, 2] + T[k, 3]
+    return W
+
+
 def _check(name: str, value: Any, low: float, integer: bool = False, low_open: bool = True) -> Any:
     ok = isinstance(value, (int, np.integer)) if integer else isinstance(value, (int, float, np.floating, np.integer))
     ok = ok and not isinstance(value, bool) and np.isfinite(value) and (value > low if low_open else value >= low)
@@ -267,7 +276,7 @@ def map_drive(segmenter: Any, drive: Drive | Iterable[np.ndarray], poses: Poses 
         except FitError as exc:
             raise FitError(f"frame {i} ({frame.name}): {exc}") from exc
         t0 = time.perf_counter()
-        W = X @ T[:3, :3].T + T[:3, 3]
+        W = to_world(X, T)
         labelled = seg.label >= 0
         ground = seg.label == gi if gi is not None else np.zeros(len(X), dtype=bool)
         obstacle = labelled & ~ground
@@ -275,10 +284,10 @@ def map_drive(segmenter: Any, drive: Drive | Iterable[np.ndarray], poses: Poses 
         node = tracker.add(i, W, seg.cluster, obstacle)
         cloud.add(W, seg.label, node)
         has = node >= 0
-        pairs = np.unique(np.column_stack([seg.cluster[has], node[has]]), axis=0)
+        pairs = np.unique((seg.cluster[has].astype(np.int64) << np.int64(32)) | node[has])
         mapping: dict[int, list[int]] = {}
-        for c, n in pairs.tolist():
-            mapping.setdefault(int(c), []).append(int(n))
+        for key in pairs.tolist():
+            mapping.setdefault(key >> 32, []).append(key & 0xFFFFFFFF)
         rec = FrameRecord(i, frame.name, frame.path, T.copy(), len(X), int(ground.sum()), int(obstacle.sum()),
                           int((~labelled).sum()), len(seg.clusters), dict(mapping), seg.seconds,
                           time.perf_counter() - t0)
