@@ -234,6 +234,11 @@ def write_map(m: DriveMap, out_dir: str | os.PathLike[str], *, crs: str | None =
         (out / "objects").mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise CloudFileError(str(out), f"cannot create the output directory: {exc.strerror or exc}") from exc
+    for stale in (out / "objects").glob("object-*.ply"):  # an earlier map's objects would mislead
+        try:
+            stale.unlink()
+        except OSError as exc:
+            raise CloudFileError(str(stale), f"cannot remove an earlier map's mesh: {exc.strerror or exc}") from exc
     files: dict[str, Any] = {"objects": {}}
     notes = []
     if geotiff is None:

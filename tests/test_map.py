@@ -352,11 +352,11 @@ def test_kbs_map_usage_and_scan_errors(two_scans, tmp_path, capsys):
     assert not (tmp_path / "o").exists()  # said before any frame was segmented
 
 
-def test_map_drive_in_python_takes_arrays_and_poses(two_scans):
+def test_map_drive_in_python_takes_arrays_and_poses(two_scans, tmp_path):
     from kbs import Segmenter
     from kbs.errors import ParameterError
     from kbs.io import read_cloud
-    from kbs.maps import map_drive, read_poses
+    from kbs.maps import map_drive, read_poses, write_map
 
     frames = [read_cloud(p).xyz for p in sorted((two_scans / "scans").glob("*.ply"))]
     poses = read_poses(two_scans / "poses.txt").matrices
@@ -366,6 +366,12 @@ def test_map_drive_in_python_takes_arrays_and_poses(two_scans):
         np.testing.assert_allclose(m.poses.matrices, poses)
         assert m.cloud.xyz.shape[1] == 3 and (m.cloud.count > 0).all()
         assert m.cloud.count.sum() == sum(len(f) for f in frames)
+        (tmp_path / "objects").mkdir()
+        (tmp_path / "objects" / "object-99.ply").write_text("an earlier map's")
+        doc = write_map(m, tmp_path, geotiff=False)
+        assert sorted(p.name for p in (tmp_path / "objects").iterdir()) == sorted(
+            Path(o["mesh"]).name for o in doc["objects"] if o["mesh"])
+        assert not (tmp_path / "map.tif").exists() and doc["grid"]["crs"] == "none"
         with pytest.raises(ParameterError, match="1 poses for 2 frames"):
             map_drive(seg, frames, poses[:1])
         bad = poses.copy()
@@ -531,3 +537,26 @@ def test_ros1_bag_frames_topics_and_errors(two_scans, tmp_path, capsys):
                        tmp_path / "o")
     assert code == 2 and "a topic is for a ROS bag" in err
     assert not (tmp_path / "o").exists()
+
+
+def test_a_kitti_sequence_folder_gives_its_scans_and_lidar_poses(tmp_path):
+    from kbs.maps import read_drive
+
+    seq = tmp_path / "00"
+    (seq / "velodyne").mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    for i in (2, 0, 1):  # written out of order: read in name order
+        rng.uniform(-5, 5, (50, 4)).astype("<f4").tofile(seq / "velodyne" / f"{i:06d}.bin")
+    (seq / "velodyne" / "notes.txt").write_text("not a scan")
+    lidar = [_pose(0.05 * i, [i, 0.1 * i, 0.0]) for i in range(3)]
+    tr = _pose(0.0, [0.1, -0.2, 0.3], pitch=np.pi / 2)
+    (seq / "poses.txt").write_text("\n".join(_kitti_line(tr @ m @ np.linalg.inv(tr)) for m in lidar) + "\n")
+    (seq / "calib.txt").write_text("Tr: " + _kitti_line(tr) + "\n")
+    drive = read_drive([seq])
+    assert [f.name for f in drive.frames] == ["000000.bin", "000001.bin", "000002.bin"]
+    assert drive.source.startswith("KITTI sequence") and "Tr of" in drive.poses.note
+    np.testing.assert_allclose(drive.poses.matrices, lidar, atol=1e-7)
+    (seq / "calib.txt").unlink()
+    assert "taken as LiDAR poses" in read_drive([seq]).poses.note
+    (seq / "poses.txt").unlink()
+    assert read_drive([seq]).poses.source == "identity"
