@@ -247,7 +247,10 @@ def map_drive(segmenter: Any, drive: Drive | Iterable[np.ndarray], poses: Poses 
     for name, value in (("cell_size", cell_size), ("voxel_size", voxel_size), ("l_obstacle", l_obstacle),
                         ("l_clamp", l_clamp)):
         _check(name, value, 0.0)
-    _check("l_ground", -l_ground if isinstance(l_ground, (int, float)) else l_ground, 0.0)
+    if isinstance(l_ground, bool) or not isinstance(l_ground, (int, float, np.floating, np.integer)) or \
+            not np.isfinite(l_ground) or l_ground >= 0:
+        raise ParameterError(f"The 'l_ground' parameter of map_drive must be a float in the range (-inf, 0). "
+                             f"Got {l_ground!r} instead.")
     _check("min_obstacle_points", min_obstacle_points, 1, integer=True, low_open=False)
     _check("max_gap", max_gap, 1, integer=True, low_open=False)
     _check("min_object_points", min_object_points, 1, integer=True, low_open=False)

@@ -380,6 +380,9 @@ def test_map_drive_in_python_takes_arrays_and_poses(two_scans, tmp_path):
             map_drive(seg, frames, bad)
         with pytest.raises(ParameterError, match="'cell_size' parameter of map_drive"):
             map_drive(seg, frames, poses, cell_size=-1)
+        with pytest.raises(ParameterError, match=r"'l_ground' parameter of map_drive must be a float in the range "
+                                                 r"\(-inf, 0\)"):
+            map_drive(seg, frames, poses, l_ground=0.4)
 
 
 # --- poses estimated with KISS-ICP ---------------------------------------------------------------
