@@ -266,3 +266,85 @@ def test_connexity_method_and_opening_factor_are_checked_in_the_rule_file(tmp_pa
                                  "params: {alpha_factor: 3.0, min_fraction: 0.05, method: alpha_opening, "
                                  "opening_factor: 1.5}"))
     assert kbs("rules", "check", str(good)).returncode == 0
+
+
+# --- post.merge_coplanar: ground planes split by the tree come out as one cluster ----------------
+
+MERGE_RULES = """\
+kbs_rules: 1
+name: merge
+units: m
+strategy: divisive
+scene:
+  sensor: [0, 0, 2]
+  ground:
+    normal: [0, 0, 1]
+checks:
+  planar: {predicate: thickness, max: 0.05}
+  level: {predicate: ground_angle, max: 22.5}
+rules:
+  - {name: PAh, if: not planar, then: split}
+labels:
+  - {name: ground, if: [planar, level]}
+  - {name: other}
+post:
+  merge_coplanar: {label: ground, max_angle: 10, max_offset: 0.15}
+"""
+
+
+def ground_patches(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Four planar patches, all labelled ground by MERGE_RULES (thin, within 22.5 deg of
+    horizontal): 0 and 1, two halves of one plane z = 0, 4 m apart (coplanar: must merge); 2, a
+    platform 0.5 m above that plane (parallel, but offset by more than max_offset: must not
+    merge); 3, a ramp tilted 15 deg (more than max_angle: must not merge) in the gap between 0 and
+    1, its centre on their plane and its plane through their centres, so that only the angle keeps
+    it apart."""
+    rng = np.random.default_rng(seed)
+
+    def patch(n, x, y):
+        return np.c_[rng.uniform(*x, n), rng.uniform(*y, n), rng.normal(0, 0.005, n)]
+
+    a, b = patch(4000, (-10, -2), (-5, 5)), patch(4000, (2, 10), (-5, 5))
+    platform = patch(1500, (-3, 3), (8, 12)) + [0.0, 0.0, 0.5]
+    ramp = patch(1500, (-1.5, 1.5), (-3, 3))
+    ramp[:, 2] += np.tan(np.radians(15.0)) * ramp[:, 1]
+    parts = [a, b, platform, ramp]
+    return np.vstack(parts), np.repeat(np.arange(4), [len(p) for p in parts])
+
+
+def test_coplanar_ground_clusters_are_merged_into_one_output_cluster_and_others_are_not(tmp_path):
+    X, part = ground_patches()
+    scan = tmp_path / "patches.ply"
+    write_ply(scan, X, {"truth": part.astype(np.int32)})
+    out = {}
+    for name, text in (("merge", MERGE_RULES), ("no_merge", MERGE_RULES.split("post:")[0])):
+        rules = tmp_path / f"{name}.yaml"
+        rules.write_text(text)
+        r = kbs("run", "--rules", str(rules), str(scan), "--out", str(tmp_path / name))
+        assert r.returncode == 0, r.stderr
+        v = _ply(tmp_path / name / "patches.ply")
+        out[name] = (np.asarray(v["cluster"]), np.asarray(v["label"]),
+                     json.loads((tmp_path / name / "patches.json").read_text()))
+    # without the merge, the split tree leaves the plane z = 0 in several ground clusters
+    cluster, label, doc = out["no_merge"]
+    assert (label == 0).all()  # every patch is ground
+    assert len(np.unique(cluster[part <= 1])) >= 2
+    # with it, they are one output cluster, made of those leaves; the platform and the ramp are not in it
+    cluster, label, doc = out["merge"]
+    assert (label == 0).all()
+    plane = np.unique(cluster[part <= 1])
+    assert len(plane) == 1, plane
+    g = int(plane[0])
+    entry = doc["clusters"][g]
+    assert entry["index"] == g and entry["label"] == "ground" and entry["n_points"] == int((cluster == g).sum())
+    assert len(entry["ids"]) == len(np.unique(out["no_merge"][0][part <= 1])) >= 2
+    assert entry["n_points"] == int((part <= 1).sum())
+    platform, ramp = np.unique(cluster[part == 2]), np.unique(cluster[part == 3])
+    assert len(platform) == 1 and len(ramp) == 1 and len({g, int(platform[0]), int(ramp[0])}) == 3
+    assert len(doc["clusters"]) == 3
+    # and the explanation says so, for each merged leaf
+    leaf = entry["ids"][0]
+    r = kbs("explain", str(tmp_path / "merge" / "patches.json"), "--cluster", leaf)
+    others = len(entry["ids"]) - 1
+    assert (f"note: merged with {others} other coplanar ground cluster{'s' if others > 1 else ''} "
+            f"into output cluster {g}") in r.stdout
