@@ -639,30 +639,35 @@ def _alpha_opening_components(D: _Distinct, alpha: float, radius: float) -> tupl
     """The components of the opening of the alpha-shape of the distinct positions, and the
     positions in each: ``(idx, comp, n_comp)``, the positions in a component, their components
     (in no particular order) and how many components hold a position."""
-    import shapely
-
-    U = D.points
-    parts = alpha_opening(alpha_shape(U, alpha), radius)
-    label = np.full(U.shape[0], -1, dtype=np.int64)
-    if parts:
-        scale = float(np.abs(U).max()) + alpha
-        near = _NEAR_FRACTION * radius + 1e-9 * scale  # the boundary (and rounding) when radius is 0
-        x, y = U[:, 0], U[:, 1]
-        boxes = shapely.bounds(parts)
-        for i, part in enumerate(parts):
-            shapely.prepare(part)
-            x0, y0, x1, y1 = boxes[i]
-            cand = np.flatnonzero((label < 0) & (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1))
-            label[cand[shapely.intersects_xy(part, x[cand], y[cand])]] = i
-        for i, part in enumerate(parts):
-            x0, y0, x1, y1 = boxes[i]
-            cand = np.flatnonzero((label < 0) & (x >= x0 - near) & (x <= x1 + near) & (y >= y0 - near)
-                                  & (y <= y1 + near))
-            if cand.size:
-                label[cand[shapely.dwithin(part, shapely.points(U[cand]), near)]] = i
+    label = _points_in_parts(D.points, alpha_opening(alpha_shape(D.points, alpha), radius), radius, alpha)
     idx = np.flatnonzero(label >= 0)
     used, comp = np.unique(label[idx], return_inverse=True)  # components holding no position go
     return idx, comp.ravel(), int(used.size)
+
+
+def _points_in_parts(U: np.ndarray, parts: list, radius: float, alpha: float) -> np.ndarray:
+    """The part (index into ``parts``) each point of ``U`` (m, 2) lies in or within
+    ``_NEAR_FRACTION * radius`` of, -1 for none (the first such part when there are several)."""
+    import shapely
+
+    label = np.full(U.shape[0], -1, dtype=np.int64)
+    if not parts:
+        return label
+    scale = float(np.abs(U).max()) + alpha
+    near = _NEAR_FRACTION * radius + 1e-9 * scale  # the outline (and rounding) when radius is 0
+    x, y = U[:, 0], U[:, 1]
+    boxes = shapely.bounds(parts)
+    for i, part in enumerate(parts):
+        shapely.prepare(part)
+        x0, y0, x1, y1 = boxes[i]
+        cand = np.flatnonzero((label < 0) & (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1))
+        label[cand[shapely.intersects_xy(part, x[cand], y[cand])]] = i
+    for i, part in enumerate(parts):
+        x0, y0, x1, y1 = boxes[i]
+        cand = np.flatnonzero((label < 0) & (x >= x0 - near) & (x <= x1 + near) & (y >= y0 - near) & (y <= y1 + near))
+        if cand.size:
+            label[cand[shapely.dwithin(part, shapely.points(U[cand]), near)]] = i
+    return label
 
 
 def _number_by_size(n_comp: int, comp: np.ndarray, size: np.ndarray, Q: np.ndarray
