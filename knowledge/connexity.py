@@ -1,12 +1,17 @@
-"""Connexity kernel of the CAh heuristic ("connexity ambiguity", ALGORITHMS.md section 3).
+"""Connexity kernel of the CAh heuristic ("connexity ambiguity", ../shared/ALGORITHMS.md section 3).
 
 Obstacles that emerge from the ground and look alike may be gathered in one cluster. Projected
 on the cluster's best approximating plane (BAP), such a cluster falls apart into several blobs:
 counting the significant connected components of the projection detects the ambiguity, and the
 components are the natural split.
 
-Method
-------
+Two methods find the components (``method``): ``'graph'`` (the default, and what the shipped
+rule bases use), an approximation on the points of the alpha-complex and of its opening, and
+``'alpha_opening'``, the paper's alpha-shape opened by a disc (section "The alpha-opening"
+below). Steps 1, 2 and 5 are common to both.
+
+Method ``'graph'``
+------------------
 1. Project the points on the plane through ``center`` with normal ``normal``
    (:func:`project_on_plane`). Exact duplicates (after projection) are merged into one position
    with a multiplicity; every count below still counts input points.
@@ -56,6 +61,49 @@ split partitions the cluster exactly into ``n_significant`` parts.
 Cost: the degrees are counted only where a cheap cell-count lower bound does not settle the
 erosion, and the components only list edges along gaps; 100,000 points take about 0.15-0.2 s
 on one core, with memory linear in the number of points.
+
+The alpha-opening (method ``'alpha_opening'``)
+----------------------------------------------
+The paper's operators, on the shape rather than on the points:
+
+1. The *alpha-complex* (:func:`alpha_complex`): the triangles of scipy's Delaunay triangulation of
+   the distinct projected positions whose circumradius is at most ``alpha`` (their edges are then
+   at most ``2 alpha``). The *alpha-shape* (:func:`alpha_shape`) is their union, a shapely
+   (Multi)Polygon with holes: the triangles meet edge to edge, so it is a coverage union
+   (``shapely.coverage_union_all``), exact and 2-5 times cheaper than a general union. (Building
+   it from the boundary edges instead is no better: ``shapely.polygonize`` returns the holes as
+   faces too, and ``shapely.build_area``, which sorts them out, costs as much as the coverage
+   union and fills holes that touch the outline at a vertex, 21 of 169 real calls;
+   ``benchmarks/bench_connexity.py``.) Points that make no triangle (a line of points, a
+   strand too sparse for alpha) are no part of the shape.
+2. The *opening* by a disc of radius ``rho`` (:func:`alpha_opening`): the alpha-erosion
+   ``buffer(-rho)`` keeps the centres of the discs of radius ``rho`` that fit inside the shape;
+   the alpha-dilation ``buffer(rho)`` puts the discs back. What is left is the union of the discs
+   that fit: a part narrower than ``2 rho`` disappears (a bridge of width ``w`` is cut exactly
+   when ``w < 2 rho``), and so do specks smaller than the disc; convex corners are rounded.
+   ``rho = opening_factor * alpha`` (default 1), or ``opening_radius`` in length units; 0 (or
+   ``opening=False``) counts the components of the alpha-shape itself. The radius is a multiple
+   of alpha, not a length in the rule file, because alpha is itself a multiple of the cluster's
+   own sampling step: the shape is only resolved to about alpha (the complex bridges gaps up to
+   ``2 alpha``), so a fixed length would be a no-op on sparse far clusters of a LiDAR frame and
+   too strong on dense near ones, and a multiple keeps the measure independent of the density,
+   the unit and the scale, as the rest of this module is. ``Connexity.opening_radius`` records
+   the length used.
+3. The components are the polygons of the opened shape. A point belongs to the one it lies in,
+   or within ``0.2 rho`` of: the opening rounds the convex corners of the outline, whose vertices
+   are sample points (a corner of angle ``t`` moves in by ``rho (1 / sin(t / 2) - 1)``, 0.155
+   rho at 120 degrees), and GEOS draws the arcs of the dilation with chords and simplifies its
+   input by 1 % of rho. Points in removed parts (bridges, spurs, specks) get ``-1``; sizes,
+   numbering, significance and :func:`assign_to_nearest` are as in step 5 above. A cluster whose
+   shape has no part ``2 rho`` wide has no component at all (``n_significant = 0``).
+
+With the defaults (``alpha = 3`` spacings, ``rho = alpha``) a bridge is cut when narrower than
+6 spacings, where the graph's opening cuts 1 or 2 rows of points: nearly touching obstacles are
+separated. The price: Delaunay, the union and two buffers cost 3-10 times the graph version per
+call (``benchmarks/bench_connexity.py``), and on LiDAR frames, where the median spacing is that
+along the scan lines, sparse parts fall out of the shape. Measured with the outdoor rules
+(docs/BENCHMARKS.md), it lowers the ground F1 of one GndNet scan by 0.004 and adds about 30 % to
+the frame time, so the shipped rule bases keep ``'graph'``.
 """
 from __future__ import annotations
 
