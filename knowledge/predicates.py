@@ -641,6 +641,8 @@ def connexity(cluster: Cluster, scene: Scene, *, alpha_factor: float = 3.0, min_
     circumradius <= alpha) opened by a disc of radius opening_factor x alpha, which removes the
     parts narrower than twice that radius."""
     geo = cluster.geometry
+    if method == "alpha_opening" and geo.degenerate:  # an alpha-shape of points on a line has no area
+        return Measurement(math.nan, undefined=f"degenerate: {geo.degeneracy}, no plane for an alpha-shape")
     res = _connexity.connexity(cluster.X, geo.center, geo.normal, alpha_factor=alpha_factor,
                                min_fraction=min_fraction, min_points=min_points, opening=opening,
                                method=method, opening_factor=opening_factor)

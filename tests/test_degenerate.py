@@ -236,6 +236,16 @@ def test_what_a_line_does_have_is_still_measured(name, value):
     assert m.defined and m.value == pytest.approx(value, abs=1e-6)
 
 
+def test_connexity_by_alpha_opening_is_undefined_on_a_line_and_by_graph_counts_its_pieces():
+    reg = PredicateRegistry.default(entry_points_too=False)
+    scene = Scene(np.zeros(3), None, "m")
+    line = Cluster("c0", _line(), np.ones(2000))
+    m = reg.get("connexity").measure(line, scene, {"method": "alpha_opening"})
+    assert not m.defined and m.undefined == "degenerate: its points lie on a line, no plane for an alpha-shape"
+    gap = np.vstack([_line()[:900], _line()[1100:]])
+    assert reg.get("connexity").measure(Cluster("c1", gap, np.ones(len(gap))), scene, {}).value == 2.0
+
+
 def test_a_plugin_can_declare_it_needs_a_plane_or_say_a_value_is_undefined(tmp_path):
     @predicate(unit="deg", needs_plane=True)
     def tilt(cluster, scene) -> float:
