@@ -430,12 +430,24 @@ def test_the_abw_rule_base_ships_and_is_written_in_abw_units():
     assert r.returncode == 0 and any(line.startswith("abw ") for line in r.stdout.splitlines()), r.stdout
     r = kbs("rules", "check", "abw")
     assert r.returncode == 0 and "abw: ok" in r.stdout, r.stdout + r.stderr
-    from kbs.knowledge import load_rule_base
+    import yaml
+    from jsonschema import Draft202012Validator
 
-    text = load_rule_base("abw").text
-    assert "units: mm" in text and "predicate: thickness" in text
-    # the paper's contest planarity, 1 length unit, in the calibration's unit (not planar_contest's 0.01 m)
-    assert "max: 1.0 " in text
+    from kbs.knowledge import load_rule_base, shipped_rule_bases
+    from kbs.knowledge.rulebase import schema
+
+    assert "abw" in shipped_rule_bases()
+    rb, contest = load_rule_base("abw"), load_rule_base("planar_contest")
+    assert rb.text.startswith("# yaml-language-server: $schema=rule-base.schema.json")
+    assert not list(Draft202012Validator(schema()).iter_errors(yaml.safe_load(rb.text)))
+    assert rb.units == "mm"
+    # the paper's contest planarity, 1 length unit, in the calibration's unit (planar_contest: 0.01 m)
+    assert rb.checks["planar"].predicate.name == "thickness" and rb.checks["planar"].max == 1.0
+    assert contest.checks["planar"].max == 0.01
+    # otherwise the contest's rules: PAh alone, no ground merging, the same labels
+    assert {r.name: r.action for r in rb.rules} == {r.name: r.action for r in contest.rules} == {
+        "noise": "reject", "PAh": "split"}
+    assert rb.merge is None and rb.label_names == contest.label_names == ["plane"]
 
 
 def test_synth_abw_writes_a_range_image_whose_points_lie_on_the_gt_faces(tmp_path):
