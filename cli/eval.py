@@ -312,8 +312,9 @@ def _eval_segcomp(ms_path: Path, gt_path: Path, image_path: Path | None, toleran
     xyz = pixel = None
     if explicit_image or image_path.is_file():
         cloud = read_range(image_path)
-        if cloud.shape != ms.shape:  # pragma: no cover - read_range only reads 512 x 512
-            raise CloudFileError(str(image_path), "not the size of the segmentations")
+        if cloud.shape != ms.shape:
+            raise CloudFileError(str(image_path), f"{cloud.shape[0]} x {cloud.shape[1]} pixels, but {ms_path} has "
+                                                  f"{ms.shape[0]} x {ms.shape[1]}: not the image that was segmented")
         xyz, pixel = cloud.xyz, cloud.index
     nor_path = ms_path.with_name(ms_path.name[:-len(".ms-seg")] + ".ms-nor")
     ms_normals = read_ms_nor(nor_path) if nor_path.is_file() else None

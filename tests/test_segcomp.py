@@ -563,6 +563,7 @@ def test_kbs_eval_segcomp_errors_are_one_line_with_exit_codes(tmp_path, capsys):
     write_sunraster(tmp_path / "small.gt-seg", gt[:4])
     write_sunraster(tmp_path / "bad.ms-seg", np.where(ms == 12, 5, ms))
     np.save(tmp_path / "labels.npy", np.zeros(48, dtype=np.int64))
+    write_sunraster(tmp_path / "abw.range", _facets_image()[0])  # a good range image, of another size
     ms_seg, gt_seg = str(tmp_path / "x.ms-seg"), str(tmp_path / "x.gt-seg")
     cases = [
         ((ms_seg, str(tmp_path / "labels.npy")), 2, "scores X.ms-seg against X.gt-seg"),
@@ -575,6 +576,7 @@ def test_kbs_eval_segcomp_errors_are_one_line_with_exit_codes(tmp_path, capsys):
         ((str(tmp_path / "none.ms-seg"), gt_seg), 3, "none.ms-seg: no such file"),
         ((ms_seg, gt_seg, "--image", str(tmp_path / "none.range")), 3, "none.range: no such file"),
         ((ms_seg, gt_seg, "--image", gt_seg), 3, "not an ABW range image"),
+        ((ms_seg, gt_seg, "--image", str(tmp_path / "abw.range")), 3, "not the image that was segmented"),
     ]
     for args, code, needle in cases:
         assert main(["eval", *args]) == code, args
