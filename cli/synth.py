@@ -1,4 +1,5 @@
-"""``kbs synth``: generate a labelled synthetic scene (polyhedral range image or outdoor stereo)."""
+"""``kbs synth``: generate a labelled synthetic scene (polyhedral range image, outdoor stereo, or an ABW
+range image with its SegComp ground truth)."""
 from __future__ import annotations
 
 import time
@@ -111,3 +112,31 @@ def synth_outdoor(seed: int, out: Path | None, resolution, n_frames: int | None,
     options["n_rocks"] = 3 if n_rocks is None else n_rocks
     scene = outdoor_scene(seed, **options)
     _finish(scene, out, time.perf_counter() - t0)
+
+
+@synth.command("abw")
+@seed_option
+@click.option("--out", "prefix", type=click.Path(dir_okay=False, path_type=Path), metavar="PREFIX",
+              help="Write PREFIX.range (the range image) and PREFIX.gt-seg (its ground truth), as SegComp.")
+@click.option("--boxes", "n_boxes", type=click.IntRange(0, None), default=3, show_default=True)
+@click.option("--wedges", "n_wedges", type=click.IntRange(0, None), default=1, show_default=True)
+@click.option("--tilt", "tilt_deg", type=click.FloatRange(0, 60, max_open=True), default=30.0, show_default=True,
+              help="Tilt of the table from fronto-parallel, degrees.")
+@click.option("--noise", type=click.FloatRange(0, None), default=0.0, show_default=True,
+              help="Range noise (standard deviation) in range levels, before the rounding to 8 bits.")
+def synth_abw(seed: int, prefix: Path | None, **options) -> None:
+    """Boxes and wedges on a tilted table seen through the ABW camera: a 512 x 512 8-bit SegComp
+    range image (.range) and its ground truth (.gt-seg: 10 the table, 11.. the faces).
+
+    For the planar contest: kbs run --rules abw PREFIX.range, then kbs segcomp and kbs eval."""
+    from kbs.synth.abw import abw_scene
+
+    t0 = time.perf_counter()
+    scene = abw_scene(seed, **options)
+    line = f"{scene.summary()}; {time.perf_counter() - t0:.2f} s"
+    if prefix is not None:
+        if prefix.suffix.lower() in (".range", ".gt-seg"):
+            prefix = prefix.with_suffix("")
+        range_path, gt_path = scene.save(prefix)
+        line += f"; wrote {range_path} and {gt_path}"
+    click.echo(line)
