@@ -318,6 +318,9 @@ class RuleBase:
     relabel: tuple[Relabel, ...] = ()
     contact: ContactSpec | None = None
     release: ReleaseSpec | None = None
+    #: what is valid but cannot be meant: conditions that can never hold (``kbs rules check``
+    #: prints them; they do not make the file invalid)
+    warnings: tuple[Problem, ...] = ()
 
     @property
     def label_names(self) -> list[str]:
@@ -813,7 +816,7 @@ class _Validator:
             strategy=d["strategy"], limits=limits, sensor=tuple(float(x) for x in sensor), ground=ground,
             checks=checks, rules=tuple(rules), labels=tuple(labels), merge=merge, path=self.pos.file,
             text="\n".join(self.pos.lines), ground_model=gmodel, relabel=tuple(relabel), contact=contact,
-            release=release,
+            release=release, warnings=tuple(sorted(self.warnings, key=lambda p: (p.pos.line, p.pos.col))),
         )
 
     def _checks(self, raw: Any) -> dict[str, Check]:
@@ -899,6 +902,12 @@ class _Validator:
         raw = self.data.get("checks")
         return {k: None for k in raw if isinstance(k, str)} if isinstance(raw, dict) else {}
 
+    def _never(self, cond: Condition, path: tuple, checks: Mapping[str, Check], what: str) -> None:
+        """A warning at ``path`` when ``cond`` can never hold, whatever the clusters measure."""
+        why = never_holds(cond, checks)
+        if why:
+            self.warn(path, f"{what}: its condition can never hold: {why}")
+
     def _rules(self, raw: Any, checks: Mapping[str, Check]) -> list[Rule]:
         out: list[Rule] = []
         if not isinstance(raw, list):
@@ -915,6 +924,7 @@ class _Validator:
             action = spec.get("then")
             if cond is None or action not in ACTIONS:
                 continue
+            self._never(cond, path + ("if",), checks, f"rule '{spec['name']}' can never act")
             if action == "split_components":
                 negated = [f for f in cond.facts() if f.negated and f.name in checks
                            and checks[f.name].predicate.name == "connexity"]
@@ -943,6 +953,8 @@ class _Validator:
             cond = None
             if "if" in spec:
                 cond = self._condition(spec["if"], path + ("if",), checks)
+                if cond is not None and default_at is None:
+                    self._never(cond, path + ("if",), checks, f"label '{spec['name']}' can never be given")
             else:
                 default_at = i
             out.append(Label(spec["name"], cond, str(spec.get("doc", "")), self.pos.pos(path)))
@@ -1023,6 +1035,7 @@ class _Validator:
             cond = self._condition(spec.get("if"), path + ("if",), checks) if "if" in spec else None
             if cond is None:
                 continue
+            self._never(cond, path + ("if",), checks, f"relabel rule '{spec['name']}' can never act")
             if model is None:
                 uses = [f.name for f in cond.facts() if f.name in checks and checks[f.name].predicate.needs_ground_model]
                 if uses:
@@ -1059,6 +1072,8 @@ class _Validator:
         else:
             sources = tuple(n for n in names if model is None or n != model.label)
         cond = self._condition(raw["if"], ("post", "ground_contact", "if"), checks) if "if" in raw else None
+        if cond is not None:
+            self._never(cond, ("post", "ground_contact", "if"), checks, "post.ground_contact can never move a point")
         return ContactSpec(float(raw["tolerance"]), sources, self.pos.pos(("post", "ground_contact"), key=True), cond)
 
     def _release(self, raw: Any, names: list[str], model: GroundModelSpec | None) -> ReleaseSpec | None:
@@ -1116,3 +1131,134 @@ _REPR.maxlevel, _REPR.maxlist, _REPR.maxdict, _REPR.maxstring, _REPR.maxlong, _R
 def _brief(value: Any) -> str:
     """repr of a value from the file, short whatever its size."""
     return _REPR.repr(value)
+
+
+# --- conditions that can never hold ---------------------------------------------------------------
+
+#: Alternatives (terms of the condition's disjunctive normal form) a condition is analysed with;
+#: a larger one gets no warning (the analysis would cost more than it tells).
+MAX_ALTERNATIVES = 256
+
+_Interval = tuple[float, bool, float, bool]  # (low, low included, high, high included)
+
+
+def never_holds(cond: Condition, checks: Mapping[str, Check]) -> str | None:
+    """Why ``cond`` can never hold, whatever the clusters measure, or None when it can (or when
+    it is too large to analyse, or names checks that are not valid).
+
+    A check passes when ``min <= value <= max``; its negation when the value is outside. Checks
+    on the same measure (predicate and parameters, defaults included) constrain one value: the
+    condition can never hold when, in each of its alternatives, some measure's constraints leave
+    no value within what the predicate can measure (its declared ``value_range``), or a check and
+    its negation meet.
+    """
+    terms = _alternatives(cond)
+    if terms is None:
+        return None
+    reasons = []
+    for term in terms:
+        why = _conflict(term, checks)
+        if why is None:
+            return None
+        reasons.append(why)
+    if len(reasons) == 1:
+        return reasons[0]
+    return f"none of its {len(reasons)} alternatives can, e.g. {reasons[0]}"
+
+
+def _alternatives(cond: Condition) -> list[tuple[tuple[str, bool], ...]] | None:
+    """The condition as alternatives (any of), each a tuple of facts (all of), in order; None
+    beyond MAX_ALTERNATIVES."""
+    if cond.kind == "fact":
+        return [((cond.name, cond.negated),)]
+    subs = [_alternatives(c) for c in cond.items]
+    if any(s is None for s in subs):
+        return None
+    if cond.kind == "any":
+        out = [t for s in subs for t in s]
+        return out if len(out) <= MAX_ALTERNATIVES else None
+    out = [()]
+    for s in subs:
+        out = [a + b for a in out for b in s]
+        if len(out) > MAX_ALTERNATIVES:
+            return None
+    return out
+
+
+def _conflict(term: tuple[tuple[str, bool], ...], checks: Mapping[str, Check]) -> str | None:
+    """Why the facts of one alternative cannot all hold, or None when they can."""
+    seen: dict[str, bool] = {}
+    for name, negated in term:
+        if seen.get(name, negated) != negated:
+            return f"'{name}' and 'not {name}' cannot both hold"
+        seen[name] = negated
+    by_measure: dict[tuple, list[tuple[str, bool]]] = {}
+    for name, negated in dict.fromkeys(term):
+        check = checks.get(name)
+        if check is None:
+            return None  # a check that is not valid: reported as a problem
+        by_measure.setdefault(_measure(check), []).append((name, negated))
+    for facts in by_measure.values():
+        pred = checks[facts[0][0]].predicate
+        allowed: list[_Interval] = [(-math.inf, False, math.inf, False)]
+        for name, negated in facts:
+            allowed = _intersect(allowed, _passes(checks[name], negated))
+        if allowed:
+            domain = _intersect(allowed, [_domain(pred)])
+            if domain:
+                continue
+        what = " and ".join(f"'{'not ' if neg else ''}{name}' ({_text(checks[name], neg)})" for name, neg in facts)
+        lo, hi = pred.value_range
+        if allowed:  # possible values, but not ones the predicate measures
+            rng = f"[{'-inf' if lo is None else f'{lo:g}'}, {'inf' if hi is None else f'{hi:g}'}]"
+            return f"{what} asks for values {pred.name} never measures (it measures {rng})"
+        return f"{what} exclude each other" if len(facts) > 1 else f"{what} is impossible"
+    return None
+
+
+def _measure(check: Check) -> tuple:
+    """What a check measures: its predicate and every parameter's value (defaults included)."""
+    params = {k: p.default for k, p in check.predicate.params.items()}
+    params.update(check.params)
+    return (check.predicate.name, tuple(sorted((k, repr(v)) for k, v in params.items())))
+
+
+def _domain(pred: Predicate) -> _Interval:
+    lo, hi = pred.value_range
+    return (-math.inf if lo is None else float(lo), lo is not None, math.inf if hi is None else float(hi), hi is not None)
+
+
+def _passes(check: Check, negated: bool) -> list[_Interval]:
+    """The values for which the fact holds: [min, max] passes; below min or above max fails."""
+    lo = -math.inf if check.min is None else check.min
+    hi = math.inf if check.max is None else check.max
+    if not negated:
+        return [(lo, check.min is not None, hi, check.max is not None)]
+    out = []
+    if check.min is not None:
+        out.append((-math.inf, False, lo, False))
+    if check.max is not None:
+        out.append((hi, False, math.inf, False))
+    return out
+
+
+def _intersect(a: list[_Interval], b: list[_Interval]) -> list[_Interval]:
+    out = []
+    for a_lo, a_lin, a_hi, a_hin in a:
+        for b_lo, b_lin, b_hi, b_hin in b:
+            lo, lin = (a_lo, a_lin) if a_lo > b_lo else (b_lo, b_lin) if b_lo > a_lo else (a_lo, a_lin and b_lin)
+            hi, hin = (a_hi, a_hin) if a_hi < b_hi else (b_hi, b_hin) if b_hi < a_hi else (a_hi, a_hin and b_hin)
+            if lo < hi or (lo == hi and lin and hin):
+                out.append((lo, lin, hi, hin))
+    return out
+
+
+def _text(check: Check, negated: bool) -> str:
+    """'thickness <= 0.05', 'not: thickness < 1 or > 2'."""
+    p = check.predicate.name
+    if not negated:
+        if check.min is not None and check.max is not None:
+            return f"{check.min:g} <= {p} <= {check.max:g}"
+        return f"{p} >= {check.min:g}" if check.min is not None else f"{p} <= {check.max:g}"
+    parts = ([f"< {check.min:g}"] if check.min is not None else []) + ([f"> {check.max:g}"] if check.max is not None else [])
+    return f"{p} {' or '.join(parts)}"

@@ -4,6 +4,7 @@ are not UTF-8, conditions that can never hold. Each is refused (or warned about)
 through the real command."""
 from __future__ import annotations
 
+import json
 import os
 import resource
 import shutil
@@ -13,6 +14,8 @@ import time
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from kbs.cli.main import main
 from kbs.knowledge import PredicateRegistry, RuleFileError
@@ -297,3 +300,160 @@ def test_an_impossible_date_is_a_positioned_error(tmp_path, capsys):
     code, out, err = check(capsys, write(tmp_path, text))
     assert code == 4 and "Traceback" not in err
     assert "t.yaml:4:14: cannot read 2021-02-30: day is out of range for month" in err, err
+
+
+# --- 5. conditions that can never hold; clusters no label matched -------------------------------
+
+WARN_BASE = """\
+kbs_rules: 1
+name: t
+units: m
+strategy: divisive
+scene: {ground: {normal: [0, 0, 1]}}
+checks:
+  planar: {predicate: thickness, max: 0.05}
+  thick: {predicate: thickness, min: 5}
+  thin: {predicate: thickness, max: 3}
+  anything: {predicate: thickness, min: 0}
+  level: {predicate: ground_angle, max: 22.5}
+  upright: {predicate: ground_angle, min: 90}
+  one_piece: {predicate: connexity, max: 1}
+  pieces: {predicate: connexity, params: {alpha_factor: 3.0}, min: 2}
+  pieces_coarse: {predicate: connexity, params: {alpha_factor: 5.0}, min: 2}
+  just_one: {predicate: connexity, min: 1, max: 1}
+  some: {predicate: connexity, min: 1}
+rules:
+  - {name: R, if: COND, then: split}
+labels:
+  - {name: plane}
+"""
+
+
+@pytest.mark.parametrize("cond, why", [
+    ("[thick, thin]", "'thick' (thickness >= 5) and 'thin' (thickness <= 3) exclude each other"),
+    ("not anything", "'not anything' (thickness < 0) asks for values thickness never measures (it measures [0, inf])"),
+    ("[planar, not planar]", "'planar' and 'not planar' cannot both hold"),
+    ("[one_piece, pieces]", "'one_piece' (connexity <= 1) and 'pieces' (connexity >= 2) exclude each other"),  # a default
+    ("{any: [[thick, thin], [level, not level]]}", "none of its 2 alternatives can, e.g. 'thick' (thickness >= 5) "
+                                                   "and 'thin' (thickness <= 3) exclude each other"),
+    ("[level, {all: [not level, planar]}]", "'level' and 'not level' cannot both hold"),
+    # bounds that meet: one side includes the value, the other not
+    ("[just_one, not one_piece]", "'just_one' (1 <= connexity <= 1) and 'not one_piece' (connexity > 1) exclude each other"),
+    ("[just_one, not some]", "'just_one' (1 <= connexity <= 1) and 'not some' (connexity < 1) exclude each other"),
+])
+def test_rules_check_warns_about_a_condition_that_can_never_hold(tmp_path, capsys, cond, why):
+    text = WARN_BASE.replace("COND", cond)
+    code, out, err = check(capsys, write(tmp_path, text))
+    assert code == 0, err
+    assert out.strip().endswith("strategy divisive; 1 warning")
+    assert f"t.yaml:{line_col(text, cond)}: warning: rule 'R' can never act: its condition can never hold: {why}\n" \
+           f"      - {{name: R, if: {cond}, then: split}}\n" in err, err
+
+
+@pytest.mark.parametrize("cond", ["[thick, not thin]", "[upright, not level]", "[one_piece, pieces_coarse]",
+                                  "[just_one, some, one_piece]", "[not just_one, some, not pieces]",
+                                  "{any: [[thick, thin], planar]}", "[not upright, level]", "[planar, thin]"])
+def test_a_condition_that_can_hold_gets_no_warning(tmp_path, capsys, cond):
+    code, out, err = check(capsys, write(tmp_path, WARN_BASE.replace("COND", cond)))
+    assert code == 0 and err == "" and "warning" not in out
+
+
+def test_labels_relabel_rules_and_ground_contact_are_checked_too(tmp_path, capsys):
+    text = (OUTDOOR.replace("    if: [planar, level]", "    if: [planar, level, not sheet, sheet]")
+            .replace("      if: [level, low]", "      if: [level, low, not level]")
+            .replace("if: {any: [not level, not sheet]}", "if: {any: [[level, not level], [sheet, not sheet]]}"))
+    code, out, err = check(capsys, write(tmp_path, text))
+    assert code == 0 and out.strip().endswith("; 3 warnings"), err
+    lines = [ln for ln in err.splitlines() if ": warning: " in ln]
+    assert [ln.split(": warning: ")[1].split(":")[0] for ln in lines] == [
+        "label 'ground' can never be given", "relabel rule 'low_level' can never act",
+        "post.ground_contact can never move a point"]
+
+
+def test_kbs_run_prints_the_warnings_and_runs(tmp_path, capsys):
+    text = OUTDOOR.replace("    if: [not planar, not connected]", "    if: [not planar, not connected, planar]")
+    path = write(tmp_path, text)
+    assert main(["run", "--rules", str(path), "-j", "1", str(EXAMPLE), "--out", str(tmp_path / "out")]) == 0
+    err = capsys.readouterr().err
+    assert f"kbs: warning: {path}:{line_col(text, '[not planar, not connected, planar]')}: rule 'CAh' can never act: " \
+           "its condition can never hold: 'planar' and 'not planar' cannot both hold" in err
+    assert main(["-q", "run", "--rules", str(path), "-j", "1", str(EXAMPLE), "--out", str(tmp_path / "out")]) == 0
+    assert "warning" not in capsys.readouterr().err
+
+
+def test_the_shipped_rule_bases_and_examples_have_no_warning(capsys):
+    files = ["outdoor", "airborne", "planar_contest", ROOT / "examples" / "rules" / "tabletop.yaml"]
+    code, out, err = check(capsys, *files)
+    assert code == 0 and err == "" and "warning" not in out
+
+
+@settings(max_examples=300, deadline=None, derandomize=True)
+@given(st.data())
+def test_never_holds_agrees_with_trying_every_value(data):
+    """Against brute force: thresholds are small integers (few, so that bounds often meet), so
+    the values k/2 in [-1, 6] meet every region of the line; a condition can hold iff some values
+    of its two measures satisfy it."""
+    reg = PredicateRegistry.default()
+    bound = st.one_of(st.none(), st.integers(0, 2))
+    specs = {}
+    for i in range(4):
+        lo, hi = data.draw(bound), data.draw(bound)
+        if lo is None and hi is None:
+            hi = 2
+        if lo is not None and hi is not None and lo > hi:
+            lo, hi = hi, lo
+        pred = "flatness" if i == 3 else "thickness"  # flatness measures [0, 1]
+        specs[f"c{i}"] = {"predicate": pred, **({} if lo is None else {"min": min(lo, 1) if i == 3 else lo}),
+                          **({} if hi is None else {"max": min(hi, 1) if i == 3 else hi})}
+    names = list(specs)
+    fact = st.builds(lambda n, neg: f"not {n}" if neg else n, st.sampled_from(names), st.booleans())
+    cond_st = st.recursive(fact, lambda sub: st.one_of(st.lists(sub, min_size=1, max_size=3),
+                                                         st.builds(lambda k, xs: {k: xs}, st.sampled_from(["all", "any"]),
+                                                                   st.lists(sub, min_size=1, max_size=3))),
+                           max_leaves=6)
+    cond = data.draw(cond_st)
+    import yaml as _yaml
+
+    doc = {"kbs_rules": 1, "name": "t", "units": "m", "strategy": "divisive", "checks": specs,
+           "rules": [{"name": "R", "if": cond, "then": "split"}], "labels": [{"name": "x"}]}
+    rb = parse_rule_base(_yaml.safe_dump(doc), "t.yaml", reg)
+    grid = [k / 2 for k in range(-2, 13)]
+
+    def holds(values: dict[str, float]) -> bool:
+        def fact_value(name: str) -> bool:
+            c = rb.checks[name]
+            v = values[c.predicate.name]
+            return c.passes(v)
+        return rb.rules[0].condition.evaluate(fact_value)
+
+    possible = any(holds({"thickness": t, "flatness": f}) for t in grid if t >= 0 for f in grid if 0 <= f <= 1)
+    warned = [w for w in rb.warnings if "rule 'R' can never act" in w.message]
+    assert bool(warned) == (not possible), (cond, specs, [w.message for w in rb.warnings])
+
+
+def test_clusters_no_label_matched_are_not_called_noise(tmp_path, capsys):
+    """A rule base without a default label, with a label of its own named noise: the clusters no
+    label's condition holds for say so in the summary and the explanation; the label noise keeps
+    its own count (it was overwritten by the count of unlabelled points)."""
+    text = OUTDOOR.replace("  - name: obstacle\n", "  - name: obstacle\n    if: not level\n  - name: noise\n"
+                                                   "    if: tiny\n")
+    path = write(tmp_path, text, "nolabel.yaml")
+    out_dir = tmp_path / "out"
+    assert main(["run", "--rules", str(path), "-j", "1", str(EXAMPLE), "--out", str(out_dir)]) == 0
+    out = capsys.readouterr().out
+    doc = json.loads((out_dir / "outdoor.json").read_text())
+    counts = doc["summary"]["points_per_label"]
+    unlabelled = [c for c in doc["clusters"] if c["label"] is None]
+    assert unlabelled, "the scene must have a cluster no label matched"
+    n_unlabelled = sum(c["n_points"] for c in unlabelled)
+    assert counts["no label matched"] == n_unlabelled
+    assert counts["noise"] == 0 and counts["noise (rejected)"] == 0  # the label, and the rejected points
+    assert sum(counts.values()) == doc["n_points"]
+    assert f"no label matched {n_unlabelled:,}" in out
+    assert main(["explain", str(out_dir / "outdoor.json")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    cid = unlabelled[0]["ids"][0]
+    line = next(ln for ln in lines if ln.strip().startswith(f"{cid} ("))
+    assert "accepted, no label matched: " in line and "noise" not in line
+    assert main(["explain", str(out_dir / "outdoor.json"), "--cluster", cid]) == 0
+    assert f"{cid}: {unlabelled[0]['n_points']:,} points, action accept, no label matched" in capsys.readouterr().out
