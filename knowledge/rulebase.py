@@ -777,7 +777,7 @@ class _Validator:
         elif kind == "const":
             self.add(path, f"{where} must be {sch['const']!r}; got {_brief(inst)}")
         elif kind == "type":
-            self.add(path, f"{where} must be {_article(sch['type'])}; got {_brief(inst)}")
+            self.add(path, f"{where} must be {_article(sch['type'])}; got {_brief(inst)}" + _as_number_hint(inst))
         elif kind in ("oneOf", "anyOf"):
             if path and len(path) == 2 and path[0] == "checks":
                 self.add(path, f"check '{path[1]}' needs a threshold: 'max' and/or 'min'")
@@ -963,12 +963,18 @@ class _Validator:
     def _ground(self, raw: dict, checks: Mapping[str, Check]) -> GroundSpec:
         g = {**GROUND_DEFAULTS, **raw}
         needs = [c for c in checks.values() if c.predicate.needs_ground]
-        normal = None if g["normal"] == "auto" else tuple(float(x) for x in g["normal"])
+        auto = isinstance(g["normal"], str) and g["normal"] == "auto"
+        normal = None if auto else _vector3(g["normal"])  # None too when invalid: the schema said so
+        fallback = _vector3(g["fallback"])
         cand = g.get("candidate")
-        if normal is not None and sum(x * x for x in normal) == 0:
-            self.add(("scene", "ground", "normal"), "the ground normal must not be the zero vector")
-        if sum(float(x) ** 2 for x in g["fallback"]) == 0:
-            self.add(("scene", "ground", "fallback"), "the fallback ground normal must not be the zero vector")
+        for key, vec, what in (("normal", normal, "the ground normal"), ("fallback", fallback,
+                                                                          "the fallback ground normal")):
+            square = sum(x * x for x in vec) if vec is not None else 1.0
+            if square == 0:
+                self.add(("scene", "ground", key), f"{what} must not be the zero vector")
+            elif not math.isfinite(square):  # its length overflows: the engine would divide by inf
+                self.add(("scene", "ground", key), f"{what} is too long to be normalised (its squared length "
+                         "overflows); a unit vector such as [0, 0, 1] says the same")
         if cand is not None and isinstance(cand, str):
             if cand not in checks and cand not in self._declared:
                 hint = self.hint(cand, checks)
@@ -977,22 +983,22 @@ class _Validator:
             elif cand in checks and checks[cand].predicate.needs_ground:
                 self.add(("scene", "ground", "candidate"), f"check '{cand}' needs the ground itself "
                          f"('{checks[cand].predicate.name}'): it cannot be what finds the ground")
-        elif needs and normal is None:
+        elif needs and auto:
             first = needs[0]
             self.add(("checks", first.name, "predicate"),
                      f"check '{first.name}' uses the ground ('{first.predicate.name}'), found automatically, but "
                      "scene.ground.candidate does not name the check a ground candidate must pass "
                      "(e.g. 'candidate: planar'), nor does scene.ground.normal fix it")
-        return GroundSpec(normal=normal, candidate=cand, min_points=int(g["min_points"]),
-                          fallback=tuple(float(x) for x in g["fallback"]))
+        return GroundSpec(normal=normal, candidate=cand, min_points=_number(g["min_points"], 0, int),
+                          fallback=fallback or (0.0, 0.0, 1.0))
 
     def _merge(self, raw: Any, labels: list[Label]) -> MergeSpec | None:
         if not isinstance(raw, dict) or not isinstance(raw.get("merge_coplanar"), dict):
             return None
         m = raw["merge_coplanar"]
         self._label_ref(("post", "merge_coplanar", "label"), m.get("label"), [lb.name for lb in labels])
-        return MergeSpec(label=str(m.get("label")), max_angle=float(m.get("max_angle", 10.0)),
-                         max_offset=float(m.get("max_offset", 0.15)))
+        return MergeSpec(label=str(m.get("label")), max_angle=_number(m.get("max_angle"), 10.0),
+                         max_offset=_number(m.get("max_offset"), 0.15))
 
     def _label_ref(self, path: tuple, name: Any, names: list[str]) -> None:
         if isinstance(name, str) and name not in names:
@@ -1009,8 +1015,8 @@ class _Validator:
         model = None
         if isinstance(gm, dict) and isinstance(gm.get("label"), str):
             self._label_ref(("post", "ground_model", "label"), gm["label"], names)
-            model = GroundModelSpec(label=gm["label"], neighbours=int(gm.get("neighbours", 8)),
-                                    radius=float(gm.get("radius", 3.0)), pos=self.pos.pos(("post", "ground_model"), key=True))
+            model = GroundModelSpec(label=gm["label"], neighbours=_number(gm.get("neighbours"), 8, int),
+                                    radius=_number(gm.get("radius"), 3.0), pos=self.pos.pos(("post", "ground_model"), key=True))
         relabel = self._relabel(raw.get("relabel"), checks, names, model)
         contact = self._contact(raw.get("ground_contact"), checks, names, model)
         release = self._release(raw.get("ground_release"), names, model)
@@ -1107,6 +1113,41 @@ class _Validator:
                 if i < len(raw_labels):
                     self.add(("labels", i, "if"), f"label '{lab.name}': check '{name}' measures against the local "
                              "ground surface, which is built from the labels; use it in post.relabel")
+
+
+def _as_number_hint(value: Any) -> str:
+    """For '1e5', which YAML 1.1 reads as text: how to write it as a number."""
+    if isinstance(value, str) and len(value) < 40:
+        try:
+            number = float(value)
+        except ValueError:
+            return ""
+        if not math.isfinite(number) or "e" not in value.lower():
+            return ""
+        mantissa, exponent = value.strip().lower().split("e", 1)
+        mantissa += "" if "." in mantissa else ".0"
+        exponent = exponent if exponent[:1] in ("+", "-") else "+" + exponent
+        written = f"{mantissa}e{exponent}"
+        if yaml.safe_load(written) == number:
+            return f" (YAML reads {value} as text; write {written})"
+    return ""
+
+
+def _number(value: Any, default: float, kind: type = float) -> Any:
+    """``value`` as a float (or int), ``default`` when it is not a real number (the schema reports
+    it; the rule base is then not built)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return default
+    return kind(value) if math.isfinite(value) else default
+
+
+def _vector3(value: Any) -> tuple[float, float, float] | None:
+    """Three real numbers as floats, or None (the schema reports what it is instead)."""
+    if not isinstance(value, list) or len(value) != 3:
+        return None
+    if any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in value):
+        return None
+    return (float(value[0]), float(value[1]), float(value[2]))
 
 
 def _article(t: Any) -> str:
