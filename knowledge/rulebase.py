@@ -5,7 +5,13 @@ Each problem prints as ``file:line:col: message`` (1-based), followed by the off
 line and a caret under the offending value (after yamllint and strictyaml). Validation is the
 JSON Schema shipped in ``rules/rule-base.schema.json`` plus what a schema cannot say: known
 predicates ("did you mean"), their parameters, thresholds within the predicate's range,
-references between checks, rules and labels, and contradictory settings.
+references between checks, rules and labels, and contradictory settings. Conditions that can
+never hold are warnings (:attr:`RuleBase.warnings`), not problems.
+
+The YAML is read within bounds, so that no file can hang the reader or exhaust the memory: a
+size (:data:`MAX_RULE_FILE_BYTES`), a nesting depth (:data:`MAX_NESTING`,
+:data:`MAX_CONDITION_DEPTH`) and the nodes aliases may repeat (:data:`MAX_ALIAS_NODES`); numbers
+must be finite. Each is a problem at its position, as any other.
 """
 from __future__ import annotations
 
