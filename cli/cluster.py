@@ -7,9 +7,17 @@ from pathlib import Path
 import click
 import numpy as np
 
-from kbs.cli.common import cloud_argument, progress_bar, write_result_ply
+from kbs.cli.common import (
+    ProgressLines,
+    check_writable_folder,
+    cloud_argument,
+    force_option,
+    progress_bar,
+    write_result_ply,
+)
 from kbs.inference import ufp_onc
 from kbs.io import read_cloud
+from kbs.io.result import check_output
 
 
 def format_k_table(result) -> str:
@@ -34,19 +42,29 @@ def format_k_table(result) -> str:
 @click.option("--max-fit-points", type=click.IntRange(10, None), default=6000, show_default=True,
               help="Clouds larger than this are fitted on a voxel grid of at most this many voxels.")
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path),
-              help="Write the cloud with per-vertex 'cluster' and 'membership' to this PLY file.")
+              help="Write the cloud with per-vertex 'cluster' and 'membership' to this PLY file (never over "
+                   "CLOUD; over a file kbs did not write only with --force).")
+@force_option
 @click.pass_context
 def cluster(ctx: click.Context, cloud: Path, k_max: int, m: float, stop: str, max_fit_points: int,
-            out: Path | None) -> None:
+            out: Path | None, force: bool = False) -> None:
     """Run UFP-ONC on CLOUD and print the per-K table; the K chosen (APD's first local maximum)
     is marked '*'."""
     quiet = ctx.obj.get("quiet", False)
     t0 = time.perf_counter()
+    if out is not None:  # before any work
+        check_output(out, inputs=(cloud,), force=force)
+        check_writable_folder(out.parent, create=False, name=out)
     pc = read_cloud(cloud)
     t_read = time.perf_counter() - t0
+    lines = ProgressLines(str(cloud), lambda k: f"K = {k} of {k_max}", quiet=quiet, start=t0)
+
+    def step(part) -> None:
+        bar.update(1)
+        lines()
+
     with progress_bar(k_max, "UFP-ONC K", quiet) as bar:
-        result = ufp_onc(pc.xyz, k_max, m=m, stop=stop, max_fit_points=max_fit_points,
-                         progress=lambda part: bar.update(1))
+        result = ufp_onc(pc.xyz, k_max, m=m, stop=stop, max_fit_points=max_fit_points, progress=step)
     click.echo(f"{cloud}: {len(pc):,} points"
                + (f", fitted on {result.n_fit:,} voxels of {result.voxel_size:.3g}" if result.voxel_size else ""))
     click.echo(format_k_table(result))

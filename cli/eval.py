@@ -23,6 +23,7 @@ from kbs.evaluation import (
 )
 from kbs.evaluation.hoover import check_tolerance
 from kbs.io import read_cloud, read_result_json
+from kbs.io.result import check_pair
 
 
 def _int_list(ctx: click.Context, param: click.Parameter, value: str | None) -> tuple[int, ...] | None:
@@ -44,11 +45,14 @@ def _tolerance(ctx: click.Context, param: click.Parameter, value: float) -> floa
 
 
 def _label_names(result: Path) -> tuple[Path, list[str] | None]:
-    """The sibling ``<stem>.json`` of a result and its ``label_names`` (None when it is absent)."""
+    """The sibling ``<stem>.json`` of a result and its ``label_names`` (None when it is absent);
+    a JSON of another run than the PLY's is refused (:func:`kbs.io.result.check_pair`)."""
     js = result.with_suffix(".json")
     if not js.is_file():
         return js, None
-    names = read_result_json(js, require=("label_names",))["label_names"]
+    doc = read_result_json(js, require=("label_names",))
+    check_pair(result, js, doc)
+    names = doc["label_names"]
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise CloudFileError(str(js), "not a kbs result file ('label_names' is not a list of names)")
     return js, names
@@ -120,7 +124,7 @@ def format_ground(g: GroundMetrics) -> str:
 
 
 @click.command("eval")
-@click.argument("result", type=click.Path(path_type=Path))
+@click.argument("result", type=click.Path(path_type=Path, readable=False))
 @click.argument("ground_truth", metavar="GROUND_TRUTH")
 @click.option("--tolerance", type=float, default=0.8, show_default=True, callback=_tolerance,
               help="Hoover tolerance T, in (0.5, 1].")

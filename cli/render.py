@@ -7,6 +7,8 @@ from pathlib import Path
 import click
 
 from kbs.errors import CloudFileError
+from kbs.io.atomic import replacing
+from kbs.io.result import InputFiles, check_output
 
 KINDS = ("series", "map", "clusters")
 
@@ -23,7 +25,7 @@ def _outputs(result: Path, out: Path | None, kind: str) -> dict[str, Path]:
 
 
 @click.command()
-@click.argument("result", type=click.Path(path_type=Path))
+@click.argument("result", type=click.Path(path_type=Path, readable=False))
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="PNG to write (default: <stem>-<kind>.png next to RESULT). With --kind all, three "
                    "files: <out stem>-series.png, -map.png, -clusters.png.")
@@ -34,16 +36,21 @@ def _outputs(result: Path, out: Path | None, kind: str) -> dict[str, Path]:
               help="Points drawn (and clustered for the series), a deterministic stride sample.")
 @click.option("--dpi", type=click.IntRange(30, 600), default=100, show_default=True)
 def render(result: Path, out: Path | None, kind: str, max_points: int, dpi: int) -> None:
-    """Draw figures of a `kbs run` RESULT.json (its points are read from the sibling RESULT.ply)."""
+    """Draw figures of a `kbs run` RESULT.json (its points are read from the sibling RESULT.ply;
+    the two must be the same run's)."""
     import matplotlib
 
     matplotlib.use("Agg")  # headless whatever MPLBACKEND says
     from kbs.report import figures
 
     t0 = time.perf_counter()
+    outputs = _outputs(result, out, kind)
+    sources = InputFiles((result, result.with_suffix(".ply")))
+    for path in outputs.values():  # a figure never replaces the result it is drawn from
+        check_output(path, inputs=sources, force=True)
     res = figures.load_result(result)
     stem = result.stem
-    for k, path in _outputs(result, out, kind).items():
+    for k, path in outputs.items():
         t = time.perf_counter()
         if k == "series":
             fig = figures.series_figure(res.X, max_points=max_points, title=f"{stem}: UFP-ONC partitions, top view")
@@ -55,7 +62,8 @@ def render(result: Path, out: Path | None, kind: str, max_points: int, dpi: int)
                                           max_points=max_points, title=f"{stem}: output clusters")
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            fig.savefig(path, dpi=dpi)
+            with replacing(path) as (tmp,):  # whole or not at all; the temporary name keeps the suffix
+                fig.savefig(tmp, dpi=dpi, format=path.suffix[1:].lower() or "png")
         except OSError as exc:
             raise CloudFileError(str(path), f"cannot write: {exc.strerror or exc}") from exc
         click.echo(f"wrote {path} ({time.perf_counter() - t:.2f} s)")

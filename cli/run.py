@@ -1,8 +1,8 @@
 """``kbs run``, ``kbs explain``, ``kbs rules``, ``kbs predicates``: the knowledge-based system."""
 from __future__ import annotations
 
-import json
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -10,9 +10,13 @@ import click
 import numpy as np
 
 from kbs import __version__
-from kbs.cli.common import write_result_ply
+from kbs.cli.common import ProgressLines, check_writable_folder, force_option, progress_interval, result_fields
 from kbs.errors import CloudFileError, ExitCode, KbsError
 from kbs.io import SUPPORTED_EXTENSIONS, read_cloud, read_result_json
+from kbs.io.atomic import replacing
+from kbs.io.readers import why_not_a_scan
+from kbs.io.result import RUN_ID_COMMENT, InputFiles, check_output, new_run_id, write_result_pair
+from kbs.io.result import jsonable as _jsonable  # noqa: F401 -- benchmarks/profile_run.py times the JSON with it
 from kbs.knowledge import Explanation, PredicateRegistry, Segmenter, load_rule_base
 from kbs.knowledge.explain import limit_lines
 from kbs.knowledge.predicates import UNITS, did_you_mean
@@ -68,9 +72,24 @@ class ScanFailure:
     exit_code: int
 
 
-def scan_paths(clouds: tuple[Path, ...]) -> list[Path]:
+def _companion_of(path: Path, names: set[str]) -> str | None:
+    """``B.labels.npy`` beside ``B.points.npy`` (SemanticKITTI, GndNet): the name of the scan a
+    file goes with, or None."""
+    parts = path.name.split(".")
+    if len(parts) >= 3 and parts[-2] != "points":
+        scan = ".".join([*parts[:-2], "points", parts[-1]])
+        if scan in names:
+            return scan
+    return None
+
+
+def scan_paths(clouds: tuple[Path, ...], *,
+               on_skip: Callable[[Path, str], None] | None = None) -> list[Path]:
     """The scans named by CLOUD arguments: a file as given, a directory as every file directly
-    inside it with a supported extension (:data:`kbs.io.SUPPORTED_EXTENSIONS`), in name order.
+    inside it with a supported extension (:data:`kbs.io.SUPPORTED_EXTENSIONS`), in name order,
+    except the files that are not point clouds: ``B.<anything>.EXT`` beside a ``B.points.EXT``
+    (labels, grids), and arrays or text files that cannot hold x y z
+    (:func:`kbs.io.readers.why_not_a_scan`); each of those is passed to ``on_skip`` with the reason.
     Two scans with the same stem would write the same result files: a usage error."""
     scans: list[Path] = []
     for arg in clouds:
@@ -82,10 +101,20 @@ def scan_paths(clouds: tuple[Path, ...]) -> list[Path]:
                            key=lambda p: p.name)
         except OSError as exc:
             raise CloudFileError(str(arg), f"cannot list the directory: {exc.strerror or exc}") from exc
-        if not found:
+        names = {p.name for p in found}
+        kept = []
+        for p in found:
+            scan = _companion_of(p, names)
+            problem = None if scan else why_not_a_scan(p)
+            if scan is None and problem is None:
+                kept.append(p)
+            elif on_skip is not None:
+                on_skip(p, f"a companion of {scan}, not a scan" if scan else f"not a point cloud ({problem})")
+        if not kept:
+            skipped = f"; {len(found)} skipped, not point clouds" if found else ""
             raise CloudFileError(str(arg), f"no point-cloud file in this directory (extensions: "
-                                 f"{', '.join(SUPPORTED_EXTENSIONS)})")
-        scans.extend(found)
+                                 f"{', '.join(SUPPORTED_EXTENSIONS)}{skipped})")
+        scans.extend(kept)
     seen: dict[str, Path] = {}
     for scan in scans:
         if scan.stem in seen:
@@ -99,66 +128,75 @@ def scan_paths(clouds: tuple[Path, ...]) -> list[Path]:
 
 
 def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path, *, color_by: str = "cluster", meshes: bool = False,
-             report: bool = False, quiet: bool = False, t0: float | None = None) -> ScanResult:
+             report: bool = False, quiet: bool = False, t0: float | None = None,
+             inputs: InputFiles | tuple[Path, ...] = (),
+             force: bool = False) -> ScanResult:
     """Read one scan, segment it, write DIR/<stem>.ply and DIR/<stem>.json (and the meshes and the
-    report when asked) and print what was done; ``t0`` is when its clock started (default: now)."""
+    report when asked) and print what was done (nothing on stdout when ``quiet``); ``t0`` is when
+    its clock started (default: now).
+
+    Before reading, each output is checked (:func:`kbs.io.result.check_output`): never ``cloud``
+    or one of ``inputs``; an existing file kbs did not write only with ``force``."""
     t0 = time.perf_counter() if t0 is None else t0
+    say = (lambda *args, **kwargs: None) if quiet else click.echo
     rb = segmenter.rule_base
+    ply, js = out_dir / f"{cloud.stem}.ply", out_dir / f"{cloud.stem}.json"
+    html = out_dir / f"{cloud.stem}.html"
+    sources = inputs if isinstance(inputs, InputFiles) else InputFiles((cloud, *inputs))
+    for target in (ply, js, *([html] if report else [])):
+        check_output(target, inputs=sources, force=force)
     pc = read_cloud(cloud)
     t_read = time.perf_counter() - t0
-    ply, js = out_dir / f"{cloud.stem}.ply", out_dir / f"{cloud.stem}.json"
-    if ply.resolve() == cloud.resolve():
-        raise CloudFileError(str(ply), "the output would overwrite the input; choose another --out")
-    seg = segmenter.segment(pc.xyz)
+    seg = segmenter.segment(pc.xyz, progress=ProgressLines(str(cloud), _splits, quiet=quiet, start=t0))
     t1 = time.perf_counter()
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise CloudFileError(str(out_dir), f"cannot create the output directory: {exc.strerror or exc}") from exc
+    check_writable_folder(out_dir, create=True)  # checked by `kbs run` already; here for other callers
     from kbs.report.colors import rgb_fields
 
-    write_result_ply(ply, pc, {"cluster": seg.cluster, "label": seg.label, "membership": seg.membership,
-                               **rgb_fields(seg.cluster if color_by == "cluster" else seg.label)})
+    fields = result_fields(pc, {"cluster": seg.cluster, "label": seg.label, "membership": seg.membership,
+                                **rgb_fields(seg.cluster if color_by == "cluster" else seg.label)})
     doc = {
         "kbs_version": __version__, "input": str(cloud), "n_points": len(pc), "n_dropped": pc.n_dropped,
         "rule_base": rb.name, "rule_file": rb.path, "units": rb.units, "sensor": list(segmenter.sensor),
         "label_names": seg.label_names, "summary": seg.summary(), "clusters": seg.clusters,
         "explanation": seg.explanation.to_dict(),
     }
-    try:
-        js.write_text(json.dumps(doc, separators=(",", ":"), default=_jsonable))
-    except OSError as exc:
-        raise CloudFileError(str(js), f"cannot write: {exc.strerror or exc}") from exc
+    run_id = write_result_pair(ply, js, pc.xyz, fields, doc, run_id=new_run_id())
     t_write = time.perf_counter() - t1
     s = seg.summary()
     per_label = ", ".join(f"{k} {v:,}" for k, v in s["points_per_label"].items())
-    click.echo(f"{cloud}: {len(pc):,} points, rule base '{rb.name}' ({rb.strategy})")
-    click.echo(f"  {s['clusters']} clusters, {s['splits']} splits, {s['limits']} limits reached; points: {per_label}")
+    say(f"{cloud}: {len(pc):,} points, rule base '{rb.name}' ({rb.strategy})")
+    say(f"  {s['clusters']} clusters, {s['splits']} splits, {s['limits']} limits reached; points: {per_label}")
     for line in limit_lines(s["limits_by_kind"], Path(rb.path).name, result=str(js)):
-        click.echo(f"  {line}")
-    click.echo(f"  ground: {seg.explanation.ground.get('source', 'not used')}")
-    click.echo(f"  time: {time.perf_counter() - t0:.2f} s (read {t_read:.2f}, segment {seg.seconds:.2f}, "
-               f"write {t_write:.2f})")
-    click.echo(f"wrote {ply} and {js}")
+        say(f"  {line}")
+    say(f"  ground: {seg.explanation.ground.get('source', 'not used')}")
+    say(f"  time: {time.perf_counter() - t0:.2f} s (read {t_read:.2f}, segment {seg.seconds:.2f}, "
+        f"write {t_write:.2f})")
+    say(f"wrote {ply} and {js}")
     if meshes:
         from kbs.report.meshes import write_meshes
 
-        click.echo(write_meshes(out_dir / f"{cloud.stem}-meshes", pc.xyz, seg.cluster, seg.label,
-                                seg.label_names).describe())
+        say(write_meshes(out_dir / f"{cloud.stem}-meshes", pc.xyz, seg.cluster, seg.label,
+                         seg.label_names).describe())
     if report:
         from kbs.report.html import write_report
 
-        html = out_dir / f"{cloud.stem}.html"
         try:
-            write_report(html, pc.xyz, seg.cluster, seg.label, seg.label_names, doc["explanation"], seg.clusters,
-                         title=f"{cloud.name} — rule base '{rb.name}'")
+            with replacing(html) as (tmp,):
+                write_report(tmp, pc.xyz, seg.cluster, seg.label, seg.label_names, doc["explanation"], seg.clusters,
+                             title=f"{cloud.name} — rule base '{rb.name}'")
+                with open(tmp, "a", encoding="utf-8") as stream:  # marks the page as kbs's own (--force)
+                    stream.write(f"<!-- {RUN_ID_COMMENT} {run_id} -->\n")
         except OSError as exc:
             raise CloudFileError(str(html), f"cannot write: {exc.strerror or exc}") from exc
-        click.echo(f"wrote {html}")
+        say(f"wrote {html}")
     if not quiet:
         for note in seg.explanation.notes + ([seg.explanation.ground["note"]] if "note" in seg.explanation.ground else []):
             click.echo(f"note: {note}", err=True)
     return ScanResult(cloud, len(pc), s["clusters"], t_read, seg.seconds, t_write)
+
+
+def _splits(n: int) -> str:
+    return f"{n:,} split{'s' if n != 1 else ''}"
 
 
 def time_table(results: list[ScanResult | ScanFailure], t_load: float, t_total: float) -> str:
@@ -185,10 +223,13 @@ def time_table(results: list[ScanResult | ScanFailure], t_load: float, t_total: 
 @click.command()
 @click.option("--rules", "rules", required=True, metavar="NAME|FILE",
               help=f"A shipped rule base ({', '.join(shipped_rule_bases())}) or a rule file.")
-@click.argument("clouds", nargs=-1, required=True, type=click.Path(path_type=Path), metavar="CLOUD...")
+@click.argument("clouds", nargs=-1, required=True, type=click.Path(path_type=Path, readable=False),
+                metavar="CLOUD...")
 @click.option("--sensor", callback=_vector3, metavar="X,Y,Z", help="Sensor position (overrides the rule base's).")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=Path("kbs-out"),
-              show_default=True, help="Directory for <stem>.ply and <stem>.json.")
+              show_default=True, help="Directory for <stem>.ply and <stem>.json (created if needed; checked "
+              "for writing before any segmentation).")
+@force_option
 @plugin_option
 @click.option("--color-by", "color_by", type=click.Choice(["cluster", "label"]), default="cluster", show_default=True,
               help="Colour of each vertex (red green blue) in <stem>.ply: one per output cluster or per label.")
@@ -201,22 +242,37 @@ def time_table(results: list[ScanResult | ScanFailure], t_load: float, t_total: 
               "does not depend on it.")
 @click.pass_context
 def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_dir: Path, plugins: tuple[Path, ...],
-        color_by: str = "cluster", meshes: bool = False, report: bool = False, jobs: int = -1) -> None:
+        color_by: str = "cluster", meshes: bool = False, report: bool = False, jobs: int = -1,
+        force: bool = False) -> None:
     """Segment each CLOUD with a rule base; write DIR/<stem>.ply (per-vertex cluster, label,
     membership) and DIR/<stem>.json (label names, clusters, the explanation tree).
 
     A CLOUD that is a directory stands for every point-cloud file directly inside it, in name
     order. The rule base is loaded once for all the scans; with several, a table of the time each
     took follows. A scan that fails is reported and the others go on; the exit code is then the
-    first failure's."""
+    first failure's.
+
+    Outputs: never an input file; an existing file that kbs did not write (no kbs run id) only
+    with --force; an earlier kbs result is replaced. Each pair is written whole or not at all.
+    On a stderr that is not a terminal, a progress line every 10 s (KBS_PROGRESS_SECONDS); -q
+    prints nothing but errors."""
     quiet = ctx.obj.get("quiet", False)
     t0 = time.perf_counter()
-    scans = scan_paths(clouds)
+    if not quiet:
+        progress_interval()  # a bad KBS_PROGRESS_SECONDS is a usage error before any work
+
+    def skipped(path: Path, why: str) -> None:
+        if not quiet:
+            click.echo(f"kbs: skipped {path}: {why}", err=True)
+
+    scans = scan_paths(clouds, on_skip=skipped)
     with Segmenter(rules, jobs=jobs, sensor=sensor, plugins=plugins) as segmenter:  # workers kept for all scans
         if not quiet:
             for w in segmenter.rule_base.warnings:  # `kbs rules check` quotes the line
                 click.echo(f"kbs: warning: {w.pos}: {w.message}", err=True)
-        _run_scans(segmenter, scans, out_dir, t0, color_by=color_by, meshes=meshes, report=report, quiet=quiet)
+        check_writable_folder(out_dir, create=True)  # before any segmentation
+        _run_scans(segmenter, scans, out_dir, t0, color_by=color_by, meshes=meshes, report=report, quiet=quiet,
+                   inputs=InputFiles(scans), force=force)
 
 
 def _run_scans(segmenter, scans, out_dir: Path, t0: float, **options) -> None:
@@ -231,22 +287,15 @@ def _run_scans(segmenter, scans, out_dir: Path, t0: float, **options) -> None:
         except KbsError as exc:  # as the command would report it alone; the other scans go on
             click.echo(f"kbs: error: {exc}", err=True)
             results.append(ScanFailure(scan, int(exc.exit_code)))
-    click.echo(time_table(results, t_load, time.perf_counter() - t0))
+    if not options.get("quiet"):
+        click.echo(time_table(results, t_load, time.perf_counter() - t0))
     failures = [r.exit_code for r in results if isinstance(r, ScanFailure)]
     if failures:
         raise click.exceptions.Exit(failures[0])
 
 
-def _jsonable(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(type(o).__name__)
-
-
 @click.command()
-@click.argument("result", type=click.Path(path_type=Path))
+@click.argument("result", type=click.Path(path_type=Path, readable=False))
 @click.option("--cluster", "cluster_id", metavar="ID", help="Say why this cluster ended as it did (e.g. c0.2).")
 def explain(result: Path, cluster_id: str | None) -> None:
     """Print the explanation tree of a `kbs run` RESULT.json, or why one cluster ended as it did."""

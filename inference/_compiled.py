@@ -644,25 +644,33 @@ def central_sums(u, w, maha):
 def geometry3(X, u, w, power):
     """Fuzzy centre (3,) (weights ``w u^power``), fuzzy covariance (3, 3) (weights ``w u``, two
     passes), its eigenvalues (ascending) and eigenvectors, and the effective size, of points
-    ``X`` (n, 3)."""
+    ``X`` (n, 3). An empty ``u`` or ``w`` stands for all ones. When the effective size or the
+    centre's total weight is not positive, the size alone is meaningful (the rest is zeros)."""
     n = X.shape[0]
+    has_u = u.shape[0] > 0
+    has_w = w.shape[0] > 0
     c0 = c1 = c2 = 0.0
     den = 0.0
     mass = 0.0
     for j in range(n):
-        uw = u[j] * w[j]
-        p = (u[j] * u[j] if power == 2.0 else u[j] ** power) * w[j]
+        uj = u[j] if has_u else 1.0
+        wj = w[j] if has_w else 1.0
+        p = (uj * uj if power == 2.0 else uj ** power) * wj
         den += p
-        mass += uw
+        mass += uj * wj
         c0 += p * X[j, 0]
         c1 += p * X[j, 1]
         c2 += p * X[j, 2]
+    center = np.zeros(3)
+    cov = np.zeros((3, 3))
+    if not (den > 0.0 and mass > 0.0):
+        return center, cov, np.zeros(3), np.eye(3), mass
     c0 /= den
     c1 /= den
     c2 /= den
     s00 = s01 = s02 = s11 = s12 = s22 = 0.0
     for j in range(n):
-        uw = u[j] * w[j]
+        uw = (u[j] if has_u else 1.0) * (w[j] if has_w else 1.0)
         d0 = X[j, 0] - c0
         d1 = X[j, 1] - c1
         d2 = X[j, 2] - c2
@@ -672,7 +680,6 @@ def geometry3(X, u, w, power):
         s11 += uw * d1 * d1
         s12 += uw * d1 * d2
         s22 += uw * d2 * d2
-    cov = np.empty((3, 3))
     cov[0, 0] = s00 / mass
     cov[0, 1] = cov[1, 0] = s01 / mass
     cov[0, 2] = cov[2, 0] = s02 / mass
@@ -680,7 +687,6 @@ def geometry3(X, u, w, power):
     cov[1, 2] = cov[2, 1] = s12 / mass
     cov[2, 2] = s22 / mass
     lam, vec = np.linalg.eigh(cov)
-    center = np.empty(3)
     center[0] = c0
     center[1] = c1
     center[2] = c2
@@ -714,3 +720,177 @@ def local_medians(d, idx, heights, owners, own, neighbours):
             s = np.sort(buf[:m])
             ground[r] = 0.5 * (s[(m - 1) // 2] + s[m // 2])
     return ground, nearest
+
+
+# -- connexity (CAh) on the projected points -----------------------------------------------------
+#
+# The graph of :mod:`kbs.knowledge.connexity` links distinct positions at most ``r`` apart. With
+# square cells of side ``r``, two linked points lie in the same or 8-adjacent cells, so each pair
+# is met once by visiting, for every cell, itself and four of its neighbours. Distances are
+# compared as scipy's k-d tree compares them (``dx*dx + dy*dy <= r*r`` for the degrees and the
+# components, ``sqrt(dx*dx + dy*dy) <= r`` for the dilation's nearest-point test), so the results
+# are those of the k-d tree version, which remains for clouds whose extent is absurd for ``r``.
+
+_HALF = ((0, 0), (1, -1), (1, 0), (1, 1), (0, 1))
+
+
+@njit(nogil=True)
+def _cell_grid(U, side, max_cells):
+    """Points (m, 2) in square cells of ``side``: ``(ny, start, order, ix, iy)`` with the points
+    of cell ``c = ix * ny + iy`` at ``order[start[c]:start[c + 1]]``; ``ny = -1`` when the grid
+    would have more than ``max_cells`` cells."""
+    m = U.shape[0]
+    lo0 = hi0 = U[0, 0]
+    lo1 = hi1 = U[0, 1]
+    for i in range(1, m):
+        lo0 = min(lo0, U[i, 0])
+        hi0 = max(hi0, U[i, 0])
+        lo1 = min(lo1, U[i, 1])
+        hi1 = max(hi1, U[i, 1])
+    fx = (hi0 - lo0) / side
+    fy = (hi1 - lo1) / side
+    empty = np.zeros(0, dtype=np.int64)
+    if not (fx < 1e9 and fy < 1e9) or (fx + 1.0) * (fy + 1.0) > max_cells:
+        return -1, empty, empty, empty, empty
+    nx = int(fx) + 1
+    ny = int(fy) + 1
+    ix = np.empty(m, dtype=np.int64)
+    iy = np.empty(m, dtype=np.int64)
+    start = np.zeros(nx * ny + 1, dtype=np.int64)
+    for i in range(m):
+        a = min(int(math.floor((U[i, 0] - lo0) / side)), nx - 1)
+        b = min(int(math.floor((U[i, 1] - lo1) / side)), ny - 1)
+        ix[i] = a
+        iy[i] = b
+        start[a * ny + b + 1] += 1
+    for c in range(nx * ny):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    order = np.empty(m, dtype=np.int64)
+    for i in range(m):
+        c = ix[i] * ny + iy[i]
+        order[fill[c]] = i
+        fill[c] += 1
+    return ny, start, order, ix, iy
+
+
+@njit(cache=True, nogil=True)
+def connexity_degrees(U, mult, r, max_cells):
+    """Degree (m,) of each distinct position (``mult`` input points at each): the number of other
+    input points within ``r``; an empty array when the grid would be too large (see
+    :func:`_cell_grid`)."""
+    m = U.shape[0]
+    ny, start, order, ix, iy = _cell_grid(U, r, max_cells)
+    if ny < 0:
+        return np.zeros(0, dtype=np.int64)
+    nx = (start.shape[0] - 1) // ny
+    r2 = r * r
+    deg = mult - 1
+    for a in range(nx):
+        for b in range(ny):
+            c = a * ny + b
+            for t in range(5):
+                da, db = _HALF[t]
+                a2 = a + da
+                b2 = b + db
+                if a2 >= nx or b2 < 0 or b2 >= ny:
+                    continue
+                c2 = a2 * ny + b2
+                for p in range(start[c], start[c + 1]):
+                    i = order[p]
+                    q0 = start[c2] if t else p + 1
+                    for q in range(q0, start[c2 + 1]):
+                        j = order[q]
+                        dx = U[i, 0] - U[j, 0]
+                        dy = U[i, 1] - U[j, 1]
+                        if dx * dx + dy * dy <= r2:
+                            deg[i] += mult[j]
+                            deg[j] += mult[i]
+    return deg
+
+
+@njit(cache=True, nogil=True)
+def connexity_components(U, kept, r, dilate, max_cells):
+    """The dilation of ``kept`` (m,) bool (when ``dilate``: a removed position comes back when a
+    kept one lies within ``r``) and the connected components of the graph ``|p - q| <= r`` on the
+    positions kept after it. Returns ``(kept, comp, n_comp)``, ``comp`` (m,) the component of
+    each kept position (numbered in order of first appearance) and -1 elsewhere; ``n_comp`` -1
+    when the grid would be too large."""
+    m = U.shape[0]
+    ny, start, order, ix, iy = _cell_grid(U, r, max_cells)
+    comp = np.full(m, -1, dtype=np.int64)
+    if ny < 0:
+        return kept, comp, -1
+    nx = (start.shape[0] - 1) // ny
+    r2 = r * r
+    out = kept.copy()
+    if dilate:
+        for i in range(m):
+            if kept[i]:
+                continue
+            found = False
+            for a in range(max(ix[i] - 1, 0), min(ix[i] + 2, nx)):
+                for b in range(max(iy[i] - 1, 0), min(iy[i] + 2, ny)):
+                    c = a * ny + b
+                    for q in range(start[c], start[c + 1]):
+                        j = order[q]
+                        if kept[j]:
+                            dx = U[i, 0] - U[j, 0]
+                            dy = U[i, 1] - U[j, 1]
+                            if math.sqrt(dx * dx + dy * dy) <= r:
+                                found = True
+                                break
+                    if found:
+                        break
+                if found:
+                    break
+            out[i] = found
+    parent = np.arange(m)
+    for a in range(nx):
+        for b in range(ny):
+            c = a * ny + b
+            for t in range(5):
+                da, db = _HALF[t]
+                a2 = a + da
+                b2 = b + db
+                if a2 >= nx or b2 < 0 or b2 >= ny:
+                    continue
+                c2 = a2 * ny + b2
+                for p in range(start[c], start[c + 1]):
+                    i = order[p]
+                    if not out[i]:
+                        continue
+                    q0 = start[c2] if t else p + 1
+                    for q in range(q0, start[c2 + 1]):
+                        j = order[q]
+                        if not out[j]:
+                            continue
+                        dx = U[i, 0] - U[j, 0]
+                        dy = U[i, 1] - U[j, 1]
+                        if dx * dx + dy * dy <= r2:
+                            ri = i
+                            while parent[ri] != ri:
+                                parent[ri] = parent[parent[ri]]
+                                ri = parent[ri]
+                            rj = j
+                            while parent[rj] != rj:
+                                parent[rj] = parent[parent[rj]]
+                                rj = parent[rj]
+                            if ri != rj:
+                                if ri < rj:
+                                    parent[rj] = ri
+                                else:
+                                    parent[ri] = rj
+    n_comp = 0
+    label = np.full(m, -1, dtype=np.int64)
+    for i in range(m):
+        if not out[i]:
+            continue
+        ri = i
+        while parent[ri] != ri:
+            ri = parent[ri]
+        if label[ri] < 0:
+            label[ri] = n_comp
+            n_comp += 1
+        comp[i] = label[ri]
+    return out, comp, n_comp

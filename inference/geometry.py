@@ -82,19 +82,23 @@ def cluster_geometry(
     """
     X = np.asarray(X, dtype=np.float64)
     n = X.shape[0]
+    if X.shape[1] == 3 and _flags.JIT and n:  # compiled: one call, no numpy temporaries
+        from kbs.inference._compiled import geometry3
+
+        none = np.zeros(0)
+        uc = none if memberships is None else np.ascontiguousarray(memberships, dtype=np.float64)
+        wc = none if sample_weight is None else np.ascontiguousarray(sample_weight, dtype=np.float64)
+        center, cov, lam, vec, mass = geometry3(np.ascontiguousarray(X), uc, wc, float(center_power))
+        if not mass > 0.0:
+            raise FitError("cannot describe an empty cluster (no point with a positive membership)")
+        return ClusterGeometry(center=center, covariance=cov, eigenvalues=np.maximum(lam, 0.0),
+                               eigenvectors=vec, mass=float(mass))
     u = np.ones(n) if memberships is None else np.asarray(memberships, dtype=np.float64)
     w = np.ones(n) if sample_weight is None else np.asarray(sample_weight, dtype=np.float64)
     uw = u * w
     mass = float(uw.sum())
     if n == 0 or mass <= 0.0:
         raise FitError("cannot describe an empty cluster (no point with a positive membership)")
-    if X.shape[1] == 3 and _flags.JIT:  # compiled: one call, no numpy overhead
-        from kbs.inference._compiled import geometry3
-
-        center, cov, lam, vec, _ = geometry3(np.ascontiguousarray(X), np.ascontiguousarray(u),
-                                             np.ascontiguousarray(w), float(center_power))
-        return ClusterGeometry(center=center, covariance=cov, eigenvalues=np.maximum(lam, 0.0),
-                               eigenvectors=vec, mass=mass)
     upw = (u**center_power) * w
     center = (upw @ X) / upw.sum()
     diff = X - center

@@ -8,6 +8,10 @@
 Every problem with a file raises :class:`kbs.errors.CloudFileError` (path and problem in one
 line); points with a NaN/Inf coordinate are dropped, counted in ``n_dropped`` and logged on the
 ``kbs.io`` logger at INFO level.
+
+Files are written whole or not at all (a temporary file beside the target, then a rename:
+:mod:`kbs.io.atomic`). :mod:`kbs.io.result` owns the result files of ``kbs run`` (the PLY/JSON
+pair and its run id).
 """
 
 from __future__ import annotations

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping, Sequence
+from typing import NamedTuple
 
 import numpy as np
 import plyfile
 
 from kbs.errors import CloudFileError, ParameterError
+from kbs.io.atomic import replacing
 
 #: The scalar types PLY can store (int8 ... float64); 64-bit integers are not among them.
 PLY_SCALAR_DTYPES = frozenset(np.dtype(code) for code in ("i1", "u1", "i2", "u2", "i4", "u4", "f4", "f8"))
@@ -57,10 +59,14 @@ def write_ply(
 ) -> None:
     """Write points and their attributes as the ``vertex`` element of a PLY file.
 
+    The file appears whole or not at all: it is written to a temporary file in the same folder,
+    then renamed over ``path`` (:func:`kbs.io.atomic.replacing`); if writing fails, an existing
+    file at ``path`` is left as it was.
+
     Parameters
     ----------
     path : str or os.PathLike
-        The file to create (overwritten if it exists).
+        The file to create (replaced if it exists).
     xyz : np.ndarray, shape (N, 3)
         Coordinates; stored as float32 (``float``) if given as float32, else as float64 (``double``).
     fields : Mapping[str, np.ndarray], optional
@@ -79,8 +85,33 @@ def write_ply(
         dtype or a bad name (empty, spaces, non-ASCII, or ``x``/``y``/``z``); a comment is not
         one ASCII line.
     CloudFileError
-        The file cannot be written (missing folder, no permission ...).
+        The file cannot be written (missing folder, no permission, full disk ...).
     """
+    built = build_ply(xyz, fields, binary=binary, comments=comments)
+    try:
+        with replacing(path) as (temp,):
+            write_built_ply(built, temp, target=path)
+    except OSError as exc:  # creating the temporary file beside path
+        raise CloudFileError(os.fspath(path), f"cannot write: {exc.strerror or exc}") from exc
+
+
+class BuiltPly(NamedTuple):
+    """A PLY document checked and laid out by :func:`build_ply`, ready to be written."""
+
+    ply: plyfile.PlyData
+    vertex: np.ndarray
+    formats: list[str] | None  # printf formats of the ascii body; None for binary
+
+
+def build_ply(
+    xyz: np.ndarray,
+    fields: Mapping[str, np.ndarray] | None = None,
+    *,
+    binary: bool = True,
+    comments: Sequence[str] = (),
+) -> BuiltPly:
+    """Check the arguments of :func:`write_ply` and lay the vertex table out (raises the same
+    ParameterError); nothing is written."""
     xyz = np.asarray(xyz)
     if xyz.ndim != 2 or xyz.shape[1] != 3 or xyz.dtype.kind not in "fiu":
         raise ParameterError(f"xyz must be a real array of shape (N, 3), got {xyz.dtype} {xyz.shape}")
@@ -106,13 +137,21 @@ def write_ply(
         vertex[name] = values
     element = plyfile.PlyElement.describe(vertex, "vertex")
     ply = plyfile.PlyData([element], text=not binary, byte_order="<", comments=header_comments)
+    formats = None if binary else [_TEXT_FORMATS.get(dtype, "%d") for _, dtype in columns.values()]
+    return BuiltPly(ply, vertex, formats)
+
+
+def write_built_ply(built: BuiltPly, path: str | os.PathLike[str], *,
+                    target: str | os.PathLike[str] | None = None) -> None:
+    """Write a :class:`BuiltPly` to ``path`` as it is (no temporary file: callers that want one use
+    :func:`kbs.io.atomic.replacing`); errors name ``target`` (default ``path``)."""
     try:
         with open(path, "wb") as stream:
-            if binary:
-                ply.write(stream)
+            if built.formats is None:
+                built.ply.write(stream)
             else:  # plyfile formats ascii rows one by one in Python (~20 us each): one savetxt instead
-                stream.write(ply.header.encode("ascii") + b"\n")
-                formats = [_TEXT_FORMATS.get(dtype, "%d") for _, dtype in columns.values()]
-                np.savetxt(stream, vertex, fmt=formats, delimiter=" ")
+                stream.write(built.ply.header.encode("ascii") + b"\n")
+                np.savetxt(stream, built.vertex, fmt=built.formats, delimiter=" ")
     except OSError as exc:
-        raise CloudFileError(os.fspath(path), f"cannot write: {exc.strerror or exc}") from exc
+        raise CloudFileError(os.fspath(target if target is not None else path),
+                             f"cannot write: {exc.strerror or exc}") from exc

@@ -9,6 +9,7 @@ problem in one line.
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import struct
@@ -316,6 +317,53 @@ READERS: Mapping[str, Callable[[Path], PointCloud]] = {
 SUPPORTED_EXTENSIONS: tuple[str, ...] = tuple(sorted(READERS))
 
 
+def _stat_problem(file: Path) -> str | None:
+    """Why ``file`` cannot be opened at all (missing, a symbolic link loop, a broken link, a
+    folder on the way that cannot be searched), or None."""
+    try:
+        file.stat()
+    except FileNotFoundError:
+        if file.is_symlink():
+            return f"no such file: a broken symbolic link (to {os.readlink(file)})"
+        return "no such file"
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            return "symbolic link loop (the link points, directly or not, to itself)"
+        return f"cannot read: {exc.strerror or exc}"
+    return None
+
+
+def why_not_a_scan(path: Path) -> str | None:
+    """Why a file found in a scanned directory is not a point cloud, judged from its first bytes
+    (a label or grid ``.npy`` array, a one-column text file of labels), or None when it may be
+    one (the reader will tell). Never raises."""
+    extension = path.suffix.lower()
+    try:
+        if extension == ".npy":
+            with open(path, "rb") as stream:
+                version = np.lib.format.read_magic(stream)
+                read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                               else np.lib.format.read_array_header_2_0)
+                shape, _, dtype = read_header(stream)
+            if dtype.names is not None:
+                return None if {"x", "y", "z"} <= set(dtype.names) else "a structured array without x/y/z fields"
+            if len(shape) != 2 or shape[1] < 3 or dtype.kind not in "fiu":
+                return f"an array of {dtype} of shape {shape}, not (N, 3+) coordinates"
+        elif READERS.get(extension) is read_text:
+            with open(path, "rb") as stream:
+                data = stream.read(8192)
+            lines = data.decode("utf-8-sig", errors="replace").splitlines()
+            if len(data) == 8192:
+                lines = lines[:-1]  # maybe cut short
+            rows = [line.replace(",", " ").split() for line in lines[:20] if line.strip() and line[:1] not in "#/%"]
+            widest = max(map(len, rows), default=3)
+            if widest < 3:
+                return f"{widest} column{'s' if widest > 1 else ''} of text, not x y z"
+    except (OSError, ValueError):
+        return None
+    return None
+
+
 def read_cloud(path: str | os.PathLike[str], *, format: str | None = None) -> PointCloud:  # noqa: A002
     """Read a point cloud file.
 
@@ -336,8 +384,8 @@ def read_cloud(path: str | os.PathLike[str], *, format: str | None = None) -> Po
     Raises
     ------
     CloudFileError
-        The file is missing, a directory, of an unknown extension, empty, truncated or
-        malformed, or holds no finite point.
+        The file is missing (or a broken link, or a symbolic link loop), unreadable, a directory,
+        of an unknown extension, empty, truncated or malformed, or holds no finite point.
     ParameterError
         ``format`` is not a supported format.
     """
@@ -349,8 +397,9 @@ def read_cloud(path: str | os.PathLike[str], *, format: str | None = None) -> Po
             raise ParameterError(f"unknown point-cloud format {format!r} (supported: {supported})")
     else:
         extension = file.suffix.lower()
-    if not file.exists():
-        raise CloudFileError(str(file), "no such file")
+    problem = _stat_problem(file)
+    if problem:
+        raise CloudFileError(str(file), problem)
     if file.is_dir():
         raise CloudFileError(str(file), "is a directory, not a point-cloud file")
     if extension not in READERS:

@@ -1,11 +1,212 @@
-"""Reading the ``<stem>.json`` that ``kbs run`` writes beside its result cloud."""
+"""The result files kbs writes, read back and told apart from other files.
+
+``kbs run`` writes one result as a pair, ``<stem>.ply`` (the points with per-vertex ``cluster``,
+``label``, ``membership``) and ``<stem>.json`` (label names, clusters, explanation tree);
+``kbs cluster --out`` writes a single PLY. This module owns that format:
+
+- **Writing.** :func:`write_result_pair` writes both files to temporary files beside them and
+  moves them into place together (:func:`kbs.io.atomic.replacing`): if anything fails (a full
+  disk, Ctrl-C) the temporary files are removed and the previous pair stays as it was.
+- **Run id.** Every result carries a run id (a uuid4 hex), the same in both files of a pair: the
+  PLY header comment ``kbs_run_id <hex>`` and the JSON key ``run_id``. :func:`check_pair`, which
+  every reader of a pair goes through (:func:`read_result_pair`, ``kbs render``, ``kbs eval``),
+  refuses a PLY and a JSON whose ids differ: left by a run interrupted between its two renames,
+  or mixed by hand. The id is also how kbs knows a file is its own (:func:`is_kbs_output`).
+- **Strict JSON.** The JSON is strict (RFC 8259): a non-finite number (NaN, +-Infinity, e.g. an
+  infinite measurement of a plugin predicate) is written as ``null``.
+- **Format version.** The JSON key ``result_format`` (:data:`RESULT_FORMAT`); results without it
+  (kbs before run ids) are read as format 1, and have no run id to check.
+"""
 from __future__ import annotations
 
+import errno
 import json
+import math
+import os
+import uuid
+from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
+
+import numpy as np
 
 from kbs.errors import CloudFileError
+from kbs.io.atomic import replacing
+from kbs.io.cloud import PointCloud
+from kbs.io.ply import build_ply, write_built_ply
+from kbs.io.readers import read_cloud
+
+#: Version of the result files this kbs writes and reads (the JSON's ``result_format``).
+RESULT_FORMAT = 1
+#: The PLY header comment word before a result's run id (``comment kbs_run_id <hex>``); also the
+#: marker kbs appends to its HTML report.
+RUN_ID_COMMENT = "kbs_run_id"
+#: Bytes of a PLY header read at most when looking for the run id.
+_MAX_HEADER = 1 << 20
+
+
+def new_run_id() -> str:
+    """A fresh run id: 32 lowercase hex digits (uuid4)."""
+    return uuid.uuid4().hex
+
+
+# -- writing -----------------------------------------------------------------------------------
+
+
+def jsonable(o: Any) -> Any:
+    """``json.dumps`` ``default``: numpy scalars and arrays as Python numbers and lists."""
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(type(o).__name__)
+
+
+def _finite_or_none(o: Any) -> Any:
+    """A copy of ``o`` with every non-finite float (NaN, +-inf) replaced by None."""
+    if isinstance(o, float):
+        return o if math.isfinite(o) else None
+    if isinstance(o, Mapping):
+        return {k: _finite_or_none(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_finite_or_none(v) for v in o]
+    if isinstance(o, (np.generic, np.ndarray)):
+        return _finite_or_none(jsonable(o))
+    return o
+
+
+def strict_json(doc: Any) -> str:
+    """``doc`` as compact strict JSON: no NaN/Infinity tokens (non-finite numbers become null)."""
+    try:
+        return json.dumps(doc, separators=(",", ":"), default=jsonable, allow_nan=False)
+    except ValueError:  # a NaN or an infinity somewhere (rare): the walk that replaces them
+        return json.dumps(_finite_or_none(doc), separators=(",", ":"), default=jsonable, allow_nan=False)
+
+
+def _write_json_bytes(stream: Any, data: bytes) -> None:
+    stream.write(data)
+
+
+def _write_json_file(path: Path, data: bytes, target: Path) -> None:
+    try:
+        with open(path, "wb") as stream:
+            _write_json_bytes(stream, data)
+    except OSError as exc:
+        raise CloudFileError(str(target), f"cannot write: {exc.strerror or exc}") from exc
+
+
+def result_comments(run_id: str) -> list[str]:
+    """The PLY header comments of a result: who wrote it and its run id."""
+    from kbs import __version__
+
+    return [f"written by kbs {__version__}", f"{RUN_ID_COMMENT} {run_id}"]
+
+
+def write_result_pair(ply: str | os.PathLike[str], js: str | os.PathLike[str], xyz: np.ndarray,
+                      fields: Mapping[str, np.ndarray], doc: Mapping[str, Any], *,
+                      run_id: str | None = None) -> str:
+    """Write one result, ``ply`` and ``js``, as a whole: both or neither.
+
+    Parameters
+    ----------
+    ply, js : path
+        The PLY and the JSON to create or replace.
+    xyz : ndarray, shape (n_points, 3)
+    fields : mapping of str to ndarray, each (n_points,)
+        The per-vertex properties (see :func:`kbs.io.write_ply`).
+    doc : mapping
+        The JSON document; ``result_format`` and ``run_id`` are added after ``kbs_version``.
+    run_id : str, optional
+        Default: a fresh one (:func:`new_run_id`).
+
+    Returns
+    -------
+    str
+        The run id written in both files.
+
+    Raises
+    ------
+    ParameterError
+        Bad points or fields (nothing is written).
+    CloudFileError
+        A file cannot be written; the files that were there before are left as they were.
+    """
+    ply, js = Path(os.fspath(ply)), Path(os.fspath(js))
+    run_id = run_id or new_run_id()
+    built = build_ply(xyz, fields, comments=result_comments(run_id))
+    head = {k: doc[k] for k in ("kbs_version",) if k in doc}
+    data = strict_json({**head, "result_format": RESULT_FORMAT, "run_id": run_id, **doc}).encode("utf-8")
+    try:
+        with replacing(ply, js) as (tmp_ply, tmp_js):
+            write_built_ply(built, tmp_ply, target=ply)
+            _write_json_file(tmp_js, data, js)
+    except OSError as exc:  # creating a temporary file beside the target
+        raise CloudFileError(str(exc.filename or ply), f"cannot write: {exc.strerror or exc}") from exc
+    return run_id
+
+
+def write_result_cloud(path: str | os.PathLike[str], xyz: np.ndarray, fields: Mapping[str, np.ndarray], *,
+                       run_id: str | None = None) -> str:
+    """Write a result PLY alone (``kbs cluster --out``), whole or not at all, with a run id
+    (returned) that marks it as kbs's own."""
+    path = Path(os.fspath(path))
+    run_id = run_id or new_run_id()
+    built = build_ply(xyz, fields, comments=result_comments(run_id))
+    try:
+        with replacing(path) as (tmp,):
+            write_built_ply(built, tmp, target=path)
+    except OSError as exc:
+        raise CloudFileError(str(path), f"cannot write: {exc.strerror or exc}") from exc
+    return run_id
+
+
+# -- reading -----------------------------------------------------------------------------------
+
+
+def _os_problem(exc: OSError, what: str) -> str:
+    if isinstance(exc, FileNotFoundError):
+        return "no such file"
+    if exc.errno == errno.ELOOP:
+        return "symbolic link loop (the link points, directly or not, to itself)"
+    if isinstance(exc, IsADirectoryError):
+        return f"is a directory, not {what}"
+    return f"cannot read: {exc.strerror or exc}"
+
+
+def ply_comments(path: str | os.PathLike[str]) -> list[str]:
+    """The ``comment`` and ``obj_info`` lines of a PLY header (without the keyword); [] when the
+    file is not a PLY file or its header cannot be read."""
+    try:
+        with open(path, "rb") as stream:
+            head = stream.read(4)
+            if head[:3] != b"ply":
+                return []
+            chunks = [head]
+            while sum(map(len, chunks)) < _MAX_HEADER:
+                chunk = stream.read(65536)
+                if not chunk:
+                    break
+                chunks.append(chunk)
+                if b"end_header" in b"".join(chunks[-2:]):  # also when split between two reads
+                    break
+    except OSError:
+        return []
+    header = b"".join(chunks).split(b"end_header", 1)[0].decode("ascii", "replace")
+    out = []
+    for line in header.splitlines():
+        word, _, rest = line.strip().partition(" ")
+        if word in ("comment", "obj_info"):
+            out.append(rest.strip())
+    return out
+
+
+def ply_run_id(path: str | os.PathLike[str]) -> str | None:
+    """The run id in a PLY header (``comment kbs_run_id <hex>``), None if there is none."""
+    for comment in ply_comments(path):
+        word, _, value = comment.partition(" ")
+        if word == RUN_ID_COMMENT and value.strip():
+            return value.strip()
+    return None
 
 
 def read_result_json(path: str | Path, *, require: Iterable[str] = ()) -> dict[str, Any]:
@@ -19,12 +220,144 @@ def read_result_json(path: str | Path, *, require: Iterable[str] = ()) -> dict[s
     path = Path(path)
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
+        if not isinstance(doc, dict):
+            raise TypeError(f"a JSON {type(doc).__name__}, not an object")
         for key in require:
             doc[key]  # noqa: B018 -- a KeyError says which key is missing
-    except FileNotFoundError as exc:
-        raise CloudFileError(str(path), "no such file") from exc
-    except IsADirectoryError as exc:
-        raise CloudFileError(str(path), "is a directory, not a result file") from exc
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as exc:
+    except OSError as exc:
+        raise CloudFileError(str(path), _os_problem(exc, "a result file")) from exc
+    except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as exc:
         raise CloudFileError(str(path), f"not a kbs result file ({type(exc).__name__}: {exc})") from exc
+    version = doc.get("result_format", 1)
+    if not isinstance(version, int) or isinstance(version, bool):
+        raise CloudFileError(str(path), f"not a kbs result file ('result_format' is {version!r})")
+    if version > RESULT_FORMAT:
+        raise CloudFileError(str(path), f"written by a newer kbs (result format {version}; this kbs "
+                                        f"reads format {RESULT_FORMAT}): upgrade kbs to read it")
     return doc
+
+
+def check_pair(ply: str | os.PathLike[str], js: str | os.PathLike[str], doc: Mapping[str, Any]) -> None:
+    """Refuse a PLY and a JSON that are not the two files of one result.
+
+    Parameters
+    ----------
+    ply, js : path
+        The two files; ``doc`` is the parsed ``js``.
+
+    Raises
+    ------
+    CloudFileError
+        Their run ids differ, or one has a run id and the other none. Two files without a run id
+        (written by kbs before run ids) pass: there is nothing to compare.
+    """
+    json_id = doc.get("run_id")
+    ply_id = ply_run_id(ply)
+    if json_id is None and ply_id is None:
+        return
+    if json_id != ply_id:
+        ply_name = Path(os.fspath(ply)).name
+        raise CloudFileError(
+            str(js), f"does not belong with {ply_name}: run id {json_id or 'none'} in the JSON, "
+                     f"{ply_id or 'none'} in the PLY (a run stopped between writing the two, or files of two "
+                     f"runs were put together); run kbs run again to write a matching pair")
+
+
+def read_result_pair(path: str | os.PathLike[str], *, require: Iterable[str] = ()) -> tuple[dict[str, Any], PointCloud]:
+    """Read a result: ``RESULT.json`` and its sibling ``RESULT.ply``, checked to be one result.
+
+    Returns
+    -------
+    (dict, PointCloud)
+        The JSON document and the PLY's points and fields.
+
+    Raises
+    ------
+    CloudFileError
+        Either file is missing or unreadable, or they are not the same run's (:func:`check_pair`).
+    """
+    js = Path(os.fspath(path))
+    doc = read_result_json(js, require=require)
+    ply = js.with_suffix(".ply")
+    if not ply.is_file():
+        raise CloudFileError(str(ply), "no such file (the points of the result, written next to its .json)")
+    check_pair(ply, js, doc)
+    return doc, read_cloud(ply)
+
+
+# -- telling kbs's own files from others -----------------------------------------------------------
+
+
+def is_kbs_output(path: str | os.PathLike[str]) -> bool:
+    """True when ``path`` is a file kbs wrote with a run id: a PLY whose header has the
+    ``kbs_run_id`` comment, a JSON object with ``kbs_version`` and ``run_id``, any other file
+    (the HTML report) ending with the ``kbs_run_id`` marker."""
+    path = Path(os.fspath(path))
+    if not path.is_file():
+        return False
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".ply":
+            return ply_run_id(path) is not None
+        if suffix == ".json":
+            doc = json.loads(path.read_bytes())
+            return isinstance(doc, dict) and "kbs_version" in doc and isinstance(doc.get("run_id"), str)
+        with open(path, "rb") as stream:
+            stream.seek(max(0, path.stat().st_size - 256))
+            return RUN_ID_COMMENT.encode("ascii") in stream.read()
+    except (OSError, ValueError):
+        return False
+
+
+class InputFiles:
+    """A command's input files, known by identity (device and inode: links and ``..`` do not
+    hide one), so that each output is compared with all of them in one ``stat``."""
+
+    def __init__(self, paths: Iterable[str | os.PathLike[str]]) -> None:
+        self._ids: dict[tuple[int, int], str] = {}
+        for path in paths:
+            try:
+                st = os.stat(path)
+            except OSError:  # missing or unreadable: the reader will say so
+                continue
+            self._ids.setdefault((st.st_dev, st.st_ino), os.fspath(path))
+
+    def match(self, target: str | os.PathLike[str]) -> str | None:
+        """The input that ``target`` is (the same file), or None."""
+        try:
+            st = os.stat(target)
+        except OSError:
+            return None
+        return self._ids.get((st.st_dev, st.st_ino))
+
+
+def check_output(target: str | os.PathLike[str], *,
+                 inputs: InputFiles | Iterable[str | os.PathLike[str]] = (), force: bool = False) -> None:
+    """Refuse to write ``target`` where that would destroy something that is not kbs's.
+
+    Parameters
+    ----------
+    target : path
+        A file a command is about to write.
+    inputs : InputFiles or iterable of path
+        The command's input files: never overwritten, even with ``force``.
+    force : bool
+        Replace an existing file that kbs did not write (``--force``).
+
+    Raises
+    ------
+    CloudFileError
+        ``target`` is one of ``inputs`` (the same file, whatever the path: links, ``..``), a
+        directory, or an existing file without a kbs run id while ``force`` is False. An
+        earlier kbs result (it has a run id) is replaced without ``force``.
+    """
+    target = Path(os.fspath(target))
+    source = (inputs if isinstance(inputs, InputFiles) else InputFiles(inputs)).match(target)
+    if source is not None:
+        named = "" if os.path.normpath(source) == os.path.normpath(target) else f" {source}"
+        raise CloudFileError(str(target), f"is the input{named}: kbs never overwrites its input; choose another --out")
+    if target.is_dir():
+        raise CloudFileError(str(target), "is a directory; choose another --out")
+    if not force and os.path.lexists(target) and not is_kbs_output(target):
+        raise CloudFileError(str(target), "exists and was not written by kbs (it has no kbs run id); give --force "
+                                          "to replace it, or choose another --out")

@@ -17,7 +17,7 @@ class CheckRecord:
 
     check: str
     predicate: str
-    value: float
+    value: float | None  #: None only when read back from a result file (non-finite numbers are null there)
     unit: str
     min: float | None
     max: float | None
@@ -32,14 +32,24 @@ class CheckRecord:
             return ("<=" if self.value <= self.max else ">"), self.max
         return (">=" if self.value >= self.min else "<"), self.min
 
+    def _unknown(self) -> str:
+        """For a value read back as null (a result JSON writes NaN and infinities so): what is known."""
+        u = f" {self.unit}" if self.unit else ""
+        bounds = " and ".join(f"{op} {b:g}{u}" for op, b in ((">=", self.min), ("<=", self.max)) if b is not None)
+        return f"not finite (null in the result file), {'passes' if self.passed else 'fails'} {bounds}"
+
     def comparison(self) -> str:
         """'0.021 m <= 0.05 m'."""
+        if self.value is None:
+            return self._unknown()
         op, b = self.bound()
         u = f" {self.unit}" if self.unit else ""
         return f"{self.value:.4g}{u} {op} {b:g}{u}"
 
     def sentence(self) -> str:
         """'connexity = 3 components > 1', 'thickness = 0.12 m > 0.05 m'."""
+        if self.value is None:
+            return f"{self.predicate} = {self._unknown()}"
         op, b = self.bound()
         u = f" {self.unit}" if self.unit else ""
         if self.predicate == "connexity":
@@ -59,7 +69,8 @@ class APDCurve:
     chosen: int
 
     def text(self) -> str:
-        return ", ".join(f"K={k}{'*' if k == self.chosen else ''}: {a:.4g}" for k, a in zip(self.ks, self.apd))
+        return ", ".join(f"K={k}{'*' if k == self.chosen else ''}: {'null' if a is None else f'{a:.4g}'}"
+                         for k, a in zip(self.ks, self.apd))
 
 
 @dataclass

@@ -61,6 +61,9 @@ class LocalGround:
 
     #: how many more neighbours are fetched when a cluster's own points are left out
     EXCLUDE_FACTOR = 8
+    #: neighbours fetched per k-d tree query call (16 bytes each): queries go in chunks of
+    #: ``QUERY_BUDGET // k`` points
+    QUERY_BUDGET = 1 << 20
 
     @classmethod
     def build(cls, X: np.ndarray, index: np.ndarray, normal: np.ndarray, point: np.ndarray, *,
@@ -89,7 +92,7 @@ class LocalGround:
         where none). With ``exclude`` (a cluster id), that cluster's own points are left out: among
         the ``EXCLUDE_FACTOR x neighbours`` nearest, the nearest ``neighbours`` of other clusters
         count."""
-        P = np.asarray(P, dtype=np.float64).reshape(-1, 3) - self.point
+        P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
         q = P.shape[0]
         ground = np.full(q, np.nan)
         nearest = np.full(q, -1, dtype=np.int64)
@@ -99,13 +102,32 @@ class LocalGround:
         if exclude is not None and self.owners is not None and exclude in self.owner_ids:
             own = self.owner_ids.index(exclude)
         k = min(self.neighbours * (self.EXCLUDE_FACTOR if own >= 0 else 1), self.n_points)
-        d, i = self.tree.query(P @ self.basis.T, k=k, distance_upper_bound=self.radius)
-        d, i = d.reshape(q, k), i.reshape(q, k)
+        Q = np.empty((q, 2))
+        for s in range(0, q, 1 << 16):  # plane coordinates, without a (q, 3) temporary
+            Q[s:s + (1 << 16)] = (P[s:s + (1 << 16)] - self.point) @ self.basis.T
+        order = self._spatial_order(Q)
+        if order is None:
+            order = np.arange(q)
+        # in chunks of the spatial order: the same answers, asked in an order that keeps the
+        # tree's nodes in cache, with the (chunk, k) temporaries bounded whatever q
+        step = max(1, self.QUERY_BUDGET // k)
+        for s in range(0, q, step):
+            sel = order[s:s + step]
+            d, i = self.tree.query(Q[sel], k=k, distance_upper_bound=self.radius)
+            ground[sel], nearest[sel] = self._medians(d.reshape(sel.size, k), i.reshape(sel.size, k), own)
+        return ground, nearest
+
+    def _medians(self, d: np.ndarray, i: np.ndarray, own: int) -> tuple[np.ndarray, np.ndarray]:
+        """The median heights and nearest positions of a k-nearest query (``d``, ``i`` (q, k),
+        nearest first), ``own`` the owner left out (-1: none)."""
+        q = d.shape[0]
         if _flags.JIT:  # the same medians, compiled: one pass over the rows, no (q, k) temporaries
             owners = self.owners if self.owners is not None else np.zeros(0, dtype=np.int64)
             return _compiled.local_medians(np.ascontiguousarray(d), np.ascontiguousarray(i, dtype=np.int64),
                                            self.heights, np.ascontiguousarray(owners, dtype=np.int64), own,
                                            self.neighbours)
+        ground = np.full(q, np.nan)
+        nearest = np.full(q, -1, dtype=np.int64)
         if own >= 0:  # leave the cluster's own points out, keep the nearest `neighbours` others
             ok = np.isfinite(d)
             ok[ok] = self.owners[i[ok]] != own
@@ -123,6 +145,25 @@ class LocalGround:
             ground[some] = 0.5 * (hs[r, (m - 1) // 2] + hs[r, m // 2])
         nearest[some] = i[some, 0]
         return ground, nearest
+
+    def _spatial_order(self, Q: np.ndarray) -> np.ndarray | None:
+        """An order of the query points (q, 2) cell by cell (cells of about 16 ground points),
+        or None for few queries: k-d tree queries in a spatially coherent order run 1.2-2.5x
+        faster than in scan order, with the same answers."""
+        q = Q.shape[0]
+        if q < 2048:
+            return None
+        lo, hi = self.tree.mins, self.tree.maxes
+        extent = hi - lo
+        area = float(np.prod(np.maximum(extent, extent.max() * 1e-3)))
+        side = 4.0 * np.sqrt(area / self.n_points)
+        if not side > 0.0:
+            return None
+        ij = np.floor((Q - Q.min(axis=0)) / side)
+        if not np.isfinite(ij).all() or ij.max() >= 2.0**30:
+            return None
+        key = ij[:, 0] * (ij[:, 1].max() + 1.0) + ij[:, 1]
+        return np.argsort(key, kind="stable")
 
     def height(self, P: np.ndarray, exclude: str | None = None) -> np.ndarray:
         """Heights (q,) of points ``P`` above the local ground surface (NaN where it is unknown);

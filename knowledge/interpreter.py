@@ -670,6 +670,30 @@ class Interpreter:
         node.idx, node.weight, node.path = node.idx[keep], node.weight[keep], node.path[keep]
         return [int(t) for t in dest]
 
+    #: points per batch of surface queries in the post steps
+    SURFACE_BATCH = 1 << 18
+
+    @classmethod
+    def _surface_batches(cls, X, todo, model):
+        """For each leaf of ``todo`` in order: (heights above the local surface, positions of the
+        nearest surface points) of its points, asked for batches of leaves of about
+        ``SURFACE_BATCH`` points together (few small queries, bounded temporaries)."""
+        batch: list = []
+        size = 0
+        for i, lf in enumerate(todo):
+            batch.append(lf)
+            size += lf[0].idx.size
+            if size < cls.SURFACE_BATCH and i + 1 < len(todo):
+                continue
+            P = X[np.concatenate([b[0].idx for b in batch])]
+            ground, nearest = model.query(P)
+            h = (P - model.point) @ model.normal - ground
+            stop = 0
+            for b in batch:
+                start, stop = stop, stop + b[0].idx.size
+                yield h[start:stop], nearest[start:stop]
+            batch, size = [], 0
+
     def _ground_contact(self, X, leaves, model, owner, scene: Scene) -> None:
         """post.ground_contact: points of other clusters lying on the surface join the ground
         cluster under them."""
@@ -677,14 +701,11 @@ class Interpreter:
         gl = self.rb.ground_model.label
         unit = self.rb.length_unit
         moved_in: dict[int, list] = {}
-        for node, cl, rec in leaves:
-            if rec.label not in spec.sources or rec.label == gl or not node.idx.size:
-                continue
-            if spec.condition is not None and not spec.condition.evaluate(self._facts(cl, scene, rec)):
-                continue
-            P = X[node.idx]
-            ground, nearest = model.query(P)
-            h = (P - model.point) @ model.normal - ground
+        todo = [lf for lf in leaves if lf[2].label in spec.sources and lf[2].label != gl and lf[0].idx.size
+                and (spec.condition is None or spec.condition.evaluate(self._facts(lf[1], scene, lf[2])))]
+        # queries for batches of clusters (the surface does not change while points move: they
+        # are received after the loop)
+        for (node, cl, rec), (h, nearest) in zip(todo, self._surface_batches(X, todo, model)):
             move = np.abs(np.nan_to_num(h, nan=np.inf)) <= spec.tolerance
             n_move, size = int(move.sum()), node.idx.size
             if not n_move:
@@ -715,10 +736,9 @@ class Interpreter:
         tree = cKDTree(X[t_idx])
         moved_in: dict[int, list] = {}
         total = 0
-        for node, cl, rec in leaves:
-            if rec.label != gl or not node.idx.size:
-                continue
-            h = model.height(X[node.idx])
+        todo = [lf for lf in leaves if lf[2].label == gl and lf[0].idx.size]
+        # queries for batches of clusters (points move only after the loop)
+        for (node, cl, rec), (h, _) in zip(todo, self._surface_batches(X, todo, model)):
             move = np.nan_to_num(h, nan=-np.inf) > spec.tolerance
             n_move, size = int(move.sum()), node.idx.size
             if not n_move:

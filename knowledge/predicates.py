@@ -124,14 +124,29 @@ class Param:
     low: float | None = None
     high: float | None = None
     choices: tuple[str, ...] | None = None
+    #: (other parameter, value): this parameter only means something when the other one has
+    #: that value (e.g. ``opening_factor`` with ``method: alpha_opening``)
+    applies_with: tuple[str, str] | None = None
 
     def describe(self) -> str:
+        only = f", with {self.applies_with[0]}: {self.applies_with[1]}" if self.applies_with else ""
         if self.choices:
-            return f"{self.name}: one of {', '.join(self.choices)} (default {self.default!r})"
+            return f"{self.name}: one of {', '.join(self.choices)} (default {self.default!r}{only})"
         rng = ""
         if self.low is not None or self.high is not None:
             rng = f" in [{'-inf' if self.low is None else self.low}, {'inf' if self.high is None else self.high}]"
-        return f"{self.name}: {self.type.__name__}{rng} (default {self.default!r})"
+        return f"{self.name}: {self.type.__name__}{rng} (default {self.default!r}{only})"
+
+    def check_with(self, params: Mapping[str, Any], defaults: Mapping[str, "Param"]) -> str | None:
+        """None when the parameters given with this one (``params``, the others at their
+        ``defaults``) are those it applies with, else what is wrong."""
+        if self.applies_with is None:
+            return None
+        other, value = self.applies_with
+        actual = params.get(other, defaults[other].default)
+        if actual == value:
+            return None
+        return f"parameter '{self.name}' applies only with {other}: {value} (here {other} is {actual!r})"
 
     def check(self, value: Any) -> str | None:
         """None when ``value`` is acceptable, else what is wrong."""
@@ -185,6 +200,7 @@ def predicate(
     bounds: Mapping[str, tuple[float | None, float | None]] | None = None,
     choices: Mapping[str, Iterable[str]] | None = None,
     needs_ground_model: bool = False,
+    applies_with: Mapping[str, tuple[str, str]] | None = None,
 ) -> Callable[[Callable], Predicate]:
     """Declare a predicate. The function is checked now, not when it is first called.
 
@@ -204,19 +220,24 @@ def predicate(
         labelling: in the conditions of ``post.relabel``.
     bounds, choices : mapping
         Allowed ranges of numeric parameters, allowed values of string parameters.
+    applies_with : mapping
+        Parameters that only mean something when another (string) parameter has one value:
+        ``{"opening_factor": ("method", "alpha_opening")}``. A rule file that gives such a
+        parameter without that value is refused when it is loaded.
     """
 
     def wrap(func: Callable) -> Predicate:
         return make_predicate(func, name=name or getattr(func, "__name__", ""), unit=unit, value_range=value_range,
                               needs_ground=needs_ground or needs_ground_model, bounds=bounds or {},
                               choices=choices or {}, origin=getattr(func, "__module__", "?"),
-                              needs_ground_model=needs_ground_model)
+                              needs_ground_model=needs_ground_model, applies_with=applies_with or {})
 
     return wrap
 
 
 def make_predicate(func: Callable, *, name: str, unit: str, value_range, needs_ground: bool, bounds, choices,
-                   origin: str, needs_ground_model: bool = False) -> Predicate:
+                   origin: str, needs_ground_model: bool = False,
+                   applies_with: Mapping[str, tuple[str, str]] | None = None) -> Predicate:
     """Check a function against the predicate contract and wrap it (raises PredicateError)."""
     where = f"predicate '{name}' ({origin})"
     if not isinstance(name, str) or not name.isidentifier():
@@ -243,14 +264,22 @@ def make_predicate(func: Callable, *, name: str, unit: str, value_range, needs_g
             raise PredicateError(f"{where}: parameter '{p.name}' needs a default of type bool, int, float or str")
         b = (bounds or {}).get(p.name, (None, None))
         c = tuple((choices or {}).get(p.name, ())) or None
-        params[p.name] = Param(p.name, type(p.default), p.default, b[0], b[1], c)
+        w = (applies_with or {}).get(p.name)
+        params[p.name] = Param(p.name, type(p.default), p.default, b[0], b[1], c, None if w is None else tuple(w))
         problem = params[p.name].check(p.default)
         if problem:
             raise PredicateError(f"{where}: default of {problem}")
-    unknown = set(bounds or {}) | set(choices or {})
+    unknown = set(bounds or {}) | set(choices or {}) | set(applies_with or {})
     unknown -= set(params)
     if unknown:
-        raise PredicateError(f"{where}: bounds or choices given for unknown parameters {sorted(unknown)}")
+        raise PredicateError(f"{where}: bounds, choices or applies_with given for unknown parameters {sorted(unknown)}")
+    for pname, param in params.items():
+        if param.applies_with is None:
+            continue
+        other, value = param.applies_with
+        if other not in params or not params[other].choices or value not in params[other].choices:
+            raise PredicateError(f"{where}: parameter '{pname}' applies with {other}: {value!r}, which is not one of "
+                                 f"the declared choices of a parameter '{other}'")
     return Predicate(name=name, func=func, unit=unit, doc=doc, params=params, value_range=(lo, hi),
                      needs_ground=needs_ground or needs_ground_model, origin=origin,
                      needs_ground_model=needs_ground_model)
@@ -369,18 +398,26 @@ def ground_angle(cluster: Cluster, scene: Scene) -> float:
     return math.degrees(angle_between_planes(cluster.geometry.normal, scene.ground.normal))
 
 
-@predicate(unit="count", value_range=(0.0, None), bounds={"alpha_factor": (0.1, 100.0), "min_fraction": (0.0, 1.0),
-                                                           "min_points": (1, None)})
+@predicate(unit="count", value_range=(0.0, None),
+           bounds={"alpha_factor": (0.1, 100.0), "min_fraction": (0.0, 1.0), "min_points": (1, None),
+                   "opening_factor": (0.0, 10.0)},
+           choices={"method": _connexity.METHODS},
+           applies_with={"opening_factor": ("method", "alpha_opening")})
 def connexity(cluster: Cluster, scene: Scene, *, alpha_factor: float = 3.0, min_fraction: float = 0.05,
-              min_points: int = 10, opening: bool = True) -> Measurement:
+              min_points: int = 10, opening: bool = True, method: str = "graph",
+              opening_factor: float = 1.0) -> Measurement:
     """Number of significant connected components of the cluster projected on its best
     approximating plane (alpha-complex with alpha = alpha_factor x the median nearest-neighbour
     spacing, filtered by a morphological opening; a component is significant with at least
     max(min_points, min_fraction x size) points). CAh measures this; the components are the
-    natural split."""
+    natural split. method 'graph': the components of the links <= 2 alpha, opened by counting
+    neighbours; 'alpha_opening' (the paper's): the alpha-shape (Delaunay triangles of
+    circumradius <= alpha) opened by a disc of radius opening_factor x alpha, which removes the
+    parts narrower than twice that radius."""
     geo = cluster.geometry
     res = _connexity.connexity(cluster.X, geo.center, geo.normal, alpha_factor=alpha_factor,
-                               min_fraction=min_fraction, min_points=min_points, opening=opening)
+                               min_fraction=min_fraction, min_points=min_points, opening=opening,
+                               method=method, opening_factor=opening_factor)
     return Measurement(float(res.n_significant), res)
 
 

@@ -848,7 +848,7 @@ class _Validator:
                     self.add(base + ("params", pkey), f"predicate '{pname}' has no parameter '{_clip(str(pkey), 30)}'"
                              + (f" (did you mean '{hint}'?)" if hint else f"; its parameters: {known}"), key=True)
                     continue
-                problem = pred.params[pkey].check(pval)
+                problem = pred.params[pkey].check(pval) or pred.params[pkey].check_with(params, pred.params)
                 if problem:
                     self.add(base + ("params", pkey), f"predicate '{pname}': {problem}")
             lo, hi = pred.value_range

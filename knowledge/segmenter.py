@@ -13,7 +13,7 @@ The result of :meth:`Segmenter.segment` is the :class:`~kbs.knowledge.interprete
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -103,7 +103,7 @@ class Segmenter:
         """The rule base's labels: ``label`` values index this list (-1 is noise)."""
         return self.rule_base.label_names
 
-    def segment(self, points: Any) -> Segmentation:
+    def segment(self, points: Any, *, progress: Callable[[str], None] | None = None) -> Segmentation:
         """Segment one cloud.
 
         Parameters
@@ -112,6 +112,9 @@ class Segmenter:
             Finite x y z coordinates, any real dtype (float32 and float64 give the same result
             once float32 is read as float64, as ``kbs run`` does). Drop other columns first
             (``points[:, :3]``) and non-finite points (``kbs.io.read_cloud`` does).
+        progress : callable, optional
+            Called with a short message (``"c1.0 split in 3"``) after each split of this cloud,
+            as :class:`~kbs.knowledge.interpreter.Interpreter`'s ``progress``.
 
         Returns
         -------
@@ -127,7 +130,12 @@ class Segmenter:
         FitError
             The engine could not fit the data.
         """
-        return self._interpreter.run(as_points(points))
+        X = as_points(points)
+        self._interpreter.progress = progress
+        try:
+            return self._interpreter.run(X)
+        finally:
+            self._interpreter.progress = None
 
     def close(self) -> None:
         """Stop the split worker processes (``jobs`` > 1); they are started once, at the first

@@ -52,16 +52,14 @@ def load_result(path: str | Path) -> Result:
     Raises
     ------
     CloudFileError
-        Either file is missing or is not a kbs result.
+        Either file is missing or is not a kbs result, or they come from two runs (their run ids
+        differ: :func:`kbs.io.result.check_pair`).
     """
-    from kbs.io import read_cloud, read_result_json
+    from kbs.io.result import read_result_pair
 
     path = Path(path)
-    doc = read_result_json(path, require=("clusters", "label_names"))
+    doc, pc = read_result_pair(path, require=("clusters", "label_names"))  # refuses two runs' files
     ply = path.with_suffix(".ply")
-    if not ply.is_file():
-        raise CloudFileError(str(ply), "no such file (the points of the result, written next to its .json)")
-    pc = read_cloud(ply)
     missing = [f for f in ("cluster", "label") if f not in pc.fields]
     if missing:
         raise CloudFileError(str(ply), f"not a kbs result cloud (no {', '.join(missing)} field)")

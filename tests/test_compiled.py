@@ -192,3 +192,52 @@ def test_compiled_cluster_geometry_and_criteria_match_numpy(monkeypatch, power):
     np.testing.assert_allclose(np.abs(a.eigenvectors.T @ b.eigenvectors), np.eye(3), atol=1e-8)
     assert a.thickness == pytest.approx(b.thickness, rel=1e-8) and a.mass == pytest.approx(b.mass, rel=1e-12)
     np.testing.assert_allclose(va, vb, rtol=1e-12)
+
+
+def _connexity_cases():
+    rng = np.random.default_rng(7)
+    blobs = np.vstack([rng.normal(size=(400, 3)) * [0.3, 0.3, 0.01], rng.normal(size=(400, 3)) * [0.3, 0.3, 0.01] + [3.0, 0, 0]])
+    bridge = np.c_[np.linspace(0.5, 2.5, 21), np.zeros(21), np.zeros(21)]
+    g = np.stack(np.meshgrid(np.arange(30.0), np.arange(30.0)), -1).reshape(-1, 2)
+    lattice = np.c_[g, np.zeros(len(g))]  # exact distances, ties at the link distance
+    lattice = np.vstack([lattice, lattice[:25]])  # and duplicates
+    strip = np.c_[rng.random(600) * 10, rng.random(600) * 0.2, rng.random(600) * 0.01]
+    far = np.vstack([rng.random((300, 3)), rng.random((300, 3)) + [1e4, 0, 0]])  # grid too large: k-d tree path
+    return {"blobs": blobs, "bridged": np.vstack([blobs, bridge]), "lattice": lattice, "strip": strip, "far": far,
+            "scan": _scan_piece()}
+
+
+def _scan_piece():
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "shared" / "data" / "semantickitti" / "000001.points.npy"
+    if not path.exists():  # the synthetic cases still run
+        return np.random.default_rng(3).random((2000, 3)) * [8, 8, 0.2]
+    X = np.load(path)[:, :3]
+    return X[np.argsort(np.linalg.norm(X - X[1234], axis=1))[:6000]]
+
+
+@pytest.mark.parametrize("case", ["blobs", "bridged", "lattice", "strip", "far", "scan"])
+@pytest.mark.parametrize("kw", [{}, {"opening": False}, {"erosion_fraction": 0.6}, {"alpha": 0.5}])
+def test_compiled_connexity_equals_the_kd_tree_version(monkeypatch, case, kw):
+    from kbs.knowledge.connexity import connexity
+
+    X = _connexity_cases()[case]
+    args = (X, X.mean(axis=0), np.array([0.0, 0.0, 1.0]))
+    monkeypatch.setattr(_flags, "JIT", True)
+    a = connexity(*args, **kw)
+    monkeypatch.setattr(_flags, "JIT", False)
+    b = connexity(*args, **kw)
+    assert a.n_components == b.n_components and a.n_significant == b.n_significant
+    np.testing.assert_array_equal(a.labels, b.labels)
+    np.testing.assert_array_equal(a.sizes, b.sizes)
+    if case == "bridged" and not kw:
+        assert a.n_significant == 2  # the bridge is cut: the case exercises the opening ...
+    if case == "bridged" and kw == {"opening": False}:
+        assert a.n_significant == 1  # ... and without it the bridge links the blobs
+
+
+def test_connexity_grid_refuses_an_absurd_extent():
+    U = np.array([[0.0, 0.0], [1e6, 0.0], [0.0, 1e6]])
+    assert C.connexity_degrees(U, np.ones(3, dtype=np.int64), 1.0, 4096.0).size == 0
+    assert C.connexity_components(U, np.ones(3, dtype=bool), 1.0, False, 4096.0)[2] == -1

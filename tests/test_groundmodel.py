@@ -142,6 +142,29 @@ def test_compiled_medians_equal_the_numpy_reference(monkeypatch, exclude):
     np.testing.assert_array_equal(n1, n0)
 
 
+@pytest.mark.parametrize("jit", [True, False])
+@pytest.mark.parametrize("exclude", [None, "c2"])
+def test_queries_in_chunks_give_the_answers_of_one_query(monkeypatch, jit, exclude):
+    """Queries go in spatial order and in chunks (bounded temporaries); neither may change an
+    answer: a budget of 64 neighbours per call (chunks of 8 or 1 points) against one call."""
+    from kbs.inference import _flags
+
+    monkeypatch.setattr(_flags, "JIT", jit)
+    rng = np.random.default_rng(12)
+    X = np.column_stack([rng.uniform(0, 40, 9000), rng.uniform(0, 40, 9000), rng.normal(0, 0.2, 9000)])
+    owners = (X[:, 0] // 10).astype(int)
+    model = LocalGround.build(X, np.arange(0, 9000, 2), np.array([0.0, 0.0, 1.0]), np.zeros(3), neighbours=8,
+                              radius=2.5, owners=owners[::2], owner_ids=("c0", "c1", "c2", "c3"))
+    P = X[1::2]  # 4,500 queries: enough for the spatial order
+    assert model._spatial_order(P[:, :2]) is not None
+    g1, n1 = model.query(P, exclude)
+    monkeypatch.setattr(LocalGround, "QUERY_BUDGET", 64)
+    g0, n0 = model.query(P, exclude)
+    np.testing.assert_array_equal(g1, g0)
+    np.testing.assert_array_equal(n1, n0)
+    assert np.isfinite(g1).mean() > (0.99 if exclude is None else 0.8)  # c2's interior: its own points only
+
+
 def test_post_steps_parse_with_defaults():
     rb = _parse(post=POST_OK)
     assert rb.ground_model.label == "ground" and rb.ground_model.neighbours == 8 and rb.ground_model.radius == 3.0

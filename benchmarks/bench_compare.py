@@ -1,0 +1,124 @@
+"""Benchmark: this working tree against another revision of kbs, in the same run.
+
+For each scan, a loaded ``kbs.Segmenter`` per side segments the same points frame after frame in
+its own process (one warm-up frame not counted, then ``--repeats`` timed frames); the sides take
+turns, ``--rounds`` times, so that both see the same load on a shared machine. Prints a markdown
+table: the median ms per frame of each side (all rounds pooled), the ratio, and whether the
+results are identical (the per-point cluster ids and labels), with the share of points whose label
+differs when they are not; a changed result is the signal to run the quality benchmarks
+(``bench_ground.py``, ``bench_planar.py``).
+
+The other side is a git revision (``--base``, default ``HEAD``: the last commit, against the
+uncommitted changes) extracted with ``git archive`` into a temporary folder and imported from
+there (``PYTHONPATH``), with this venv's packages. Both sides run the compiled kernels
+(``KBS_JIT=1``); the base's are cached separately, so its warm-up frame of the first round
+compiles them (without ``KBS_JIT=1`` it would run the numpy reference, its cache being cold).
+
+Usage: python benchmarks/bench_compare.py [--base REV] [--repeats 5] [--rounds 2] [--scan NAME ...]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = REPO.parent / "shared" / "data"
+
+#: name -> (file, rule base, sensor position or None for the rule base's)
+SCANS = {
+    "semantickitti": (DATA / "semantickitti" / "000001.points.npy", "outdoor", None),
+    "gndnet0": (DATA / "gndnet" / "000000.points.npy", "outdoor", [0.0, 0.0, 1.73]),
+    "seq00-0": (DATA / "semantickitti-seq00" / "seq00_000000.bin", "outdoor", None),
+    "isprs21": (DATA / "isprs" / "samp21-utm.pcd", "airborne", None),
+    "mosd0": (DATA / "mosd" / "learn0.pcd", "planar_contest", None),
+}
+
+CHILD = r"""
+import hashlib, json, sys, time
+import numpy as np
+import kbs
+from kbs.io import read_cloud
+path, rules, sensor, repeats, out = sys.argv[1], sys.argv[2], json.loads(sys.argv[3]), int(sys.argv[4]), sys.argv[5]
+X = read_cloud(path).xyz
+seg = kbs.Segmenter(rules, jobs=1, sensor=sensor)
+res = seg.segment(X)
+times = []
+for _ in range(repeats):
+    t = time.perf_counter()
+    res = seg.segment(X)
+    times.append(time.perf_counter() - t)
+names = np.asarray(res.label_names, dtype=object)
+label = names[res.label] if len(names) else res.label
+np.save(out, np.stack([res.cluster.astype(np.int64), np.unique(label, return_inverse=True)[1].ravel()]))
+print(json.dumps({"times": times, "kbs": kbs.__file__, "clusters": int(res.cluster.max()) + 1,
+                  "labels": sorted(set(map(str, names)))}))
+"""
+
+
+def run_side(pythonpath: str | None, scan: str, repeats: int, out: Path) -> dict:
+    path, rules, sensor = SCANS[scan]
+    env = dict(os.environ, KBS_JIT="1")  # compiled on both sides (the base's cache is cold: its warm-up compiles)
+    if pythonpath:
+        env["PYTHONPATH"] = pythonpath
+    proc = subprocess.run([sys.executable, "-c", CHILD, str(path), rules, json.dumps(sensor), str(repeats), str(out)],
+                          capture_output=True, text=True, env=env, cwd=tempfile.gettempdir())
+    if proc.returncode:
+        raise SystemExit(f"{scan}: the child failed:\n{proc.stderr[-2000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--base", default="HEAD", help="git revision to compare with (default: HEAD)")
+    ap.add_argument("--repeats", type=int, default=5, help="timed frames per side and round")
+    ap.add_argument("--rounds", type=int, default=2, help="alternating rounds per scan")
+    ap.add_argument("--scan", nargs="*", default=list(SCANS), choices=list(SCANS))
+    a = ap.parse_args()
+    import numpy as np
+
+    rev = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", a.base], capture_output=True, text=True,
+                         check=True).stdout.strip()
+    dirty = bool(subprocess.run(["git", "-C", str(REPO), "status", "--porcelain", "--untracked-files=no"],
+                                capture_output=True, text=True).stdout.strip())
+    head = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True,
+                          text=True).stdout.strip()
+    with tempfile.TemporaryDirectory(prefix="kbs-base-") as tmp:
+        archive = subprocess.run(["git", "-C", str(REPO), "archive", "--prefix=kbs/", a.base], capture_output=True,
+                                 check=True).stdout
+        subprocess.run(["tar", "-x", "-C", tmp], input=archive, check=True)
+        sides = {"base": tmp, "this": None}
+        print(f"base: {a.base} ({rev}); this: the working tree at {head}{' with uncommitted changes' if dirty else ''}; "
+              f"{a.repeats} frames x {a.rounds} rounds per side, load average {os.getloadavg()[0]:.2f} at the start\n")
+        print("| scan | rules | points | base ms | this ms | base / this | result |")
+        print("|---|---|---:|---:|---:|---:|---|")
+        for scan in a.scan:
+            times = {"base": [], "this": []}
+            info = {}
+            for _ in range(a.rounds):
+                for side in ("base", "this"):
+                    out = Path(tmp) / f"{scan}-{side}.npy"
+                    r = run_side(sides[side], scan, a.repeats, out)
+                    times[side] += r["times"]
+                    info[side] = r
+            if Path(info["base"]["kbs"]).resolve().is_relative_to(REPO):
+                raise SystemExit("the base side imported this working tree: check PYTHONPATH handling")
+            A, B = np.load(Path(tmp) / f"{scan}-base.npy"), np.load(Path(tmp) / f"{scan}-this.npy")
+            if A.shape == B.shape and np.array_equal(A, B):
+                verdict = "identical"
+            else:
+                diff = float(np.mean(A[1] != B[1])) if A.shape == B.shape else float("nan")
+                verdict = f"differs: {diff:.2%} of labels, clusters {info['base']['clusters']} -> {info['this']['clusters']}"
+            mb, mt = statistics.median(times["base"]) * 1e3, statistics.median(times["this"]) * 1e3
+            path, rules, _ = SCANS[scan]
+            print(f"| {scan} | {rules} | {A.shape[1]:,} | {mb:.0f} | {mt:.0f} | {mb / mt:.2f}x | {verdict} |", flush=True)
+        print(f"\nload average at the end {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()
