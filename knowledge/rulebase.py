@@ -790,7 +790,8 @@ class _Validator:
             else:
                 self.add(path, f"{where} is invalid: {sch.get('description', 'see the schema')}; got {_brief(inst)}")
         elif kind == "pattern":
-            self.add(path, f"{where}: {_brief(inst)} is not a valid name (letters, digits, '_', not starting with a digit)")
+            self.add(path, f"{where}: {_brief(inst)} is not a valid name (letters, digits, '_', not starting with a "
+                     "digit)")
         elif kind == "propertyNames":
             self.add(path, f"{where}: invalid name {_brief(err.instance)}")
         else:
@@ -1022,7 +1023,8 @@ class _Validator:
         if isinstance(gm, dict) and isinstance(gm.get("label"), str):
             self._label_ref(("post", "ground_model", "label"), gm["label"], names)
             model = GroundModelSpec(label=gm["label"], neighbours=_number(gm.get("neighbours"), 8, int),
-                                    radius=_number(gm.get("radius"), 3.0), pos=self.pos.pos(("post", "ground_model"), key=True))
+                                    radius=_number(gm.get("radius"), 3.0),
+                                    pos=self.pos.pos(("post", "ground_model"), key=True))
         relabel = self._relabel(raw.get("relabel"), checks, names, model)
         contact = self._contact(raw.get("ground_contact"), checks, names, model)
         release = self._release(raw.get("ground_release"), names, model)
@@ -1272,7 +1274,8 @@ def _measure(check: Check) -> tuple:
 
 def _domain(pred: Predicate) -> _Interval:
     lo, hi = pred.value_range
-    return (-math.inf if lo is None else float(lo), lo is not None, math.inf if hi is None else float(hi), hi is not None)
+    return (-math.inf if lo is None else float(lo), lo is not None,
+            math.inf if hi is None else float(hi), hi is not None)
 
 
 def _passes(check: Check, negated: bool) -> list[_Interval]:
@@ -1307,5 +1310,6 @@ def _text(check: Check, negated: bool) -> str:
         if check.min is not None and check.max is not None:
             return f"{check.min:g} <= {p} <= {check.max:g}"
         return f"{p} >= {check.min:g}" if check.min is not None else f"{p} <= {check.max:g}"
-    parts = ([f"< {check.min:g}"] if check.min is not None else []) + ([f"> {check.max:g}"] if check.max is not None else [])
+    parts = [f"< {check.min:g}"] if check.min is not None else []
+    parts += [f"> {check.max:g}"] if check.max is not None else []
     return f"{p} {' or '.join(parts)}"
