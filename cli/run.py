@@ -267,6 +267,9 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
 
     scans = scan_paths(clouds, on_skip=skipped)
     with Segmenter(rules, jobs=jobs, sensor=sensor, plugins=plugins) as segmenter:  # workers kept for all scans
+        if not quiet:
+            for w in segmenter.rule_base.warnings:  # `kbs rules check` quotes the line
+                click.echo(f"kbs: warning: {w.pos}: {w.message}", err=True)
         check_writable_folder(out_dir, create=True)  # before any segmentation
         _run_scans(segmenter, scans, out_dir, t0, color_by=color_by, meshes=meshes, report=report, quiet=quiet,
                    inputs=InputFiles(scans), force=force)
@@ -324,7 +327,10 @@ def rules() -> None:
 @click.argument("files", nargs=-1, required=True)
 @plugin_option
 def rules_check(files: tuple[str, ...], plugins: tuple[Path, ...]) -> None:
-    """Validate rule files (or shipped names); every problem is reported as file:line:col."""
+    """Validate rule files (or shipped names); every problem is reported as file:line:col.
+
+    Warnings (a condition that can never hold: a rule that never acts, a label never given) are
+    printed on stderr as file:line:col: warning: ...; they do not change the exit code."""
     reg = _registry(plugins)
     bad: list[RuleFileError] = []
     for f in files:
@@ -333,8 +339,13 @@ def rules_check(files: tuple[str, ...], plugins: tuple[Path, ...]) -> None:
         except RuleFileError as exc:
             bad.append(exc)
             continue
+        n_warn = len(rb.warnings)
+        labels = rb.label_names if len(rb.label_names) <= 12 else rb.label_names[:11] + ["...", rb.label_names[-1]]
         click.echo(f"{f}: ok — '{rb.name}', {len(rb.checks)} checks, {len(rb.rules)} rules, "
-                   f"labels {', '.join(rb.label_names)}, strategy {rb.strategy}")
+                   f"labels {', '.join(labels)}, strategy {rb.strategy}"
+                   + (f"; {n_warn} warning{'s' if n_warn != 1 else ''}" if n_warn else ""))
+        for w in rb.warnings:
+            click.echo(w.format(), err=True)
     if bad:
         for exc in bad:
             click.echo(exc.format(), err=True)

@@ -196,8 +196,9 @@ class Explanation:
         if rec.action == "reject":
             return f"{head} rejected as noise: {why}{src}"
         if rec.action == "limit":
-            return f"{head} kept as {rec.label or 'it is'} ({'; '.join(rec.notes)}): {why}{src}{self._relabel_text(rec)}"
-        label = f" as {rec.label}" if rec.label else ""
+            kept = rec.label or f"it is, {NO_LABEL}"
+            return f"{head} kept as {kept} ({'; '.join(rec.notes)}): {why}{src}{self._relabel_text(rec)}"
+        label = f" as {rec.label}" if rec.label else f", {NO_LABEL}"
         if rec.relabel:
             return f"{head} accepted as {rec.relabel['from']}{self._relabel_text(rec)}"
         why = why or "; ".join(c.sentence() for c in rec.checks) or "no check measured"
@@ -234,7 +235,7 @@ class Explanation:
         rec = chain[0]
         out.append("")
         out.append(f"{rec.id}: {rec.n_points:,} points, action {rec.action}"
-                   + (f", label {rec.label}" if rec.label else ""))
+                   + (f", label {rec.label}" if rec.label else f", {NO_LABEL}" if _is_leaf(rec) else ""))
         for c in rec.checks:
             out.append(f"  {'pass' if c.passed else 'FAIL'}  {c.check}: {c.predicate} = {c.comparison()}  [{c.source}]"
                        + (f"  ({c.note})" if c.note else ""))
@@ -245,6 +246,17 @@ class Explanation:
         if rec.apd:
             out.append(f"  APD: {rec.apd.text()}")
         return "\n".join(out)
+
+
+#: What an accepted cluster no label's condition holds for is called (its points have label -1,
+#: as rejected ones do, but they are in an output cluster): never 'noise', which a rule base may
+#: use as one of its labels.
+NO_LABEL = "no label matched"
+
+
+def _is_leaf(rec: ClusterRecord) -> bool:
+    """An output cluster's record: accepted, or kept by a limit (rejected ones are noise)."""
+    return rec.action in ("accept", "limit") and not rec.children
 
 
 def _fmt(v: Any) -> str:

@@ -29,7 +29,7 @@ import numpy as np
 from kbs.errors import FitError, KbsError
 from kbs.inference import UFPONCResult, ufp_onc
 from kbs.knowledge.connexity import Connexity, assign_to_nearest, project_on_plane
-from kbs.knowledge.explain import APDCurve, CheckRecord, ClusterRecord, Explanation
+from kbs.knowledge.explain import NO_LABEL, APDCurve, CheckRecord, ClusterRecord, Explanation
 from kbs.knowledge.predicates import Cluster, Ground, Measurement, PredicateError, Scene
 from kbs.knowledge.rulebase import Condition, RuleBase
 
@@ -89,8 +89,15 @@ class Segmentation:
         return dict(sorted(out.items(), key=lambda kv: order.index(kv[0]) if kv[0] in order else len(order)))
 
     def summary(self) -> dict[str, Any]:
+        """Counts; ``points_per_label``: each label's points, then ``noise`` (points in no output
+        cluster: rejected; ``noise (rejected)`` when the rule base has a label named noise) and,
+        when there are, ``no label matched`` (points of output clusters no label's condition held
+        for)."""
         counts = {name: int((self.label == i).sum()) for i, name in enumerate(self.label_names)}
-        counts["noise"] = int((self.label < 0).sum())
+        counts["noise (rejected)" if "noise" in counts else "noise"] = int((self.cluster < 0).sum())
+        unlabelled = int(((self.label < 0) & (self.cluster >= 0)).sum())
+        if unlabelled:
+            counts[NO_LABEL] = unlabelled
         return {"points": int(self.cluster.size), "clusters": len(self.clusters), "splits": self.n_splits,
                 "limits": sum(r.action == "limit" for r in self.explanation.records.values()),
                 "limits_by_kind": self.limits_by_kind(),
