@@ -3,7 +3,8 @@
 Prints markdown: per scan and tile size, the number of tiles, the ground F1 untiled and tiled and
 their difference (the target is |difference| <= 0.002), stitched clusters and wall times.
 
-Usage: python benchmarks/bench_tiles.py [--sets kitti isprs] [--sizes 30 40] [--buffer B]
+Usage: python benchmarks/bench_tiles.py [--sets kitti isprs] [--scans samp11] [--sizes 60 80] [--buffer B]
+Every run is in process with jobs=1 (the result does not depend on jobs).
 """
 from __future__ import annotations
 
@@ -45,7 +46,7 @@ def main() -> None:
     ap.add_argument("--sets", nargs="+", default=["kitti", "isprs"])
     ap.add_argument("--scans", nargs="*", default=None, help="only these scan names (e.g. samp11 000001)")
     ap.add_argument("--sizes", nargs="+", type=float, default=None,
-                    help="tile sizes (default: 40 m for SemanticKITTI, 100 m for ISPRS)")
+                    help="tile sizes (default: the longer side of the scan / 2.5: 4 to 9 tiles)")
     ap.add_argument("--buffer", type=float, default=None)
     args = ap.parse_args()
     print("| data set | scan | points | tile m | buffer m | tiles | F1 untiled | F1 tiled | diff | stitched | "
@@ -59,7 +60,7 @@ def main() -> None:
         base = seg.segment(scan.xyz)
         t_base = time.perf_counter() - t0
         f_base = f1(scan, base)
-        for size in args.sizes or ([40.0] if scan.dataset == "SemanticKITTI" else [100.0]):
+        for size in args.sizes or [round(float(np.ptp(scan.xyz[:, :2], axis=0).max()) / 2.5)]:
             t0 = time.perf_counter()
             tiled = segment_tiled(seg, scan.xyz, size, args.buffer)
             dt = time.perf_counter() - t0

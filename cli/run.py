@@ -217,6 +217,7 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path, *, color_by: str 
 
 def _segment_tiled(segmenter: Segmenter, xyz: np.ndarray, cloud: Path, tiling: Tiling, *, quiet: bool, t0: float):
     from kbs.tiles import segment_tiled
+    from kbs.tiles.run import SchedulerError
 
     lines = ProgressLines(str(cloud), lambda n: f"{n:,} tiles done", quiet=quiet, start=t0)
     if tiling.scheduler is not None:  # Dask logs every worker's start and stop at INFO: not kbs's news
@@ -231,8 +232,11 @@ def _segment_tiled(segmenter: Segmenter, xyz: np.ndarray, cloud: Path, tiling: T
         else:
             lines()
 
-    return segment_tiled(segmenter, xyz, tiling.size, tiling.buffer, scheduler=tiling.scheduler,
-                         workers=tiling.workers, progress=progress)
+    try:
+        return segment_tiled(segmenter, xyz, tiling.size, tiling.buffer, scheduler=tiling.scheduler,
+                             workers=tiling.workers, progress=progress)
+    except SchedulerError as exc:
+        raise click.BadParameter(str(exc), param_hint="--scheduler") from exc
 
 
 def _splits(n: int) -> str:

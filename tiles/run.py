@@ -42,6 +42,10 @@ class TileError(KbsError):
         super().__init__(f"tile {tile.bounds_text()} ({n_points:,} points): {what}")
 
 
+class SchedulerError(ParameterError):
+    """No Dask scheduler answers at the address given."""
+
+
 def default_buffer(segmenter: Segmenter, size: float) -> float:
     """The buffer used when none is given: a tenth of the tile, and at least twice the radius of
     the local ground surface (``post.ground_model.radius``) so that the surface near a tile edge
@@ -139,7 +143,9 @@ def dask_client(scheduler: str, workers: int | None = None):
     Raises
     ------
     ParameterError
-        Dask is not installed, ``workers`` is not positive, or no scheduler answers.
+        Dask is not installed, or ``workers`` is not positive.
+    SchedulerError
+        No scheduler answers at the address.
     """
     try:
         from distributed import Client, LocalCluster
@@ -153,9 +159,10 @@ def dask_client(scheduler: str, workers: int | None = None):
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0")
         return Client(cluster)
     try:
-        return Client(scheduler, timeout="10s")
+        return Client(scheduler, timeout="5s")
     except (OSError, TimeoutError, ValueError) as exc:
-        raise ParameterError(f"no Dask scheduler answers at {scheduler!r}: {exc}") from exc
+        raise SchedulerError(f"no Dask scheduler answers at {scheduler!r} ({type(exc).__name__}: {exc}); start one "
+                             f"(dask scheduler) or give 'local' for a LocalCluster on this machine") from exc
 
 
 def _segment_on_dask(segmenter: Segmenter, X: np.ndarray, tiles: Sequence[Tile], scheduler: str,

@@ -2,7 +2,10 @@
 
 Each point takes the result of the tile whose core holds it. A cluster that crosses a tile edge
 is segmented twice near that edge, once by each tile (core and buffer); the two are one cluster
-when they share enough buffer points with the same label. Such clusters are merged, transitively,
+when they share enough buffer points with the same label: at least :data:`MIN_SHARED_POINTS`,
+and half of the points either has in the region both tiles hold (or half of the smaller one's
+there, when that region holds at least 5 % of its cluster: a tile may give a few points of an
+object to its neighbour, which must not merge the two objects). Such clusters are merged, transitively,
 into one output cluster with one id, and the explanation says so: its ``clusters`` entry has
 ``stitched`` (the tiles and tile clusters it was made of) and every tile record merged into it a
 note.
@@ -21,8 +24,10 @@ from kbs.tiles.grid import Tile, TileGrid
 
 #: Two clusters of neighbouring tiles are one when they share at least this many points ...
 MIN_SHARED_POINTS = 10
-#: ... and at least this fraction of the smaller one's points in the region both tiles hold.
+#: ... and at least this fraction of the points either has in the region both tiles hold (or of the
+#: smaller one's there, when they are at least MIN_SHARED_OF_CLUSTER of its whole cluster).
 MIN_SHARED_FRACTION = 0.5
+MIN_SHARED_OF_CLUSTER = 0.05
 #: The record at the top of a tiled explanation; its children are the roots of the tiles.
 ROOT = "tiles"
 
@@ -64,9 +69,19 @@ def _links(a: Tile, ra: Segmentation, b: Tile, rb: Segmentation) -> list[tuple[i
     nb = np.bincount(cb[cb >= 0], minlength=len(rb.clusters))
     both = (ca >= 0) & (cb >= 0) & (ra.label[ia] == rb.label[ib])
     pairs, counts = np.unique(np.stack([ca[both], cb[both]], axis=1), axis=0, return_counts=True)
+    size_a = np.bincount(ra.cluster[ra.cluster >= 0], minlength=len(ra.clusters))
+    size_b = np.bincount(rb.cluster[rb.cluster >= 0], minlength=len(rb.clusters))
     out = []
     for (x, y), k in zip(pairs.tolist(), counts.tolist()):
-        if k >= MIN_SHARED_POINTS and k >= MIN_SHARED_FRACTION * min(na[x], nb[y]):
+        if k < MIN_SHARED_POINTS:
+            continue
+        if k >= MIN_SHARED_FRACTION * max(na[x], nb[y]):  # most of each one's shared points are the other's
+            out.append((x, y, k))
+            continue
+        # one lies mostly inside the other there (a cluster one tile split and the other did not),
+        # and is not a sliver of a cluster that lies elsewhere (points a tile gave the wrong object)
+        small, size = (na[x], size_a[x]) if na[x] <= nb[y] else (nb[y], size_b[y])
+        if k >= MIN_SHARED_FRACTION * small and small >= MIN_SHARED_OF_CLUSTER * size:
             out.append((x, y, k))
     return out
 
