@@ -130,12 +130,14 @@ def scan_paths(clouds: tuple[Path, ...], *,
 @dataclass(frozen=True)
 class Tiling:
     """``kbs run --tile``: square tiles of ``size`` with a ``buffer`` (None: the default), run in
-    process (``scheduler`` None) or on Dask (``"local"`` or a scheduler address)."""
+    process (``scheduler`` None) or on Dask (``"local"`` or a scheduler address); ``resume``:
+    take the tiles an earlier failed run finished."""
 
     size: float
     buffer: float | None = None
     scheduler: str | None = None
     workers: int | None = None
+    resume: bool = False
 
 
 def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path, *, color_by: str = "cluster", meshes: bool = False,
@@ -161,7 +163,10 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path, *, color_by: str 
     if tiling is None:
         seg = segmenter.segment(pc.xyz, progress=ProgressLines(str(cloud), _splits, quiet=quiet, start=t0))
     else:
-        seg = _segment_tiled(segmenter, pc.xyz, cloud, tiling, quiet=quiet, t0=t0)
+        from kbs.tiles.store import TileStore
+
+        store = TileStore(out_dir / f"{cloud.stem}.tiles", segmenter)
+        seg = _segment_tiled(segmenter, pc.xyz, cloud, tiling, quiet=quiet, t0=t0, store=store)
     t1 = time.perf_counter()
     check_writable_folder(out_dir, create=True)  # checked by `kbs run` already; here for other callers
     from kbs.report.colors import rgb_fields
@@ -177,6 +182,8 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path, *, color_by: str 
     if tiling is not None:
         doc["tiling"] = seg.tiling
     run_id = write_result_pair(ply, js, pc.xyz, fields, doc, run_id=new_run_id())
+    if tiling is not None:
+        store.remove()  # the result is written: the finished tiles are no longer needed
     t_write = time.perf_counter() - t1
     s = seg.summary()
     per_label = ", ".join(f"{k} {v:,}" for k, v in s["points_per_label"].items())
@@ -215,7 +222,8 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path, *, color_by: str 
     return ScanResult(cloud, len(pc), s["clusters"], t_read, seg.seconds, t_write)
 
 
-def _segment_tiled(segmenter: Segmenter, xyz: np.ndarray, cloud: Path, tiling: Tiling, *, quiet: bool, t0: float):
+def _segment_tiled(segmenter: Segmenter, xyz: np.ndarray, cloud: Path, tiling: Tiling, *, quiet: bool, t0: float,
+                   store=None):
     from kbs.tiles import segment_tiled
     from kbs.tiles.run import SchedulerError
 
@@ -223,10 +231,10 @@ def _segment_tiled(segmenter: Segmenter, xyz: np.ndarray, cloud: Path, tiling: T
     if tiling.scheduler is not None:  # Dask logs every worker's start and stop at INFO: not kbs's news
         import logging
 
-        logging.getLogger("distributed").setLevel(logging.WARNING)
+        logging.getLogger("distributed").setLevel(logging.ERROR)  # and warns of a slow event loop under load
 
     def progress(message: str) -> None:
-        if message.startswith("Dask dashboard"):
+        if message.startswith(("Dask dashboard", "resumed")):
             if not quiet:
                 click.echo(f"kbs: {message}", err=True)
         else:
@@ -234,7 +242,7 @@ def _segment_tiled(segmenter: Segmenter, xyz: np.ndarray, cloud: Path, tiling: T
 
     try:
         return segment_tiled(segmenter, xyz, tiling.size, tiling.buffer, scheduler=tiling.scheduler,
-                             workers=tiling.workers, progress=progress)
+                             workers=tiling.workers, progress=progress, store=store, resume=tiling.resume)
     except SchedulerError as exc:
         raise click.BadParameter(str(exc), param_hint="--scheduler") from exc
 
@@ -294,11 +302,13 @@ def time_table(results: list[ScanResult | ScanFailure], t_load: float, t_total: 
               help="Run the tiles as Dask tasks: on the scheduler at ADDRESS (tcp://host:8786), or on a "
               "LocalCluster of -j workers ('local'; -1: one per core). Needs pip install 'kbs[dask]'. Without "
               "it the tiles run one after the other in this process. The result is the same.")
+@click.option("--resume", is_flag=True, help="With --tile: take the tiles an earlier run that failed kept in "
+              "DIR/<stem>.tiles/ (same cloud, rule base and grid) and segment only the others.")
 @click.pass_context
 def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_dir: Path, plugins: tuple[Path, ...],
         color_by: str = "cluster", meshes: bool = False, report: bool = False, jobs: int = -1,
         force: bool = False, tile: float | None = None, buffer: float | None = None,
-        scheduler: str | None = None) -> None:
+        scheduler: str | None = None, resume: bool = False) -> None:
     """Segment each CLOUD with a rule base; write DIR/<stem>.ply (per-vertex cluster, label,
     membership) and DIR/<stem>.json (label names, clusters, the explanation tree).
 
@@ -320,7 +330,7 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
         if not quiet:
             click.echo(f"kbs: skipped {path}: {why}", err=True)
 
-    tiling = _tiling(tile, buffer, scheduler, jobs)
+    tiling = _tiling(tile, buffer, scheduler, jobs, resume)
     scans = scan_paths(clouds, on_skip=skipped)
     split_jobs = 1 if tiling is not None and tiling.scheduler is not None else jobs  # Dask workers do the work
     with Segmenter(rules, jobs=split_jobs, sensor=sensor, plugins=plugins) as segmenter:  # workers kept for all scans
@@ -329,10 +339,11 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
                    inputs=InputFiles(scans), force=force, tiling=tiling)
 
 
-def _tiling(tile: float | None, buffer: float | None, scheduler: str | None, jobs: int) -> Tiling | None:
-    """The --tile/--buffer/--scheduler options, checked together (usage errors, exit 2)."""
+def _tiling(tile: float | None, buffer: float | None, scheduler: str | None, jobs: int,
+            resume: bool = False) -> Tiling | None:
+    """The --tile/--buffer/--scheduler/--resume options, checked together (usage errors, exit 2)."""
     if tile is None:
-        for name, value in (("--buffer", buffer), ("--scheduler", scheduler)):
+        for name, value in (("--buffer", buffer), ("--scheduler", scheduler), ("--resume", resume or None)):
             if value is not None:
                 raise click.UsageError(f"{name} only applies to a tiled run: give --tile SIZE too")
         return None
@@ -345,7 +356,7 @@ def _tiling(tile: float | None, buffer: float | None, scheduler: str | None, job
         except ImportError as exc:
             raise click.UsageError(f"--scheduler needs Dask ({exc}): pip install 'kbs[dask]', or leave "
                                    f"--scheduler out to run the tiles in this process") from exc
-    return Tiling(size=tile, buffer=buffer, scheduler=scheduler, workers=None if jobs == -1 else jobs)
+    return Tiling(size=tile, buffer=buffer, scheduler=scheduler, workers=None if jobs == -1 else jobs, resume=resume)
 
 
 def _run_scans(segmenter, scans, out_dir: Path, t0: float, **options) -> None:

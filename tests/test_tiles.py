@@ -216,3 +216,56 @@ def test_an_unreachable_scheduler_is_a_usage_error(rocks, tmp_path):
     assert r.returncode == 2, r.stderr
     assert "Invalid value for --scheduler: no Dask scheduler answers at 'tcp://127.0.0.1:9'" in r.stderr
     assert "Traceback" not in r.stderr
+
+
+FLAKY_PLUGIN = FAILING_PLUGIN.replace('if x > 3.0:', 'if x > 3.0 and os.environ.get("KBS_TEST_FAIL_EAST"):').replace(
+    "from kbs.knowledge import predicate", "import os\n\nfrom kbs.knowledge import predicate")
+
+
+def test_finished_tiles_are_kept_and_resume_segments_only_the_failed_ones(rocks, tmp_path, monkeypatch):
+    plugin = tmp_path / "east.py"
+    plugin.write_text(FLAKY_PLUGIN)
+    rules = tmp_path / "east.yaml"
+    text = kbs_cmd("rules", "show", "outdoor").stdout
+    text = text.replace("checks:\n", "checks:\n  west: {predicate: east, max: 100.0}\n", 1)
+    rules.write_text(re.sub(r"if: \[planar, level\]", "if: [planar, level, west]", text))
+    args = ["run", "--rules", str(rules), "--plugin", str(plugin), "-j", "1", "--tile", "6", "--buffer", "1.5",
+            str(rocks[0])]
+    out, kept = tmp_path / "out", tmp_path / "out" / "rocks.tiles"
+    monkeypatch.setenv("KBS_TEST_FAIL_EAST", "1")  # tile t1_1 fails, the three others are done and kept
+    r = kbs_cmd(*args, "--out", str(out))
+    assert r.returncode == 7, r.stderr
+    assert f"; the finished tiles are kept in {kept}: run again with --resume (resume=True) to segment only the " \
+           f"failed ones" in r.stderr
+    assert sorted(p.name for p in kept.iterdir()) == ["t0_0.npz", "t0_1.npz", "t1_0.npz"]
+    assert not (out / "rocks.ply").exists()
+    monkeypatch.delenv("KBS_TEST_FAIL_EAST")
+    r = kbs_cmd(*args, "--resume", "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    assert f"kbs: resumed 3 of 4 tiles from {kept}" in r.stderr
+    assert not kept.exists()  # the result is written: the tiles are removed
+    fresh = kbs_cmd(*args, "--out", str(tmp_path / "fresh"))
+    assert fresh.returncode == 0, fresh.stderr
+    assert _normalised(out, "rocks") == _normalised(tmp_path / "fresh", "rocks")
+
+
+def test_resume_takes_no_tile_of_another_grid(rocks, tmp_path, monkeypatch):
+    """A tile file whose points differ (another buffer) is segmented again, not taken."""
+    out, kept = tmp_path / "out", tmp_path / "out" / "rocks.tiles"
+    from kbs.tiles import plan_tiles
+    from kbs.tiles.store import TileStore
+
+    X = np.column_stack([_vertex(rocks[0])[k] for k in "xyz"]).astype(np.float64)
+    with kbs.Segmenter("outdoor", jobs=1) as seg:
+        store = TileStore(kept, seg)
+        _, tiles = plan_tiles(seg, X, 6.0, 1.0)  # --buffer 1, the run below uses 1.5
+        store.save(tiles[0], store.key(tiles[0], X), seg.segment(X[tiles[0].index]))
+    r = kbs_cmd("run", "--rules", "outdoor", "-j", "1", "--tile", "6", "--buffer", "1.5", "--resume",
+                str(rocks[0]), "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    assert f"kbs: resumed 0 of 4 tiles from {kept}" in r.stderr
+
+
+def test_resume_needs_tile(rocks, tmp_path):
+    r = kbs_cmd("run", "--rules", "outdoor", "--resume", str(rocks[0]), "--out", str(tmp_path))
+    assert r.returncode == 2 and "--resume only applies to a tiled run: give --tile SIZE too" in r.stderr

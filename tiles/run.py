@@ -12,9 +12,11 @@ byte for byte, in process and on any number of Dask workers.
 from __future__ import annotations
 
 import functools
+import logging
 import os
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -24,6 +26,7 @@ from kbs.knowledge.interpreter import Segmentation
 from kbs.knowledge.segmenter import Segmenter, as_points
 from kbs.tiles.grid import Tile, TileGrid
 from kbs.tiles.stitch import TiledSegmentation, stitch
+from kbs.tiles.store import TileStore
 
 #: The buffer, when none is given, is this fraction of the tile size ...
 BUFFER_FRACTION = 0.1
@@ -32,14 +35,37 @@ BUFFER_GROUND_RADII = 2.0
 
 
 class TileError(KbsError):
-    """A tile could not be segmented; the message names it with its bounds. The exit code is the
-    cause's (a :class:`~kbs.errors.FitError` in a tile exits 5, as it would untiled)."""
+    """Tiles could not be segmented; the message names the first with its bounds, and how many
+    failed. The exit code is the cause's (a :class:`~kbs.errors.FitError` in a tile exits 5, as it
+    would untiled).
 
-    def __init__(self, tile: Tile, n_points: int, cause: BaseException) -> None:
-        self.tile = tile
+    Attributes
+    ----------
+    tile : Tile
+        The first tile that failed (in tile order).
+    cause : BaseException
+        Its error.
+    failed : list of Tile
+        Every tile that failed.
+    kept : Path or None
+        The folder holding the tiles that were finished (a :class:`~kbs.tiles.store.TileStore`'s).
+    """
+
+    def __init__(self, tile: Tile, n_points: int, cause: BaseException, *, failed: Sequence[Tile] = (),
+                 kept: Path | None = None, total: int | None = None) -> None:
+        self.tile, self.cause = tile, cause
+        self.failed, self.kept = list(failed) or [tile], kept
         self.exit_code = getattr(cause, "exit_code", ExitCode.INTERNAL)
         what = str(cause) if isinstance(cause, KbsError) else f"{type(cause).__name__}: {cause}"
-        super().__init__(f"tile {tile.bounds_text()} ({n_points:,} points): {what}")
+        more = ""
+        if len(self.failed) > 1:
+            more = (f"; {len(self.failed)} of {total} tiles failed: "
+                    f"{', '.join(t.bounds_text() for t in self.failed)}")
+        kept_text = ""
+        if kept is not None:
+            kept_text = (f"; the finished tiles are kept in {kept}: run again with --resume (resume=True) to "
+                         f"segment only the failed ones")
+        super().__init__(f"tile {tile.bounds_text()} ({n_points:,} points): {what}{more}{kept_text}")
 
 
 class SchedulerError(ParameterError):
@@ -65,7 +91,8 @@ def plan_tiles(segmenter: Segmenter, X: np.ndarray, size: float,
 
 def segment_tiled(segmenter: Segmenter, points: Any, size: float, buffer: float | None = None, *,
                   scheduler: str | None = None, workers: int | None = None,
-                  progress: Callable[[str], None] | None = None) -> TiledSegmentation:
+                  progress: Callable[[str], None] | None = None, store: TileStore | None = None,
+                  resume: bool = False) -> TiledSegmentation:
     """Segment a cloud tile by tile and stitch the tiles' results into one.
 
     Parameters
@@ -87,6 +114,11 @@ def segment_tiled(segmenter: Segmenter, points: Any, size: float, buffer: float 
         Workers of the ``"local"`` cluster.
     progress : callable, optional
         Called with ``"t0_1 (1/9 tiles)"`` as each tile is done.
+    store : TileStore, optional
+        Where each finished tile is saved as soon as it is done (kept when others fail).
+    resume : bool, default False
+        Take the tiles ``store`` holds for these points, rule base and sensor instead of
+        segmenting them again; segment only the others.
 
     Returns
     -------
@@ -98,27 +130,47 @@ def segment_tiled(segmenter: Segmenter, points: Any, size: float, buffer: float 
     ParameterError
         Bad points, size, buffer or workers; Dask missing for a scheduler.
     TileError
-        A tile failed (its bounds in the message, the cause's exit code).
+        Tiles failed (the first one's bounds in the message, the cause's exit code), after every
+        other tile was segmented (and saved in ``store``).
     """
     t0 = time.perf_counter()
     X = as_points(points)
     grid, tiles = plan_tiles(segmenter, X, size, buffer)
-    if scheduler is None:
-        results = []
+    keys = [store.key(t, X) for t in tiles] if store is not None else [None] * len(tiles)
+    results: list[Segmentation | None] = [None] * len(tiles)
+    if resume and store is not None:
         for k, t in enumerate(tiles):
-            results.append(_segment_here(segmenter, X, t))
-            if progress is not None:
-                progress(f"{t.name} ({k + 1}/{len(tiles)} tiles)")
-    else:
-        results = _segment_on_dask(segmenter, X, tiles, scheduler, workers, progress)
+            results[k] = store.load(t, keys[k])
+        if progress is not None:
+            progress(f"resumed {sum(r is not None for r in results)} of {len(tiles)} tiles from {store.folder}")
+    todo = [k for k, r in enumerate(results) if r is None]
+    failures: dict[int, BaseException] = {}
+
+    def finished(k: int, out: Segmentation | BaseException, done: int) -> None:
+        if isinstance(out, BaseException):
+            failures[k] = out
+            return
+        results[k] = out
+        if store is not None:
+            store.save(tiles[k], keys[k], out)
+        if progress is not None:
+            progress(f"{tiles[k].name} ({done}/{len(todo)} tiles)")
+
+    if scheduler is None:
+        for done, k in enumerate(todo, start=1):
+            try:
+                out: Segmentation | BaseException = segmenter.segment(X[tiles[k].index])
+            except KbsError as exc:
+                out = exc
+            finished(k, out, done)
+    elif todo:
+        _segment_on_dask(segmenter, X, tiles, todo, scheduler, workers, progress, finished)
+    if failures:
+        first = min(failures)
+        raise TileError(tiles[first], tiles[first].index.size, failures[first],
+                        failed=[tiles[k] for k in sorted(failures)], total=len(tiles),
+                        kept=store.folder if store is not None and len(failures) < len(tiles) else None)
     return stitch(X, grid, tiles, results, seconds=time.perf_counter() - t0)
-
-
-def _segment_here(segmenter: Segmenter, X: np.ndarray, t: Tile) -> Segmentation:
-    try:
-        return segmenter.segment(X[t.index])
-    except KbsError as exc:
-        raise TileError(t, t.index.size, exc) from exc
 
 
 @functools.lru_cache(maxsize=4)
@@ -156,7 +208,10 @@ def dask_client(scheduler: str, workers: int | None = None):
         n = workers if workers is not None else (os.cpu_count() or 1)
         if isinstance(n, bool) or not isinstance(n, int) or n < 1:
             raise ParameterError(f"The 'workers' parameter must be a positive number of processes. Got {n!r} instead.")
-        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0")
+        # silence_logs: the workers' own log lines (a heartbeat missed while the cluster shuts down,
+        # with its traceback) are not the user's news; a failed tile comes back as its error
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
+                               silence_logs=logging.CRITICAL)
         return Client(cluster)
     try:
         return Client(scheduler, timeout="5s")
@@ -165,8 +220,9 @@ def dask_client(scheduler: str, workers: int | None = None):
                              f"(dask scheduler) or give 'local' for a LocalCluster on this machine") from exc
 
 
-def _segment_on_dask(segmenter: Segmenter, X: np.ndarray, tiles: Sequence[Tile], scheduler: str,
-                     workers: int | None, progress: Callable[[str], None] | None) -> list[Segmentation]:
+def _segment_on_dask(segmenter: Segmenter, X: np.ndarray, tiles: Sequence[Tile], todo: Sequence[int],
+                     scheduler: str, workers: int | None, progress: Callable[[str], None] | None,
+                     finished: Callable[[int, Any, int], None]) -> None:
     from distributed import as_completed
 
     client = dask_client(scheduler, workers)
@@ -174,22 +230,14 @@ def _segment_on_dask(segmenter: Segmenter, X: np.ndarray, tiles: Sequence[Tile],
         if progress is not None:
             progress(f"Dask dashboard: {client.dashboard_link}")
         spec = (segmenter.rule_base.path, segmenter.sensor, segmenter.plugins)
-        futures = [client.submit(_segment_task, *spec, X[t.index], key=f"kbs-tile-{t.name}-{os.urandom(6).hex()}",
-                                 retries=1, pure=False) for t in tiles]
-        position = {f.key: k for k, f in enumerate(futures)}
-        results: list[Any] = [None] * len(tiles)
+        futures = {client.submit(_segment_task, *spec, X[tiles[k].index], key=f"kbs-tile-{tiles[k].name}-"
+                                 f"{os.urandom(6).hex()}", retries=1, pure=False): k for k in todo}
         for done, future in enumerate(as_completed(futures), start=1):
-            k = position[future.key]
             try:
                 out = future.result()
             except Exception as exc:  # the task died twice (a worker lost), or a bug in it
-                raise TileError(tiles[k], tiles[k].index.size, exc) from exc
-            if isinstance(out, KbsError):
-                raise TileError(tiles[k], tiles[k].index.size, out)
-            results[k] = out
-            if progress is not None:
-                progress(f"{tiles[k].name} ({done}/{len(tiles)} tiles)")
-        return results
+                out = exc
+            finished(futures[future], out, done)
     finally:
         cluster = client.cluster if scheduler == "local" else None
         client.close()
