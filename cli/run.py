@@ -227,7 +227,7 @@ def _segment_tiled(segmenter: Segmenter, xyz: np.ndarray, cloud: Path, tiling: T
     from kbs.tiles import segment_tiled
     from kbs.tiles.run import SchedulerError
 
-    lines = ProgressLines(str(cloud), lambda n: f"{n:,} tiles done", quiet=quiet, start=t0)
+    lines = ProgressLines(str(cloud), lambda n: f"{n:,} tile{'s' if n != 1 else ''} done", quiet=quiet, start=t0)
     if tiling.scheduler is not None:  # Dask logs every worker's start and stop at INFO: not kbs's news
         import logging
 

@@ -269,3 +269,46 @@ def test_resume_takes_no_tile_of_another_grid(rocks, tmp_path, monkeypatch):
 def test_resume_needs_tile(rocks, tmp_path):
     r = kbs_cmd("run", "--rules", "outdoor", "--resume", str(rocks[0]), "--out", str(tmp_path))
     assert r.returncode == 2 and "--resume only applies to a tiled run: give --tile SIZE too" in r.stderr
+
+
+KILLING_PLUGIN = '''
+import os
+from pathlib import Path
+
+from kbs.knowledge import predicate
+
+
+@predicate(unit="length")
+def east(cluster, scene) -> float:
+    """x of the centre; the first Dask worker to measure one east of 3 m dies (once)."""
+    x = float(cluster.geometry.center[0])
+    marker = os.environ.get("KBS_TEST_KILL_MARKER")
+    if x > 3.0 and marker and not os.path.exists(marker):
+        try:
+            from distributed import get_worker
+
+            get_worker()
+        except (ImportError, ValueError):
+            return x  # not on a Dask worker
+        Path(marker).write_text("killed")
+        os._exit(1)
+    return x
+'''
+
+
+def test_a_dask_worker_killed_mid_run_gives_the_same_output(rocks, tmp_path, monkeypatch):
+    pytest.importorskip("distributed", reason="Dask is not installed: pip install 'kbs[dask]' (it is in [test])")
+    plugin = tmp_path / "kill.py"
+    plugin.write_text(KILLING_PLUGIN)
+    rules = tmp_path / "east.yaml"
+    text = kbs_cmd("rules", "show", "outdoor").stdout
+    text = text.replace("checks:\n", "checks:\n  west: {predicate: east, max: 100.0}\n", 1)
+    rules.write_text(re.sub(r"if: \[planar, level\]", "if: [planar, level, west]", text))
+    args = ["-q", "run", "--rules", str(rules), "--plugin", str(plugin), "--tile", "6", "--buffer", "1.5", str(rocks[0])]
+    assert kbs_cmd(*args, "-j", "1", "--out", str(tmp_path / "here")).returncode == 0
+    marker = tmp_path / "killed"
+    monkeypatch.setenv("KBS_TEST_KILL_MARKER", str(marker))
+    r = kbs_cmd(*args, "-j", "2", "--scheduler", "local", "--out", str(tmp_path / "dask"))
+    assert r.returncode == 0, r.stderr
+    assert marker.read_text() == "killed"  # a worker died in a tile; Dask ran the tile again on another
+    assert _normalised(tmp_path / "dask", "rocks") == _normalised(tmp_path / "here", "rocks")
