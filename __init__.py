@@ -8,7 +8,8 @@ The package is laid out as in the seed paper's architecture:
 - :mod:`kbs.cli` -- the ``kbs`` command.
 
 :class:`kbs.Segmenter` (from :mod:`kbs.knowledge`) segments clouds with a rule base loaded once;
-it is imported on first use, so ``import kbs`` stays cheap.
+:func:`kbs.segment_tiled` (from :mod:`kbs.tiles`) segments a large one tile by tile. Both are
+imported on first use, so ``import kbs`` stays cheap.
 """
 from __future__ import annotations
 
@@ -27,7 +28,7 @@ from kbs.errors import (  # noqa: E402
     ParameterError,
 )
 
-__all__ = ["__version__", "KbsError", "CloudFileError", "ParameterError", "FitError", "ExitCode", "Segmenter"]
+__all__ = ["__version__", "KbsError", "CloudFileError", "ParameterError", "FitError", "ExitCode", "Segmenter", "segment_tiled"]
 
 
 def __getattr__(name: str):
@@ -36,8 +37,12 @@ def __getattr__(name: str):
         from kbs.knowledge.segmenter import Segmenter
 
         return Segmenter
+    if name == "segment_tiled":
+        from kbs.tiles import segment_tiled
+
+        return segment_tiled
     raise AttributeError(f"module 'kbs' has no attribute {name!r}")
 
 
 def __dir__() -> list[str]:
-    return sorted(set(globals()) | {"Segmenter"})
+    return sorted(set(globals()) | {"Segmenter", "segment_tiled"})

@@ -127,10 +127,23 @@ def scan_paths(clouds: tuple[Path, ...], *,
     return scans
 
 
+@dataclass(frozen=True)
+class Tiling:
+    """``kbs run --tile``: square tiles of ``size`` with a ``buffer`` (None: the default), run in
+    process (``scheduler`` None) or on Dask (``"local"`` or a scheduler address); ``resume``:
+    take the tiles an earlier failed run finished."""
+
+    size: float
+    buffer: float | None = None
+    scheduler: str | None = None
+    workers: int | None = None
+    resume: bool = False
+
+
 def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path, *, color_by: str = "cluster", meshes: bool = False,
              report: bool = False, quiet: bool = False, t0: float | None = None,
              inputs: InputFiles | tuple[Path, ...] = (),
-             force: bool = False) -> ScanResult:
+             force: bool = False, tiling: Tiling | None = None) -> ScanResult:
     """Read one scan, segment it, write DIR/<stem>.ply and DIR/<stem>.json (and the meshes and the
     report when asked) and print what was done (nothing on stdout when ``quiet``); ``t0`` is when
     its clock started (default: now).
@@ -147,7 +160,13 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path, *, color_by: str 
         check_output(target, inputs=sources, force=force)
     pc = read_cloud(cloud)
     t_read = time.perf_counter() - t0
-    seg = segmenter.segment(pc.xyz, progress=ProgressLines(str(cloud), _splits, quiet=quiet, start=t0))
+    if tiling is None:
+        seg = segmenter.segment(pc.xyz, progress=ProgressLines(str(cloud), _splits, quiet=quiet, start=t0))
+    else:
+        from kbs.tiles.store import TileStore
+
+        store = TileStore(out_dir / f"{cloud.stem}.tiles", segmenter)
+        seg = _segment_tiled(segmenter, pc.xyz, cloud, tiling, quiet=quiet, t0=t0, store=store)
     t1 = time.perf_counter()
     check_writable_folder(out_dir, create=True)  # checked by `kbs run` already; here for other callers
     from kbs.report.colors import rgb_fields
@@ -160,7 +179,11 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path, *, color_by: str 
         "label_names": seg.label_names, "summary": seg.summary(), "clusters": seg.clusters,
         "explanation": seg.explanation.to_dict(),
     }
+    if tiling is not None:
+        doc["tiling"] = seg.tiling
     run_id = write_result_pair(ply, js, pc.xyz, fields, doc, run_id=new_run_id())
+    if tiling is not None:
+        store.remove()  # the result is written: the finished tiles are no longer needed
     t_write = time.perf_counter() - t1
     s = seg.summary()
     per_label = ", ".join(f"{k} {v:,}" for k, v in s["points_per_label"].items())
@@ -169,6 +192,10 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path, *, color_by: str 
     for line in limit_lines(s["limits_by_kind"], Path(rb.path).name, result=str(js)):
         say(f"  {line}")
     say(f"  ground: {seg.explanation.ground.get('source', 'not used')}")
+    if tiling is not None:
+        t = seg.tiling
+        say(f"  tiles: {len(t['tiles'])} of {t['size']:g} x {t['size']:g} with a {t['buffer']:g} buffer; "
+            f"{t['stitched']} clusters stitched across tile edges")
     say(f"  time: {time.perf_counter() - t0:.2f} s (read {t_read:.2f}, segment {seg.seconds:.2f}, "
         f"write {t_write:.2f})")
     say(f"wrote {ply} and {js}")
@@ -193,6 +220,31 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path, *, color_by: str 
         for note in seg.explanation.notes + ([seg.explanation.ground["note"]] if "note" in seg.explanation.ground else []):
             click.echo(f"note: {note}", err=True)
     return ScanResult(cloud, len(pc), s["clusters"], t_read, seg.seconds, t_write)
+
+
+def _segment_tiled(segmenter: Segmenter, xyz: np.ndarray, cloud: Path, tiling: Tiling, *, quiet: bool, t0: float,
+                   store=None):
+    from kbs.tiles import segment_tiled
+    from kbs.tiles.run import SchedulerError
+
+    lines = ProgressLines(str(cloud), lambda n: f"{n:,} tile{'s' if n != 1 else ''} done", quiet=quiet, start=t0)
+    if tiling.scheduler is not None:  # Dask logs every worker's start and stop at INFO: not kbs's news
+        import logging
+
+        logging.getLogger("distributed").setLevel(logging.ERROR)  # and warns of a slow event loop under load
+
+    def progress(message: str) -> None:
+        if message.startswith(("Dask dashboard", "resumed")):
+            if not quiet:
+                click.echo(f"kbs: {message}", err=True)
+        else:
+            lines()
+
+    try:
+        return segment_tiled(segmenter, xyz, tiling.size, tiling.buffer, scheduler=tiling.scheduler,
+                             workers=tiling.workers, progress=progress, store=store, resume=tiling.resume)
+    except SchedulerError as exc:
+        raise click.BadParameter(str(exc), param_hint="--scheduler") from exc
 
 
 def _splits(n: int) -> str:
@@ -240,10 +292,23 @@ def time_table(results: list[ScanResult | ScanFailure], t_load: float, t_total: 
 @click.option("-j", "--jobs", type=click.IntRange(min=-1), default=-1, show_default=True, callback=_jobs,
               help="Processes computing the UFP-ONC splits side by side; -1: one per available core. The result "
               "does not depend on it.")
+@click.option("--tile", "tile", type=click.FloatRange(min=0, min_open=True), metavar="SIZE",
+              help="Segment in square tiles of SIZE (cloud units) in the ground plane, each with a buffer, and "
+              "stitch them: clusters crossing a tile edge become one.")
+@click.option("--buffer", "buffer", type=click.FloatRange(min=0), metavar="B",
+              help="How far each tile reaches beyond its core (default: a tenth of --tile, at least twice the "
+              "local ground surface's radius).")
+@click.option("--scheduler", "scheduler", metavar="ADDRESS|local",
+              help="Run the tiles as Dask tasks: on the scheduler at ADDRESS (tcp://host:8786), or on a "
+              "LocalCluster of -j workers ('local'; -1: one per core). Needs pip install 'kbs[dask]'. Without "
+              "it the tiles run one after the other in this process. The result is the same.")
+@click.option("--resume", is_flag=True, help="With --tile: take the tiles an earlier run that failed kept in "
+              "DIR/<stem>.tiles/ (same cloud, rule base and grid) and segment only the others.")
 @click.pass_context
 def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_dir: Path, plugins: tuple[Path, ...],
         color_by: str = "cluster", meshes: bool = False, report: bool = False, jobs: int = -1,
-        force: bool = False) -> None:
+        force: bool = False, tile: float | None = None, buffer: float | None = None,
+        scheduler: str | None = None, resume: bool = False) -> None:
     """Segment each CLOUD with a rule base; write DIR/<stem>.ply (per-vertex cluster, label,
     membership) and DIR/<stem>.json (label names, clusters, the explanation tree).
 
@@ -265,14 +330,36 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
         if not quiet:
             click.echo(f"kbs: skipped {path}: {why}", err=True)
 
+    tiling = _tiling(tile, buffer, scheduler, jobs, resume)
     scans = scan_paths(clouds, on_skip=skipped)
-    with Segmenter(rules, jobs=jobs, sensor=sensor, plugins=plugins) as segmenter:  # workers kept for all scans
+    split_jobs = 1 if tiling is not None and tiling.scheduler is not None else jobs  # Dask workers do the work
+    with Segmenter(rules, jobs=split_jobs, sensor=sensor, plugins=plugins) as segmenter:  # workers kept for all scans
         if not quiet:
             for w in segmenter.rule_base.warnings:  # `kbs rules check` quotes the line
                 click.echo(f"kbs: warning: {w.pos}: {w.message}", err=True)
         check_writable_folder(out_dir, create=True)  # before any segmentation
         _run_scans(segmenter, scans, out_dir, t0, color_by=color_by, meshes=meshes, report=report, quiet=quiet,
-                   inputs=InputFiles(scans), force=force)
+                   inputs=InputFiles(scans), force=force, tiling=tiling)
+
+
+def _tiling(tile: float | None, buffer: float | None, scheduler: str | None, jobs: int,
+            resume: bool = False) -> Tiling | None:
+    """The --tile/--buffer/--scheduler/--resume options, checked together (usage errors, exit 2)."""
+    if tile is None:
+        for name, value in (("--buffer", buffer), ("--scheduler", scheduler), ("--resume", resume or None)):
+            if value is not None:
+                raise click.UsageError(f"{name} only applies to a tiled run: give --tile SIZE too")
+        return None
+    if scheduler is not None:
+        if not scheduler.strip():
+            raise click.BadParameter("give a Dask scheduler address (tcp://host:8786) or 'local'",
+                                     param_hint="--scheduler")
+        try:
+            import distributed  # noqa: F401
+        except ImportError as exc:
+            raise click.UsageError(f"--scheduler needs Dask ({exc}): pip install 'kbs[dask]', or leave "
+                                   f"--scheduler out to run the tiles in this process") from exc
+    return Tiling(size=tile, buffer=buffer, scheduler=scheduler, workers=None if jobs == -1 else jobs, resume=resume)
 
 
 def _run_scans(segmenter, scans, out_dir: Path, t0: float, **options) -> None:

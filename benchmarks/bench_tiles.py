@@ -1,0 +1,78 @@
+"""Benchmark: ground F1 of tiled runs (kbs run --tile) against the untiled run, on the real scans.
+
+Prints markdown: per scan and tile size, the number of tiles, the ground F1 untiled and tiled and
+their difference (the target is |difference| <= 0.002), stitched clusters and wall times.
+
+Usage: python benchmarks/bench_tiles.py [--sets kitti isprs] [--scans samp11] [--sizes 60 80] [--buffer B]
+Every run is in process with jobs=1 (the result does not depend on jobs).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_ground import scans  # noqa: E402
+
+from kbs.evaluation import ground_metrics  # noqa: E402
+from kbs.knowledge import Segmenter  # noqa: E402
+from kbs.tiles import default_buffer, segment_tiled  # noqa: E402
+
+RULES = {"SemanticKITTI": "outdoor", "ISPRS": "airborne"}
+
+
+def f1(scan, seg) -> float:
+    pred = seg.label == seg.label_names.index("ground")
+    return ground_metrics(pred[scan.valid], np.where(scan.truth, 1, 0)[scan.valid], ground_values=(1,)).f1
+
+
+def near_edge(seg, X, size, buffer) -> np.ndarray:
+    """Points within ``buffer`` of an inner tile edge (where a seam would show)."""
+    from kbs.tiles import TileGrid
+
+    grid = TileGrid.fit(X, size, buffer, seg.rule_base.ground.normal)
+    uv = (X @ grid.axes.T - np.asarray(grid.origin)) / size
+    d = np.abs(uv - np.round(uv)) * size
+    inner = (np.round(uv) > 0) & (np.round(uv) < np.asarray(grid.shape))
+    return ((d <= buffer) & inner).any(axis=1)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sets", nargs="+", default=["kitti", "isprs"])
+    ap.add_argument("--scans", nargs="*", default=None, help="only these scan names (e.g. samp11 000001)")
+    ap.add_argument("--sizes", nargs="+", type=float, default=None,
+                    help="tile sizes (default: the longer side of the scan / 2.5: 4 to 9 tiles)")
+    ap.add_argument("--buffer", type=float, default=None)
+    args = ap.parse_args()
+    print("| data set | scan | points | tile m | buffer m | tiles | F1 untiled | F1 tiled | diff | stitched | "
+          "changed % near edges | changed % inside | s untiled | s tiled |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for scan in scans(args.sets):
+        if args.scans and scan.name not in args.scans:
+            continue
+        seg = Segmenter(RULES[scan.dataset], jobs=1, sensor=scan.sensor)
+        t0 = time.perf_counter()
+        base = seg.segment(scan.xyz)
+        t_base = time.perf_counter() - t0
+        f_base = f1(scan, base)
+        for size in args.sizes or [round(float(np.ptp(scan.xyz[:, :2], axis=0).max()) / 2.5)]:
+            t0 = time.perf_counter()
+            tiled = segment_tiled(seg, scan.xyz, size, args.buffer)
+            dt = time.perf_counter() - t0
+            n_tiles = len(tiled.explanation.records["tiles"].children)
+            stitched = sum("stitched" in c for c in tiled.clusters)
+            buf = args.buffer if args.buffer is not None else default_buffer(seg, size)
+            f_t = f1(scan, tiled)
+            near = near_edge(seg, scan.xyz, size, buf)
+            changed = (tiled.label == tiled.label_names.index("ground")) != (base.label == base.label_names.index("ground"))
+            print(f"| {scan.dataset} | {scan.name} | {len(scan.xyz):,} | {size:g} | {buf:g} | {n_tiles} | {f_base:.4f} | "
+                  f"{f_t:.4f} | {f_t - f_base:+.4f} | {stitched} | {100 * changed[near].mean():.2f} | {100 * changed[~near].mean():.2f} | {t_base:.1f} | {dt:.1f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()

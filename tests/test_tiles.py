@@ -1,0 +1,314 @@
+"""Tiled runs (`kbs run --tile`, kbs.segment_tiled): the tile geometry, stitching across tile
+edges, the command's options, and Dask (a LocalCluster gives the bytes of the in-process run)."""
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from plyfile import PlyData
+
+import kbs
+from kbs.errors import ParameterError
+from kbs.io import write_ply
+from kbs.tiles import TileGrid, ground_axes, segment_tiled
+from scenes import ground_and_rocks
+from test_cli import kbs as kbs_cmd
+
+
+def _vertex(path: Path):
+    return PlyData.read(str(path))["vertex"]
+
+
+# -- 1. the tiles ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("size, buffer", [(10.0, 0.0), (7.5, 2.0), (3.0, 5.0), (1000.0, 1.0)])
+def test_cores_partition_the_points_and_each_tile_holds_its_core_widened_by_the_buffer(size, buffer):
+    X = np.random.default_rng(4).uniform([-20, 5, 0], [13, 31, 4], (3000, 3))
+    grid = TileGrid.fit(X, size, buffer)
+    tiles = grid.tiles(X)
+    owners = np.zeros(len(X), int)
+    for t in tiles:
+        owners[t.index[t.in_core]] += 1
+        u0, v0, u1, v1 = t.core
+        # brute force: inside the core widened by the buffer (the grid's outer edges reach everything)
+        lo_u = -np.inf if t.i == 0 else u0 - buffer
+        hi_u = np.inf if t.i == grid.shape[0] - 1 else u1 + buffer
+        lo_v = -np.inf if t.j == 0 else v0 - buffer
+        hi_v = np.inf if t.j == grid.shape[1] - 1 else v1 + buffer
+        inside = np.flatnonzero((X[:, 0] >= lo_u) & (X[:, 0] <= hi_u) & (X[:, 1] >= lo_v) & (X[:, 1] <= hi_v))
+        np.testing.assert_array_equal(t.index, inside)
+        core = X[t.index[t.in_core]]
+        assert (core[:, 0] >= u0).all() and (core[:, 1] >= v0).all()
+        assert ((core[:, 0] < u1) | (t.i == grid.shape[0] - 1)).all()
+    assert (owners == 1).all()
+    assert grid.shape == (int(np.ceil(np.ptp(X[:, 0]) / size)), int(np.ceil(np.ptp(X[:, 1]) / size)))
+
+
+def test_a_tile_whose_core_holds_no_point_is_left_out():
+    X = np.array([[0.0, 0, 0], [1, 1, 0], [25, 25, 0], [29, 29, 1]])
+    tiles = TileGrid.fit(X, 10.0, 1.0).tiles(X)
+    assert [t.name for t in tiles] == ["t0_0", "t2_2"]
+
+
+def test_the_ground_plane_axes_are_orthonormal_and_across_the_normal():
+    np.testing.assert_array_equal(ground_axes(None), [[1, 0, 0], [0, 1, 0]])
+    np.testing.assert_array_equal(ground_axes((0, 0, 2.0)), [[1, 0, 0], [0, 1, 0]])
+    for n in ([0, -1, 0], [1, 0, 0], [0.3, 0.2, 0.9]):
+        A = ground_axes(n)
+        np.testing.assert_allclose(A @ A.T, np.eye(2), atol=1e-12)
+        np.testing.assert_allclose(A @ (np.asarray(n) / np.linalg.norm(n)), 0, atol=1e-12)
+
+
+@pytest.mark.parametrize("size, buffer, message", [
+    (0.0, 1.0, "The 'tile size' parameter must be a positive length. Got 0.0 instead."),
+    (float("nan"), 1.0, "The 'tile size' parameter must be a positive length. Got nan instead."),
+    (10.0, -1.0, "The 'buffer' parameter must be a length >= 0. Got -1.0 instead."),
+])
+def test_bad_tile_size_or_buffer_is_a_parameter_error(size, buffer, message):
+    with pytest.raises(ParameterError, match=re.escape(message)):
+        TileGrid.fit(np.zeros((3, 3)), size, buffer)
+
+
+# -- 2. stitching, through the command -----------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def rocks(tmp_path_factory) -> tuple[Path, np.ndarray]:
+    """Three rocks on flat ground 12 m x 12 m; tiles of 6 m put an edge through the middle rock."""
+    X, labels = ground_and_rocks()
+    path = tmp_path_factory.mktemp("scan") / "rocks.ply"
+    write_ply(path, X, {"truth": labels.astype(np.int32)})
+    return path, labels
+
+
+def test_a_rock_across_a_tile_edge_is_one_stitched_cluster_and_its_neighbours_stay_apart(rocks, tmp_path):
+    scan, truth = rocks
+    r = kbs_cmd("run", "--rules", "outdoor", "-j", "1", "--tile", "6", "--buffer", "1.5", str(scan),
+                "--out", str(tmp_path))
+    assert r.returncode == 0, r.stderr
+    assert "tiles: 4 of 6 x 6 with a 1.5 buffer; 2 clusters stitched across tile edges" in r.stdout
+    v = _vertex(tmp_path / "rocks.ply")
+    doc = json.loads((tmp_path / "rocks.json").read_text())
+    cluster, label = np.asarray(v["cluster"]), np.asarray(v["label"])
+    assert len(doc["clusters"]) == cluster.max() + 1
+    assert [c["index"] for c in doc["clusters"]] == list(range(len(doc["clusters"])))
+    sizes = [c["n_points"] for c in doc["clusters"]]
+    assert sizes == sorted(sizes, reverse=True) and sizes == np.bincount(cluster[cluster >= 0]).tolist()
+    rock = lambda i: np.bincount(cluster[(truth == i) & (label == 1)]).argmax()  # noqa: E731
+    middle = doc["clusters"][rock(2)]
+    assert [(p["tile"], p["label"]) for p in middle["stitched"]] == [("t0_1", "obstacle"), ("t1_1", "obstacle")]
+    assert np.mean(cluster[(truth == 2) & (label == 1)] == rock(2)) > 0.97  # both halves: one id
+    assert len({rock(1), rock(2), rock(3)}) == 3  # the rocks beside it are not merged into it
+    assert "stitched" not in doc["clusters"][rock(1)] and "stitched" not in doc["clusters"][rock(3)]
+    assert doc["tiling"]["size"] == 6.0 and [t["name"] for t in doc["tiling"]["tiles"]] == [
+        "t0_0", "t0_1", "t1_0", "t1_1"]
+    assert sum(t["core_points"] for t in doc["tiling"]["tiles"]) == len(cluster)
+    # the explanation says it was stitched, from which tiles and clusters
+    part = middle["stitched"][0]["ids"][0]
+    r = kbs_cmd("explain", str(tmp_path / "rocks.json"), "--cluster", part)
+    assert r.returncode == 0, r.stderr
+    assert f"note: stitched across tile edges into output cluster {rock(2)}: shares buffer points with t1_1 cluster" \
+        in r.stdout
+    r = kbs_cmd("explain", str(tmp_path / "rocks.json"))
+    assert r.returncode == 0 and r.stdout.splitlines()[2].startswith("tiles (") and "partitioned in 4" in r.stdout
+
+
+def test_the_python_api_gives_what_the_command_writes(rocks, tmp_path):
+    scan, truth = rocks
+    X = np.column_stack([_vertex(scan)[k] for k in "xyz"]).astype(np.float64)
+    with kbs.Segmenter("outdoor", jobs=1) as seg:
+        out = kbs.segment_tiled(seg, X, 6.0, 1.5)
+    assert kbs.segment_tiled is segment_tiled
+    assert kbs_cmd("-q", "run", "--rules", "outdoor", "-j", "1", "--tile", "6", "--buffer", "1.5", str(scan),
+                   "--out", str(tmp_path)).returncode == 0
+    v = _vertex(tmp_path / "rocks.ply")
+    np.testing.assert_array_equal(out.cluster, v["cluster"])
+    np.testing.assert_array_equal(out.label, v["label"])
+    assert out.tiling == json.loads((tmp_path / "rocks.json").read_text())["tiling"]
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--buffer", "2"], "--buffer only applies to a tiled run: give --tile SIZE too"),
+    (["--scheduler", "local"], "--scheduler only applies to a tiled run: give --tile SIZE too"),
+    (["--tile", "0"], "Invalid value for '--tile': 0.0 is not in the range x>0."),
+    (["--tile", "6", "--buffer", "-1"], "Invalid value for '--buffer': -1.0 is not in the range x>=0."),
+    (["--tile", "6", "--scheduler", " "], "Invalid value for --scheduler: give a Dask scheduler address"),
+])
+def test_bad_tiling_options_are_usage_errors(rocks, tmp_path, args, message):
+    r = kbs_cmd("run", "--rules", "outdoor", "-j", "1", *args, str(rocks[0]), "--out", str(tmp_path))
+    assert r.returncode == 2, r.stderr
+    assert message in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "rocks.ply").exists()
+
+
+FAILING_PLUGIN = '''
+from kbs.knowledge import predicate
+
+
+@predicate(unit="length")
+def east(cluster, scene) -> float:
+    """x of the centre; fails east of x = 3 m (to make the tiles there fail)."""
+    x = float(cluster.geometry.center[0])
+    if x > 3.0:
+        raise RuntimeError("no measurement east of 3 m")
+    return x
+'''
+
+
+def test_a_failing_tile_is_named_with_its_bounds_and_the_run_exits_with_its_code(rocks, tmp_path):
+    plugin = tmp_path / "east.py"
+    plugin.write_text(FAILING_PLUGIN)
+    rules = tmp_path / "east.yaml"
+    text = kbs_cmd("rules", "show", "outdoor").stdout
+    text = text.replace("checks:\n", "checks:\n  west: {predicate: east, max: 100.0}\n", 1)
+    text, n = re.subn(r"if: \[planar, level\]", "if: [planar, level, west]", text)
+    assert n >= 1
+    rules.write_text(text)
+    r = kbs_cmd("run", "--rules", str(rules), "--plugin", str(plugin), "-j", "1", "--tile", "6", "--buffer", "1.5",
+                str(rocks[0]), "--out", str(tmp_path / "out"))
+    assert r.returncode == 7, r.stderr
+    assert re.search(r"kbs: error: tile t1_1 \[0\.000\d+, 6\.000\d+\] x \[0\.001\d+, 6\.001\d*\] \(7,700 points\): ",
+                     r.stderr), r.stderr
+    assert "predicate 'east' failed on cluster c0" in r.stderr and "no measurement east of 3 m" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "out" / "rocks.ply").exists()
+
+
+# -- 3. Dask: a LocalCluster of 2 workers gives the bytes of the in-process run ---------------------
+
+
+def _normalised(folder: Path, stem: str) -> tuple[bytes, dict]:
+    """The PLY bytes without the run id comment, and the JSON without run id and timing."""
+    ply = re.sub(rb"comment kbs_run_id [0-9a-f]+\n", b"", (folder / f"{stem}.ply").read_bytes())
+    doc = json.loads((folder / f"{stem}.json").read_text())
+    assert doc.pop("run_id") and doc["summary"].pop("seconds") >= 0
+    return ply, doc
+
+
+def test_tiles_on_a_local_dask_cluster_of_2_workers_give_the_in_process_bytes(shared_data, tmp_path):
+    pytest.importorskip("distributed", reason="Dask is not installed: pip install 'kbs[dask]' (it is in [test])")
+    scan = shared_data / "isprs" / "samp21-utm.pcd"  # airborne, 124 m x 115 m: 9 tiles of 50 m
+    args = ["-q", "run", "--rules", "airborne", "--tile", "50", str(scan)]
+    here = kbs_cmd(*args, "-j", "1", "--out", str(tmp_path / "here"))
+    assert here.returncode == 0, here.stderr
+    dask = kbs_cmd(*args, "-j", "2", "--scheduler", "local", "--out", str(tmp_path / "dask"))
+    assert dask.returncode == 0, dask.stderr
+    assert dask.stderr == ""  # -q: no Dask log lines
+    ply_here, doc_here = _normalised(tmp_path / "here", "samp21-utm")
+    ply_dask, doc_dask = _normalised(tmp_path / "dask", "samp21-utm")
+    assert len(doc_here["tiling"]["tiles"]) == 9
+    assert ply_dask == ply_here
+    assert doc_dask == doc_here
+    # and the labels of the untiled run, within the tolerance measured on this scan (2.8 % changed)
+    whole = kbs_cmd(*args[:4], str(scan), "-j", "1", "--out", str(tmp_path / "whole"))
+    assert whole.returncode == 0, whole.stderr
+    tiled, untiled = _vertex(tmp_path / "here" / "samp21-utm.ply"), _vertex(tmp_path / "whole" / "samp21-utm.ply")
+    assert np.mean(np.asarray(tiled["label"]) == np.asarray(untiled["label"])) > 0.95
+
+
+def test_an_unreachable_scheduler_is_a_usage_error(rocks, tmp_path):
+    pytest.importorskip("distributed", reason="Dask is not installed: pip install 'kbs[dask]' (it is in [test])")
+    r = kbs_cmd("run", "--rules", "outdoor", "--tile", "6", "--scheduler", "tcp://127.0.0.1:9", str(rocks[0]),
+                "--out", str(tmp_path))
+    assert r.returncode == 2, r.stderr
+    assert "Invalid value for --scheduler: no Dask scheduler answers at 'tcp://127.0.0.1:9'" in r.stderr
+    assert "Traceback" not in r.stderr
+
+
+FLAKY_PLUGIN = FAILING_PLUGIN.replace('if x > 3.0:', 'if x > 3.0 and os.environ.get("KBS_TEST_FAIL_EAST"):').replace(
+    "from kbs.knowledge import predicate", "import os\n\nfrom kbs.knowledge import predicate")
+
+
+def test_finished_tiles_are_kept_and_resume_segments_only_the_failed_ones(rocks, tmp_path, monkeypatch):
+    plugin = tmp_path / "east.py"
+    plugin.write_text(FLAKY_PLUGIN)
+    rules = tmp_path / "east.yaml"
+    text = kbs_cmd("rules", "show", "outdoor").stdout
+    text = text.replace("checks:\n", "checks:\n  west: {predicate: east, max: 100.0}\n", 1)
+    rules.write_text(re.sub(r"if: \[planar, level\]", "if: [planar, level, west]", text))
+    args = ["run", "--rules", str(rules), "--plugin", str(plugin), "-j", "1", "--tile", "6", "--buffer", "1.5",
+            str(rocks[0])]
+    out, kept = tmp_path / "out", tmp_path / "out" / "rocks.tiles"
+    monkeypatch.setenv("KBS_TEST_FAIL_EAST", "1")  # tile t1_1 fails, the three others are done and kept
+    r = kbs_cmd(*args, "--out", str(out))
+    assert r.returncode == 7, r.stderr
+    assert f"; the finished tiles are kept in {kept}: run again with --resume (resume=True) to segment only the " \
+           f"failed ones" in r.stderr
+    assert sorted(p.name for p in kept.iterdir()) == ["t0_0.npz", "t0_1.npz", "t1_0.npz"]
+    assert not (out / "rocks.ply").exists()
+    monkeypatch.delenv("KBS_TEST_FAIL_EAST")
+    r = kbs_cmd(*args, "--resume", "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    assert f"kbs: resumed 3 of 4 tiles from {kept}" in r.stderr
+    assert not kept.exists()  # the result is written: the tiles are removed
+    fresh = kbs_cmd(*args, "--out", str(tmp_path / "fresh"))
+    assert fresh.returncode == 0, fresh.stderr
+    assert _normalised(out, "rocks") == _normalised(tmp_path / "fresh", "rocks")
+
+
+def test_resume_takes_no_tile_of_another_grid(rocks, tmp_path, monkeypatch):
+    """A tile file whose points differ (another buffer) is segmented again, not taken."""
+    out, kept = tmp_path / "out", tmp_path / "out" / "rocks.tiles"
+    from kbs.tiles import plan_tiles
+    from kbs.tiles.store import TileStore
+
+    X = np.column_stack([_vertex(rocks[0])[k] for k in "xyz"]).astype(np.float64)
+    with kbs.Segmenter("outdoor", jobs=1) as seg:
+        store = TileStore(kept, seg)
+        _, tiles = plan_tiles(seg, X, 6.0, 1.0)  # --buffer 1, the run below uses 1.5
+        store.save(tiles[0], store.key(tiles[0], X), seg.segment(X[tiles[0].index]))
+    r = kbs_cmd("run", "--rules", "outdoor", "-j", "1", "--tile", "6", "--buffer", "1.5", "--resume",
+                str(rocks[0]), "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    assert f"kbs: resumed 0 of 4 tiles from {kept}" in r.stderr
+
+
+def test_resume_needs_tile(rocks, tmp_path):
+    r = kbs_cmd("run", "--rules", "outdoor", "--resume", str(rocks[0]), "--out", str(tmp_path))
+    assert r.returncode == 2 and "--resume only applies to a tiled run: give --tile SIZE too" in r.stderr
+
+
+KILLING_PLUGIN = '''
+import os
+from pathlib import Path
+
+from kbs.knowledge import predicate
+
+
+@predicate(unit="length")
+def east(cluster, scene) -> float:
+    """x of the centre; the first Dask worker to measure one east of 3 m dies (once)."""
+    x = float(cluster.geometry.center[0])
+    marker = os.environ.get("KBS_TEST_KILL_MARKER")
+    if x > 3.0 and marker and not os.path.exists(marker):
+        try:
+            from distributed import get_worker
+
+            get_worker()
+        except (ImportError, ValueError):
+            return x  # not on a Dask worker
+        Path(marker).write_text("killed")
+        os._exit(1)
+    return x
+'''
+
+
+def test_a_dask_worker_killed_mid_run_gives_the_same_output(rocks, tmp_path, monkeypatch):
+    pytest.importorskip("distributed", reason="Dask is not installed: pip install 'kbs[dask]' (it is in [test])")
+    plugin = tmp_path / "kill.py"
+    plugin.write_text(KILLING_PLUGIN)
+    rules = tmp_path / "east.yaml"
+    text = kbs_cmd("rules", "show", "outdoor").stdout
+    text = text.replace("checks:\n", "checks:\n  west: {predicate: east, max: 100.0}\n", 1)
+    rules.write_text(re.sub(r"if: \[planar, level\]", "if: [planar, level, west]", text))
+    args = ["-q", "run", "--rules", str(rules), "--plugin", str(plugin), "--tile", "6", "--buffer", "1.5", str(rocks[0])]
+    assert kbs_cmd(*args, "-j", "1", "--out", str(tmp_path / "here")).returncode == 0
+    marker = tmp_path / "killed"
+    monkeypatch.setenv("KBS_TEST_KILL_MARKER", str(marker))
+    r = kbs_cmd(*args, "-j", "2", "--scheduler", "local", "--out", str(tmp_path / "dask"))
+    assert r.returncode == 0, r.stderr
+    assert marker.read_text() == "killed"  # a worker died in a tile; Dask ran the tile again on another
+    assert _normalised(tmp_path / "dask", "rocks") == _normalised(tmp_path / "here", "rocks")

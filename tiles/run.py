@@ -1,0 +1,245 @@
+"""Segmenting a cloud tile by tile: in this process, or as Dask tasks on a cluster.
+
+>>> from kbs import Segmenter, segment_tiled
+>>> seg = Segmenter("airborne", jobs=1)                                   # doctest: +SKIP
+>>> out = segment_tiled(seg, X, size=60.0)                                # doctest: +SKIP
+>>> out = segment_tiled(seg, X, size=60.0, scheduler="local", workers=2)  # doctest: +SKIP
+
+Every tile is segmented alone (its core and its buffer) with the same rule base and sensor, so
+its result does not depend on where or in which order it ran: the stitched result is the same,
+byte for byte, in process and on any number of Dask workers.
+"""
+from __future__ import annotations
+
+import functools
+import logging
+import os
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kbs.errors import ExitCode, KbsError, ParameterError
+from kbs.knowledge.interpreter import Segmentation
+from kbs.knowledge.segmenter import Segmenter, as_points
+from kbs.tiles.grid import Tile, TileGrid
+from kbs.tiles.stitch import TiledSegmentation, stitch
+from kbs.tiles.store import TileStore
+
+#: The buffer, when none is given, is this fraction of the tile size ...
+BUFFER_FRACTION = 0.1
+#: ... and at least this many times the radius of the rule base's local ground surface.
+BUFFER_GROUND_RADII = 2.0
+
+
+class TileError(KbsError):
+    """Tiles could not be segmented; the message names the first with its bounds, and how many
+    failed. The exit code is the cause's (a :class:`~kbs.errors.FitError` in a tile exits 5, as it
+    would untiled).
+
+    Attributes
+    ----------
+    tile : Tile
+        The first tile that failed (in tile order).
+    cause : BaseException
+        Its error.
+    failed : list of Tile
+        Every tile that failed.
+    kept : Path or None
+        The folder holding the tiles that were finished (a :class:`~kbs.tiles.store.TileStore`'s).
+    """
+
+    def __init__(self, tile: Tile, n_points: int, cause: BaseException, *, failed: Sequence[Tile] = (),
+                 kept: Path | None = None, total: int | None = None) -> None:
+        self.tile, self.cause = tile, cause
+        self.failed, self.kept = list(failed) or [tile], kept
+        self.exit_code = getattr(cause, "exit_code", ExitCode.INTERNAL)
+        what = str(cause) if isinstance(cause, KbsError) else f"{type(cause).__name__}: {cause}"
+        more = ""
+        if len(self.failed) > 1:
+            more = (f"; {len(self.failed)} of {total} tiles failed: "
+                    f"{', '.join(t.bounds_text() for t in self.failed)}")
+        kept_text = ""
+        if kept is not None:
+            kept_text = (f"; the finished tiles are kept in {kept}: run again with --resume (resume=True) to "
+                         f"segment only the failed ones")
+        super().__init__(f"tile {tile.bounds_text()} ({n_points:,} points): {what}{more}{kept_text}")
+
+
+class SchedulerError(ParameterError):
+    """No Dask scheduler answers at the address given."""
+
+
+def default_buffer(segmenter: Segmenter, size: float) -> float:
+    """The buffer used when none is given: a tenth of the tile, and at least twice the radius of
+    the local ground surface (``post.ground_model.radius``) so that the surface near a tile edge
+    is built from the ground on both sides of it."""
+    gm = segmenter.rule_base.ground_model
+    return max(BUFFER_FRACTION * size, BUFFER_GROUND_RADII * gm.radius if gm is not None else 0.0)
+
+
+def plan_tiles(segmenter: Segmenter, X: np.ndarray, size: float,
+               buffer: float | None = None) -> tuple[TileGrid, list[Tile]]:
+    """The grid and the tiles of ``X`` (n_points, 3): square in the ground plane (across the rule
+    base's fixed ground normal, else x-y)."""
+    buffer = default_buffer(segmenter, size) if buffer is None else buffer
+    grid = TileGrid.fit(X, size, buffer, segmenter.rule_base.ground.normal)
+    return grid, grid.tiles(X)
+
+
+def segment_tiled(segmenter: Segmenter, points: Any, size: float, buffer: float | None = None, *,
+                  scheduler: str | None = None, workers: int | None = None,
+                  progress: Callable[[str], None] | None = None, store: TileStore | None = None,
+                  resume: bool = False) -> TiledSegmentation:
+    """Segment a cloud tile by tile and stitch the tiles' results into one.
+
+    Parameters
+    ----------
+    segmenter : Segmenter
+        The loaded rule base (and sensor) every tile is segmented with.
+    points : array-like, shape (n_points, 3)
+    size : float
+        Side of the square tiles, in the cloud's units.
+    buffer : float, optional
+        How far beyond its core each tile reaches (default :func:`default_buffer`).
+    scheduler : str, optional
+        None: the tiles one after the other in this process (the segmenter's ``jobs`` compute the
+        splits). ``"local"``: a Dask ``LocalCluster`` of ``workers`` processes (default one per
+        core) started for this call. Anything else: the address of a running Dask scheduler
+        (``tcp://host:8786``); its workers need kbs installed and the rule file (and plugins) at
+        the same path.
+    workers : int, optional
+        Workers of the ``"local"`` cluster.
+    progress : callable, optional
+        Called with ``"t0_1 (1/9 tiles)"`` as each tile is done.
+    store : TileStore, optional
+        Where each finished tile is saved as soon as it is done (kept when others fail).
+    resume : bool, default False
+        Take the tiles ``store`` holds for these points, rule base and sensor instead of
+        segmenting them again; segment only the others.
+
+    Returns
+    -------
+    TiledSegmentation
+        As :meth:`Segmenter.segment`, stitched (:func:`kbs.tiles.stitch.stitch`), with ``tiling``.
+
+    Raises
+    ------
+    ParameterError
+        Bad points, size, buffer or workers; Dask missing for a scheduler.
+    TileError
+        Tiles failed (the first one's bounds in the message, the cause's exit code), after every
+        other tile was segmented (and saved in ``store``).
+    """
+    t0 = time.perf_counter()
+    X = as_points(points)
+    grid, tiles = plan_tiles(segmenter, X, size, buffer)
+    keys = [store.key(t, X) for t in tiles] if store is not None else [None] * len(tiles)
+    results: list[Segmentation | None] = [None] * len(tiles)
+    if resume and store is not None:
+        for k, t in enumerate(tiles):
+            results[k] = store.load(t, keys[k])
+        if progress is not None:
+            progress(f"resumed {sum(r is not None for r in results)} of {len(tiles)} tiles from {store.folder}")
+    todo = [k for k, r in enumerate(results) if r is None]
+    failures: dict[int, BaseException] = {}
+
+    def finished(k: int, out: Segmentation | BaseException, done: int) -> None:
+        if isinstance(out, BaseException):
+            failures[k] = out
+            return
+        results[k] = out
+        if store is not None:
+            store.save(tiles[k], keys[k], out)
+        if progress is not None:
+            progress(f"{tiles[k].name} ({done}/{len(todo)} tiles)")
+
+    if scheduler is None:
+        for done, k in enumerate(todo, start=1):
+            try:
+                out: Segmentation | BaseException = segmenter.segment(X[tiles[k].index])
+            except KbsError as exc:
+                out = exc
+            finished(k, out, done)
+    elif todo:
+        _segment_on_dask(segmenter, X, tiles, todo, scheduler, workers, progress, finished)
+    if failures:
+        first = min(failures)
+        raise TileError(tiles[first], tiles[first].index.size, failures[first],
+                        failed=[tiles[k] for k in sorted(failures)], total=len(tiles),
+                        kept=store.folder if store is not None and len(failures) < len(tiles) else None)
+    return stitch(X, grid, tiles, results, seconds=time.perf_counter() - t0)
+
+
+@functools.lru_cache(maxsize=4)
+def _worker_segmenter(rules: str, sensor: tuple[float, float, float], plugins: tuple[str, ...]) -> Segmenter:
+    """The segmenter of a Dask worker process: loaded at its first tile, kept for the next ones."""
+    return Segmenter(rules, jobs=1, sensor=sensor, plugins=plugins)
+
+
+def _segment_task(rules: str, sensor: tuple[float, float, float], plugins: tuple[str, ...],
+                  points: np.ndarray) -> Segmentation | KbsError:
+    """One tile on a Dask worker. A KbsError is returned, not raised: Dask retries what raises
+    (a worker lost), and a bad tile would fail the same way again."""
+    try:
+        return _worker_segmenter(rules, sensor, plugins).segment(points)
+    except KbsError as exc:
+        return exc
+
+
+def dask_client(scheduler: str, workers: int | None = None):
+    """A ``distributed.Client``: on a new ``LocalCluster`` (``"local"``) or at an address.
+
+    Raises
+    ------
+    ParameterError
+        Dask is not installed, or ``workers`` is not positive.
+    SchedulerError
+        No scheduler answers at the address.
+    """
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError as exc:
+        raise ParameterError(f"a Dask scheduler needs dask.distributed ({exc}); install it with "
+                             f"pip install 'kbs[dask]', or run in process without a scheduler") from exc
+    if scheduler == "local":
+        n = workers if workers is not None else (os.cpu_count() or 1)
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise ParameterError(f"The 'workers' parameter must be a positive number of processes. Got {n!r} instead.")
+        # silence_logs: the workers' own log lines (a heartbeat missed while the cluster shuts down,
+        # with its traceback) are not the user's news; a failed tile comes back as its error
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
+                               silence_logs=logging.CRITICAL)
+        return Client(cluster)
+    try:
+        return Client(scheduler, timeout="5s")
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise SchedulerError(f"no Dask scheduler answers at {scheduler!r} ({type(exc).__name__}: {exc}); start one "
+                             f"(dask scheduler) or give 'local' for a LocalCluster on this machine") from exc
+
+
+def _segment_on_dask(segmenter: Segmenter, X: np.ndarray, tiles: Sequence[Tile], todo: Sequence[int],
+                     scheduler: str, workers: int | None, progress: Callable[[str], None] | None,
+                     finished: Callable[[int, Any, int], None]) -> None:
+    from distributed import as_completed
+
+    client = dask_client(scheduler, workers)
+    try:
+        if progress is not None:
+            progress(f"Dask dashboard: {client.dashboard_link}")
+        spec = (segmenter.rule_base.path, segmenter.sensor, segmenter.plugins)
+        futures = {client.submit(_segment_task, *spec, X[tiles[k].index], key=f"kbs-tile-{tiles[k].name}-"
+                                 f"{os.urandom(6).hex()}", retries=1, pure=False): k for k in todo}
+        for done, future in enumerate(as_completed(futures), start=1):
+            try:
+                out = future.result()
+            except Exception as exc:  # the task died twice (a worker lost), or a bug in it
+                out = exc
+            finished(futures[future], out, done)
+    finally:
+        cluster = client.cluster if scheduler == "local" else None
+        client.close()
+        if cluster is not None:
+            cluster.close()

@@ -1,0 +1,232 @@
+"""Stitching the results of the tiles of one cloud into one result.
+
+Each point takes the result of the tile whose core holds it. A cluster that crosses a tile edge
+is segmented twice near that edge, once by each tile (core and buffer); the two are one cluster
+when they share enough buffer points with the same label: at least :data:`MIN_SHARED_POINTS`,
+and half of the points either has in the region both tiles hold (or half of the smaller one's
+there, when that region holds at least 5 % of its cluster: a tile may give a few points of an
+object to its neighbour, which must not merge the two objects). Such clusters are merged, transitively,
+into one output cluster with one id, and the explanation says so: its ``clusters`` entry has
+``stitched`` (the tiles and tile clusters it was made of) and every tile record merged into it a
+note.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from kbs.knowledge.explain import ClusterRecord, Explanation
+from kbs.knowledge.interpreter import Segmentation
+from kbs.tiles.grid import Tile, TileGrid
+
+#: Two clusters of neighbouring tiles are one when they share at least this many points ...
+MIN_SHARED_POINTS = 10
+#: ... and at least this fraction of the points either has in the region both tiles hold (or of the
+#: smaller one's there, when they are at least MIN_SHARED_OF_CLUSTER of its whole cluster).
+MIN_SHARED_FRACTION = 0.5
+MIN_SHARED_OF_CLUSTER = 0.05
+#: The record at the top of a tiled explanation; its children are the roots of the tiles.
+ROOT = "tiles"
+
+
+@dataclass(frozen=True)
+class TiledSegmentation(Segmentation):
+    """A :class:`~kbs.knowledge.interpreter.Segmentation` stitched from tiles, with ``tiling``:
+    the grid (``size``, ``buffer``, ``axes``, ``origin``, ``shape``), ``stitched`` (output clusters
+    made of several tile clusters) and ``tiles`` (each one's ``name``, ``core`` bounds
+    ``[u_min, v_min, u_max, v_max]``, ``points`` with its buffer and ``core_points``)."""
+
+    tiling: dict[str, Any] = field(default_factory=dict)
+
+
+class _Union:
+    def __init__(self, n: int) -> None:
+        self.parent = np.arange(n)
+
+    def find(self, a: int) -> int:
+        p = self.parent
+        while p[a] != a:
+            p[a] = p[p[a]]
+            a = p[a]
+        return int(a)
+
+    def union(self, a: int, b: int) -> None:
+        ra, rb = self.find(a), self.find(b)
+        if ra != rb:
+            self.parent[max(ra, rb)] = min(ra, rb)  # the smaller node (earlier tile) stays the root
+
+
+def _links(a: Tile, ra: Segmentation, b: Tile, rb: Segmentation) -> list[tuple[int, int, int]]:
+    """(cluster of a, cluster of b, shared points) for the clusters of two tiles that are one."""
+    _, ia, ib = np.intersect1d(a.index, b.index, assume_unique=True, return_indices=True)
+    if ia.size == 0:
+        return []
+    ca, cb = ra.cluster[ia].astype(np.int64), rb.cluster[ib].astype(np.int64)
+    na = np.bincount(ca[ca >= 0], minlength=len(ra.clusters))
+    nb = np.bincount(cb[cb >= 0], minlength=len(rb.clusters))
+    both = (ca >= 0) & (cb >= 0) & (ra.label[ia] == rb.label[ib])
+    pairs, counts = np.unique(np.stack([ca[both], cb[both]], axis=1), axis=0, return_counts=True)
+    size_a = np.bincount(ra.cluster[ra.cluster >= 0], minlength=len(ra.clusters))
+    size_b = np.bincount(rb.cluster[rb.cluster >= 0], minlength=len(rb.clusters))
+    out = []
+    for (x, y), k in zip(pairs.tolist(), counts.tolist()):
+        if k < MIN_SHARED_POINTS:
+            continue
+        if k >= MIN_SHARED_FRACTION * max(na[x], nb[y]):  # most of each one's shared points are the other's
+            out.append((x, y, k))
+            continue
+        # one lies mostly inside the other there (a cluster one tile split and the other did not),
+        # and is not a sliver of a cluster that lies elsewhere (points a tile gave the wrong object)
+        small, size = (na[x], size_a[x]) if na[x] <= nb[y] else (nb[y], size_b[y])
+        if k >= MIN_SHARED_FRACTION * small and small >= MIN_SHARED_OF_CLUSTER * size:
+            out.append((x, y, k))
+    return out
+
+
+def stitch(X: np.ndarray, grid: TileGrid, tiles: Sequence[Tile], results: Sequence[Segmentation], *,
+           seconds: float, notes: Sequence[str] = ()) -> TiledSegmentation:
+    """One result for the cloud ``X`` from the results of its tiles.
+
+    Parameters
+    ----------
+    X : ndarray (n_points, 3)
+        The whole cloud.
+    grid : TileGrid
+        The grid of the tiles.
+    tiles : sequence of Tile
+        The tiles (:meth:`~kbs.tiles.grid.TileGrid.tiles`); their cores partition the points.
+    results : sequence of Segmentation
+        The result of each tile, segmented with ``X[tile.index]``, same order as ``tiles``.
+    seconds : float
+        The wall time of the whole run (the result's ``seconds``).
+    notes : sequence of str
+        Added to the explanation's notes.
+
+    Returns
+    -------
+    TiledSegmentation
+        Per point ``cluster`` (output clusters numbered by decreasing size, -1 noise), ``label``,
+        ``membership`` as in the tile whose core holds the point; ``clusters`` with ``stitched``
+        for the clusters made of several tile clusters; an explanation whose root, ``tiles``, has
+        the tiles' trees as children (record ids prefixed with the tile name: ``t0_1/c1.0``).
+    """
+    from kbs.inference import cluster_geometry
+
+    n = X.shape[0]
+    offsets = np.concatenate([[0], np.cumsum([len(r.clusters) for r in results])]).astype(np.int64)
+    uf = _Union(int(offsets[-1]))
+    shared: dict[int, list[str]] = {}
+    by_cell = {(t.i, t.j): k for k, t in enumerate(tiles)}
+    for ka, a in enumerate(tiles):
+        for di, dj in ((0, 1), (1, -1), (1, 0), (1, 1)):  # each neighbouring pair once
+            kb = by_cell.get((a.i + di, a.j + dj))
+            if kb is None:
+                continue
+            b = tiles[kb]
+            for x, y, k in _links(a, results[ka], b, results[kb]):
+                uf.union(int(offsets[ka] + x), int(offsets[kb] + y))
+                shared.setdefault(int(offsets[ka] + x), []).append(f"{b.name} cluster {y} ({k:,} shared points)")
+                shared.setdefault(int(offsets[kb] + y), []).append(f"{a.name} cluster {x} ({k:,} shared points)")
+
+    cluster = np.full(n, -1, dtype=np.int32)
+    label = np.full(n, -1, dtype=np.int32)
+    membership = np.zeros(n, dtype=np.float32)
+    node = np.full(n, -1, dtype=np.int64)  # the tile cluster (global node number) of each point
+    for k, (t, r) in enumerate(zip(tiles, results)):
+        core = t.index[t.in_core]
+        local = r.cluster[t.in_core].astype(np.int64)
+        label[core] = r.label[t.in_core]
+        membership[core] = r.membership[t.in_core]
+        node[core] = np.where(local >= 0, offsets[k] + local, -1)
+    roots = np.array([uf.find(i) for i in range(int(offsets[-1]))], dtype=np.int64)
+    kept = node >= 0
+    point_root = np.full(n, -1, dtype=np.int64)
+    point_root[kept] = roots[node[kept]]
+    sizes = np.bincount(point_root[kept], minlength=int(offsets[-1]))
+    alive = np.flatnonzero(sizes)  # components holding at least one output point
+    order = alive[np.lexsort((alive, -sizes[alive]))]  # by decreasing size, then earliest tile
+    out_of_root = np.full(int(offsets[-1]) + 1, -1, dtype=np.int64)
+    out_of_root[order] = np.arange(order.size)
+    cluster[kept] = out_of_root[point_root[kept]].astype(np.int32)
+
+    tile_of = np.searchsorted(offsets, np.arange(int(offsets[-1])), side="right") - 1
+    members: dict[int, list[int]] = {}
+    for g in range(int(offsets[-1])):
+        members.setdefault(int(roots[g]), []).append(g)
+    weights = membership.astype(np.float64)
+    point_order = np.argsort(cluster, kind="stable")
+    starts = np.searchsorted(cluster[point_order], np.arange(order.size + 1))
+    out_clusters: list[dict[str, Any]] = []
+    for gi, root in enumerate(order.tolist()):
+        idx = point_order[starts[gi]:starts[gi + 1]]
+        parts = []
+        for g in members[root]:
+            k = int(tile_of[g])
+            c = int(g - offsets[k])
+            entry = results[k].clusters[c]
+            in_core = int(np.count_nonzero(node[idx] == g))
+            if in_core:  # a tile cluster only in a buffer gave its points to the neighbour's core
+                parts.append({"tile": tiles[k].name, "cluster": c, "label": entry["label"], "core_points": in_core,
+                              "ids": [f"{tiles[k].name}/{i}" for i in entry["ids"]]})
+        geo = cluster_geometry(X[idx], weights[idx])
+        item = {"index": gi, "ids": [i for p in parts for i in p["ids"]], "label": parts[0]["label"],
+                "n_points": int(idx.size),
+                "descriptors": {"center": geo.center.tolist(), "normal": geo.normal.tolist(),
+                                "thickness": geo.thickness, "eigenvalues": geo.eigenvalues.tolist(),
+                                "mass": geo.mass}}
+        if len(parts) > 1:
+            item["stitched"] = parts
+        out_clusters.append(item)
+
+    n_stitched = sum("stitched" in c for c in out_clusters)
+    stitched = {c["index"] for c in out_clusters if "stitched" in c}
+    expl = _explanation(tiles, results, offsets, roots, out_of_root, shared, stitched, n, notes)
+    tiling = {"size": grid.size, "buffer": grid.buffer, "axes": grid.axes.tolist(), "origin": list(grid.origin),
+              "shape": list(grid.shape), "stitched": n_stitched,
+              "tiles": [{"name": t.name, "core": list(t.core), "points": int(t.index.size),
+                         "core_points": int(np.count_nonzero(t.in_core))} for t in tiles]}
+    return TiledSegmentation(cluster=cluster, label=label, membership=membership,
+                             label_names=list(results[0].label_names), explanation=expl, clusters=out_clusters,
+                             seconds=seconds, tiling=tiling)
+
+
+def _explanation(tiles, results, offsets, roots, out_of_root, shared, stitched, n, notes) -> Explanation:
+    first = results[0].explanation
+    records: dict[str, ClusterRecord] = {}
+    children = []
+    grounds = {}
+    for k, (t, r) in enumerate(zip(tiles, results)):
+        e = r.explanation
+        grounds[t.name] = e.ground
+        children.append(f"{t.name}/{e.root}")
+        for rec in e.walk():
+            d = dict(vars(rec))
+            d["id"] = f"{t.name}/{rec.id}"
+            d["parent"] = f"{t.name}/{rec.parent}" if rec.parent else ROOT
+            d["depth"] = rec.depth + 1
+            d["children"] = [f"{t.name}/{c}" for c in rec.children]
+            d["notes"] = list(rec.notes)
+            if rec.output_index is not None:
+                g = int(offsets[k] + rec.output_index)
+                out = int(out_of_root[roots[g]])
+                d["output_index"] = out if out >= 0 else None
+                if out < 0:
+                    d["notes"].append(f"only in the buffer of tile {t.name}: its points are in the cores of "
+                                      f"other tiles, which took them")
+                elif out in stitched:
+                    links = f": shares buffer points with {'; '.join(shared[g])}" if g in shared else ""
+                    d["notes"].append(f"stitched across tile edges into output cluster {out}{links}")
+            records[d["id"]] = ClusterRecord(**d)
+    records[ROOT] = ClusterRecord(id=ROOT, parent=None, depth=0, n_points=n, action="partition", children=children,
+                                  notes=[f"{len(tiles)} tiles: " + ", ".join(t.bounds_text() for t in tiles)])
+    sources = sorted({str(g.get("source", "not used")) for g in grounds.values()})
+    ground = {"source": f"per tile ({', '.join(sources)})", "tiles": grounds}
+    tile_notes = [f"{t.name}: {note}" for t, r in zip(tiles, results) for note in r.explanation.notes]
+    k = len(stitched)
+    summary = f"{len(tiles)} tiles; {k} output cluster{'s' if k != 1 else ''} stitched across tile edges"
+    return Explanation(rule_base=first.rule_base, rule_file=first.rule_file, strategy=first.strategy,
+                       label_names=list(first.label_names), records=records, root=ROOT, ground=ground,
+                       notes=[summary, *notes, *tile_notes])

@@ -1,0 +1,106 @@
+"""The finished tiles of a run, kept on disk until the run is done: what ``kbs run --tile
+--resume`` does not segment again.
+
+One file per tile, ``<folder>/<tile>.npz``: its ``cluster``, ``label``, ``membership`` arrays and
+a JSON document (label names, clusters, explanation, seconds) with the tile's key. The key is a
+digest of everything the tile's result depends on: the rule file's text, the plugins' texts, the
+sensor, the kbs version, and the tile's points (their indices and coordinates). A file whose key
+differs (another rule base, another cloud, another grid) is not used. Each file is written whole
+or not at all (:func:`kbs.io.atomic.replacing`).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from kbs.errors import CloudFileError
+from kbs.io.atomic import replacing
+from kbs.knowledge.explain import Explanation
+from kbs.knowledge.interpreter import Segmentation
+from kbs.knowledge.segmenter import Segmenter
+from kbs.tiles.grid import Tile
+
+#: Version of the tile files (``format`` in their JSON).
+TILE_FORMAT = 1
+
+
+class TileStore:
+    """The tile files of one run in ``folder`` (created when the first tile is saved).
+
+    Parameters
+    ----------
+    folder : path
+    segmenter : Segmenter
+        What the tiles are segmented with: its rule file, plugins and sensor enter every key.
+    """
+
+    def __init__(self, folder: str | os.PathLike[str], segmenter: Segmenter) -> None:
+        from kbs import __version__
+
+        self.folder = Path(os.fspath(folder))
+        h = hashlib.sha256()
+        for part in (f"kbs {__version__}", segmenter.rule_base.text, repr(segmenter.sensor)):
+            h.update(part.encode("utf-8"))
+            h.update(b"\0")
+        for plugin in segmenter.plugins:
+            try:
+                h.update(Path(plugin).read_bytes())
+            except OSError:
+                h.update(plugin.encode("utf-8"))
+            h.update(b"\0")
+        self._base = h.digest()
+
+    def key(self, tile: Tile, X: np.ndarray) -> str:
+        """The digest of what ``tile``'s result depends on."""
+        h = hashlib.sha256(self._base)
+        h.update(np.ascontiguousarray(tile.index, dtype=np.int64).tobytes())
+        h.update(np.ascontiguousarray(X[tile.index], dtype=np.float64).tobytes())
+        return h.hexdigest()
+
+    def path(self, tile: Tile) -> Path:
+        return self.folder / f"{tile.name}.npz"
+
+    def load(self, tile: Tile, key: str) -> Segmentation | None:
+        """The saved result of ``tile``, or None (no file, another key, unreadable)."""
+        path = self.path(tile)
+        try:
+            with np.load(path, allow_pickle=False) as f:
+                doc = json.loads(bytes(f["doc"]).decode("utf-8"))
+                if doc.get("format") != TILE_FORMAT or doc.get("key") != key:
+                    return None
+                return Segmentation(cluster=f["cluster"].copy(), label=f["label"].copy(),
+                                    membership=f["membership"].copy(), label_names=list(doc["label_names"]),
+                                    explanation=Explanation.from_dict(doc["explanation"]), clusters=doc["clusters"],
+                                    seconds=float(doc["seconds"]))
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
+
+    def save(self, tile: Tile, key: str, seg: Segmentation) -> None:
+        """Write ``tile``'s result (whole or not at all)."""
+        from kbs.io.result import strict_json
+
+        doc = {"format": TILE_FORMAT, "key": key, "tile": tile.name, "label_names": seg.label_names,
+               "clusters": seg.clusters, "explanation": seg.explanation.to_dict(), "seconds": seg.seconds}
+        data = np.frombuffer(strict_json(doc).encode("utf-8"), dtype=np.uint8)
+        try:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            with replacing(self.path(tile)) as (tmp,):
+                with open(tmp, "wb") as stream:
+                    np.savez(stream, cluster=seg.cluster, label=seg.label, membership=seg.membership, doc=data)
+        except OSError as exc:
+            raise CloudFileError(str(self.path(tile)), f"cannot write: {exc.strerror or exc}") from exc
+
+    def remove(self) -> None:
+        """Delete the tile files (the run is done) and the folder if nothing else is in it."""
+        if not self.folder.is_dir():
+            return
+        for path in self.folder.glob("t*_*.npz"):
+            path.unlink(missing_ok=True)
+        try:
+            self.folder.rmdir()
+        except OSError:
+            pass  # something else is in it: left as it is
