@@ -141,7 +141,7 @@ def parse_comment(text: str) -> tuple[str, str] | None:
     return m.group(1).lower(), m.group(2)
 
 
-def units_from_comments(comments: list[str], where: str) -> tuple[ScanUnits | None, str | None]:
+def units_from_comments(comments: list[str], kind: str) -> tuple[ScanUnits | None, str | None]:
     """The units and CRS a PLY or PCD header declares in its comments (:func:`parse_comment`).
 
     Returns
@@ -166,12 +166,12 @@ def units_from_comments(comments: list[str], where: str) -> tuple[ScanUnits | No
             crs = value
     if units_text is not None:
         try:
-            return ScanUnits.uniform(units_text, source=f"the '{where} units' comment"), crs
+            return ScanUnits.uniform(units_text, source=f"the {kind} header's 'units' comment"), crs
         except ParameterError as exc:
-            raise ParameterError(f"its '{where} units {units_text}' line names an unknown unit "
+            raise ParameterError(f"the {kind} header's comment 'units {units_text}' names an unknown unit "
                                  f"(known: {', '.join(UNITS)})") from exc
     if crs is not None:
-        return crs_units(crs, f"the '{where} crs' comment"), crs
+        return crs_units(crs, f"the {kind} header's 'crs' comment"), crs
     return None, None
 
 
@@ -323,3 +323,49 @@ def median_spacing(X: np.ndarray, *, seed: int = 0) -> float | None:
     if n_all > SPACING_TREE:
         spacing *= math.sqrt(len(X) / n_all)
     return spacing
+
+
+class SpacingWarning(UserWarning):
+    """The median point spacing of a scan is outside the range its rule base expects: the units
+    are probably wrong. Carries the numbers (``spacing``, ``expected``, ``unit``: the rule base's)."""
+
+    def __init__(self, message: str, *, spacing: float, expected: tuple[float, float], unit: str,
+                 suggested: tuple[str, ...] = ()) -> None:
+        super().__init__(message)
+        self.spacing, self.expected, self.unit, self.suggested = spacing, expected, unit, suggested
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"median_spacing": self.spacing, "expected": list(self.expected), "unit": self.unit,
+                "plausible": False, "suggested_units": list(self.suggested), "note": str(self)}
+
+
+def expected_spacing(declared: tuple[float, float] | None, target: LengthUnit) -> tuple[float, float]:
+    """The spacing range a rule base expects, in its unit: what it declares, else the default."""
+    if declared is not None:
+        return declared
+    lo, hi = DEFAULT_SPACING_METRES
+    return (lo / target.metres, hi / target.metres)
+
+
+def check_spacing(X: np.ndarray, *, scan: ScanUnits | None, target: LengthUnit, declared: tuple[float, float] | None,
+                  rule_base: str) -> SpacingWarning | None:
+    """A :class:`SpacingWarning` when the median spacing of ``X`` (already in ``target`` units)
+    lies outside the range the rule base expects, else None."""
+    spacing = median_spacing(X)
+    if spacing is None or spacing == 0:
+        return None
+    lo, hi = expected_spacing(declared, target)
+    if lo <= spacing <= hi:
+        return None
+    raw = spacing / (scan.horizontal.metres / target.metres if scan is not None else 1.0)
+    suggested = tuple(u.name for u in UNITS.values() if lo <= raw * u.metres / target.metres <= hi)
+    where = "the rule base's spacing" if declared is not None else "kbs's default for rule bases that declare no spacing"
+    if scan is None:
+        why = (f"the scan declares no unit, so its numbers were taken as {target.name}; give its unit with --units "
+               "(or a 'units' comment line in its PLY/PCD header)")
+    else:
+        why = f"its unit, {scan.name}, comes from {scan.source}; check it, or give --units"
+    hint = f" (as {' or '.join(suggested)} it would fit)" if suggested else ""
+    message = (f"median point spacing {spacing:.3g} {target.name} is outside {lo:g}-{hi:g} {target.name}, what rule base "
+               f"'{rule_base}' expects ({where}): {why}{hint}")
+    return SpacingWarning(message, spacing=spacing, expected=(lo, hi), unit=target.name, suggested=suggested)

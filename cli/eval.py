@@ -22,8 +22,8 @@ from kbs.evaluation import (
     load_ground_truth,
 )
 from kbs.evaluation.hoover import check_tolerance
-from kbs.io import read_cloud, read_result_json
-from kbs.io.result import check_pair
+from kbs.io import read_result_json
+from kbs.io.result import check_pair, read_result_cloud
 
 
 def _int_list(ctx: click.Context, param: click.Parameter, value: str | None) -> tuple[int, ...] | None:
@@ -150,7 +150,7 @@ def eval_(result: Path, ground_truth: str, tolerance: float, ground_values: tupl
     <stem>.json) and the adjusted Rand index, on the points whose GT label is not unlabelled.
     """
     unlabelled = unlabelled_values or ()
-    cloud = read_cloud(result)
+    cloud = read_result_cloud(result)
     if "cluster" not in cloud.fields:
         raise CloudFileError(str(result), "not a kbs result: no per-vertex 'cluster' field (write one with kbs run)")
     try:

@@ -152,14 +152,14 @@ def read_ply(path: Path) -> PointCloud:
     vertex = elements["vertex"]
     scalars = tuple(p.name for p in vertex.properties if not isinstance(p, plyfile.PlyListProperty))
     _require_xyz(path, scalars, "the PLY vertex element")
-    units, crs = _declared_units(path, [*ply.comments, *ply.obj_info], "comment")
+    units, crs = _declared_units(path, [*ply.comments, *ply.obj_info], "PLY")
     return _from_structured(path, vertex.data, skip=lambda name: name not in scalars, units=units, crs=crs)
 
 
-def _declared_units(path: Path, comments: list[str], keyword: str) -> tuple[ScanUnits | None, str | None]:
+def _declared_units(path: Path, comments: list[str], kind: str) -> tuple[ScanUnits | None, str | None]:
     """The ``units`` and ``crs`` a header's comment lines declare (:func:`kbs.units.units_from_comments`)."""
     try:
-        return units_from_comments(comments, keyword)
+        return units_from_comments(comments, kind)
     except ParameterError as exc:
         raise CloudFileError(str(path), str(exc)) from exc
 
@@ -220,7 +220,7 @@ def read_pcd(path: Path) -> PointCloud:
                 f"malformed PCD header: WIDTH {meta.width} x HEIGHT {meta.height} != POINTS {meta.points}",
             )
         shape = (meta.height, meta.width)
-    units, crs = _declared_units(path, comments, "#")
+    units, crs = _declared_units(path, comments, "PCD")
     return _from_structured(path, data, skip=lambda name: name.startswith(_PCD_PADDING_PREFIX), shape=shape,
                             units=units, crs=crs)
 
