@@ -27,7 +27,7 @@ from kbs.knowledge import Explanation, PredicateRegistry, Segmenter, load_rule_b
 from kbs.knowledge.explain import limit_lines
 from kbs.knowledge.predicates import UNITS, did_you_mean
 from kbs.knowledge.rulebase import RuleFileError, resolve, shipped_rule_bases
-from kbs.units import UNITS, ScanUnits, SpacingWarning
+from kbs.units import UNITS as LENGTH_UNITS, ScanUnits, SpacingWarning
 
 
 def _vector3(ctx, param, value):
@@ -367,7 +367,7 @@ def time_table(results: list[ScanResult | ScanFailure], t_load: float, t_total: 
 @click.option("--in-format", "in_format", type=click.Choice([e.lstrip(".") for e in SUPPORTED_EXTENSIONS]),
               default=None, help="Read every CLOUD as this format, whatever its name says; needed for '-' "
               "(standard input).")
-@click.option("--units", type=click.Choice(list(UNITS)), default=None,
+@click.option("--units", type=click.Choice(list(LENGTH_UNITS)), default=None,
               help="Unit of the scans' coordinates, for files that do not declare one (LAS/LAZ declare it in their "
               "CRS, PLY/PCD in a 'units' comment); overrides the file's. The points are scaled to the rule base's "
               "unit before segmenting; the output points are the input's.")

@@ -337,12 +337,11 @@ def check_pair(ply: str | os.PathLike[str], js: str | os.PathLike[str], doc: Map
 
 
 def points_file(js: Path, doc: Mapping[str, Any]) -> Path:
-    """The points file of a result JSON: the file its ``points`` key names, in its folder (results
-    written before that key: ``<stem>.ply``)."""
+    """The points file of a result JSON: ``<stem>.ply``, or ``.las``/``.laz`` when its ``points``
+    key names a file of that format (the stem is the JSON's: a pair renamed together stays a pair)."""
     name = doc.get("points")
-    if isinstance(name, str) and name and Path(name).name == name:
-        return js.with_name(name)
-    return js.with_suffix(".ply")
+    suffix = Path(name).suffix.lower() if isinstance(name, str) else ""
+    return js.with_suffix(suffix if suffix in (".ply", ".las", ".laz") else ".ply")
 
 
 def read_result_cloud(path: str | os.PathLike[str]) -> PointCloud:

@@ -35,12 +35,12 @@ def test_run_writes_ply_and_json_and_explains_the_cah_split(rocks_scan, tmp_path
     assert r.returncode == 0, r.stderr
     assert "clusters" in r.stdout and "splits" in r.stdout and "time:" in r.stdout
     v = _ply(tmp_path / "rocks.ply")
-    assert v["cluster"].dtype == np.int32 and v["label"].dtype == np.int32 and v["membership"].dtype == np.float32
+    assert v["scalar_cluster"].dtype == np.int32 and v["scalar_label"].dtype == np.int32 and v["scalar_membership"].dtype == np.float32
     doc = json.loads((tmp_path / "rocks.json").read_text())
     assert doc["label_names"] == ["ground", "obstacle"]
-    assert len(doc["clusters"]) == int(v["cluster"].max()) + 1
+    assert len(doc["clusters"]) == int(v["scalar_cluster"].max()) + 1
     assert {"center", "normal", "thickness", "eigenvalues"} <= set(doc["clusters"][0]["descriptors"])
-    ground = v["label"] == 0
+    ground = v["scalar_label"] == 0
     assert ground[labels == 0].mean() > 0.95 and (~ground[labels > 0]).mean() > 0.8
     # the explanation tree, and why the rocks' cluster was split
     r = kbs("explain", str(tmp_path / "rocks.json"))
@@ -149,7 +149,7 @@ def test_bundled_example_runs(tmp_path):
     r = kbs("run", "--rules", "outdoor", str(EXAMPLE), "--out", str(tmp_path))
     assert r.returncode == 0, r.stderr
     v = _ply(tmp_path / "outdoor.ply")
-    truth, pred = np.asarray(v["label_in"]) == 0, np.asarray(v["label"]) == 0  # the scene's own labels stay
+    truth, pred = np.asarray(v["label_in"]) == 0, np.asarray(v["scalar_label"]) == 0  # the scene's own labels stay
     f1 = 2 * (truth & pred).sum() / (truth.sum() + pred.sum())
     assert f1 > 0.9, f1
 
@@ -170,7 +170,7 @@ def test_runs_on_real_scans(shared_data, tmp_path, rules, scan):
         gt = np.load(shared_data / "semantickitti" / "000001.labels.npy").ravel()
         valid = gt != 0
         truth = np.isin(gt, [9, 10, 11, 12, 17])[valid]
-        pred = (np.asarray(v["label"]) == 0)[valid]
+        pred = (np.asarray(v["scalar_label"]) == 0)[valid]
         tp = (truth & pred).sum()
         f1 = 2 * tp / (truth.sum() + pred.sum())
         assert f1 > 0.85, f1
@@ -183,7 +183,7 @@ def test_worked_example_tabletop_rule_base_on_mosd(shared_data, tmp_path):
             str(shared_data / "mosd" / "learn0.pcd"), "--out", str(tmp_path))
     assert r.returncode == 0, r.stderr
     v = _ply(tmp_path / "learn0.ply")
-    gt, pred = np.asarray(v["label_in"]), np.asarray(v["label"])
+    gt, pred = np.asarray(v["label_in"]), np.asarray(v["scalar_label"])
     for name, index, truth in (("table", 0, (gt >= 1) & (gt <= 9)), ("object", 1, gt >= 20)):
         p = pred == index
         assert (p & truth).sum() / p.sum() > 0.98 and (p & truth).sum() / truth.sum() > 0.95, name
