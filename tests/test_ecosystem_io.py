@@ -191,12 +191,13 @@ def test_an_implausible_spacing_is_a_warning_and_a_note_in_the_json(tmp_path):
     r = kbs("run", "--rules", "outdoor", str(scan), "--out", str(tmp_path / "o"))
     assert r.returncode == 0, r.stderr
     warning = [ln for ln in r.stderr.splitlines() if ln.startswith("kbs: warning:")]
-    assert len(warning) == 1 and warning[0].startswith(f"kbs: warning: {scan}: median point spacing 18.")
+    assert len(warning) == 1 and re.match(rf"kbs: warning: {re.escape(str(scan))}: median point spacing 1\d\.\d m ",
+                                          warning[0]), warning  # 18.8 mm exactly, estimated on a sample
     assert "outside 0.0005-2 m, what rule base 'outdoor' expects" in warning[0]
     assert "give its unit with --units" in warning[0] and "(as cm or mm it would fit)" in warning[0]
     doc = json.loads((tmp_path / "o" / "mm.json").read_text())
     assert doc["spacing"]["plausible"] is False and doc["spacing"]["expected"] == [0.0005, 2]
-    assert doc["spacing"]["suggested_units"] == ["cm", "mm"] and doc["spacing"]["median_spacing"] > 18
+    assert doc["spacing"]["suggested_units"] == ["cm", "mm"] and 10 < doc["spacing"]["median_spacing"] < 20
     assert "scan_units" not in doc  # unknown: taken as the rule base's
     r = kbs("run", "--rules", "outdoor", str(scan), "--out", str(tmp_path / "o"), "--units", "mm")
     assert r.returncode == 0 and "warning" not in r.stderr
@@ -465,3 +466,40 @@ def test_knowledge_segment_takes_a_rule_base_name():
         kbs.segment(X * 1000.0, "outdoor")
     c = kbs.segment(X * 1000.0, "outdoor", units="mm")
     np.testing.assert_array_equal(c.label, a.label)
+
+
+COMPOUND_WKT = ('COMPD_CS["UTM 33N + heights in feet",PROJCS["WGS 84 / UTM zone 33N",GEOGCS["WGS 84",DATUM["WGS_1984",'
+                'SPHEROID["WGS 84",6378137,298.257223563]],PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]],'
+                'PROJECTION["Transverse_Mercator"],PARAMETER["central_meridian",15],PARAMETER["scale_factor",0.9996],'
+                'PARAMETER["false_easting",500000],PARAMETER["false_northing",0],UNIT["metre",1]],'
+                'VERT_CS["some height",VERT_DATUM["some datum",2005],UNIT["foot",0.3048]]]')
+
+
+@pytest.mark.parametrize("pyproj", ["installed", "hidden"])
+def test_a_compound_crs_with_heights_in_feet_is_scaled_axis_by_axis(tmp_path, rocks, pyproj):
+    """x and y in metres, z in feet (a compound WKT CRS): z alone is scaled; the same labels as
+    the scene all in metres."""
+    from laspy.vlrs.known import WktCoordinateSystemVlr
+
+    X, truth = rocks
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.scales, header.offsets = np.array([1e-4, 1e-4, 1e-4]), np.zeros(3)
+    header.vlrs.append(WktCoordinateSystemVlr(COMPOUND_WKT))
+    header.global_encoding.wkt = True
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = X[:, 0], X[:, 1], X[:, 2] / 0.3048
+    scan = tmp_path / "compound.las"
+    las.write(scan)
+    ref = tmp_path / "metres.las"
+    las.z = X[:, 2]
+    las.header.vlrs.clear()
+    las.write(ref)
+    args = ("run", "--rules", "outdoor", str(scan), "--out", str(tmp_path / "o"))
+    r = kbs(*args) if pyproj == "installed" else _kbs_without("pyproj", *args)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.splitlines()[1] == "  units: m (z in ft) (the LAS file's CRS), scaled to the rule base's m"
+    assert kbs("run", "--rules", "outdoor", str(ref), "--out", str(tmp_path / "m")).returncode == 0
+    got, want = laspy.read(tmp_path / "o" / "compound.las"), laspy.read(tmp_path / "m" / "metres.las")
+    assert (np.asarray(got["label"]) == np.asarray(want["label"])).mean() > 0.999
+    doc = json.loads((tmp_path / "o" / "compound.json").read_text())
+    assert doc["scan_units"]["metres"] == [1.0, 1.0, 0.3048] and "different units" in doc["notes"][0]
