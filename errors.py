@@ -53,8 +53,9 @@ class CloudFileError(KbsError):
         super().__init__(f"{self.path}: {problem}")
 
 
-class FitError(KbsError, ArithmeticError):
+class FitError(KbsError, ArithmeticError, ValueError):
     """The engine could not fit the data (e.g. fewer distinct points than needed, every cluster
-    died). The message says what to change."""
+    died). The message says what to change. Also a ``ValueError``, as scikit-learn users expect
+    for data an estimator cannot fit."""
 
     exit_code = ExitCode.FIT

@@ -5,9 +5,10 @@ Prints markdown: one row per scan and method (precision, recall, F1, IoU of the 
 with unlabelled points ignored, ISPRS total error, wall time), then the median over the scans of
 each data set. Every method runs in this process on the same points.
 
-Usage: python benchmarks/bench_ground.py [--sets kitti gndnet isprs mosd] [--jobs N]
+Usage: python benchmarks/bench_ground.py [--sets kitti gndnet isprs mosd] [--jobs N] [--outdoor RULES]
 kbs runs its splits in ``--jobs`` processes (default -1, one per core, as ``kbs run``); the peers
-run as their libraries do by default.
+run as their libraries do by default. ``--outdoor`` runs the "kbs outdoor" rows with another rule
+file (a variant of rules/outdoor.yaml, e.g. its connexity check with ``method: alpha_opening``).
 Peers come with ``pip install .[bench]`` (open3d also needs the system library libusb-1.0);
 a missing peer is named and skipped.
 """
@@ -116,8 +117,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sets", nargs="+", default=["kitti", "gndnet", "isprs", "mosd"])
     ap.add_argument("--jobs", type=int, default=-1, help="kbs split processes (-1: one per core)")
+    ap.add_argument("--outdoor", default="outdoor", help="rule file of the 'kbs outdoor' rows (default: the shipped one)")
     args = ap.parse_args()
     JOBS["kbs"] = args.jobs
+    if args.outdoor != "outdoor":
+        METHODS["kbs outdoor"] = (None, kbs_with(args.outdoor, "ground"))
+        print(f"> kbs outdoor: {args.outdoor}")
     if not DATA.is_dir():
         sys.exit(f"the benchmark needs the real scans in {DATA}")
     missing = {name: peers.available(mod) for name, (mod, _) in METHODS.items() if mod}

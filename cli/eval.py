@@ -22,7 +22,9 @@ from kbs.evaluation import (
     load_ground_truth,
 )
 from kbs.evaluation.hoover import check_tolerance
-from kbs.io import read_result_json
+from kbs.evaluation.segcomp import DEFAULT_TOLERANCES, segcomp_table
+from kbs.io import read_cloud, read_result_json
+from kbs.io.segcomp import FIRST_REGION_LABEL, NON_REGION_VALUES, read_gt_seg, read_ms_nor, read_range, read_sunraster
 from kbs.io.result import check_pair, read_result_cloud
 
 
@@ -42,6 +44,20 @@ def _tolerance(ctx: click.Context, param: click.Parameter, value: float) -> floa
         return check_tolerance(value)
     except ParameterError:
         raise click.BadParameter(f"must be in (0.5, 1], got {value:g}") from None
+
+
+def _tolerances(ctx: click.Context, param: click.Parameter, value: str | None) -> tuple[float, ...] | None:
+    if value is None:
+        return None
+    try:
+        values = tuple(float(v) for v in value.split(","))
+    except ValueError:
+        raise click.BadParameter(f"expected tolerances separated by commas (e.g. 0.51,0.6,0.7,0.8,0.9), "
+                                 f"got {value!r}") from None
+    bad = [v for v in values if not 0.5 < v <= 1.0]
+    if bad:
+        raise click.BadParameter(f"each T must be in (0.5, 1], got {bad[0]:g}")
+    return values
 
 
 def _label_names(result: Path) -> tuple[Path, list[str] | None]:
@@ -111,6 +127,27 @@ def format_hoover(h: HooverResult) -> str:
     return "\n".join(rows)
 
 
+def table_rows(results: list[HooverResult]) -> list[dict]:
+    """The rows of the paper's Table 1, one per tolerance, as JSON-ready dicts."""
+    return [{"tolerance": h.tolerance, "n_gt_regions": h.n_gt_regions, "n_ms_regions": h.n_ms_regions,
+             **dict(h.counts), "angle_mean": h.angle_mean, "angle_std": h.angle_std,
+             "angle_pairs": len(h.angle_errors)} for h in results]
+
+
+def format_table(results: list[HooverResult]) -> str:
+    """The paper's Table 1 format: one row per tolerance T, correct / over / under / missed / noise
+    and the mean (std) angle error over the adjacent pairs of correctly detected GT regions."""
+    first = results[0]
+    rows = [f"Hoover et al. (1996), Table 1: {first.n_gt_regions} GT regions, {first.n_ms_regions} MS regions",
+            f"  {'T':>5} {'correct':>7} {'over':>5} {'under':>6} {'missed':>7} {'noise':>6}  angle error (std), deg"]
+    for h in results:
+        angle = "-" if h.angle_mean is None else f"{h.angle_mean:.3g} ({h.angle_std:.3g}), {len(h.angle_errors)} pairs"
+        rows.append(f"  {h.tolerance:>5.2f} {h.correct:>7} {h.over:>5} {h.under:>6} {h.missed:>7} {h.noise:>6}  {angle}")
+    if first.angle_mean is None:
+        rows.append(f"  angle error: {first.angle_note}")
+    return "\n".join(rows)
+
+
 def format_ground(g: GroundMetrics) -> str:
     """Precision, recall, F1, IoU, ISPRS errors and the confusion counts."""
     names = ("precision", "recall", "F1", "IoU", "total error", "type I", "type II")
@@ -138,9 +175,14 @@ def format_ground(g: GroundMetrics) -> str:
               help="Also write every number to this JSON file.")
 @click.option("--hoover/--no-hoover", "do_hoover", default=True, show_default=True,
               help="Compute the Hoover region classification (MS regions: the result's clusters).")
+@click.option("--tolerances", callback=_tolerances, metavar="T,T,...",
+              help="Also print the paper's Table 1: one row of Hoover counts and angle error per T "
+                   "[default for X.ms-seg: 0.51,0.6,0.7,0.8,0.9].")
+@click.option("--image", "image_path", type=click.Path(dir_okay=False, path_type=Path), metavar="X.range",
+              help="SegComp only: the range image, for the angle error [default: GROUND_TRUTH's X.range beside it].")
 def eval_(result: Path, ground_truth: str, tolerance: float, ground_values: tuple[int, ...] | None,
           unlabelled_values: tuple[int, ...] | None, ground_label: str, json_out: Path | None,
-          do_hoover: bool) -> None:
+          do_hoover: bool, tolerances: tuple[float, ...] | None, image_path: Path | None) -> None:
     """Compare a `kbs run` RESULT (.ply) with GROUND_TRUTH: a label file (.npy, or text with one
     integer per line) or field:NAME, a field of RESULT (e.g. field:label_in, the input's own
     'label').
@@ -148,7 +190,23 @@ def eval_(result: Path, ground_truth: str, tolerance: float, ground_values: tupl
     Prints the Hoover et al. (1996) counts of the result's clusters against the GT regions,
     the ground metrics (with --ground-values; the ground label is found in RESULT's sibling
     <stem>.json) and the adjusted Rand index, on the points whose GT label is not unlabelled.
+
+    SegComp (the planar contest): RESULT X.ms-seg (written by `kbs segcomp`) against GROUND_TRUTH
+    X.gt-seg, pixel by pixel as SegComp's compare; prints the paper's Table 1 (one row per
+    tolerance) and the regions at --tolerance. The angle error needs the range image (--image);
+    the MS normals come from X.ms-nor beside X.ms-seg when it exists.
     """
+    if _is_seg(str(result), ".ms-seg") or _is_seg(ground_truth, ".gt-seg"):
+        given = [name for name, value in (("--ground-values", ground_values),
+                                          ("--unlabelled-values", unlabelled_values)) if value is not None]
+        if not do_hoover:
+            given.append("--no-hoover")
+        if given:
+            raise click.UsageError(f"{', '.join(given)}: not for a SegComp evaluation (X.ms-seg against X.gt-seg)")
+        _eval_segcomp(result, Path(ground_truth), image_path, tolerances or DEFAULT_TOLERANCES, tolerance, json_out)
+        return
+    if image_path is not None:
+        raise click.UsageError("--image is for a SegComp evaluation (RESULT X.ms-seg, GROUND_TRUTH X.gt-seg)")
     unlabelled = unlabelled_values or ()
     cloud = read_result_cloud(result)
     if "cluster" not in cloud.fields:
@@ -196,6 +254,11 @@ def eval_(result: Path, ground_truth: str, tolerance: float, ground_values: tupl
                   if unlabelled else ""))
     if h is not None:
         click.echo(format_hoover(h))
+    table = None
+    if tolerances is not None:
+        table = [hoover(clusters, gt, tolerance=t, ms_ignore=(-1,), gt_ignore=unlabelled, points=cloud.xyz)
+                 for t in tolerances]
+        click.echo(format_table(table))
     if ground is not None:
         click.echo(f"ground: label '{ground_label}' (index {ground_doc['ground_index']}) against GT values "
                    f"{','.join(map(str, ground_values))}")
@@ -209,8 +272,71 @@ def eval_(result: Path, ground_truth: str, tolerance: float, ground_values: tupl
                "n_points": len(cloud), "n_labelled": n_labelled, "unlabelled_values": list(unlabelled),
                "hoover": None if h is None else h.to_dict(), "ground": ground_doc,
                "adjusted_rand": _nan_none(ari)}
-        try:
-            json_out.write_text(json.dumps(doc, indent=1))
-        except OSError as exc:
-            raise CloudFileError(str(json_out), f"cannot write: {exc.strerror or exc}") from exc
-        click.echo(f"wrote {json_out}")
+        if table is not None:
+            doc["table"] = table_rows(table)
+        _write_json(json_out, doc)
+
+
+def _write_json(json_out: Path, doc: dict) -> None:
+    """Write ``doc`` to ``json_out`` and say so."""
+    try:
+        json_out.write_text(json.dumps(doc, indent=1))
+    except OSError as exc:
+        raise CloudFileError(str(json_out), f"cannot write: {exc.strerror or exc}") from exc
+    click.echo(f"wrote {json_out}")
+
+
+def _is_seg(name: str, suffix: str) -> bool:
+    return name.lower().endswith(suffix)
+
+
+def _eval_segcomp(ms_path: Path, gt_path: Path, image_path: Path | None, tolerances: tuple[float, ...],
+                  tolerance: float, json_out: Path | None) -> None:
+    """``kbs eval X.ms-seg X.gt-seg``: the paper's Table 1 and the regions at ``tolerance``."""
+    if not _is_seg(str(ms_path), ".ms-seg") or not _is_seg(str(gt_path), ".gt-seg"):
+        raise click.UsageError(
+            f"a SegComp evaluation scores X.ms-seg against X.gt-seg, got {ms_path.name} and {gt_path.name} "
+            "(write the .ms-seg of a `kbs run` result with `kbs segcomp RESULT.ply --image X.range`)")
+    ms = read_sunraster(ms_path)
+    bad = np.unique(ms[(ms > NON_REGION_VALUES[-1]) & (ms < FIRST_REGION_LABEL)])
+    if bad.size:
+        raise CloudFileError(str(ms_path), f"not a SegComp segmentation: pixel value {int(bad[0])} "
+                                           "(0-3 mark non-region pixels, regions are 10 and up, 4-9 are undefined)")
+    gt = read_gt_seg(gt_path)
+    if ms.shape != gt.shape:
+        raise CloudFileError(str(ms_path), f"{ms.shape[0]} x {ms.shape[1]} pixels, but {gt_path} has "
+                                           f"{gt.shape[0]} x {gt.shape[1]}: not a segmentation of the same image")
+    explicit_image = image_path is not None
+    if image_path is None:
+        image_path = gt_path.with_name(gt_path.name[:-len(".gt-seg")] + ".range")
+    xyz = pixel = None
+    if explicit_image or image_path.is_file():
+        cloud = read_range(image_path)
+        if cloud.shape != ms.shape:
+            raise CloudFileError(str(image_path), f"{cloud.shape[0]} x {cloud.shape[1]} pixels, but {ms_path} has "
+                                                  f"{ms.shape[0]} x {ms.shape[1]}: not the image that was segmented")
+        xyz, pixel = cloud.xyz, cloud.index
+    nor_path = ms_path.with_name(ms_path.name[:-len(".ms-seg")] + ".ms-nor")
+    ms_normals = read_ms_nor(nor_path) if nor_path.is_file() else None
+    rows = segcomp_table(ms, gt, tolerances, xyz=xyz, pixel=pixel, ms_normals=ms_normals)
+    detail = next((h for h in rows if h.tolerance == tolerance), None)
+    if detail is None:
+        detail = segcomp_table(ms, gt, (tolerance,), xyz=xyz, pixel=pixel, ms_normals=ms_normals)[0]
+
+    if xyz is None:
+        normals = f"angle error not computed: no range image (give --image X.range; {image_path} does not exist)"
+    else:
+        normals = (f"normals: GT from the points of {image_path}, MS from "
+                   + (str(nor_path) if ms_normals is not None else "the same points"))
+    click.echo(f"{ms_path} against {gt_path}: {ms.shape[0]} x {ms.shape[1]} pixels, SegComp regions (labels >= 10; "
+               "0-3 non-region), sizes over the whole image, GT adjacency: 4-neighbour pixels")
+    click.echo(normals)
+    click.echo(format_table(rows))
+    click.echo(format_hoover(detail))
+    if json_out is not None:
+        doc = {"kbs_version": __version__, "result": str(ms_path), "ground_truth": str(gt_path),
+               "segcomp": {"image": None if xyz is None else str(image_path),
+                           "ms_normals": str(nor_path) if ms_normals is not None else None,
+                           "n_pixels": int(ms.size)},
+               "table": table_rows(rows), "hoover": detail.to_dict()}
+        _write_json(json_out, doc)

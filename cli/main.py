@@ -19,6 +19,7 @@ from kbs.errors import ExitCode, KbsError
 #: pattern), so `kbs run` does not pay for the imports of `kbs eval` or `kbs synth`.
 COMMANDS = {
     "run": "kbs.cli.run:run",
+    "map": "kbs.cli.map:map_",
     "explain": "kbs.cli.run:explain",
     "rules": "kbs.cli.run:rules",
     "predicates": "kbs.cli.run:predicates",
@@ -50,7 +51,7 @@ class LazyGroup(click.Group):
 def cli(ctx: click.Context, quiet: bool) -> None:
     """kbs: knowledge-based partitioning of unorganised 3D point clouds.
 
-    Main command: kbs run --rules outdoor SCAN.
+    Main command: kbs run --rules outdoor SCAN; a drive: kbs map --rules outdoor SCANS... --poses FILE.
 
     Exit codes: 0 ok, 1 internal error (a bug), 2 bad usage or option, 3 unreadable or empty
     input file, 4 invalid rule file, 5 the engine could not fit the data, 6 invalid parameter,

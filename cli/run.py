@@ -268,7 +268,7 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
     las = None
     if fmt != "ply":
         classes = rb.asprs_classes
-        codes = class_codes(seg.label, seg.label_names, classes) if classes else None
+        codes = class_codes(seg.label, seg.cluster, seg.label_names, classes) if classes else None
         las = functools.partial(_build_las, pc, results, codes)
     if to_stdout:
         run_id = write_result_stream(sys.stdout.buffer, f".{fmt}", pc.xyz, fields, run_id=new_run_id(), las=las,
@@ -423,6 +423,9 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
     if to_stdout and len(scans) != 1:
         raise click.UsageError(f"--out - writes one scan to standard output; {len(scans)} scans given")
     with Segmenter(rules, jobs=jobs, plugins=plugins) as segmenter:  # workers kept for all scans
+        if not quiet:
+            for w in segmenter.rule_base.warnings:  # `kbs rules check` quotes the line
+                click.echo(f"kbs: warning: {w.pos}: {w.message}", err=True)
         if not to_stdout:
             check_writable_folder(out_dir, create=True)  # before any segmentation
         _run_scans(segmenter, scans, None if to_stdout else out_dir, t0, color_by=color_by, meshes=meshes,
@@ -482,7 +485,10 @@ def rules() -> None:
 @click.argument("files", nargs=-1, required=True)
 @plugin_option
 def rules_check(files: tuple[str, ...], plugins: tuple[Path, ...]) -> None:
-    """Validate rule files (or shipped names); every problem is reported as file:line:col."""
+    """Validate rule files (or shipped names); every problem is reported as file:line:col.
+
+    Warnings (a condition that can never hold: a rule that never acts, a label never given) are
+    printed on stderr as file:line:col: warning: ...; they do not change the exit code."""
     reg = _registry(plugins)
     bad: list[RuleFileError] = []
     for f in files:
@@ -491,8 +497,13 @@ def rules_check(files: tuple[str, ...], plugins: tuple[Path, ...]) -> None:
         except RuleFileError as exc:
             bad.append(exc)
             continue
+        n_warn = len(rb.warnings)
+        labels = rb.label_names if len(rb.label_names) <= 12 else rb.label_names[:11] + ["...", rb.label_names[-1]]
         click.echo(f"{f}: ok — '{rb.name}', {len(rb.checks)} checks, {len(rb.rules)} rules, "
-                   f"labels {', '.join(rb.label_names)}, strategy {rb.strategy}")
+                   f"labels {', '.join(labels)}, strategy {rb.strategy}"
+                   + (f"; {n_warn} warning{'s' if n_warn != 1 else ''}" if n_warn else ""))
+        for w in rb.warnings:
+            click.echo(w.format(), err=True)
     if bad:
         for exc in bad:
             click.echo(exc.format(), err=True)
@@ -525,6 +536,7 @@ def predicates(plugins: tuple[Path, ...]) -> None:
     for p in _registry(plugins):
         uses = ("  (uses the local ground surface: post.relabel only)" if p.needs_ground_model
                 else "  (uses the ground)" if p.needs_ground else "")
+        uses += "  (needs a plane: undefined on a degenerate cluster)" if p.needs_plane else ""
         click.echo(f"{p.name}  [{p.unit}: {UNITS[p.unit]}]{uses}")
         lo, hi = p.value_range
         if lo is not None or hi is not None:

@@ -1,4 +1,5 @@
-"""``kbs synth``: generate a labelled synthetic scene (polyhedral range image or outdoor stereo)."""
+"""``kbs synth``: generate a labelled synthetic scene (polyhedral range image, outdoor stereo, or an ABW
+range image with its SegComp ground truth)."""
 from __future__ import annotations
 
 import time
@@ -65,20 +66,77 @@ def synth_polyhedral(seed: int, out: Path | None, resolution, **options) -> None
 
 @synth.command("outdoor")
 @seed_option
-@out_option
+@click.option("--out", type=click.Path(path_type=Path),
+              help="Write the scene to this PLY file (per-vertex label, object, ground, pixel); with --frames, the "
+              "drive to this folder (scans/NNNNNN.ply, poses.txt, truth.json).")
+@click.option("--frames", "n_frames", type=click.IntRange(1, None), default=None,
+              help="Ray-cast a drive of this many frames through one scene instead of one view: the sensor moves "
+              "--step metres and turns --yaw-rate degrees between frames; objects stand beside the path.")
+@click.option("--step", type=click.FloatRange(0, None, min_open=True), default=1.0, show_default=True,
+              help="With --frames: metres between consecutive poses.")
+@click.option("--yaw-rate", type=click.FloatRange(-45, 45), default=2.0, show_default=True,
+              help="With --frames: heading change between consecutive poses, degrees (positive: left).")
 @click.option("--extent", type=click.FloatRange(5, None), default=25.0, show_default=True,
               help="Farthest range measured, metres.")
-@click.option("--rocks", "n_rocks", type=click.IntRange(0, None), default=3, show_default=True)
+@click.option("--rocks", "n_rocks", type=click.IntRange(0, None), default=None,
+              help="Rocks in the scene  [default: 3; 6 with --frames]")
 @click.option("--bin/--no-bin", "with_bin", default=True, show_default=True, help="Put a bin (open box) in the scene.")
 @resolution_option
 @click.option("--noise", type=click.FloatRange(0, None), default=5e-4, show_default=True,
               help="Range noise coefficient: standard deviation noise * range^2.")
 @click.option("--sensor-height", type=click.FloatRange(0, None, min_open=True), default=1.5, show_default=True,
               help="Metres above the ground's mean level.")
-def synth_outdoor(seed: int, out: Path | None, resolution, **options) -> None:
-    """Uneven ground, rocks and a bin, seen by a stereo-like sensor; label 0 ground, 1.. objects."""
+def synth_outdoor(seed: int, out: Path | None, resolution, n_frames: int | None, step: float, yaw_rate: float,
+                  n_rocks: int | None, **options) -> None:
+    """Uneven ground, rocks and a bin, seen by a stereo-like sensor; label 0 ground, 1.. objects.
+
+    With --frames N: a drive of N frames through one such scene (each frame in its sensor frame,
+    with the true poses and the true obstacle layout), written to the --out folder for `kbs map`."""
     if resolution is not None:
         options["resolution"] = resolution
     t0 = time.perf_counter()
+    if n_frames is not None:
+        from kbs.synth.drive import outdoor_drive
+
+        drive = outdoor_drive(seed, n_frames=n_frames, step=step, yaw_rate=yaw_rate,
+                              n_rocks=6 if n_rocks is None else n_rocks, **options)
+        line = f"{drive.summary()}; {time.perf_counter() - t0:.2f} s"
+        if out is not None:
+            drive.save(out)
+            line += f"; wrote {out / 'scans'} ({n_frames} PLY), {out / 'poses.txt'} and {out / 'truth.json'}"
+        click.echo(line)
+        return
+    if out is not None and out.is_dir():
+        raise click.BadParameter(f"{out} is a directory; give a PLY file name (a folder is for --frames)",
+                                 param_hint="--out")
+    options["n_rocks"] = 3 if n_rocks is None else n_rocks
     scene = outdoor_scene(seed, **options)
     _finish(scene, out, time.perf_counter() - t0)
+
+
+@synth.command("abw")
+@seed_option
+@click.option("--out", "prefix", type=click.Path(dir_okay=False, path_type=Path), metavar="PREFIX",
+              help="Write PREFIX.range (the range image) and PREFIX.gt-seg (its ground truth), as SegComp.")
+@click.option("--boxes", "n_boxes", type=click.IntRange(0, None), default=3, show_default=True)
+@click.option("--wedges", "n_wedges", type=click.IntRange(0, None), default=1, show_default=True)
+@click.option("--tilt", "tilt_deg", type=click.FloatRange(0, 60, max_open=True), default=30.0, show_default=True,
+              help="Tilt of the table from fronto-parallel, degrees.")
+@click.option("--noise", type=click.FloatRange(0, None), default=0.0, show_default=True,
+              help="Range noise (standard deviation) in range levels, before the rounding to 8 bits.")
+def synth_abw(seed: int, prefix: Path | None, **options) -> None:
+    """Boxes and wedges on a tilted table seen through the ABW camera: a 512 x 512 8-bit SegComp
+    range image (.range) and its ground truth (.gt-seg: 10 the table, 11.. the faces).
+
+    For the planar contest: kbs run --rules abw PREFIX.range, then kbs segcomp and kbs eval."""
+    from kbs.synth.abw import abw_scene
+
+    t0 = time.perf_counter()
+    scene = abw_scene(seed, **options)
+    line = f"{scene.summary()}; {time.perf_counter() - t0:.2f} s"
+    if prefix is not None:
+        if prefix.suffix.lower() in (".range", ".gt-seg"):
+            prefix = prefix.with_suffix("")
+        range_path, gt_path = scene.save(prefix)
+        line += f"; wrote {range_path} and {gt_path}"
+    click.echo(line)

@@ -1,7 +1,10 @@
 """scikit-learn-style estimators over the engine: :class:`FuzzyCMeans` and :class:`GathGeva`.
 
 Constructors only store settings; ``fit`` returns ``self``; learned attributes end in ``_``.
-Both are deterministic by default (``init='incremental'``, the UFP-ONC growth scheme).
+Both are deterministic by default (``init='incremental'``, the UFP-ONC growth scheme). They pass
+scikit-learn's ``check_estimator`` suite (tests/test_estimator_checks.py): bad input is a
+``ValueError`` (or ``TypeError``) saying what is wrong, predicting before fitting a
+``NotFittedError``, ``n_features_in_`` is set by ``fit`` and checked by ``predict``.
 """
 from __future__ import annotations
 
@@ -9,11 +12,13 @@ import numbers
 import warnings
 
 import numpy as np
+import scipy.sparse
 from sklearn.base import BaseEstimator, ClusterMixin
 from sklearn.cluster import kmeans_plusplus
+from sklearn.exceptions import NotFittedError as _SklearnNotFittedError
 from sklearn.utils import check_random_state
 
-from kbs.errors import ParameterError
+from kbs.errors import FitError, ParameterError
 from kbs.inference._validation import (
     ArrayLike,
     Interval,
@@ -29,16 +34,74 @@ from kbs.inference.kernels import memberships_from_sq_dist, sq_euclidean
 from kbs.inference.ufp_onc import ENGINE_CONSTRAINTS, FitSet, prepare_fit_set, ufp_onc
 
 
+class NotFittedError(ParameterError, _SklearnNotFittedError):
+    """``predict`` before ``fit``: a :class:`~kbs.errors.ParameterError` and scikit-learn's
+    ``NotFittedError``."""
+
+
+class InputTypeError(ParameterError, TypeError):
+    """``X`` holds something that is not a number (a ``ParameterError`` and a ``TypeError``, as
+    numpy raises for it)."""
+
+
 class _FuzzyBase(ClusterMixin, BaseEstimator):
     def _check_fitted(self) -> None:
         if not hasattr(self, "centers_"):
-            raise ParameterError(f"This {type(self).__name__} instance is not fitted yet; call 'fit' first.")
+            raise NotFittedError(f"This {type(self).__name__} instance is not fitted yet; call 'fit' first.")
+
+    def _check_X(self, X, *, reset: bool, min_samples: int = 1) -> np.ndarray:
+        """``X`` as a C-contiguous float64 (n_samples, n_features) array, with scikit-learn's
+        messages for what its checks feed: sparse, complex, non-numeric, 1-D, empty input, and
+        (``reset=False``) a number of features other than ``fit``'s. ``reset=True`` (``fit``)
+        sets ``n_features_in_``."""
+        owner = type(self).__name__
+        if scipy.sparse.issparse(X):
+            raise ParameterError(f"{owner}: sparse input is not supported (got a {type(X).__name__}): X holds "
+                                 "points; pass a dense array, X.toarray()")
+        try:
+            arr = np.asarray(X)
+            complex_ = arr.dtype.kind == "c"
+            if not complex_:
+                arr = np.asarray(arr, dtype=np.float64)
+        except TypeError as exc:
+            raise InputTypeError(f"{owner}: X must be a numeric array of shape (n_samples, n_features): {exc}") from exc
+        except ValueError as exc:
+            raise ParameterError(f"{owner}: X must be a numeric array of shape (n_samples, n_features): {exc}") from exc
+        if complex_:
+            raise ParameterError(f"{owner}: Complex data not supported; X must hold real numbers")
+        if arr.ndim == 1:
+            raise ParameterError(f"{owner}: expected a 2-D array (n_samples, n_features), got a 1-D array of shape "
+                                 f"{arr.shape}. Reshape your data either using X.reshape(-1, 1) if it has a single "
+                                 "feature or X.reshape(1, -1) if it is a single sample.")
+        if arr.ndim == 2 and arr.shape[1] == 0:
+            raise ParameterError(f"{owner}: found an array with 0 feature(s) (shape={arr.shape}) while a minimum of "
+                                 "1 is required.")
+        if arr.ndim == 2 and arr.shape[0] < min_samples:
+            raise ParameterError(f"{owner}: found an array with {arr.shape[0]} sample(s) (shape={arr.shape}) while "
+                                 f"a minimum of {min_samples} is required.")
+        arr = check_points(arr, owner=owner, min_samples=min_samples)
+        if reset:
+            self.n_features_in_ = arr.shape[1]
+        elif arr.shape[1] != self.n_features_in_:
+            raise ParameterError(f"X has {arr.shape[1]} features, but {owner} is expecting {self.n_features_in_} "
+                                 "features as input.")
+        return arr
 
     def _prepare(self, X, sample_weight) -> tuple[np.ndarray, np.ndarray, FitSet]:
-        validate_params(type(self).__name__, self.get_params(), self._constraints)
-        X = check_points(X, owner=type(self).__name__, min_samples=self.n_clusters)
-        w = check_weights(sample_weight, X.shape[0], owner=type(self).__name__)
-        return X, w, prepare_fit_set(X, w, max_fit_points=None, voxel_size=None)
+        owner = type(self).__name__
+        validate_params(owner, self.get_params(), self._constraints)
+        X = self._check_X(X, reset=True, min_samples=max(1, self.n_clusters))
+        w = check_weights(sample_weight, X.shape[0], owner=owner)
+        fit = prepare_fit_set(X, w, max_fit_points=None, voxel_size=None)
+        total, min_mass = float(fit.moments.w.sum()), self._min_mass(fit)
+        if total < min_mass:  # the engine would fail the same way; say it with the sample count
+            what = ("min_cluster_size" if self.min_cluster_size is not None else
+                    "by default max(n_features + 1, 0.001 x total weight): a full covariance needs n_features + 1 "
+                    "points")
+            raise FitError(f"{owner}: the samples' weight (n_samples={X.shape[0]}, total weight {total:g}) is below "
+                           f"the minimum cluster size {min_mass:g} ({what}); give more samples"
+                           + (", or a smaller min_cluster_size" if self.min_cluster_size is not None else ""))
+        return X, w, fit
 
     def _initial_centers(self, fit: FitSet) -> np.ndarray:
         """Initial centres (K, D) in centred coordinates, for 'k-means++' or an array init."""
@@ -151,7 +214,7 @@ class FuzzyCMeans(_FuzzyBase):
     def predict_proba(self, X) -> np.ndarray:
         """Fuzzy c-means memberships (n_samples, n_clusters_) of ``X`` under the fitted centres."""
         self._check_fitted()
-        X = check_points(X, owner=type(self).__name__)
+        X = self._check_X(X, reset=False)
         return memberships_from_sq_dist(sq_euclidean(np.ascontiguousarray(X.T), self.centers_), self.m).T
 
 
@@ -265,7 +328,7 @@ class GathGeva(_FuzzyBase):
     def predict_proba(self, X) -> np.ndarray:
         """Gath-Geva memberships (n_samples, n_clusters_) of ``X`` under the fitted parameters."""
         self._check_fitted()
-        X = check_points(X, owner=type(self).__name__)
+        X = self._check_X(X, reset=False)
         centers = self.centers_ - self._offset
         return memberships_in_chunks(
             X, self._offset, lambda XT: gg_memberships(XT, centers, self._gaussians, self.priors_, self.m),

@@ -7,8 +7,8 @@ A result written as LAS or LAZ (``kbs run --out-format las|laz``) holds:
   ``classification`` changes. From another format, a LAS 1.4 file, point format 6 (7 when the
   input has ``red green blue``), scales fine enough for the coordinates' extent, the input's
   other fields as extra-bytes dimensions, and the CRS the input declared (a WKT record).
-- ``classification``: the ASPRS code the rule base gives each label (``asprs_classes``); labels
-  it does not list get 1 (unclassified). Without ``asprs_classes`` the input's classification
+- ``classification``: the ASPRS code the rule base gives each label (``asprs_classes``; ``noise``:
+  the rejected points); labels it does not list, and clusters no label matched, get 1 (unclassified). Without ``asprs_classes`` the input's classification
   stays (0 for an input without one).
 - extra-bytes dimensions ``cluster`` (int32, -1 noise), ``label`` (int32, index into the rule
   base's labels, -1 noise) and ``membership`` (float32). An input extra dimension of one of
@@ -48,12 +48,14 @@ KBS_DIMENSIONS = {
 _EXTRA_DTYPES = frozenset(np.dtype(c) for c in ("u1", "i1", "u2", "i2", "u4", "i4", "u8", "i8", "f4", "f8"))
 
 
-def class_codes(label: np.ndarray, label_names: list[str], classes: Mapping[str, int]) -> np.ndarray:
-    """The ASPRS code of each point (uint8): ``classes[label name]``, ``classes['noise']`` for
-    label -1, 1 (unclassified) for a label ``classes`` does not list."""
-    table = np.array([classes.get(name, UNCLASSIFIED) for name in label_names] + [classes.get("noise", UNCLASSIFIED)],
-                     dtype=np.uint8)
-    return table[np.asarray(label, dtype=np.int64)]  # -1 picks the last entry: noise
+def class_codes(label: np.ndarray, cluster: np.ndarray, label_names: list[str], classes: Mapping[str, int]) -> np.ndarray:
+    """The ASPRS code of each point (uint8): ``classes[label name]``; ``classes['noise']`` for the
+    rejected points (cluster -1); 1 (unclassified) for a label ``classes`` does not list and for
+    the points of a cluster no label's condition held for (label -1 in a cluster)."""
+    table = np.array([classes.get(name, UNCLASSIFIED) for name in label_names] + [UNCLASSIFIED], dtype=np.uint8)
+    codes = table[np.asarray(label, dtype=np.int64)]  # -1 picks the last entry: unclassified
+    codes[np.asarray(cluster) < 0] = classes.get("noise", UNCLASSIFIED)
+    return codes
 
 
 def check_classes_fit(source: Any, classes: Mapping[str, int] | None, path: str) -> None:

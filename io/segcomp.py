@@ -47,8 +47,9 @@ formula's own unit. Its scale (one column is about 0.59 units wide at mid range,
 300 units wide, one range level 1/S = 1.26 units deep) fits millimetres for a tabletop
 structured-light scanner, which is likely but not confirmed. So the shipped ``planar_contest``
 rule base (thresholds in metres: a 1 cm thickness bound of 0.01) does not suit these raw
-coordinates: 0.01 unit is a hundredth of one range level. Use a rule file with ``units: mm``
-and thresholds of the order of the quantisation (a thickness bound of about 1).
+coordinates: 0.01 unit is a hundredth of one range level. The shipped ``abw`` rule base is
+the contest in these units (``units: mm``, a thickness bound of 1, of the order of the
+quantisation).
 
 **Ground truth** (``.gt-seg``) **and machine segmentation** (``.ms-seg``): 8-bit rasterfiles of
 the image's size holding one label per pixel. Source: ``LoadFiles`` and ``ClassifyRegions`` of

@@ -1,12 +1,17 @@
-"""Connexity kernel of the CAh heuristic ("connexity ambiguity", ALGORITHMS.md section 3).
+"""Connexity kernel of the CAh heuristic ("connexity ambiguity", ../shared/ALGORITHMS.md section 3).
 
 Obstacles that emerge from the ground and look alike may be gathered in one cluster. Projected
 on the cluster's best approximating plane (BAP), such a cluster falls apart into several blobs:
 counting the significant connected components of the projection detects the ambiguity, and the
 components are the natural split.
 
-Method
-------
+Two methods find the components (``method``): ``'graph'`` (the default, and what the shipped
+rule bases use), an approximation on the points of the alpha-complex and of its opening, and
+``'alpha_opening'``, the paper's alpha-shape opened by a disc (section "The alpha-opening"
+below). Steps 1, 2 and 5 are common to both.
+
+Method ``'graph'``
+------------------
 1. Project the points on the plane through ``center`` with normal ``normal``
    (:func:`project_on_plane`). Exact duplicates (after projection) are merged into one position
    with a multiplicity; every count below still counts input points.
@@ -56,6 +61,49 @@ split partitions the cluster exactly into ``n_significant`` parts.
 Cost: the degrees are counted only where a cheap cell-count lower bound does not settle the
 erosion, and the components only list edges along gaps; 100,000 points take about 0.15-0.2 s
 on one core, with memory linear in the number of points.
+
+The alpha-opening (method ``'alpha_opening'``)
+----------------------------------------------
+The paper's operators, on the shape rather than on the points:
+
+1. The *alpha-complex* (:func:`alpha_complex`): the triangles of scipy's Delaunay triangulation of
+   the distinct projected positions whose circumradius is at most ``alpha`` (their edges are then
+   at most ``2 alpha``). The *alpha-shape* (:func:`alpha_shape`) is their union, a shapely
+   (Multi)Polygon with holes: the triangles meet edge to edge, so it is a coverage union
+   (``shapely.coverage_union_all``), exact and 2-5 times cheaper than a general union. (Building
+   it from the boundary edges instead is no better: ``shapely.polygonize`` returns the holes as
+   faces too, and ``shapely.build_area``, which sorts them out, costs as much as the coverage
+   union and fills holes that touch the outline at a vertex, 21 of 169 real calls;
+   ``benchmarks/bench_connexity.py``.) Points that make no triangle (a line of points, a
+   strand too sparse for alpha) are no part of the shape.
+2. The *opening* by a disc of radius ``rho`` (:func:`alpha_opening`): the alpha-erosion
+   ``buffer(-rho)`` keeps the centres of the discs of radius ``rho`` that fit inside the shape;
+   the alpha-dilation ``buffer(rho)`` puts the discs back. What is left is the union of the discs
+   that fit: a part narrower than ``2 rho`` disappears (a bridge of width ``w`` is cut exactly
+   when ``w < 2 rho``), and so do specks smaller than the disc; convex corners are rounded.
+   ``rho = opening_factor * alpha`` (default 1), or ``opening_radius`` in length units; 0 (or
+   ``opening=False``) counts the components of the alpha-shape itself. The radius is a multiple
+   of alpha, not a length in the rule file, because alpha is itself a multiple of the cluster's
+   own sampling step: the shape is only resolved to about alpha (the complex bridges gaps up to
+   ``2 alpha``), so a fixed length would be a no-op on sparse far clusters of a LiDAR frame and
+   too strong on dense near ones, and a multiple keeps the measure independent of the density,
+   the unit and the scale, as the rest of this module is. ``Connexity.opening_radius`` records
+   the length used.
+3. The components are the polygons of the opened shape. A point belongs to the one it lies in,
+   or within ``0.2 rho`` of: the opening rounds the convex corners of the outline, whose vertices
+   are sample points (a corner of angle ``t`` moves in by ``rho (1 / sin(t / 2) - 1)``, 0.155
+   rho at 120 degrees), and GEOS draws the arcs of the dilation with chords and simplifies its
+   input by 1 % of rho. Points in removed parts (bridges, spurs, specks) get ``-1``; sizes,
+   numbering, significance and :func:`assign_to_nearest` are as in step 5 above. A cluster whose
+   shape has no part ``2 rho`` wide has no component at all (``n_significant = 0``).
+
+With the defaults (``alpha = 3`` spacings, ``rho = alpha``) a bridge is cut when narrower than
+6 spacings, where the graph's opening cuts 1 or 2 rows of points: nearly touching obstacles are
+separated. The price: Delaunay, the union and two buffers cost 3-10 times the graph version per
+call (``benchmarks/bench_connexity.py``), and on LiDAR frames, where the median spacing is that
+along the scan lines, sparse parts fall out of the shape. Measured with the outdoor rules
+(docs/BENCHMARKS.md), it lowers the ground F1 of one GndNet scan by 0.004 and adds about 30 % to
+the frame time, so the shipped rule bases keep ``'graph'``.
 """
 from __future__ import annotations
 
@@ -71,9 +119,13 @@ from scipy.spatial import cKDTree
 from kbs.errors import FitError, ParameterError
 from kbs.inference import _flags
 
-__all__ = ["Connexity", "assign_to_nearest", "connexity", "graph_components", "project_on_plane"]
+__all__ = ["METHODS", "Connexity", "alpha_complex", "alpha_opening", "alpha_shape", "assign_to_nearest", "connexity",
+           "graph_components", "project_on_plane"]
 
 _OWNER = "connexity"
+#: How the components are found: the graph of links ``<= 2 alpha`` opened by neighbour counts
+#: (the default), or the paper's alpha-shape opened by a disc.
+METHODS = ("graph", "alpha_opening")
 #: Most index pairs listed at once (16 bytes each, about 80 MB); larger neighbourhoods are walked
 #: in pieces.
 _PAIR_BUDGET = 5_000_000
@@ -122,11 +174,17 @@ class Connexity:
         Points per component (int64), or summed ``sample_weight`` (float64) when weights are
         given; points labelled ``-1`` count in none.
     alpha : float
-        The alpha actually used, in length units (edges are ``|p - q| <= 2 alpha``).
+        The alpha actually used, in length units (edges are ``|p - q| <= 2 alpha``; the
+        triangles of the alpha-complex have a circumradius ``<= alpha``).
     spacing : float
         Median nearest-neighbour spacing of the projected points, exact duplicates ignored:
         the median over the distinct positions of the distance to the nearest other one (0 when
         all the points project on one position).
+    method : str
+        ``'graph'`` or ``'alpha_opening'`` (see the module docstring).
+    opening_radius : float or None
+        With ``'alpha_opening'``: the radius of the disc of the opening actually used, in length
+        units (0 without opening); None with ``'graph'``, whose opening counts neighbours.
     """
 
     n_components: int
@@ -136,6 +194,8 @@ class Connexity:
     sizes: np.ndarray
     alpha: float
     spacing: float
+    method: str = "graph"
+    opening_radius: float | None = None
 
 
 def _check_vector(v, name: str) -> np.ndarray:
@@ -532,6 +592,132 @@ def _compiled_opening_components(D: _Distinct, r: float, erosion_fraction: float
     return idx, comp[idx], int(n_comp)
 
 
+# -- the alpha-shape method ---------------------------------------------------------------------
+
+
+def alpha_complex(P, alpha: float) -> np.ndarray:
+    """Triangles of the alpha-complex of 2D points: the Delaunay triangles whose circumradius is
+    at most ``alpha`` (their edges are then at most ``2 alpha``).
+
+    Parameters
+    ----------
+    P : array-like (m, 2)
+        Distinct points.
+    alpha : float
+        Alpha radius, > 0.
+
+    Returns
+    -------
+    ndarray (k, 3) int
+        Vertex indices into ``P`` of each triangle; empty (0, 3) when there are fewer than three
+        points or they are all collinear (no triangle: an alpha-shape without area).
+    """
+    from scipy.spatial import Delaunay, QhullError
+
+    P = np.asarray(P, dtype=np.float64)
+    if P.shape[0] < 3:
+        return np.zeros((0, 3), dtype=np.int64)
+    try:
+        S = Delaunay(P).simplices
+    except QhullError:  # all collinear (or coincident): no triangle
+        return np.zeros((0, 3), dtype=np.int64)
+    A, B, C = P[S[:, 0]], P[S[:, 1]], P[S[:, 2]]
+    ab, bc, ca = B - A, C - B, A - C
+    area2 = np.abs(ab[:, 0] * ca[:, 1] - ab[:, 1] * ca[:, 0])  # twice the area
+    # circumradius R = |ab| |bc| |ca| / (4 area) <= alpha, without dividing by a zero area
+    lengths = np.sqrt(np.einsum("ij,ij->i", ab, ab) * np.einsum("ij,ij->i", bc, bc) * np.einsum("ij,ij->i", ca, ca))
+    return S[lengths <= 2.0 * alpha * area2]
+
+
+def alpha_shape(P, alpha: float):
+    """The alpha-shape of 2D points: the union of the triangles of their alpha-complex
+    (:func:`alpha_complex`), as a shapely (Multi)Polygon (empty when there is no triangle).
+
+    The triangles of a Delaunay triangulation meet edge to edge, so their union is a coverage
+    union (``shapely.coverage_union_all``), much cheaper than a general union.
+    """
+    import shapely
+
+    P = np.asarray(P, dtype=np.float64)
+    T = alpha_complex(P, alpha)
+    k = T.shape[0]
+    if k == 0:
+        return shapely.Polygon()
+    # the triangles as closed rings, built in one call (3-4 times faster than shapely.polygons)
+    rings = P[T[:, [0, 1, 2, 0]]].reshape(-1, 2)
+    offsets = (np.arange(0, 4 * k + 1, 4), np.arange(k + 1))
+    return shapely.coverage_union_all(shapely.from_ragged_array(shapely.GeometryType.POLYGON, rings, offsets))
+
+
+def alpha_opening(shape, radius: float) -> list:
+    """Components of the morphological opening of a shape by a disc: erosion by a disc of radius
+    ``radius`` (``buffer(-radius)``) then dilation by the same disc (``buffer(radius)``).
+
+    The opening keeps the union of the discs of that radius that fit inside the shape: a part
+    narrower than ``2 radius`` (a bridge of width ``w < 2 radius``, a spur, a speck) disappears,
+    and so do convex corners (rounded to the disc); a part at least ``2 radius`` wide stays.
+
+    Parameters
+    ----------
+    shape : shapely geometry
+        A (Multi)Polygon, e.g. :func:`alpha_shape`.
+    radius : float
+        Radius of the disc, >= 0 (0: the shape itself).
+
+    Returns
+    -------
+    list of shapely Polygon
+        The connected components of the opened shape (none when it is empty).
+    """
+    import shapely
+
+    opened = shape if radius <= 0.0 else shape.buffer(-radius).buffer(radius)
+    return [g for g in shapely.get_parts(opened) if not g.is_empty]
+
+
+#: A point counts in a component of the opened alpha-shape when it lies within this fraction of
+#: the opening radius of it: the opening rounds the convex corners of the shape, whose vertices
+#: are the sample points of its outline; a corner of angle t moves in by radius (1 / sin(t / 2)
+#: - 1), 0.155 radius at 120 degrees; GEOS approximates the arcs of the dilation by chords and
+#: simplifies its input by 1 % of the radius.
+_NEAR_FRACTION = 0.2
+
+
+def _alpha_opening_components(D: _Distinct, alpha: float, radius: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """The components of the opening of the alpha-shape of the distinct positions, and the
+    positions in each: ``(idx, comp, n_comp)``, the positions in a component, their components
+    (in no particular order) and how many components hold a position."""
+    label = _points_in_parts(D.points, alpha_opening(alpha_shape(D.points, alpha), radius), radius, alpha)
+    idx = np.flatnonzero(label >= 0)
+    used, comp = np.unique(label[idx], return_inverse=True)  # components holding no position go
+    return idx, comp.ravel(), int(used.size)
+
+
+def _points_in_parts(U: np.ndarray, parts: list, radius: float, alpha: float) -> np.ndarray:
+    """The part (index into ``parts``) each point of ``U`` (m, 2) lies in or within
+    ``_NEAR_FRACTION * radius`` of, -1 for none (the first such part when there are several)."""
+    import shapely
+
+    label = np.full(U.shape[0], -1, dtype=np.int64)
+    if not parts:
+        return label
+    scale = float(np.abs(U).max()) + alpha
+    near = _NEAR_FRACTION * radius + 1e-9 * scale  # the outline (and rounding) when radius is 0
+    x, y = U[:, 0], U[:, 1]
+    boxes = shapely.bounds(parts)
+    for i, part in enumerate(parts):
+        shapely.prepare(part)
+        x0, y0, x1, y1 = boxes[i]
+        cand = np.flatnonzero((label < 0) & (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1))
+        label[cand[shapely.intersects_xy(part, x[cand], y[cand])]] = i
+    for i, part in enumerate(parts):
+        x0, y0, x1, y1 = boxes[i]
+        cand = np.flatnonzero((label < 0) & (x >= x0 - near) & (x <= x1 + near) & (y >= y0 - near) & (y <= y1 + near))
+        if cand.size:
+            label[cand[shapely.dwithin(part, shapely.points(U[cand]), near)]] = i
+    return label
+
+
 def _number_by_size(n_comp: int, comp: np.ndarray, size: np.ndarray, Q: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Renumber components by decreasing size; ties go to the component holding the
@@ -564,7 +750,10 @@ def connexity(
     alpha: float | None = None,
     alpha_factor: float = 3.0,
     opening: bool = True,
+    method: str = "graph",
     erosion_fraction: float = 0.3,
+    opening_radius: float | None = None,
+    opening_factor: float = 1.0,
     min_fraction: float = 0.05,
     min_points: float = 10,
     sample_weight=None,
@@ -587,9 +776,20 @@ def connexity(
     opening : bool
         Filter the points with a morphological opening (see the module docstring) before
         counting components, so that thin bridges do not join blobs.
+    method : {'graph', 'alpha_opening'}
+        ``'graph'``: components of the graph ``|p - q| <= 2 alpha``, opened by counting
+        neighbours. ``'alpha_opening'``: components of the alpha-shape (union of the Delaunay
+        triangles of circumradius ``<= alpha``) opened by a disc of radius ``opening_radius``.
     erosion_fraction : float in [0, 1]
-        Erosion threshold: a point stays when it has at least ``erosion_fraction`` times the
-        median (over all points, or 4,096 of them) number of other points within ``2 alpha``.
+        ``'graph'`` only. Erosion threshold: a point stays when it has at least
+        ``erosion_fraction`` times the median (over all points, or 4,096 of them) number of
+        other points within ``2 alpha``.
+    opening_radius : float, optional
+        ``'alpha_opening'`` only. Radius of the disc of the opening in length units (>= 0): parts
+        of the alpha-shape narrower than ``2 opening_radius`` are removed. Default:
+        ``opening_factor`` times alpha.
+    opening_factor : float
+        ``'alpha_opening'`` only: multiple of alpha used when ``opening_radius`` is None (>= 0).
     min_fraction : float in [0, 1]
         A component is significant when its size is at least ``max(min_points, min_fraction *
         total)``.
@@ -619,6 +819,12 @@ def connexity(
     erosion_fraction = _check_real(erosion_fraction, "erosion_fraction", low=0.0, high=1.0)
     min_fraction = _check_real(min_fraction, "min_fraction", low=0.0, high=1.0)
     min_points = _check_real(min_points, "min_points", low=0.0)
+    if method not in METHODS:
+        raise ParameterError(f"The 'method' parameter of {_OWNER} must be one of {', '.join(map(repr, METHODS))}. "
+                             f"Got {method!r} instead.")
+    if opening_radius is not None:
+        opening_radius = _check_real(opening_radius, "opening_radius", low=0.0)
+    opening_factor = _check_real(opening_factor, "opening_factor", low=0.0)
     if not isinstance(opening, (bool, np.bool_)):
         raise ParameterError(f"The 'opening' parameter of {_OWNER} must be a bool. Got {opening!r} instead.")
     w = None
@@ -636,17 +842,25 @@ def connexity(
     U, mult, spacing = D.points, D.mult, D.spacing
     if alpha is None:
         alpha = alpha_factor * spacing
+    radius = None
+    if method == "alpha_opening":
+        radius = 0.0 if not opening else opening_factor * alpha if opening_radius is None else opening_radius
 
     if n < 3 or U.shape[0] == 1:
         # Too few points for a shape, or a single position: one component.
         size = n if w is None else total
         sig = np.array([size >= threshold])
         return Connexity(n_components=1, n_significant=int(sig[0]), labels=np.zeros(n, dtype=np.int64),
-                         significant=sig, sizes=np.array([size]), alpha=float(alpha), spacing=spacing)
+                         significant=sig, sizes=np.array([size]), alpha=float(alpha), spacing=spacing,
+                         method=method, opening_radius=radius)
 
     # Size of each distinct position: its multiplicity, or its summed weight.
     size = mult if w is None else np.bincount(D.point_of, weights=w[D.order])
-    found = _compiled_opening_components(D, 2.0 * alpha, erosion_fraction, opening) if _flags.JIT else None
+    found = None
+    if method == "alpha_opening":
+        found = _alpha_opening_components(D, alpha, radius)
+    elif _flags.JIT:
+        found = _compiled_opening_components(D, 2.0 * alpha, erosion_fraction, opening)
     if found is not None:
         idx, comp, n_comp = found
     else:
@@ -667,7 +881,8 @@ def connexity(
     labels[D.order] = label_u[D.point_of]
     significant = sizes >= threshold
     return Connexity(n_components=int(n_comp), n_significant=int(significant.sum()), labels=labels,
-                     significant=significant, sizes=sizes, alpha=float(alpha), spacing=spacing)
+                     significant=significant, sizes=sizes, alpha=float(alpha), spacing=spacing,
+                     method=method, opening_radius=radius)
 
 
 def assign_to_nearest(X2d, labels, significant) -> np.ndarray:

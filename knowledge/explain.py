@@ -17,7 +17,9 @@ class CheckRecord:
 
     check: str
     predicate: str
-    value: float | None  #: None only when read back from a result file (non-finite numbers are null there)
+    #: None: undefined (e.g. the ground angle of a cluster with no plane; ``note`` says why), or, read
+    #: back from a result file, not finite (a result JSON writes NaN and infinities as null)
+    value: float | None
     unit: str
     min: float | None
     max: float | None
@@ -39,17 +41,18 @@ class CheckRecord:
         return f"not finite (null in the result file), {'passes' if self.passed else 'fails'} {bounds}"
 
     def comparison(self) -> str:
-        """'0.021 m <= 0.05 m'."""
+        """'0.021 m <= 0.05 m' ('undefined' when there is no value)."""
         if self.value is None:
-            return self._unknown()
+            return "undefined" if self.note else self._unknown()
         op, b = self.bound()
         u = f" {self.unit}" if self.unit else ""
         return f"{self.value:.4g}{u} {op} {b:g}{u}"
 
     def sentence(self) -> str:
-        """'connexity = 3 components > 1', 'thickness = 0.12 m > 0.05 m'."""
+        """'connexity = 3 components > 1', 'thickness = 0.12 m > 0.05 m', 'ground_angle undefined
+        (degenerate: its points lie on a line, no plane)'."""
         if self.value is None:
-            return f"{self.predicate} = {self._unknown()}"
+            return f"{self.predicate} undefined ({self.note})" if self.note else f"{self.predicate} = {self._unknown()}"
         op, b = self.bound()
         u = f" {self.unit}" if self.unit else ""
         if self.predicate == "connexity":
@@ -193,8 +196,9 @@ class Explanation:
         if rec.action == "reject":
             return f"{head} rejected as noise: {why}{src}"
         if rec.action == "limit":
-            return f"{head} kept as {rec.label or 'it is'} ({'; '.join(rec.notes)}): {why}{src}{self._relabel_text(rec)}"
-        label = f" as {rec.label}" if rec.label else ""
+            kept = rec.label or f"it is, {NO_LABEL}"
+            return f"{head} kept as {kept} ({'; '.join(rec.notes)}): {why}{src}{self._relabel_text(rec)}"
+        label = f" as {rec.label}" if rec.label else f", {NO_LABEL}"
         if rec.relabel:
             return f"{head} accepted as {rec.relabel['from']}{self._relabel_text(rec)}"
         why = why or "; ".join(c.sentence() for c in rec.checks) or "no check measured"
@@ -231,7 +235,7 @@ class Explanation:
         rec = chain[0]
         out.append("")
         out.append(f"{rec.id}: {rec.n_points:,} points, action {rec.action}"
-                   + (f", label {rec.label}" if rec.label else ""))
+                   + (f", label {rec.label}" if rec.label else f", {NO_LABEL}" if _is_leaf(rec) else ""))
         for c in rec.checks:
             out.append(f"  {'pass' if c.passed else 'FAIL'}  {c.check}: {c.predicate} = {c.comparison()}  [{c.source}]"
                        + (f"  ({c.note})" if c.note else ""))
@@ -242,6 +246,17 @@ class Explanation:
         if rec.apd:
             out.append(f"  APD: {rec.apd.text()}")
         return "\n".join(out)
+
+
+#: What an accepted cluster no label's condition holds for is called (its points have label -1,
+#: as rejected ones do, but they are in an output cluster): never 'noise', which a rule base may
+#: use as one of its labels.
+NO_LABEL = "no label matched"
+
+
+def _is_leaf(rec: ClusterRecord) -> bool:
+    """An output cluster's record: accepted, or kept by a limit (rejected ones are noise)."""
+    return rec.action in ("accept", "limit") and not rec.children
 
 
 def _fmt(v: Any) -> str:

@@ -29,7 +29,7 @@ import numpy as np
 from kbs.errors import FitError, KbsError
 from kbs.inference import UFPONCResult, ufp_onc
 from kbs.knowledge.connexity import Connexity, assign_to_nearest, project_on_plane
-from kbs.knowledge.explain import APDCurve, CheckRecord, ClusterRecord, Explanation
+from kbs.knowledge.explain import NO_LABEL, APDCurve, CheckRecord, ClusterRecord, Explanation
 from kbs.knowledge.predicates import Cluster, Ground, Measurement, PredicateError, Scene
 from kbs.knowledge.rulebase import Condition, RuleBase
 
@@ -89,8 +89,15 @@ class Segmentation:
         return dict(sorted(out.items(), key=lambda kv: order.index(kv[0]) if kv[0] in order else len(order)))
 
     def summary(self) -> dict[str, Any]:
+        """Counts; ``points_per_label``: each label's points, then ``noise`` (points in no output
+        cluster: rejected; ``noise (rejected)`` when the rule base has a label named noise) and,
+        when there are, ``no label matched`` (points of output clusters no label's condition held
+        for)."""
         counts = {name: int((self.label == i).sum()) for i, name in enumerate(self.label_names)}
-        counts["noise"] = int((self.label < 0).sum())
+        counts["noise (rejected)" if "noise" in counts else "noise"] = int((self.cluster < 0).sum())
+        unlabelled = int(((self.label < 0) & (self.cluster >= 0)).sum())
+        if unlabelled:
+            counts[NO_LABEL] = unlabelled
         return {"points": int(self.cluster.size), "clusters": len(self.clusters), "splits": self.n_splits,
                 "limits": sum(r.action == "limit" for r in self.explanation.records.values()),
                 "limits_by_kind": self.limits_by_kind(),
@@ -219,12 +226,12 @@ class Interpreter:
                 except Exception as exc:  # a predicate's bug must name the predicate and cluster
                     raise PredicateError(f"predicate '{check.predicate.name}' failed on cluster {cluster.id} "
                                          f"({cluster.n_points} points): {type(exc).__name__}: {exc}") from exc
-                done[name] = check.passes(m.value)
+                done[name] = m.defined and check.passes(m.value)  # an undefined value fails its check
                 cluster.cache[name] = m
                 rec.checks.append(CheckRecord(
-                    check=name, predicate=check.predicate.name, value=m.value,
+                    check=name, predicate=check.predicate.name, value=m.value if m.defined else None,
                     unit=check.predicate.unit_label(rb.length_unit), min=check.min, max=check.max,
-                    passed=done[name], source=check.pos.short))
+                    passed=done[name], source=check.pos.short, note=m.undefined or ""))
             return done[name]
 
         return fact
@@ -261,11 +268,14 @@ class Interpreter:
             return None
         if spec.normal is not None:
             return self._plane_from_normal(X, np.asarray(spec.normal, float), "fixed", info)
-        best = None
+        best, no_plane = None, []
         if spec.candidate is not None:
             provisional = Scene(self.sensor, None, self.rb.units)
             for cl, rec in candidates:
                 if cl.n_points < spec.min_points:
+                    continue
+                if cl.geometry.degenerate:  # its points on a line: no plane to give
+                    no_plane.append(cl.id)
                     continue
                 if not self._facts(cl, provisional, rec)(spec.candidate):
                     continue
@@ -274,7 +284,8 @@ class Interpreter:
                     best = (dist, cl)
         if best is None:
             info["note"] = (f"no cluster of the initial partition with >= {spec.min_points} points passes "
-                            f"'{spec.candidate}': the fallback normal {list(spec.fallback)} is used")
+                            f"'{spec.candidate}'{f' and has a plane ({len(no_plane)} degenerate)' if no_plane else ''}: "
+                            f"the fallback normal {list(spec.fallback)} is used")
             return self._plane_from_normal(X, np.asarray(spec.fallback, float), "fallback", info)
         dist, cl = best
         geo = cl.geometry
@@ -300,9 +311,11 @@ class Interpreter:
         if node.idx.size:
             geo = cl.geometry
             rec.descriptors = {
-                "center": geo.center.tolist(), "normal": geo.normal.tolist(), "thickness": geo.thickness,
-                "eigenvalues": geo.eigenvalues.tolist(), "mass": geo.mass,
+                "center": geo.center.tolist(), "normal": None if geo.degenerate else geo.normal.tolist(),
+                "thickness": geo.thickness, "eigenvalues": geo.eigenvalues.tolist(), "mass": geo.mass,
             }
+            if geo.degenerate:
+                rec.notes.append(f"degenerate: {geo.degeneracy}, no plane: normal/ground angle undefined")
         return cl, rec
 
     @staticmethod
@@ -763,7 +776,8 @@ class Interpreter:
         groups = np.arange(len(leaves))
         spec = self.rb.merge
         if spec is not None:
-            cand = np.array([i for i, (_, _, rec) in enumerate(leaves) if rec.label == spec.label], dtype=int)
+            cand = np.array([i for i, (_, cl, rec) in enumerate(leaves)
+                             if rec.label == spec.label and not cl.geometry.degenerate], dtype=int)  # no plane
             if cand.size > 1:
                 geos = [leaves[i][1].geometry for i in cand]
                 N = np.array([g.normal for g in geos])

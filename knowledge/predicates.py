@@ -10,11 +10,13 @@ and plugin files (``kbs run --plugin my_predicates.py``).
 """
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import importlib.util
 import inspect
 import math
 import sys
+import traceback
 from dataclasses import dataclass, field
 from functools import cached_property
 from importlib.metadata import entry_points
@@ -51,9 +53,24 @@ class PredicateError(KbsError):
 # --- what a predicate sees ------------------------------------------------------------------
 
 
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """A view of ``a`` that cannot be written through (``flags.writeable`` False); ``a`` itself
+    stays as it was."""
+    v = a.view()
+    v.flags.writeable = False
+    return v
+
+
+def _frozen_copy(a: Any) -> np.ndarray:
+    """A float64 copy of a small vector that nobody can write into."""
+    out = np.array(a, dtype=np.float64)
+    out.flags.writeable = False
+    return out
+
+
 @dataclass(eq=False)
 class Cluster:
-    """One cluster as the predicates see it.
+    """One cluster as the interpreter holds it; predicates see it through :meth:`view`.
 
     Attributes
     ----------
@@ -76,26 +93,93 @@ class Cluster:
 
     @cached_property
     def geometry(self) -> ClusterGeometry:
-        """Fuzzy centre, fuzzy covariance and its eigen-decomposition (memberships as weights)."""
+        """Fuzzy centre, fuzzy covariance and its eigen-decomposition (memberships as weights);
+        its arrays are read-only."""
         return cluster_geometry(self.X, self.weights)
+
+    def view(self) -> "ClusterView":
+        """The read-only view a predicate is given."""
+        return ClusterView(self)
+
+
+class ClusterView:
+    """What a predicate sees of a cluster: ``id``, ``X`` (n, 3), ``weights`` (n,), ``n_points``
+    and ``geometry`` (:class:`~kbs.inference.ClusterGeometry`), all read-only. A predicate
+    measures; writing into these arrays or assigning an attribute raises, and the run stops with
+    a plugin error naming the predicate."""
+
+    __slots__ = ("_cluster", "id", "X", "weights")
+
+    def __init__(self, cluster: Cluster) -> None:
+        object.__setattr__(self, "_cluster", cluster)
+        object.__setattr__(self, "id", cluster.id)
+        object.__setattr__(self, "X", _read_only(np.asarray(cluster.X)))
+        object.__setattr__(self, "weights", _read_only(np.asarray(cluster.weights)))
+
+    @property
+    def n_points(self) -> int:
+        return int(self.X.shape[0])
+
+    @property
+    def geometry(self) -> ClusterGeometry:
+        return self._cluster.geometry
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        raise AttributeError(f"cannot set '{name}': a predicate sees the cluster read-only")
+
+    def __delattr__(self, name: str) -> None:
+        raise AttributeError(f"cannot delete '{name}': a predicate sees the cluster read-only")
+
+    def __repr__(self) -> str:
+        return f"ClusterView(id={self.id!r}, n_points={self.n_points})"
 
 
 @dataclass(frozen=True)
 class Ground:
-    """The ground plane: unit normal (pointing up, away from the ground) and a point on it."""
+    """The ground plane: unit normal (pointing up, away from the ground) and a point on it (both
+    kept as read-only copies)."""
 
     normal: np.ndarray
     point: np.ndarray
     source: str  #: where it came from ('cluster c0', 'fixed', 'fallback')
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "normal", _frozen_copy(self.normal))
+        object.__setattr__(self, "point", _frozen_copy(self.point))
 
     def height(self, X: np.ndarray) -> np.ndarray:
         """Signed heights (n,) of points above the ground plane."""
         return (X - self.point) @ self.normal
 
 
+class _ReadOnlyObject:
+    """A read-only stand-in for an object a predicate may query (the local ground surface): its
+    methods work, its array attributes come as read-only views, nothing can be assigned."""
+
+    __slots__ = ("_target",)
+
+    def __init__(self, target: Any) -> None:
+        object.__setattr__(self, "_target", target)
+
+    def __getattr__(self, name: str) -> Any:
+        value = getattr(object.__getattribute__(self, "_target"), name)
+        return _read_only(value) if isinstance(value, np.ndarray) else value
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        raise AttributeError(f"cannot set '{name}': a predicate sees the scene read-only")
+
+    def __delattr__(self, name: str) -> None:
+        raise AttributeError(f"cannot delete '{name}': a predicate sees the scene read-only")
+
+    def __repr__(self) -> str:
+        return f"read-only {object.__getattribute__(self, '_target')!r}"
+
+
 @dataclass(frozen=True)
 class Scene:
-    """What predicates may know about the whole scene."""
+    """What predicates may know about the whole scene (read-only: the sensor is a read-only
+    copy, the ground plane a frozen :class:`Ground`, the local ground surface a read-only
+    stand-in)."""
 
     sensor: np.ndarray
     ground: Ground | None
@@ -104,13 +188,28 @@ class Scene:
     #: clusters are labelled; only the rule base's ``post.relabel`` conditions can see it
     ground_model: Any = None
 
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "sensor", _frozen_copy(self.sensor))
+        if self.ground_model is not None and not isinstance(self.ground_model, _ReadOnlyObject):
+            object.__setattr__(self, "ground_model", _ReadOnlyObject(self.ground_model))
+
 
 @dataclass(frozen=True)
 class Measurement:
-    """A predicate's value with optional details an action can reuse (e.g. the components)."""
+    """A predicate's value with optional details an action can reuse (e.g. the components).
+
+    ``undefined`` says why there is no value (then ``value`` is NaN), e.g. the ground angle of a
+    cluster whose points lie on a line: its check fails whatever its thresholds (so ``not CHECK``
+    holds), and the explanation gives the reason.
+    """
 
     value: float
     details: Any = None
+    undefined: str | None = None
+
+    @property
+    def defined(self) -> bool:
+        return self.undefined is None
 
 
 # --- the contract ---------------------------------------------------------------------------
@@ -124,14 +223,29 @@ class Param:
     low: float | None = None
     high: float | None = None
     choices: tuple[str, ...] | None = None
+    #: (other parameter, value): this parameter only means something when the other one has
+    #: that value (e.g. ``opening_factor`` with ``method: alpha_opening``)
+    applies_with: tuple[str, str] | None = None
 
     def describe(self) -> str:
+        only = f", with {self.applies_with[0]}: {self.applies_with[1]}" if self.applies_with else ""
         if self.choices:
-            return f"{self.name}: one of {', '.join(self.choices)} (default {self.default!r})"
+            return f"{self.name}: one of {', '.join(self.choices)} (default {self.default!r}{only})"
         rng = ""
         if self.low is not None or self.high is not None:
             rng = f" in [{'-inf' if self.low is None else self.low}, {'inf' if self.high is None else self.high}]"
-        return f"{self.name}: {self.type.__name__}{rng} (default {self.default!r})"
+        return f"{self.name}: {self.type.__name__}{rng} (default {self.default!r}{only})"
+
+    def check_with(self, params: Mapping[str, Any], defaults: Mapping[str, "Param"]) -> str | None:
+        """None when the parameters given with this one (``params``, the others at their
+        ``defaults``) are those it applies with, else what is wrong."""
+        if self.applies_with is None:
+            return None
+        other, value = self.applies_with
+        actual = params.get(other, defaults[other].default)
+        if actual == value:
+            return None
+        return f"parameter '{self.name}' applies only with {other}: {value} (here {other} is {actual!r})"
 
     def check(self, value: Any) -> str | None:
         """None when ``value`` is acceptable, else what is wrong."""
@@ -158,15 +272,75 @@ class Predicate:
     params: Mapping[str, Param]
     value_range: tuple[float | None, float | None]
     needs_ground: bool
+    #: where it comes from: its module for the built-ins, else its file and line ('my_plugin.py:12')
     origin: str
     needs_ground_model: bool = False
+    #: it measures the best approximating plane's orientation, which a degenerate cluster (all its
+    #: points on a line or at one position) does not have: the value is then undefined
+    needs_plane: bool = False
+
+    @property
+    def builtin(self) -> bool:
+        return self.origin == __name__
+
+    @property
+    def where(self) -> str:
+        """"predicate 'name'" and, for a plugin, its file and line."""
+        return f"predicate '{self.name}'" + ("" if self.builtin else f" ({self.origin})")
 
     def measure(self, cluster: Cluster, scene: Scene, params: Mapping[str, Any]) -> Measurement:
-        out = self.func(cluster, scene, **params)
-        m = out if isinstance(out, Measurement) else Measurement(float(out))
+        """Measure ``cluster`` in ``scene``. The predicate is given read-only views of both.
+
+        Raises :class:`PredicateError` when it fails, changes what it is given, exits or returns
+        something else than a number; ``KeyboardInterrupt`` goes through (Ctrl-C stops the run).
+        """
+        if self.needs_plane:
+            geo = cluster.geometry
+            if geo.degenerate:
+                return Measurement(math.nan, undefined=f"degenerate: {geo.degeneracy}, no plane")
+        seen = cluster.view() if isinstance(cluster, Cluster) else cluster
+        try:
+            out = self.func(seen, scene, **params)
+        except KeyboardInterrupt:
+            raise
+        except KbsError as exc:
+            if self.builtin:  # e.g. connexity's own parameter errors: as they are
+                raise
+            raise PredicateError(f"{self.where} failed on cluster {cluster.id} ({cluster.n_points:,} points)"
+                                 f"{self._line(exc)}: {type(exc).__name__}: {exc}") from exc
+        except SystemExit as exc:
+            raise PredicateError(f"{self.where} called sys.exit({exc.code!r}){self._line(exc)} on cluster {cluster.id} "
+                                 f"({cluster.n_points:,} points): a predicate returns a number or raises an "
+                                 "exception; it must not end the program") from None
+        except BaseException as exc:  # its bug: name the predicate, its file and line, and the cluster
+            hint = ("; a predicate must not change the cluster or the scene it is given (they are read-only)"
+                    if _is_mutation(exc) else "")
+            raise PredicateError(f"{self.where} failed on cluster {cluster.id} ({cluster.n_points:,} points)"
+                                 f"{self._line(exc)}: {type(exc).__name__}: {exc}{hint}") from exc
+        if isinstance(out, Measurement):
+            m = out
+        else:
+            try:
+                m = Measurement(float(out))
+            except (TypeError, ValueError):
+                m = Measurement(out)
+        if not m.defined:
+            return Measurement(math.nan, m.details, str(m.undefined))
         if not isinstance(m.value, (int, float, np.floating, np.integer)) or math.isnan(float(m.value)):
-            raise PredicateError(f"predicate '{self.name}' returned {m.value!r} for cluster {cluster.id}, not a number")
+            raise PredicateError(f"{self.where} returned {m.value!r} for cluster {cluster.id}, not a number "
+                                 "(when there is none, return Measurement(nan, undefined='why'))")
         return Measurement(float(m.value), m.details)
+
+    def _line(self, exc: BaseException) -> str:
+        """' at my_plugin.py:17': the last line of the predicate's own file the error went
+        through ('' for a built-in, or when there is none)."""
+        if self.builtin:
+            return ""
+        code = getattr(inspect.unwrap(self.func), "__code__", None)
+        if code is None:
+            return ""
+        frames = [f for f in traceback.extract_tb(exc.__traceback__) if f.filename == code.co_filename]
+        return f" at {frames[-1].filename}:{frames[-1].lineno}" if frames else ""
 
     def unit_label(self, length_unit: str) -> str:
         return {"length": length_unit, "deg": "deg", "count": "", "points": "pts", "ratio": ""}[self.unit]
@@ -174,6 +348,34 @@ class Predicate:
     @property
     def summary(self) -> str:
         return self.doc.strip().splitlines()[0]
+
+
+def _is_mutation(exc: BaseException) -> bool:
+    """Whether ``exc`` is what writing into a read-only view or a frozen object raises."""
+    if isinstance(exc, dataclasses.FrozenInstanceError):
+        return True
+    text = str(exc)
+    return (isinstance(exc, ValueError) and "read-only" in text) or \
+        (isinstance(exc, AttributeError) and "read-only" in text)
+
+
+def origin_of(func: Callable) -> str:
+    """Where a predicate function is declared: its module for the built-ins (and anything of
+    kbs), else its file and line ('my_plugin.py:12', the line of its decorator), else what is
+    known (its module's file or name)."""
+    module = getattr(func, "__module__", None) or "?"
+    if module == "kbs" or module.startswith("kbs."):
+        return module
+    code = getattr(inspect.unwrap(func), "__code__", None)
+    if code is not None:
+        return f"{code.co_filename}:{code.co_firstlineno}"
+    return getattr(sys.modules.get(module), "__file__", None) or module
+
+
+def _file_and_line(origin: str) -> tuple[str | None, int | None]:
+    """('my_plugin.py', 12) for an origin 'my_plugin.py:12', else (None, None)."""
+    file, sep, line = origin.rpartition(":")
+    return (file, int(line)) if sep and file and line.isdigit() else (None, None)
 
 
 def predicate(
@@ -185,6 +387,8 @@ def predicate(
     bounds: Mapping[str, tuple[float | None, float | None]] | None = None,
     choices: Mapping[str, Iterable[str]] | None = None,
     needs_ground_model: bool = False,
+    needs_plane: bool = False,
+    applies_with: Mapping[str, tuple[str, str]] | None = None,
 ) -> Callable[[Callable], Predicate]:
     """Declare a predicate. The function is checked now, not when it is first called.
 
@@ -202,23 +406,35 @@ def predicate(
         Whether it uses ``scene.ground_model``, the local ground surface built from the clusters
         labelled ground (implies ``needs_ground``). Such a predicate can only be used after the
         labelling: in the conditions of ``post.relabel``.
+    needs_plane : bool
+        Whether it measures the orientation of the cluster's best approximating plane (its
+        normal, the ratio of its spreads). A degenerate cluster (``cluster.geometry.degenerate``:
+        its points on a line or at one position) has none: the predicate is not called, its
+        value is undefined, its check fails and the explanation says why.
     bounds, choices : mapping
         Allowed ranges of numeric parameters, allowed values of string parameters.
+    applies_with : mapping
+        Parameters that only mean something when another (string) parameter has one value:
+        ``{"opening_factor": ("method", "alpha_opening")}``. A rule file that gives such a
+        parameter without that value is refused when it is loaded.
     """
 
     def wrap(func: Callable) -> Predicate:
         return make_predicate(func, name=name or getattr(func, "__name__", ""), unit=unit, value_range=value_range,
                               needs_ground=needs_ground or needs_ground_model, bounds=bounds or {},
-                              choices=choices or {}, origin=getattr(func, "__module__", "?"),
-                              needs_ground_model=needs_ground_model)
+                              choices=choices or {}, origin=origin_of(func),
+                              needs_ground_model=needs_ground_model, needs_plane=needs_plane,
+                              applies_with=applies_with or {})
 
     return wrap
 
 
 def make_predicate(func: Callable, *, name: str, unit: str, value_range, needs_ground: bool, bounds, choices,
-                   origin: str, needs_ground_model: bool = False) -> Predicate:
+                   origin: str, needs_ground_model: bool = False, needs_plane: bool = False,
+                   applies_with: Mapping[str, tuple[str, str]] | None = None) -> Predicate:
     """Check a function against the predicate contract and wrap it (raises PredicateError)."""
-    where = f"predicate '{name}' ({origin})"
+    file, line = _file_and_line(origin)
+    where = f"{file}: predicate '{name}' (line {line})" if file else f"predicate '{name}' ({origin})"
     if not isinstance(name, str) or not name.isidentifier():
         raise PredicateError(f"{where}: the name must be an identifier")
     if not callable(func):
@@ -243,17 +459,25 @@ def make_predicate(func: Callable, *, name: str, unit: str, value_range, needs_g
             raise PredicateError(f"{where}: parameter '{p.name}' needs a default of type bool, int, float or str")
         b = (bounds or {}).get(p.name, (None, None))
         c = tuple((choices or {}).get(p.name, ())) or None
-        params[p.name] = Param(p.name, type(p.default), p.default, b[0], b[1], c)
+        w = (applies_with or {}).get(p.name)
+        params[p.name] = Param(p.name, type(p.default), p.default, b[0], b[1], c, None if w is None else tuple(w))
         problem = params[p.name].check(p.default)
         if problem:
             raise PredicateError(f"{where}: default of {problem}")
-    unknown = set(bounds or {}) | set(choices or {})
+    unknown = set(bounds or {}) | set(choices or {}) | set(applies_with or {})
     unknown -= set(params)
     if unknown:
-        raise PredicateError(f"{where}: bounds or choices given for unknown parameters {sorted(unknown)}")
+        raise PredicateError(f"{where}: bounds, choices or applies_with given for unknown parameters {sorted(unknown)}")
+    for pname, param in params.items():
+        if param.applies_with is None:
+            continue
+        other, value = param.applies_with
+        if other not in params or not params[other].choices or value not in params[other].choices:
+            raise PredicateError(f"{where}: parameter '{pname}' applies with {other}: {value!r}, which is not one of "
+                                 f"the declared choices of a parameter '{other}'")
     return Predicate(name=name, func=func, unit=unit, doc=doc, params=params, value_range=(lo, hi),
                      needs_ground=needs_ground or needs_ground_model, origin=origin,
-                     needs_ground_model=needs_ground_model)
+                     needs_ground_model=needs_ground_model, needs_plane=bool(needs_plane))
 
 
 # --- the registry ---------------------------------------------------------------------------
@@ -275,8 +499,11 @@ class PredicateRegistry:
             for ep in entry_points(group=ENTRY_POINT_GROUP):
                 try:
                     obj = ep.load()
-                except Exception as exc:  # a broken third-party package must say who it is
-                    raise PredicateError(f"entry point '{ep.name}' ({ep.value}) failed to load: {exc}") from exc
+                except KeyboardInterrupt:
+                    raise
+                except BaseException as exc:  # a broken third-party package must say who it is (sys.exit too)
+                    what = f"called sys.exit({exc.code!r})" if isinstance(exc, SystemExit) else f"failed to load: {exc}"
+                    raise PredicateError(f"entry point '{ep.name}' ({ep.value}) {what}") from exc
                 reg.add_object(obj, origin=f"entry point {ep.name}")
         return reg
 
@@ -304,7 +531,12 @@ class PredicateRegistry:
         raise PredicateError(f"{origin}: expected a predicate or a module of predicates, got {type(obj).__name__}")
 
     def add_plugin_file(self, path: str | Path) -> int:
-        """Import a Python file and add the predicates it declares."""
+        """Import a Python file and add the predicates it declares.
+
+        Every problem is a :class:`PredicateError` naming the file (and the line where known):
+        a missing file, an import that fails or exits (``sys.exit``), a predicate that breaks the
+        contract. ``KeyboardInterrupt`` goes through.
+        """
         path = Path(path)
         if not path.is_file():
             raise PredicateError(f"{path}: plugin file not found")
@@ -313,13 +545,25 @@ class PredicateRegistry:
         if spec is None or spec.loader is None:
             raise PredicateError(f"{path}: not an importable Python file")
         module = importlib.util.module_from_spec(spec)
+        try:
+            source = path.read_bytes()
+        except OSError as exc:
+            raise PredicateError(f"{path}: cannot read the plugin file: {exc.strerror or exc}") from exc
         sys.modules[mod_name] = module
         try:
-            spec.loader.exec_module(module)
+            # compiled under the path as the user gave it, so that every message (the predicates'
+            # origins, the lines of errors) names the file they know
+            exec(compile(source, str(path), "exec"), module.__dict__)
         except PredicateError as exc:
-            raise PredicateError(f"{path}: {exc}") from exc
-        except Exception as exc:
-            raise PredicateError(f"{path}: the plugin failed to import: {type(exc).__name__}: {exc}") from exc
+            raise PredicateError(str(exc) if str(exc).startswith(f"{path}:") else f"{path}: {exc}") from exc
+        except KeyboardInterrupt:
+            raise
+        except SystemExit as exc:
+            raise PredicateError(f"{_at_line(path, exc)}: the plugin called sys.exit({exc.code!r}) while being "
+                                 "imported: a plugin file declares predicates; it must not end the program") from None
+        except BaseException as exc:
+            raise PredicateError(f"{_at_line(path, exc)}: the plugin failed to import: "
+                                 f"{type(exc).__name__}: {exc}") from exc
         return self.add_object(module, origin=str(path))
 
     def get(self, name: str) -> Predicate:
@@ -339,6 +583,16 @@ class PredicateRegistry:
         return did_you_mean(name, self.names())
 
 
+def _at_line(path: Path, exc: BaseException) -> str:
+    """'my_plugin.py:7': the file and the last line of it that ``exc`` went through ('my_plugin.py'
+    alone when unknown)."""
+    line = getattr(exc, "lineno", None) if isinstance(exc, SyntaxError) else None
+    if line is None:
+        frames = [f for f in traceback.extract_tb(exc.__traceback__) if f.filename == str(path)]
+        line = frames[-1].lineno if frames else None
+    return f"{path}:{line}" if line else str(path)
+
+
 def did_you_mean(name: str, candidates: Iterable[str]) -> str | None:
     hits = difflib.get_close_matches(str(name), list(candidates), n=1, cutoff=0.6)
     return hits[0] if hits else None
@@ -354,33 +608,44 @@ def thickness(cluster: Cluster, scene: Scene) -> float:
     return cluster.geometry.thickness
 
 
-@predicate(unit="ratio", value_range=(0.0, 1.0))
+@predicate(unit="ratio", value_range=(0.0, 1.0), needs_plane=True)
 def flatness(cluster: Cluster, scene: Scene) -> float:
     """sqrt(mu1 / mu2): the spread across the best approximating plane relative to the smaller
-    spread along it; 0 for a sheet, 1 when the cluster is as thick as it is wide (a blob)."""
+    spread along it; 0 for a sheet, 1 when the cluster is as thick as it is wide (a blob).
+    Undefined when its points lie on a line (0 / 0)."""
     mu = cluster.geometry.eigenvalues
     return float(np.sqrt(mu[0] / mu[1])) if mu[1] > 0 else 0.0
 
 
-@predicate(unit="deg", value_range=(0.0, 90.0), needs_ground=True)
+@predicate(unit="deg", value_range=(0.0, 90.0), needs_ground=True, needs_plane=True)
 def ground_angle(cluster: Cluster, scene: Scene) -> float:
     """Angle in degrees between the cluster's best approximating plane and the ground plane
-    (0 = parallel)."""
+    (0 = parallel). Undefined when its points lie on a line: no plane."""
     return math.degrees(angle_between_planes(cluster.geometry.normal, scene.ground.normal))
 
 
-@predicate(unit="count", value_range=(0.0, None), bounds={"alpha_factor": (0.1, 100.0), "min_fraction": (0.0, 1.0),
-                                                           "min_points": (1, None)})
+@predicate(unit="count", value_range=(0.0, None),
+           bounds={"alpha_factor": (0.1, 100.0), "min_fraction": (0.0, 1.0), "min_points": (1, None),
+                   "opening_factor": (0.0, 10.0)},
+           choices={"method": _connexity.METHODS},
+           applies_with={"opening_factor": ("method", "alpha_opening")})
 def connexity(cluster: Cluster, scene: Scene, *, alpha_factor: float = 3.0, min_fraction: float = 0.05,
-              min_points: int = 10, opening: bool = True) -> Measurement:
+              min_points: int = 10, opening: bool = True, method: str = "graph",
+              opening_factor: float = 1.0) -> Measurement:
     """Number of significant connected components of the cluster projected on its best
     approximating plane (alpha-complex with alpha = alpha_factor x the median nearest-neighbour
     spacing, filtered by a morphological opening; a component is significant with at least
     max(min_points, min_fraction x size) points). CAh measures this; the components are the
-    natural split."""
+    natural split. method 'graph': the components of the links <= 2 alpha, opened by counting
+    neighbours; 'alpha_opening' (the paper's): the alpha-shape (Delaunay triangles of
+    circumradius <= alpha) opened by a disc of radius opening_factor x alpha, which removes the
+    parts narrower than twice that radius."""
     geo = cluster.geometry
+    if method == "alpha_opening" and geo.degenerate:  # an alpha-shape of points on a line has no area
+        return Measurement(math.nan, undefined=f"degenerate: {geo.degeneracy}, no plane for an alpha-shape")
     res = _connexity.connexity(cluster.X, geo.center, geo.normal, alpha_factor=alpha_factor,
-                               min_fraction=min_fraction, min_points=min_points, opening=opening)
+                               min_fraction=min_fraction, min_points=min_points, opening=opening,
+                               method=method, opening_factor=opening_factor)
     return Measurement(float(res.n_significant), res)
 
 

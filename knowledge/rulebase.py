@@ -5,13 +5,20 @@ Each problem prints as ``file:line:col: message`` (1-based), followed by the off
 line and a caret under the offending value (after yamllint and strictyaml). Validation is the
 JSON Schema shipped in ``rules/rule-base.schema.json`` plus what a schema cannot say: known
 predicates ("did you mean"), their parameters, thresholds within the predicate's range,
-references between checks, rules and labels, and contradictory settings.
+references between checks, rules and labels, and contradictory settings. Conditions that can
+never hold are warnings (:attr:`RuleBase.warnings`), not problems.
+
+The YAML is read within bounds, so that no file can hang the reader or exhaust the memory: a
+size (:data:`MAX_RULE_FILE_BYTES`), a nesting depth (:data:`MAX_NESTING`,
+:data:`MAX_CONDITION_DEPTH`) and the nodes aliases may repeat (:data:`MAX_ALIAS_NODES`); numbers
+must be finite. Each is a problem at its position, as any other.
 """
 from __future__ import annotations
 
 import functools
-
 import json
+import math
+import reprlib
 from dataclasses import dataclass, field
 from functools import lru_cache
 from importlib import resources
@@ -19,6 +26,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping
 
 import yaml
+import yaml.cyaml  # noqa: F401 (libyaml when present)
 from jsonschema import Draft202012Validator
 
 from kbs.errors import ExitCode, KbsError
@@ -64,15 +72,32 @@ def _short(file: str, line: int) -> str:
 
 @dataclass(frozen=True)
 class Problem:
+    """A problem of a rule file at a position; a warning does not make the file invalid."""
+
     pos: SourcePos
     message: str
     source_line: str = ""
+    warning: bool = False
 
     def format(self) -> str:
-        out = f"{self.pos}: {self.message}"
+        out = f"{self.pos}: {'warning: ' if self.warning else ''}{self.message}"
         if self.source_line:
-            out += f"\n    {self.source_line}\n    {' ' * (self.pos.col - 1)}^"
+            line, caret = _window(self.source_line, self.pos.col)
+            out += f"\n    {line}\n    {' ' * caret}^"
         return out
+
+
+def _window(line: str, col: int, width: int = 120) -> tuple[str, int]:
+    """The part of a source line to quote (at most ``width`` characters around column ``col``,
+    '...' where it is cut; a tab shown as a space so that the caret stays under its character)
+    and the caret's offset in it."""
+    line = line.replace("\t", " ")
+    if len(line) <= width:
+        return line, col - 1
+    start = max(0, min(col - 1 - width // 2, len(line) - width))
+    end = start + width
+    head, tail = ("..." if start > 0 else ""), ("..." if end < len(line) else "")
+    return head + line[start:end] + tail, col - 1 - start + len(head)
 
 
 class RuleFileError(KbsError):
@@ -91,7 +116,11 @@ class RuleFileError(KbsError):
 
 
 class _Positions:
-    """Maps a path in the YAML document (keys and indices) to the position of its value and key."""
+    """Maps a path in the YAML document (keys and indices) to the position of its value and key.
+
+    The walk goes over the document as the program sees it (an alias stands for the node it
+    names), which the loader has bounded (:data:`MAX_ALIAS_NODES`, :data:`MAX_NESTING`); it is
+    iterative, whatever the depth."""
 
     def __init__(self, file: str, text: str, root: yaml.Node | None) -> None:
         self.file = file
@@ -100,22 +129,26 @@ class _Positions:
         self.keys: dict[tuple, yaml.Mark] = {}
         self.duplicates: list[tuple[tuple, yaml.Mark]] = []
         if root is not None:
-            self._walk(root, ())
+            self._walk(root)
 
-    def _walk(self, node: yaml.Node, path: tuple) -> None:
-        self.values[path] = node.start_mark
-        if isinstance(node, yaml.MappingNode):
-            seen = set()
-            for k, v in node.value:
-                key = k.value
-                if key in seen:
-                    self.duplicates.append((path + (key,), k.start_mark))
-                seen.add(key)
-                self.keys[path + (key,)] = k.start_mark
-                self._walk(v, path + (key,))
-        elif isinstance(node, yaml.SequenceNode):
-            for i, v in enumerate(node.value):
-                self._walk(v, path + (i,))
+    def _walk(self, root: yaml.Node) -> None:
+        reported: set[int] = set()  # a mapping reached through several aliases reports its duplicates once
+        stack: list[tuple[yaml.Node, tuple]] = [(root, ())]
+        while stack:
+            node, path = stack.pop()
+            self.values[path] = node.start_mark
+            if isinstance(node, yaml.MappingNode):
+                seen = set()
+                for k, v in node.value:
+                    key = k.value if isinstance(k, yaml.ScalarNode) else id(k)
+                    if key in seen and id(k) not in reported:
+                        reported.add(id(k))
+                        self.duplicates.append((path + (key,), k.start_mark))
+                    seen.add(key)
+                    self.keys[path + (key,)] = k.start_mark
+                    stack.append((v, path + (key,)))
+            elif isinstance(node, yaml.SequenceNode):
+                stack.extend((v, path + (i,)) for i, v in enumerate(node.value))
 
     def pos(self, path: tuple, *, key: bool = False) -> SourcePos:
         path = tuple(path)
@@ -130,10 +163,13 @@ class _Positions:
                 path = path[:-1]
         return SourcePos(self.file, mark.line + 1, mark.column + 1)
 
-    def problem(self, path: tuple, message: str, *, key: bool = False) -> Problem:
+    def problem(self, path: tuple, message: str, *, key: bool = False, warning: bool = False) -> Problem:
         pos = self.pos(path, key=key)
-        line = self.lines[pos.line - 1] if 0 < pos.line <= len(self.lines) else ""
-        return Problem(pos, message, line)
+        return Problem(pos, message, self.line(pos.line), warning)
+
+    def line(self, line: int) -> str:
+        """The source line (1-based), '' beyond the text."""
+        return self.lines[line - 1] if 0 < line <= len(self.lines) else ""
 
 
 def _where(path: tuple) -> str:
@@ -292,6 +328,9 @@ class RuleBase:
     asprs_classes: Mapping[str, int] | None = None
     #: spacing: the median point spacing [min, max] the rule base suits (its unit); None: not declared.
     spacing: tuple[float, float] | None = None
+    #: what is valid but cannot be meant: conditions that can never hold (``kbs rules check``
+    #: prints them; they do not make the file invalid)
+    warnings: tuple[Problem, ...] = ()
 
     @property
     def label_names(self) -> list[str]:
@@ -315,6 +354,30 @@ def schema() -> dict:
     return json.loads(resources.files("kbs.rules").joinpath(SCHEMA_FILE).read_text(encoding="utf-8"))
 
 
+@lru_cache(maxsize=1)
+def _schema_validator() -> Draft202012Validator:
+    """A validator of :func:`schema` with its non-recursive definitions ('name', 'vector3')
+    written out where they are used: the same schema, validated some 1.5 x faster (a reference
+    costs a look-up for each of the thousands of names a large file holds)."""
+    doc = schema()
+    defs = doc.get("$defs", {})
+    plain = {f"#/$defs/{k}": v for k, v in defs.items() if "$ref" not in json.dumps(v)}
+
+    def inline(node: Any) -> Any:
+        if isinstance(node, dict):
+            out = {k: inline(v) for k, v in node.items()}
+            target = plain.get(out.get("$ref")) if isinstance(out.get("$ref"), str) else None
+            if target is not None:
+                del out["$ref"]
+                out = {**target, **out}
+            return out
+        if isinstance(node, list):
+            return [inline(v) for v in node]
+        return node
+
+    return Draft202012Validator(inline(doc))
+
+
 def shipped_rule_bases() -> list[str]:
     """Names of the rule bases shipped with kbs."""
     return sorted(p.name[:-5] for p in resources.files("kbs.rules").iterdir() if p.name.endswith(".yaml"))
@@ -325,13 +388,23 @@ def shipped_text(name: str) -> str:
 
 
 def resolve(name_or_path: str) -> tuple[str, str]:
-    """``(display path, text)`` of a rule base given as a path or a shipped name."""
+    """``(display path, text)`` of a rule base given as a path or a shipped name.
+
+    A file larger than :data:`MAX_RULE_FILE_BYTES` is refused before it is read; one that is not
+    UTF-8 is refused at the line and column of its first bad byte."""
     p = Path(name_or_path)
     if p.is_file():
+        where = SourcePos(str(name_or_path), 1, 1)
         try:
-            return str(name_or_path), p.read_text(encoding="utf-8")
-        except (OSError, UnicodeDecodeError) as exc:
-            raise RuleFileError([Problem(SourcePos(str(name_or_path), 1, 1), f"cannot read: {exc}")]) from exc
+            size = p.stat().st_size
+            if size > MAX_RULE_FILE_BYTES:
+                raise RuleFileError([Problem(where, _too_large(size))])
+            data = p.read_bytes()
+        except OSError as exc:
+            raise RuleFileError([Problem(where, f"cannot read: {exc.strerror or exc}")]) from exc
+        if len(data) > MAX_RULE_FILE_BYTES:  # grew since
+            raise RuleFileError([Problem(where, _too_large(len(data)))])
+        return str(name_or_path), _decode(data, str(name_or_path))
     if p.exists():
         raise RuleFileError([Problem(SourcePos(str(name_or_path), 1, 1), "not a file")])
     name = p.name[:-5] if p.name.endswith(".yaml") and p.parent == Path(".") else str(name_or_path)
@@ -344,6 +417,26 @@ def resolve(name_or_path: str) -> tuple[str, str]:
     raise RuleFileError([Problem(SourcePos(str(name_or_path), 1, 1), msg)])
 
 
+def _too_large(size: int) -> str:
+    return (f"the file is {size:,} bytes; a rule file may have at most {MAX_RULE_FILE_BYTES:,} "
+            f"(the shipped ones have under 5,000)")
+
+
+def _decode(data: bytes, file: str) -> str:
+    """The text of a UTF-8 file; a byte that is not UTF-8 is a problem at its line and column."""
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        start = data.rfind(b"\n", 0, exc.start) + 1
+        end = data.find(b"\n", exc.start)
+        line = data.count(b"\n", 0, exc.start) + 1
+        col = len(data[start:exc.start].decode("utf-8", errors="replace")) + 1
+        src = data[start:None if end < 0 else end].decode("utf-8", errors="replace").rstrip("\r")
+        raise RuleFileError([Problem(SourcePos(file, line, col),
+                                     f"not UTF-8: byte 0x{data[exc.start]:02x} cannot be decoded ({exc.reason}); "
+                                     "save the file as UTF-8", src)]) from None
+
+
 def load_rule_base(name_or_path: str, registry: PredicateRegistry | None = None) -> RuleBase:
     """Load and validate a rule base (a path or a shipped name); raises :class:`RuleFileError`
     listing every problem."""
@@ -351,21 +444,282 @@ def load_rule_base(name_or_path: str, registry: PredicateRegistry | None = None)
     return parse_rule_base(text, display, registry or PredicateRegistry.default())
 
 
-def parse_rule_base(text: str, file: str, registry: PredicateRegistry) -> RuleBase:
+# --- reading YAML within bounds ------------------------------------------------------------------
+
+#: A rule file larger than this is refused before it is read (the shipped ones are ~4 kB; 1 MB is
+#: some 7,000 checks).
+MAX_RULE_FILE_BYTES = 1_000_000
+#: Nodes (scalars, lists, mappings) all the aliases of a document may repeat together. An alias
+#: costs nothing in the file and its whole node to every pass over the document: nine levels of
+#: nine aliases (a "billion laughs", 1 kB) repeat 9**9 nodes. Reusing a condition or parameters
+#: through an anchor repeats tens of nodes.
+MAX_ALIAS_NODES = 10_000
+#: Nesting of lists and mappings, aliases expanded. Every pass over the document (the schema's
+#: among them) recurses, one or a few Python frames per level; 100 levels stay well within
+#: Python's default limit of 1,000 frames, and hold conditions nested MAX_CONDITION_DEPTH deep.
+MAX_NESTING = 100
+#: Nesting of conditions (a list, {all: ...} or {any: ...} inside another). The shipped rule bases
+#: nest 1 deep; 32 is beyond anything a reader can follow, and {all: [...]} being two YAML
+#: levels, 32 conditions deep sit within MAX_NESTING.
+MAX_CONDITION_DEPTH = 32
+
+_FLOAT_TAG = "tag:yaml.org,2002:float"
+_INT_TAG = "tag:yaml.org,2002:int"
+
+
+class _Refused(Exception):
+    """What the bounded loader refuses: a position (a yaml Mark) and a message."""
+
+    def __init__(self, mark: yaml.Mark, message: str) -> None:
+        super().__init__(message)
+        self.mark, self.message = mark, message
+
+
+class _BoundedComposer(yaml.composer.Composer):
+    """PyYAML's composer (events to nodes) with bounds, checked as the nodes come.
+
+    Every node records its size and height with aliases expanded (a sum over its children, each
+    counted once: linear in the file). An alias adds the size of the node it names to a running
+    total: past :data:`MAX_ALIAS_NODES` it is refused at its position, before anything walks the
+    expansion. So is a node deeper than :data:`MAX_NESTING` (an alias counts with the height of
+    its node), and an alias inside the node it names (a recursive structure). Numbers that are
+    not finite, or too large for a float, are collected in ``self.bad_numbers``.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._depth = 0
+        self._alias_nodes = 0
+        self._size: dict[int, int] = {}  # id(node) -> nodes with aliases expanded; absent while open
+        self._height: dict[int, int] = {}
+        self.bad_numbers: list[tuple[yaml.Mark, str]] = []
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            target = self.anchors.get(event.anchor)
+            if target is not None:  # (an undefined alias: PyYAML's own error)
+                size = self._size.get(id(target))
+                if size is None:
+                    raise _Refused(event.start_mark, f"alias *{event.anchor} is inside the node it names "
+                                                     "(a structure that contains itself)")
+                self._alias_nodes += size
+                if self._alias_nodes > MAX_ALIAS_NODES:
+                    raise _Refused(event.start_mark,
+                                   f"alias *{event.anchor} repeats {size:,} nodes: the aliases of this file would "
+                                   f"repeat more than {MAX_ALIAS_NODES:,} nodes in all (an alias bomb?); write the "
+                                   "values out, or use fewer aliases")
+                if self._depth + self._height[id(target)] > MAX_NESTING:
+                    raise _Refused(event.start_mark, _too_deep())
+            return super().compose_node(parent, index)
+        if self._depth >= MAX_NESTING:
+            raise _Refused(self.peek_event().start_mark, _too_deep())
+        self._depth += 1
+        node = super().compose_node(parent, index)
+        self._depth -= 1
+        if isinstance(node, yaml.ScalarNode):
+            self._size[id(node)], self._height[id(node)] = 1, 1
+            if node.tag in (_FLOAT_TAG, _INT_TAG):
+                self._check_number(node)
+            return node
+        children = ([c for pair in node.value for c in pair] if isinstance(node, yaml.MappingNode)
+                    else node.value)
+        self._size[id(node)] = 1 + sum(self._size[id(c)] for c in children)
+        self._height[id(node)] = 1 + max((self._height[id(c)] for c in children), default=0)
+        return node
+
+    def _check_number(self, node: yaml.ScalarNode) -> None:
+        text = node.value
+        if node.tag == _INT_TAG:
+            digits = sum(ch.isdigit() for ch in text)
+            if digits > 300:  # beyond any float, and Python refuses to read 4,300 digits
+                self.bad_numbers.append((node.start_mark, f"{_clip(text)} ({digits:,} digits) is too large: "
+                                                          "a number must be within +-1.8e308"))
+            return
+        try:
+            value = yaml.constructor.SafeConstructor.construct_yaml_float(self, node)
+        except ValueError:
+            return  # the constructor says what is wrong with it
+        if not math.isfinite(value):
+            self.bad_numbers.append((node.start_mark, f"{text} is not a finite number: thresholds, positions, "
+                                                      "vectors and settings must be finite"
+                                     + ("" if text.lstrip("+-").startswith(".") else " (it overflows)")))
+
+
+def _too_deep() -> str:
+    return (f"nested more than {MAX_NESTING} levels deep (lists and mappings); a condition may nest at most "
+            f"{MAX_CONDITION_DEPTH} levels")
+
+
+def _clip(text: str, keep: int = 12) -> str:
+    return text if len(text) <= 2 * keep + 3 else f"{text[:keep]}...{text[-keep:]}"
+
+
+class _ConstructorMixin:
+    def construct_object(self, node, deep=False):
+        try:
+            return super().construct_object(node, deep)
+        except (ValueError, ArithmeticError) as exc:  # an impossible date, a float that is not one
+            raise _Refused(node.start_mark, f"cannot read {_clip(str(node.value), 30)}: {exc}") from exc
+
+
+class _PyLoader(yaml.reader.Reader, yaml.scanner.Scanner, yaml.parser.Parser, _BoundedComposer, _ConstructorMixin,
+                yaml.constructor.SafeConstructor, yaml.resolver.Resolver):
+    """The pure-Python loader, bounded (its messages say what was expected, and what was found)."""
+
+    def __init__(self, stream: str) -> None:
+        yaml.reader.Reader.__init__(self, stream)
+        yaml.scanner.Scanner.__init__(self)
+        yaml.parser.Parser.__init__(self)
+        _BoundedComposer.__init__(self)
+        yaml.constructor.SafeConstructor.__init__(self)
+        yaml.resolver.Resolver.__init__(self)
+
+
+if getattr(yaml, "__with_libyaml__", False):
+    class _CLoader(_BoundedComposer, _ConstructorMixin, yaml.cyaml.CParser, yaml.constructor.SafeConstructor,
+                   yaml.resolver.Resolver):
+        """The same bounded composer over libyaml's events (the parser in C: 3 x faster)."""
+
+        def __init__(self, stream: str) -> None:
+            yaml.cyaml.CParser.__init__(self, stream)
+            _BoundedComposer.__init__(self)
+            yaml.constructor.SafeConstructor.__init__(self)
+            yaml.resolver.Resolver.__init__(self)
+
+    _FAST_LOADER: type = _CLoader
+else:  # pragma: no cover - PyYAML without libyaml
+    _FAST_LOADER = _PyLoader
+
+
+def _load(text: str, loader_class: type) -> tuple[yaml.Node | None, Any, list[tuple[yaml.Mark, str]]]:
+    """(root node, data, bad numbers) of a YAML document; raises yaml.YAMLError or _Refused."""
+    loader = loader_class(text)
     try:
-        root = yaml.compose(text, Loader=yaml.SafeLoader)
-        data = yaml.safe_load(text)
+        root = loader.get_single_node()
+        if loader.bad_numbers or root is None:
+            return root, None, loader.bad_numbers
+        return root, _construct(loader, root), []
+    finally:
+        loader.dispose()
+
+
+_STR_TAG, _SEQ_TAG, _MAP_TAG = "tag:yaml.org,2002:str", "tag:yaml.org,2002:seq", "tag:yaml.org,2002:map"
+_MERGE_TAG = "tag:yaml.org,2002:merge"
+
+
+def _construct(loader: Any, root: yaml.Node) -> Any:
+    """The data of a composed document, as PyYAML's SafeConstructor makes it (an alias is the same
+    object as its anchor), 2 x faster: plain strings, lists and mappings are built here, anything
+    else (numbers, dates, merge keys, sets, unknown tags) by the constructor. Recursive, at most
+    MAX_NESTING deep (the composer saw to it)."""
+    done: dict[int, Any] = {}
+    scalar = loader.yaml_constructors
+
+    def build(node: yaml.Node) -> Any:
+        got = done.get(id(node), done)
+        if got is not done:
+            return got
+        if isinstance(node, yaml.ScalarNode):
+            if node.tag == _STR_TAG:
+                value = node.value
+            else:
+                make = scalar.get(node.tag)
+                value = make(loader, node) if make is not None else loader.construct_object(node, deep=True)
+        elif isinstance(node, yaml.SequenceNode) and node.tag == _SEQ_TAG:
+            value = done[id(node)] = []
+            value.extend(build(c) for c in node.value)
+        elif isinstance(node, yaml.MappingNode) and node.tag == _MAP_TAG \
+                and not any(k.tag == _MERGE_TAG for k, _ in node.value):
+            value = done[id(node)] = {}
+            for k, v in node.value:
+                key = build(k)
+                try:
+                    hash(key)
+                except TypeError:
+                    raise yaml.constructor.ConstructorError("while constructing a mapping", node.start_mark,
+                                                            "found unhashable key", k.start_mark) from None
+                value[key] = build(v)
+        else:
+            value = loader.construct_object(node, deep=True)
+        done[id(node)] = value
+        return value
+
+    try:
+        return build(root)
+    except (ValueError, ArithmeticError) as exc:  # from a scalar built here: find which
+        bad = next((n for n in _scalars(root) if _fails(loader, n)), root)
+        raise _Refused(bad.start_mark, f"cannot read {_clip(str(bad.value), 30)}: {exc}") from exc
+
+
+def _scalars(root: yaml.Node) -> Iterator[yaml.ScalarNode]:
+    seen, stack = set(), [root]
+    while stack:
+        node = stack.pop()
+        if id(node) in seen:
+            continue
+        seen.add(id(node))
+        if isinstance(node, yaml.ScalarNode):
+            yield node
+        elif isinstance(node, yaml.MappingNode):
+            stack.extend(reversed([c for pair in node.value for c in pair]))
+        else:
+            stack.extend(reversed(node.value))
+
+
+def _fails(loader: Any, node: yaml.ScalarNode) -> bool:
+    make = loader.yaml_constructors.get(node.tag)
+    try:
+        make and make(loader, node)
+    except (ValueError, ArithmeticError):
+        return True
+    return False
+
+
+def _read_yaml(text: str, file: str) -> tuple[yaml.Node | None, Any]:
+    """The root node (positions) and the data of a rule file's text, within the bounds; every
+    problem is a :class:`RuleFileError` with its position."""
+    lines = text.splitlines()
+
+    def problem(line: int, col: int, message: str) -> Problem:
+        return Problem(SourcePos(file, line, col), message, lines[line - 1] if 0 < line <= len(lines) else "")
+
+    try:
+        try:
+            root, data, bad = _load(text, _FAST_LOADER)
+        except (yaml.YAMLError, UnicodeError):  # UnicodeError: libyaml cannot encode a lone surrogate
+            if _FAST_LOADER is _PyLoader:
+                raise
+            root, data, bad = _load(text, _PyLoader)  # the same error, said better (what was found)
+    except _Refused as exc:
+        raise RuleFileError([problem(exc.mark.line + 1, exc.mark.column + 1, exc.message)]) from None
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
-        pos = _Positions(file, text, None)
         line, col = (mark.line + 1, mark.column + 1) if mark else (1, 1)
-        src = pos.lines[line - 1] if 0 < line <= len(pos.lines) else ""
         msg = f"YAML syntax: {exc.problem}"
         if exc.context and exc.context_mark and exc.context_mark is not mark:
             msg += f" ({exc.context} at line {exc.context_mark.line + 1}, column {exc.context_mark.column + 1})"
-        raise RuleFileError([Problem(SourcePos(file, line, col), msg, src)]) from exc
+        raise RuleFileError([problem(line, col, msg)]) from None
+    except yaml.reader.ReaderError as exc:  # a character YAML does not allow: at its line and column
+        line = text.count("\n", 0, exc.position) + 1
+        col = exc.position - (text.rfind("\n", 0, exc.position) + 1) + 1
+        what = f"#x{exc.character:04x}" if isinstance(exc.character, int) else repr(exc.character)
+        raise RuleFileError([problem(line, col, f"YAML: unacceptable character {what}: {exc.reason}")]) from None
     except yaml.YAMLError as exc:
-        raise RuleFileError([Problem(SourcePos(file, 1, 1), f"YAML: {exc}")]) from exc
+        raise RuleFileError([problem(1, 1, f"YAML: {exc}")]) from None
+    if bad:
+        raise RuleFileError([problem(m.line + 1, m.column + 1, msg) for m, msg in bad])
+    return root, data
+
+
+def parse_rule_base(text: str, file: str, registry: PredicateRegistry) -> RuleBase:
+    """Validate the text of a rule file (``file`` is its name in the messages); raises
+    :class:`RuleFileError` listing every problem. Warnings (conditions that can never hold) are
+    in the result's ``warnings``."""
+    size = len(text) if len(text) * 4 <= MAX_RULE_FILE_BYTES else len(text.encode("utf-8", "surrogatepass"))
+    if size > MAX_RULE_FILE_BYTES:
+        raise RuleFileError([Problem(SourcePos(file, 1, 1), _too_large(size))])
+    root, data = _read_yaml(text, file)
     pos = _Positions(file, text, root)
     if not isinstance(data, dict):
         raise RuleFileError([pos.problem((), "a rule base is a mapping of keys (kbs_rules, name, checks, rules, ...)")])
@@ -377,22 +731,39 @@ def parse_rule_base(text: str, file: str, registry: PredicateRegistry) -> RuleBa
 
 
 class _Validator:
+    #: Candidate names all the "did you mean" look-ups of one file may compare with: each costs
+    #: a string comparison per candidate, and a file with thousands of checks and as many typos
+    #: would otherwise take minutes. Beyond it, problems are reported without a suggestion.
+    HINT_BUDGET = 200_000
+
     def __init__(self, data: dict, pos: _Positions, registry: PredicateRegistry) -> None:
         self.data, self.pos, self.registry = data, pos, registry
         self.problems: list[Problem] = []
+        self.warnings: list[Problem] = []
+        self._hint_budget = self.HINT_BUDGET
 
     def add(self, path: tuple, message: str, *, key: bool = False) -> None:
         self.problems.append(self.pos.problem(path, message, key=key))
+
+    def warn(self, path: tuple, message: str) -> None:
+        self.warnings.append(self.pos.problem(path, message, warning=True))
+
+    def hint(self, name: Any, candidates: Any) -> str | None:
+        """The closest of ``candidates`` to ``name`` (did you mean), within the file's budget."""
+        candidates = [str(c) for c in candidates]
+        if len(candidates) > self._hint_budget:
+            return None
+        self._hint_budget -= len(candidates)
+        return did_you_mean(str(name), candidates)
 
     # -- schema ------------------------------------------------------------------------------
 
     def schema_problems(self) -> None:
         for path, mark in self.pos.duplicates:
             self.problems.append(Problem(SourcePos(self.pos.file, mark.line + 1, mark.column + 1),
-                                         f"duplicate key '{path[-1]}' in {_where(path[:-1])}",
-                                         self.pos.lines[mark.line]))
-        validator = Draft202012Validator(schema())
-        for err in validator.iter_errors(self.data):
+                                         f"duplicate key '{_clip(str(path[-1]), 30)}' in {_where(path[:-1])}",
+                                         self.pos.line(mark.line + 1)))
+        for err in _schema_validator().iter_errors(self.data):
             self._schema_error(err)
 
     def _schema_error(self, err) -> None:
@@ -403,31 +774,32 @@ class _Validator:
             allowed = list(sch.get("properties", {}))
             for k in inst:
                 if k not in allowed:
-                    hint = did_you_mean(k, allowed)
-                    self.add(path + (k,), f"unknown key '{k}' in {where}"
-                             + (f" (did you mean '{hint}'?)" if hint else f"; allowed: {', '.join(allowed)}"), key=True)
+                    hint = self.hint(k, allowed)
+                    self.add(path + (k,), f"unknown key '{_clip(str(k), 30)}' in {where}"
+                             + (f" (did you mean '{hint}'?)" if hint else f"; allowed: {_listing(allowed)}"), key=True)
         elif kind == "required":
             missing = err.message.split("'")[1] if "'" in err.message else err.message
             self.add(path, f"{where} is missing the required key '{missing}'")
         elif kind == "enum":
-            hint = did_you_mean(str(inst), [str(x) for x in sch["enum"]])
-            self.add(path, f"{where} must be one of {', '.join(map(str, sch['enum']))}; got {inst!r}"
+            hint = self.hint(inst, sch["enum"])
+            self.add(path, f"{where} must be one of {', '.join(map(str, sch['enum']))}; got {_brief(inst)}"
                      + (f" (did you mean '{hint}'?)" if hint else ""))
         elif kind == "const":
-            self.add(path, f"{where} must be {sch['const']!r}; got {inst!r}")
+            self.add(path, f"{where} must be {sch['const']!r}; got {_brief(inst)}")
         elif kind == "type":
-            self.add(path, f"{where} must be {_article(sch['type'])}; got {inst!r}")
+            self.add(path, f"{where} must be {_article(sch['type'])}; got {_brief(inst)}" + _as_number_hint(inst))
         elif kind in ("oneOf", "anyOf"):
             if path and len(path) == 2 and path[0] == "checks":
                 self.add(path, f"check '{path[1]}' needs a threshold: 'max' and/or 'min'")
             else:
-                self.add(path, f"{where} is invalid: {sch.get('description', 'see the schema')}; got {inst!r}")
+                self.add(path, f"{where} is invalid: {sch.get('description', 'see the schema')}; got {_brief(inst)}")
         elif kind == "pattern":
-            self.add(path, f"{where}: {inst!r} is not a valid name (letters, digits, '_', not starting with a digit)")
+            self.add(path, f"{where}: {_brief(inst)} is not a valid name (letters, digits, '_', not starting with a "
+                     "digit)")
         elif kind == "propertyNames":
-            self.add(path, f"{where}: invalid name {err.instance!r}")
+            self.add(path, f"{where}: invalid name {_brief(err.instance)}")
         else:
-            self.add(path, f"{where}: {err.message}")
+            self.add(path, f"{where}: {_clip(err.message, 150)}")
 
     # -- semantics -----------------------------------------------------------------------------
 
@@ -460,8 +832,8 @@ class _Validator:
             strategy=d["strategy"], limits=limits, sensor=tuple(float(x) for x in sensor), ground=ground,
             checks=checks, rules=tuple(rules), labels=tuple(labels), merge=merge, path=self.pos.file,
             text="\n".join(self.pos.lines), ground_model=gmodel, relabel=tuple(relabel), contact=contact,
-            release=release, asprs_classes=classes,
-            spacing=None if spacing is None else (float(spacing[0]), float(spacing[1])),
+            release=release, warnings=tuple(sorted(self.warnings, key=lambda p: (p.pos.line, p.pos.col))),
+            asprs_classes=classes, spacing=None if spacing is None else (float(spacing[0]), float(spacing[1])),
         )
 
     def _asprs_classes(self, raw: Any, names: list[str]) -> dict[str, int] | None:
@@ -487,20 +859,20 @@ class _Validator:
                 continue  # the schema reported it
             pname = spec["predicate"]
             if pname not in self.registry:
-                hint = self.registry.suggest(pname)
-                self.add(base + ("predicate",), f"unknown predicate '{pname}'"
-                         + (f" (did you mean '{hint}'?)" if hint else f"; known: {', '.join(self.registry.names())}"))
+                hint = self.hint(pname, self.registry.names())
+                self.add(base + ("predicate",), f"unknown predicate '{_clip(pname, 30)}'"
+                         + (f" (did you mean '{hint}'?)" if hint else f"; known: {_listing(self.registry.names())}"))
                 continue
             pred = self.registry.get(pname)
             params = dict(spec.get("params") or {}) if isinstance(spec.get("params", {}), dict) else {}
             for pkey, pval in params.items():
                 if pkey not in pred.params:
-                    hint = did_you_mean(pkey, pred.params)
-                    known = ", ".join(pred.params) or "none"
-                    self.add(base + ("params", pkey), f"predicate '{pname}' has no parameter '{pkey}'"
+                    hint = self.hint(pkey, pred.params)
+                    known = _listing(pred.params) or "none"
+                    self.add(base + ("params", pkey), f"predicate '{pname}' has no parameter '{_clip(str(pkey), 30)}'"
                              + (f" (did you mean '{hint}'?)" if hint else f"; its parameters: {known}"), key=True)
                     continue
-                problem = pred.params[pkey].check(pval)
+                problem = pred.params[pkey].check(pval) or pred.params[pkey].check_with(params, pred.params)
                 if problem:
                     self.add(base + ("params", pkey), f"predicate '{pname}': {problem}")
             lo, hi = pred.value_range
@@ -521,30 +893,50 @@ class _Validator:
                               pos=self.pos.pos(base, key=True))
         return out
 
-    def _condition(self, raw: Any, path: tuple, checks: Mapping[str, Check]) -> Condition | None:
+    def _condition(self, raw: Any, path: tuple, checks: Mapping[str, Check], depth: int = 0) -> Condition | None:
+        """The condition at ``path`` (a fact, a list, {all: ...} or {any: ...}), or None when it
+        is invalid (reported here or by the schema). ``depth``: the groups around it."""
         if isinstance(raw, str):
             words = raw.split()
             negated = len(words) == 2 and words[0] == "not"
             name = words[-1] if words else ""
             if len(words) not in (1, 2) or (len(words) == 2 and not negated):
                 return None  # the schema reported it
-            if name not in checks and name in (self.data.get("checks") or {}):
+            known = self._declared
+            if name not in checks and name in known:
                 return Condition("fact", name, negated)  # the check itself is broken; reported there
             if name not in checks:
-                hint = did_you_mean(name, list(self.data.get("checks") or {}))
-                self.add(path, f"unknown check '{name}'" + (f" (did you mean '{hint}'?)" if hint else
-                                                              f"; checks: {', '.join(self.data.get('checks') or {})}"))
+                hint = self.hint(name, known)
+                self.add(path, f"unknown check '{_clip(name, 30)}'" + (f" (did you mean '{hint}'?)" if hint else
+                                                                       f"; checks: {_listing(known)}"))
                 return None
             return Condition("fact", name, negated)
+        group = isinstance(raw, list) or (isinstance(raw, dict) and len(raw) == 1 and next(iter(raw)) in ("all", "any"))
+        if group and depth >= MAX_CONDITION_DEPTH:
+            self.add(path, f"condition nested more than {MAX_CONDITION_DEPTH} levels deep (lists, all, any): "
+                     "nobody can follow it; split it over several checks or rules")
+            return None
         if isinstance(raw, list):
-            items = [self._condition(x, path + (i,), checks) for i, x in enumerate(raw)]
+            items = [self._condition(x, path + (i,), checks, depth + 1) for i, x in enumerate(raw)]
             return Condition("all", items=tuple(c for c in items if c)) if all(items) and items else None
-        if isinstance(raw, dict) and len(raw) == 1 and next(iter(raw)) in ("all", "any"):
+        if group:
             kind = next(iter(raw))
             sub = raw[kind] if isinstance(raw[kind], list) else []
-            items = [self._condition(x, path + (kind, i), checks) for i, x in enumerate(sub)]
+            items = [self._condition(x, path + (kind, i), checks, depth + 1) for i, x in enumerate(sub)]
             return Condition(kind, items=tuple(c for c in items if c)) if all(items) and items else None
         return None
+
+    @functools.cached_property
+    def _declared(self) -> dict[str, None]:
+        """The names under 'checks' (valid or not), in order; empty when 'checks' is not a mapping."""
+        raw = self.data.get("checks")
+        return {k: None for k in raw if isinstance(k, str)} if isinstance(raw, dict) else {}
+
+    def _never(self, cond: Condition, path: tuple, checks: Mapping[str, Check], what: str) -> None:
+        """A warning at ``path`` when ``cond`` can never hold, whatever the clusters measure."""
+        why = never_holds(cond, checks)
+        if why:
+            self.warn(path, f"{what}: its condition can never hold: {why}")
 
     def _rules(self, raw: Any, checks: Mapping[str, Check]) -> list[Rule]:
         out: list[Rule] = []
@@ -562,6 +954,7 @@ class _Validator:
             action = spec.get("then")
             if cond is None or action not in ACTIONS:
                 continue
+            self._never(cond, path + ("if",), checks, f"rule '{spec['name']}' can never act")
             if action == "split_components":
                 negated = [f for f in cond.facts() if f.negated and f.name in checks
                            and checks[f.name].predicate.name == "connexity"]
@@ -590,6 +983,8 @@ class _Validator:
             cond = None
             if "if" in spec:
                 cond = self._condition(spec["if"], path + ("if",), checks)
+                if cond is not None and default_at is None:
+                    self._never(cond, path + ("if",), checks, f"label '{spec['name']}' can never be given")
             else:
                 default_at = i
             out.append(Label(spec["name"], cond, str(spec.get("doc", "")), self.pos.pos(path)))
@@ -598,41 +993,48 @@ class _Validator:
     def _ground(self, raw: dict, checks: Mapping[str, Check]) -> GroundSpec:
         g = {**GROUND_DEFAULTS, **raw}
         needs = [c for c in checks.values() if c.predicate.needs_ground]
-        normal = None if g["normal"] == "auto" else tuple(float(x) for x in g["normal"])
+        auto = isinstance(g["normal"], str) and g["normal"] == "auto"
+        normal = None if auto else _vector3(g["normal"])  # None too when invalid: the schema said so
+        fallback = _vector3(g["fallback"])
         cand = g.get("candidate")
-        if normal is not None and sum(x * x for x in normal) == 0:
-            self.add(("scene", "ground", "normal"), "the ground normal must not be the zero vector")
-        if sum(float(x) ** 2 for x in g["fallback"]) == 0:
-            self.add(("scene", "ground", "fallback"), "the fallback ground normal must not be the zero vector")
+        for key, vec, what in (("normal", normal, "the ground normal"), ("fallback", fallback,
+                                                                          "the fallback ground normal")):
+            square = sum(x * x for x in vec) if vec is not None else 1.0
+            if square == 0:
+                self.add(("scene", "ground", key), f"{what} must not be the zero vector")
+            elif not math.isfinite(square):  # its length overflows: the engine would divide by inf
+                self.add(("scene", "ground", key), f"{what} is too long to be normalised (its squared length "
+                         "overflows); a unit vector such as [0, 0, 1] says the same")
         if cand is not None and isinstance(cand, str):
-            if cand not in checks and cand not in (self.data.get("checks") or {}):
-                hint = did_you_mean(cand, list(checks))
+            if cand not in checks and cand not in self._declared:
+                hint = self.hint(cand, checks)
                 self.add(("scene", "ground", "candidate"), f"unknown check '{cand}'"
                          + (f" (did you mean '{hint}'?)" if hint else ""))
             elif cand in checks and checks[cand].predicate.needs_ground:
                 self.add(("scene", "ground", "candidate"), f"check '{cand}' needs the ground itself "
                          f"('{checks[cand].predicate.name}'): it cannot be what finds the ground")
-        elif needs and normal is None:
+        elif needs and auto:
             first = needs[0]
             self.add(("checks", first.name, "predicate"),
                      f"check '{first.name}' uses the ground ('{first.predicate.name}'), found automatically, but "
                      "scene.ground.candidate does not name the check a ground candidate must pass "
                      "(e.g. 'candidate: planar'), nor does scene.ground.normal fix it")
-        return GroundSpec(normal=normal, candidate=cand, min_points=int(g["min_points"]),
-                          fallback=tuple(float(x) for x in g["fallback"]))
+        return GroundSpec(normal=normal, candidate=cand, min_points=_number(g["min_points"], 0, int),
+                          fallback=fallback or (0.0, 0.0, 1.0))
 
     def _merge(self, raw: Any, labels: list[Label]) -> MergeSpec | None:
         if not isinstance(raw, dict) or not isinstance(raw.get("merge_coplanar"), dict):
             return None
         m = raw["merge_coplanar"]
         self._label_ref(("post", "merge_coplanar", "label"), m.get("label"), [lb.name for lb in labels])
-        return MergeSpec(label=str(m.get("label")), max_angle=float(m.get("max_angle", 10.0)),
-                         max_offset=float(m.get("max_offset", 0.15)))
+        return MergeSpec(label=str(m.get("label")), max_angle=_number(m.get("max_angle"), 10.0),
+                         max_offset=_number(m.get("max_offset"), 0.15))
 
     def _label_ref(self, path: tuple, name: Any, names: list[str]) -> None:
         if isinstance(name, str) and name not in names:
-            hint = did_you_mean(name, names)
-            self.add(path, f"unknown label '{name}'" + (f" (did you mean '{hint}'?)" if hint else f"; labels: {', '.join(names)}"))
+            hint = self.hint(name, names)
+            self.add(path, f"unknown label '{_clip(name, 30)}'" + (f" (did you mean '{hint}'?)" if hint
+                                                                    else f"; labels: {_listing(names)}"))
 
     def _post(self, raw: Any, checks: Mapping[str, Check], labels: list[Label]):
         """post.ground_model, post.relabel, post.ground_contact and post.ground_release."""
@@ -643,8 +1045,9 @@ class _Validator:
         model = None
         if isinstance(gm, dict) and isinstance(gm.get("label"), str):
             self._label_ref(("post", "ground_model", "label"), gm["label"], names)
-            model = GroundModelSpec(label=gm["label"], neighbours=int(gm.get("neighbours", 8)),
-                                    radius=float(gm.get("radius", 3.0)), pos=self.pos.pos(("post", "ground_model"), key=True))
+            model = GroundModelSpec(label=gm["label"], neighbours=_number(gm.get("neighbours"), 8, int),
+                                    radius=_number(gm.get("radius"), 3.0),
+                                    pos=self.pos.pos(("post", "ground_model"), key=True))
         relabel = self._relabel(raw.get("relabel"), checks, names, model)
         contact = self._contact(raw.get("ground_contact"), checks, names, model)
         release = self._release(raw.get("ground_release"), names, model)
@@ -669,6 +1072,7 @@ class _Validator:
             cond = self._condition(spec.get("if"), path + ("if",), checks) if "if" in spec else None
             if cond is None:
                 continue
+            self._never(cond, path + ("if",), checks, f"relabel rule '{spec['name']}' can never act")
             if model is None:
                 uses = [f.name for f in cond.facts() if f.name in checks and checks[f.name].predicate.needs_ground_model]
                 if uses:
@@ -705,6 +1109,8 @@ class _Validator:
         else:
             sources = tuple(n for n in names if model is None or n != model.label)
         cond = self._condition(raw["if"], ("post", "ground_contact", "if"), checks) if "if" in raw else None
+        if cond is not None:
+            self._never(cond, ("post", "ground_contact", "if"), checks, "post.ground_contact can never move a point")
         return ContactSpec(float(raw["tolerance"]), sources, self.pos.pos(("post", "ground_contact"), key=True), cond)
 
     def _release(self, raw: Any, names: list[str], model: GroundModelSpec | None) -> ReleaseSpec | None:
@@ -723,8 +1129,12 @@ class _Validator:
                                            if f.name in checks and checks[f.name].predicate.needs_ground_model]
 
         raw_rules = self.data.get("rules") if isinstance(self.data.get("rules"), list) else []
+        first: dict[str, Rule] = {}  # by name (a name given twice is reported elsewhere): linear, not a search per rule
+        for r in rules:
+            first.setdefault(r.name, r)
         for i, spec in enumerate(raw_rules):
-            rule = next((r for r in rules if isinstance(spec, dict) and r.name == spec.get("name")), None)
+            name = spec.get("name") if isinstance(spec, dict) else None
+            rule = first.get(name) if isinstance(name, str) else None
             for name in bad(rule.condition if rule else None)[:1]:
                 self.add(("rules", i, "if"), f"rule '{rule.name}': check '{name}' measures against the local ground "
                          "surface, which exists only once clusters are labelled; use it in post.relabel")
@@ -736,8 +1146,193 @@ class _Validator:
                              "ground surface, which is built from the labels; use it in post.relabel")
 
 
+def _as_number_hint(value: Any) -> str:
+    """For '1e5', which YAML 1.1 reads as text: how to write it as a number."""
+    if isinstance(value, str) and len(value) < 40:
+        try:
+            number = float(value)
+        except ValueError:
+            return ""
+        if not math.isfinite(number) or "e" not in value.lower():
+            return ""
+        mantissa, exponent = value.strip().lower().split("e", 1)
+        mantissa += "" if "." in mantissa else ".0"
+        exponent = exponent if exponent[:1] in ("+", "-") else "+" + exponent
+        written = f"{mantissa}e{exponent}"
+        if yaml.safe_load(written) == number:
+            return f" (YAML reads {value} as text; write {written})"
+    return ""
+
+
+def _number(value: Any, default: float, kind: type = float) -> Any:
+    """``value`` as a float (or int), ``default`` when it is not a real number (the schema reports
+    it; the rule base is then not built)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return default
+    return kind(value) if math.isfinite(value) else default
+
+
+def _vector3(value: Any) -> tuple[float, float, float] | None:
+    """Three real numbers as floats, or None (the schema reports what it is instead)."""
+    if not isinstance(value, list) or len(value) != 3:
+        return None
+    if any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in value):
+        return None
+    return (float(value[0]), float(value[1]), float(value[2]))
+
+
 def _article(t: Any) -> str:
     if isinstance(t, list):
         return " or ".join(_article(x) for x in t)
     return {"object": "a mapping", "array": "a list", "string": "a string", "number": "a number",
             "integer": "an integer", "boolean": "true or false"}.get(t, str(t))
+
+
+def _listing(names: Any, show: int = 12) -> str:
+    """'a, b, c' or, for many, 'a, b, ..., l (3,000 in all)'."""
+    names = [str(n) for n in names]
+    if len(names) <= show:
+        return ", ".join(names)
+    return ", ".join(names[:show - 1]) + f", ..., {names[-1]} ({len(names):,} in all)"
+
+
+_REPR = reprlib.Repr()
+_REPR.maxlevel, _REPR.maxlist, _REPR.maxdict, _REPR.maxstring, _REPR.maxlong, _REPR.maxother = 3, 6, 6, 60, 40, 60
+
+
+def _brief(value: Any) -> str:
+    """repr of a value from the file, short whatever its size."""
+    return _REPR.repr(value)
+
+
+# --- conditions that can never hold ---------------------------------------------------------------
+
+#: Alternatives (terms of the condition's disjunctive normal form) a condition is analysed with;
+#: a larger one gets no warning (the analysis would cost more than it tells).
+MAX_ALTERNATIVES = 256
+
+_Interval = tuple[float, bool, float, bool]  # (low, low included, high, high included)
+
+
+def never_holds(cond: Condition, checks: Mapping[str, Check]) -> str | None:
+    """Why ``cond`` can never hold, whatever the clusters measure, or None when it can (or when
+    it is too large to analyse, or names checks that are not valid).
+
+    A check passes when ``min <= value <= max``; its negation when the value is outside. Checks
+    on the same measure (predicate and parameters, defaults included) constrain one value: the
+    condition can never hold when, in each of its alternatives, some measure's constraints leave
+    no value within what the predicate can measure (its declared ``value_range``), or a check and
+    its negation meet.
+    """
+    terms = _alternatives(cond)
+    if terms is None:
+        return None
+    reasons = []
+    for term in terms:
+        why = _conflict(term, checks)
+        if why is None:
+            return None
+        reasons.append(why)
+    if len(reasons) == 1:
+        return reasons[0]
+    return f"none of its {len(reasons)} alternatives can, e.g. {reasons[0]}"
+
+
+def _alternatives(cond: Condition) -> list[tuple[tuple[str, bool], ...]] | None:
+    """The condition as alternatives (any of), each a tuple of facts (all of), in order; None
+    beyond MAX_ALTERNATIVES."""
+    if cond.kind == "fact":
+        return [((cond.name, cond.negated),)]
+    subs = [_alternatives(c) for c in cond.items]
+    if any(s is None for s in subs):
+        return None
+    if cond.kind == "any":
+        out = [t for s in subs for t in s]
+        return out if len(out) <= MAX_ALTERNATIVES else None
+    out = [()]
+    for s in subs:
+        out = [a + b for a in out for b in s]
+        if len(out) > MAX_ALTERNATIVES:
+            return None
+    return out
+
+
+def _conflict(term: tuple[tuple[str, bool], ...], checks: Mapping[str, Check]) -> str | None:
+    """Why the facts of one alternative cannot all hold, or None when they can."""
+    seen: dict[str, bool] = {}
+    for name, negated in term:
+        if seen.get(name, negated) != negated:
+            return f"'{name}' and 'not {name}' cannot both hold"
+        seen[name] = negated
+    by_measure: dict[tuple, list[tuple[str, bool]]] = {}
+    for name, negated in dict.fromkeys(term):
+        check = checks.get(name)
+        if check is None:
+            return None  # a check that is not valid: reported as a problem
+        by_measure.setdefault(_measure(check), []).append((name, negated))
+    for facts in by_measure.values():
+        pred = checks[facts[0][0]].predicate
+        allowed: list[_Interval] = [(-math.inf, False, math.inf, False)]
+        for name, negated in facts:
+            allowed = _intersect(allowed, _passes(checks[name], negated))
+        if allowed:
+            domain = _intersect(allowed, [_domain(pred)])
+            if domain:
+                continue
+        what = " and ".join(f"'{'not ' if neg else ''}{name}' ({_text(checks[name], neg)})" for name, neg in facts)
+        lo, hi = pred.value_range
+        if allowed:  # possible values, but not ones the predicate measures
+            rng = f"[{'-inf' if lo is None else f'{lo:g}'}, {'inf' if hi is None else f'{hi:g}'}]"
+            return f"{what} asks for values {pred.name} never measures (it measures {rng})"
+        return f"{what} exclude each other" if len(facts) > 1 else f"{what} is impossible"
+    return None
+
+
+def _measure(check: Check) -> tuple:
+    """What a check measures: its predicate and every parameter's value (defaults included)."""
+    params = {k: p.default for k, p in check.predicate.params.items()}
+    params.update(check.params)
+    return (check.predicate.name, tuple(sorted((k, repr(v)) for k, v in params.items())))
+
+
+def _domain(pred: Predicate) -> _Interval:
+    lo, hi = pred.value_range
+    return (-math.inf if lo is None else float(lo), lo is not None,
+            math.inf if hi is None else float(hi), hi is not None)
+
+
+def _passes(check: Check, negated: bool) -> list[_Interval]:
+    """The values for which the fact holds: [min, max] passes; below min or above max fails."""
+    lo = -math.inf if check.min is None else check.min
+    hi = math.inf if check.max is None else check.max
+    if not negated:
+        return [(lo, check.min is not None, hi, check.max is not None)]
+    out = []
+    if check.min is not None:
+        out.append((-math.inf, False, lo, False))
+    if check.max is not None:
+        out.append((hi, False, math.inf, False))
+    return out
+
+
+def _intersect(a: list[_Interval], b: list[_Interval]) -> list[_Interval]:
+    out = []
+    for a_lo, a_lin, a_hi, a_hin in a:
+        for b_lo, b_lin, b_hi, b_hin in b:
+            lo, lin = (a_lo, a_lin) if a_lo > b_lo else (b_lo, b_lin) if b_lo > a_lo else (a_lo, a_lin and b_lin)
+            hi, hin = (a_hi, a_hin) if a_hi < b_hi else (b_hi, b_hin) if b_hi < a_hi else (a_hi, a_hin and b_hin)
+            if lo < hi or (lo == hi and lin and hin):
+                out.append((lo, lin, hi, hin))
+    return out
+
+
+def _text(check: Check, negated: bool) -> str:
+    """'thickness <= 0.05', 'not: thickness < 1 or > 2'."""
+    p = check.predicate.name
+    if not negated:
+        if check.min is not None and check.max is not None:
+            return f"{check.min:g} <= {p} <= {check.max:g}"
+        return f"{p} >= {check.min:g}" if check.min is not None else f"{p} <= {check.max:g}"
+    parts = [f"< {check.min:g}"] if check.min is not None else []
+    parts += [f"> {check.max:g}"] if check.max is not None else []
+    return f"{p} {' or '.join(parts)}"

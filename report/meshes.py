@@ -3,11 +3,15 @@
 Obstacles: :func:`hull_mesh` is scipy's ``ConvexHull`` of the cluster's points with every
 triangle turned to face outward (its normal agrees with the hull facet's outward normal), so the
 mesh is closed, consistently wound and of positive volume. Clusters with fewer than 4 points, or
-whose points are coplanar/collinear (Qhull cannot build a 3-D hull), are skipped and listed.
+whose points are coplanar/collinear (Qhull cannot build a 3-D hull), are skipped and listed;
+a degenerate cluster (its points on a line or at one position,
+:attr:`kbs.inference.ClusterGeometry.degenerate`) is said to be one.
 
 Ground: :func:`ground_mesh` projects the ground points on their best approximating plane, runs a
 2-D Delaunay triangulation there and removes triangles with an edge longer than ``edge_factor``
-times the median Delaunay edge (holes under obstacles and gaps between scan lines stay open).
+times the median Delaunay edge (holes under obstacles and gaps between scan lines stay open) and
+zero-area triangles (height at most :data:`~kbs.inference.geometry.RANK_TOLERANCE` times the
+longest edge: slivers along collinear points). Ground points that lie on a line have no surface.
 """
 from __future__ import annotations
 
@@ -18,6 +22,8 @@ import numpy as np
 import plyfile
 
 from kbs.errors import CloudFileError
+from kbs.inference import ClusterGeometry, cluster_geometry
+from kbs.inference.geometry import RANK_TOLERANCE
 
 
 def hull_mesh(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -71,6 +77,11 @@ def ground_mesh(points: np.ndarray, *, edge_factor: float = 3.0) -> tuple[np.nda
         side as the plane normal (up when the ground faces +z).
     max_edge : float
         The edge-length threshold used: ``edge_factor`` x the median Delaunay edge length.
+
+    Raises
+    ------
+    ValueError
+        Fewer than 3 points, or points with no surface (on a line, or all at one position).
     """
     from scipy.spatial import Delaunay, QhullError
 
@@ -78,7 +89,12 @@ def ground_mesh(points: np.ndarray, *, edge_factor: float = 3.0) -> tuple[np.nda
     if P.shape[0] < 3:
         raise ValueError(f"{P.shape[0]} ground points (a surface needs at least 3)")
     c = P.mean(axis=0)
-    _, vec = np.linalg.eigh(np.cov((P - c).T))
+    cov = np.cov((P - c).T)
+    lam, vec = np.linalg.eigh(cov)
+    shape = ClusterGeometry(center=c, covariance=cov, eigenvalues=np.maximum(lam, 0.0), eigenvectors=vec,
+                            mass=float(P.shape[0]))
+    if shape.degenerate:
+        raise ValueError(f"degenerate ground points: they {shape.degeneracy.removeprefix('its points ')}: no surface")
     n = vec[:, 0] if vec[2, 0] >= 0 else -vec[:, 0]
     uv = (P - c) @ vec[:, 1:]
     try:
@@ -87,7 +103,13 @@ def ground_mesh(points: np.ndarray, *, edge_factor: float = 3.0) -> tuple[np.nda
         raise ValueError("degenerate ground points (collinear): no surface") from exc
     edges = np.stack([np.linalg.norm(P[tri[:, i]] - P[tri[:, (i + 1) % 3]], axis=1) for i in range(3)], axis=1)
     max_edge = float(edge_factor * np.median(edges))
-    tri = tri[edges.max(axis=1) <= max_edge]
+    longest = edges.max(axis=1)
+    a, b, cc = P[tri[:, 0]] - c, P[tri[:, 1]] - c, P[tri[:, 2]] - c
+    height = np.linalg.norm(np.cross(b - a, cc - a), axis=1) / np.maximum(longest, np.finfo(float).tiny)
+    keep = (longest <= max_edge) & (height > RANK_TOLERANCE * longest)  # not too long, not zero-area
+    tri = tri[keep]
+    if not tri.shape[0]:
+        raise ValueError("degenerate ground points: every triangle has zero area or too long an edge: no surface")
     a, b, cc = P[tri[:, 0]], P[tri[:, 1]], P[tri[:, 2]]
     flip = np.cross(b - a, cc - a) @ n < 0
     tri[flip] = tri[flip][:, [0, 2, 1]]
@@ -149,6 +171,10 @@ def write_meshes(directory: Path, X: np.ndarray, cluster: np.ndarray, label: np.
     for idx in np.unique(cluster[cluster >= 0]):
         sel = cluster == idx
         if gi is not None and np.all(label[sel] == gi):
+            continue
+        degeneracy = cluster_geometry(X[sel]).degeneracy
+        if degeneracy is not None:
+            out.skipped.append((int(idx), f"degenerate: {degeneracy}: no hull"))
             continue
         try:
             V, F = hull_mesh(X[sel])

@@ -458,3 +458,211 @@ def test_assign_to_nearest_gives_every_point_a_significant_label(X, opening):
     assert c.significant[split].all()
     inside = c.labels >= 0
     assert np.array_equal(split[inside], c.labels[inside])  # every component significant here
+
+
+# --- the alpha-shape method: alpha-complex, alpha-shape, opening by a disc -------------------
+
+
+def two_discs_and_bridge(width: float, radius: float = 1.0, gap: float = 1.5):
+    """Exact shapes: two discs of ``radius`` whose rims are ``gap`` apart along x, joined by a
+    rectangular bridge of ``width`` (it reaches 0.1 into each disc)."""
+    import shapely
+
+    a = shapely.Point(0.0, 0.0).buffer(radius, quad_segs=64)
+    b = shapely.Point(2 * radius + gap, 0.0).buffer(radius, quad_segs=64)
+    bridge = shapely.box(radius - 0.1, -width / 2, radius + gap + 0.1, width / 2)
+    return shapely.union_all([a, b, bridge])
+
+
+@pytest.mark.parametrize("ratio", [0.5, 0.9, 0.98])
+def test_the_opening_removes_a_bridge_narrower_than_twice_its_radius(ratio):
+    # erosion by a disc of radius rho keeps the centres of the discs that fit inside the shape:
+    # none fits in a bridge of width w < 2 rho, so the bridge disappears and the dilation, which
+    # only grows what is left, cannot bring it back
+    from kbs.knowledge.connexity import alpha_opening
+
+    rho = 0.2
+    parts = alpha_opening(two_discs_and_bridge(ratio * 2 * rho), rho)
+    assert len(parts) == 2
+    assert sorted(round(p.centroid.x, 1) for p in parts) == [0.0, 3.5]
+    assert all(p.area == pytest.approx(np.pi, rel=0.02) for p in parts)  # the discs are kept whole
+
+
+@pytest.mark.parametrize("ratio", [1.02, 1.1, 2.0])
+def test_the_opening_keeps_a_bridge_wider_than_twice_its_radius(ratio):
+    from kbs.knowledge.connexity import alpha_opening
+
+    rho = 0.2
+    shape = two_discs_and_bridge(ratio * 2 * rho)
+    parts = alpha_opening(shape, rho)
+    assert len(parts) == 1
+    # the bridge comes back whole: only the concave and convex corners where it meets the discs change
+    assert parts[0].area == pytest.approx(shape.area, rel=0.01)
+
+
+def test_opening_with_a_zero_radius_is_the_shape_and_an_empty_shape_has_no_component():
+    import shapely
+
+    from kbs.knowledge.connexity import alpha_opening
+
+    shape = two_discs_and_bridge(0.01)
+    assert [p.equals(shape) for p in alpha_opening(shape, 0.0)] == [True]
+    assert alpha_opening(shapely.Polygon(), 0.3) == []
+    assert alpha_opening(shapely.Point(0, 0).buffer(0.25), 0.3) == []  # smaller than the disc
+
+
+def test_alpha_complex_against_circumradii_computed_from_the_circumcentres():
+    from scipy.spatial import Delaunay
+
+    from kbs.knowledge.connexity import alpha_complex, alpha_shape
+
+    rng = np.random.default_rng(12)
+    P = rng.uniform(0, 4, (400, 2))
+    tri = Delaunay(P).simplices
+    for alpha in (0.05, 0.15, 0.4, 1.0):
+        T = alpha_complex(P, alpha)
+        # reference: the circumcentre solves |c - a|^2 = |c - b|^2 = |c - d|^2
+        ref = []
+        for t in tri:
+            a, b, d = P[t]
+            M = 2 * np.array([b - a, d - a])
+            c = np.linalg.solve(M, [b @ b - a @ a, d @ d - a @ a])
+            if np.linalg.norm(c - a) <= alpha:
+                ref.append(tuple(sorted(t)))
+        assert sorted(tuple(sorted(t)) for t in T) == sorted(ref)
+        # the alpha-shape is their union: its area is the sum of theirs (they never overlap)
+        A = P[T]
+        u, v = A[:, 1] - A[:, 0], A[:, 2] - A[:, 0]
+        area = 0.5 * np.abs(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]).sum()
+        assert alpha_shape(P, alpha).area == pytest.approx(area, rel=1e-9, abs=1e-12)
+
+
+def test_alpha_complex_of_collinear_or_too_few_points_is_empty():
+    from kbs.knowledge.connexity import alpha_complex, alpha_shape
+
+    line = np.c_[np.linspace(0, 1, 20), np.zeros(20)]
+    assert alpha_complex(line, 1.0).shape == (0, 3) and alpha_shape(line, 1.0).is_empty
+    assert alpha_complex(line[:2], 1.0).shape == (0, 3)
+
+
+def sampled_discs_and_bridge(rows: int, rng=None) -> tuple[np.ndarray, np.ndarray]:
+    """Two sampled disks (radius 1 and 0.9 m, 5 cm grid, 1 cm jitter) 3 m apart, joined by a
+    sampled bridge of ``rows`` rows 5 cm apart (its outline is (rows - 1) x 5 cm wide)."""
+    rng = np.random.default_rng(9) if rng is None else rng
+    xs = np.arange(1.0 + SPACING, 4.1 - SPACING / 2, SPACING)
+    ys = (np.arange(rows) - (rows - 1) / 2) * SPACING
+    bridge = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
+    bridge = bridge + rng.uniform(-0.005, 0.005, bridge.shape)
+    return on_ground([disk((0, 0), 1.0, rng), disk((5, 0), 0.9, rng), bridge], rng)
+
+
+@pytest.mark.parametrize(("rows", "parts"), [(1, 2), (3, 2), (5, 2), (9, 1), (13, 1)])
+def test_alpha_opening_of_sampled_discs_cuts_a_bridge_narrower_than_twice_the_radius(rows, parts):
+    # alpha = 0.1 m (2 spacings: the sampled bridge is filled with triangles), rho = 0.15 m: the
+    # bridge is cut when (rows - 1) x 5 cm < 2 rho = 0.3 m, that is up to 6 rows
+    X, y = sampled_discs_and_bridge(rows)
+    c = connexity(X, X.mean(axis=0), UP, method="alpha_opening", alpha=0.1, opening_radius=0.15)
+    assert (c.method, c.alpha, c.opening_radius) == ("alpha_opening", 0.1, 0.15)
+    assert c.n_significant == c.n_components == parts
+    if parts == 2:
+        # the disks are the components, with their outline points (but the odd point sticking out
+        # of it, whose corner the disc rounds off); the bridge's middle is in none, and goes to
+        # the nearer disk in the split
+        on_disk = c.labels[y < 2]
+        assert ((on_disk == y[y < 2]) | (on_disk == -1)).all() and (on_disk == -1).sum() <= 3
+        middle = (y == 2) & (np.abs(X[:, 0] - 2.5) < 1.0)
+        assert (c.labels[middle] == -1).all()
+        split = assign_to_nearest(project_on_plane(X, X.mean(axis=0), UP), c.labels, c.significant)
+        far = (y == 2) & (np.abs(X[:, 0] - 2.5) > 0.1)
+        assert np.array_equal(split[far], (X[far, 0] > 2.5).astype(int))
+    else:
+        assert (c.labels == 0).all()
+    # without the opening, the alpha-shape holds the bridge (unless one row wide: no triangle)
+    raw = connexity(X, X.mean(axis=0), UP, method="alpha_opening", alpha=0.1, opening=False)
+    assert raw.opening_radius == 0.0 and raw.n_components == (2 if rows == 1 else 1)
+
+
+def test_alpha_opening_with_the_defaults_separates_what_the_graph_opening_keeps_joined():
+    # the graph opening cuts bridges up to 2 sampling steps wide (see above); the disc of radius
+    # alpha = 3 spacings also cuts a bridge 5 rows (20 cm) wide, and keeps 9 rows (40 cm)
+    X, y = sampled_discs_and_bridge(5)
+    assert connexity(X, X.mean(axis=0), UP).n_significant == 1
+    c = connexity(X, X.mean(axis=0), UP, method="alpha_opening")
+    assert c.n_significant == 2 and c.opening_radius == pytest.approx(c.alpha) and 0.1 < c.alpha < 0.15
+    assert np.array_equal(c.labels[y < 2], y[y < 2])
+    X, y = sampled_discs_and_bridge(9)
+    assert connexity(X, X.mean(axis=0), UP, method="alpha_opening").n_significant == 1
+    assert connexity(X, X.mean(axis=0), UP, method="alpha_opening", opening_factor=2.0).n_significant == 2
+
+
+def test_alpha_opening_three_rocks_and_the_invariances():
+    X, y = three_rocks()
+    c = connexity(X, X.mean(axis=0), UP, method="alpha_opening")
+    assert (c.n_components, c.n_significant) == (3, 3)
+    assert np.array_equal(c.labels, y)  # every point, outline included, in its rock
+    # point order, rigid motion, scale (alpha and the radius follow the spacing), duplicates
+    perm = np.random.default_rng(4).permutation(len(X))
+    back = np.empty_like(c.labels)
+    back[perm] = connexity(X[perm], X.mean(axis=0), UP, method="alpha_opening").labels
+    assert np.array_equal(back, c.labels)
+    rot, shift = Rotation.random(random_state=3), np.array([100.0, -50.0, 7.0])
+    moved = connexity(rot.apply(X) + shift, rot.apply(X.mean(axis=0)) + shift, rot.apply(UP), method="alpha_opening")
+    assert np.array_equal(moved.labels, c.labels)
+    scaled = connexity(X * 100.0, X.mean(axis=0) * 100.0, UP, method="alpha_opening")
+    assert np.array_equal(scaled.labels, c.labels) and scaled.opening_radius == pytest.approx(100 * c.opening_radius)
+    twice = connexity(np.vstack([X, X]), X.mean(axis=0), UP, method="alpha_opening")
+    assert np.array_equal(twice.labels, np.concatenate([c.labels, c.labels]))
+    assert np.array_equal(twice.sizes, 2 * c.sizes)
+
+
+def test_alpha_opening_of_a_speck_and_of_a_line():
+    speck = np.array([[3.0, 0.0], [3.05, 0.0], [3.0, 0.05], [2.95, 0.0], [3.0, -0.05]])
+    X, y = on_ground([disk((0, 0)), speck])
+    c = connexity(X, X.mean(axis=0), UP, method="alpha_opening")
+    assert (c.n_components, c.n_significant) == (1, 1) and (c.labels[y == 1] == -1).all()
+    # a cluster with no area at all (collinear once projected) has no component
+    line = np.c_[np.linspace(0, 5, 50), np.zeros(50), np.linspace(0, 1, 50)]
+    c = connexity(line, line.mean(axis=0), [0.0, 1.0, 0.0], method="alpha_opening")
+    assert (c.n_components, c.n_significant) == (0, 0) and (c.labels == -1).all()
+    # fewer than three points, or all on one position: one component, as with the graph
+    assert connexity(line[:2], line[0], UP, method="alpha_opening", min_points=1).n_significant == 1
+    assert connexity(np.tile([1.0, 2.0, 3.0], (20, 1)), [1.0, 2.0, 3.0], UP, method="alpha_opening").n_significant == 1
+
+
+def test_alpha_opening_against_a_raster_opening():
+    # independent reference: the opening of a fine raster of the alpha-shape by a digital disc
+    # (scipy.ndimage), on random blobs, bridges and specks; components and area agree
+    from scipy import ndimage
+
+    from kbs.knowledge.connexity import alpha_opening, alpha_shape
+
+    rng = np.random.default_rng(13)
+    for seed in range(3):
+        parts = [rng.normal(rng.uniform(-2, 2, 2), rng.uniform(0.3, 0.7), (400, 2)) for _ in range(3)]
+        parts.append(np.c_[np.linspace(-2, 2, 80), rng.uniform(-2, 2) + rng.normal(0, 0.05, 80)])
+        P = np.unique(np.concatenate(parts), axis=0)
+        shape = alpha_shape(P, 0.25)
+        rho = 0.12
+        opened = alpha_opening(shape, rho)
+        h = 0.01
+        x0, y0, x1, y1 = shape.bounds
+        gx, gy = np.meshgrid(np.arange(x0 - 0.05, x1 + 0.05, h), np.arange(y0 - 0.05, y1 + 0.05, h))
+        import shapely
+
+        inside = shapely.contains_xy(shape, gx, gy)
+        r = int(round(rho / h))
+        disc = np.hypot(*np.mgrid[-r:r + 1, -r:r + 1]) <= r
+        ref = ndimage.binary_dilation(ndimage.binary_erosion(inside, disc), disc)
+        n_ref = ndimage.label(ref, structure=np.ones((3, 3)))[1]
+        big = [p for p in opened if p.area > 4 * h * h * 100]  # raster specks aside
+        assert len(opened) == n_ref or len(big) == n_ref, seed
+        assert sum(p.area for p in opened) == pytest.approx(ref.sum() * h * h, rel=0.05), seed
+
+
+@pytest.mark.parametrize("kwargs", [dict(method="alpha"), dict(method="alpha_opening", opening_radius=-0.1),
+                                    dict(method="alpha_opening", opening_factor=-1.0),
+                                    dict(method="alpha_opening", opening_factor=float("nan"))])
+def test_bad_alpha_opening_parameters_are_parameter_errors(kwargs):
+    X, _ = three_rocks()
+    with pytest.raises(ParameterError, match="method|opening_radius|opening_factor"):
+        connexity(X, X.mean(axis=0), UP, **kwargs)

@@ -503,3 +503,18 @@ def test_a_compound_crs_with_heights_in_feet_is_scaled_axis_by_axis(tmp_path, ro
     assert (np.asarray(got["label"]) == np.asarray(want["label"])).mean() > 0.999
     doc = json.loads((tmp_path / "o" / "compound.json").read_text())
     assert doc["scan_units"]["metres"] == [1.0, 1.0, 0.3048] and "different units" in doc["notes"][0]
+
+
+def test_clusters_no_label_matched_are_unclassified_not_noise(tmp_path, rocks):
+    X, truth = rocks
+    scan = _las_scene(tmp_path / "scan.las", X, truth)
+    rules = tmp_path / "partial.yaml"  # no default label: a cluster that is not planar and level gets none
+    text = kbs("rules", "show", "outdoor").stdout
+    rules.write_text(text.replace("  - name: obstacle\n", "  - name: obstacle\n    if: [level, not planar]\n", 1))
+    r = kbs("run", "--rules", str(rules), "--sensor", "500000,4000000,100", str(scan), "--out", str(tmp_path / "o"))
+    assert r.returncode == 0, r.stderr
+    res = laspy.read(tmp_path / "o" / "scan.las")
+    label, cluster, code = (np.asarray(res[k]) for k in ("label", "cluster", "classification"))
+    unmatched = (label < 0) & (cluster >= 0)
+    assert unmatched.any()
+    assert (code[unmatched] == 1).all() and (code[cluster < 0] == 7).all() and (code[label == 0] == 2).all()

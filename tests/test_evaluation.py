@@ -359,6 +359,25 @@ def test_kbs_eval_end_to_end(rocks_result, capsys):
     assert "Hoover" not in stdout and f"{g.f1:.4f}" in stdout
 
 
+def test_kbs_eval_tolerances_print_the_table_1_rows_of_a_result(rocks_result, capsys):
+    tmp, ply, truth = rocks_result
+    out = tmp / "eval_t.json"
+    assert main(["eval", str(ply), "field:truth", "--tolerances", "0.6,0.95", "--json", str(out)]) == 0
+    stdout = capsys.readouterr().out
+    assert "Table 1" in stdout
+    v = PlyData.read(str(ply))["vertex"]
+    X = np.column_stack([v["x"], v["y"], v["z"]])
+    table = json.loads(out.read_text())["table"]
+    assert [t["tolerance"] for t in table] == [0.6, 0.95]
+    for t in table:  # each row is the library's classification at that T, printed and in the JSON
+        h = hoover(np.asarray(v["cluster"]), truth, tolerance=t["tolerance"], gt_ignore=(), points=X)
+        assert [t[k] for k in ("correct", "over", "under", "missed", "noise")] == list(counts(h))
+        assert f"{t['tolerance']:>5.2f} {h.correct:>7} {h.over:>5} {h.under:>6} {h.missed:>7} {h.noise:>6}" in stdout
+    # without --tolerances a result's evaluation prints no table (unchanged)
+    assert main(["eval", str(ply), "field:truth"]) == 0
+    assert "Table 1" not in capsys.readouterr().out
+
+
 def test_kbs_eval_bad_inputs_exit_codes(rocks_result, tmp_path, capsys):
     _, ply, truth = rocks_result
     np.save(tmp_path / "short.npy", truth[:-1])

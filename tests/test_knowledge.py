@@ -203,6 +203,19 @@ def test_a_predicate_is_checked_when_it_registers():
     with pytest.raises(PredicateError, match="default of parameter 'k' must be in"):
         predicate(unit="count", bounds={"k": (0.0, 1.0)})(bad_default)
 
+    def two_ways(cluster, scene, *, way: str = "a", width: float = 1.0):
+        """doc"""
+
+    with pytest.raises(PredicateError, match="not one of the declared choices"):
+        predicate(unit="count", choices={"way": ("a", "b")}, applies_with={"width": ("way", "c")})(two_ways)
+    with pytest.raises(PredicateError, match="not one of the declared choices"):
+        predicate(unit="count", applies_with={"width": ("way", "b")})(two_ways)
+    with pytest.raises(PredicateError, match="unknown parameters \\['depth'\\]"):
+        predicate(unit="count", choices={"way": ("a", "b")}, applies_with={"depth": ("way", "b")})(two_ways)
+    ok = predicate(unit="count", choices={"way": ("a", "b")}, applies_with={"width": ("way", "b")})(two_ways)
+    assert ok.params["width"].check_with({"way": "b"}, ok.params) is None
+    assert ok.params["width"].check_with({}, ok.params) == "parameter 'width' applies only with way: b (here way is 'a')"
+
 
 def test_registry_refuses_a_clash_and_suggests_names():
     reg = PredicateRegistry.default(entry_points_too=False)

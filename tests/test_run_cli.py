@@ -106,6 +106,8 @@ def test_predicates_lists_builtins_and_plugins():
                  "distance_to_sensor", "flatness", "elongation", "axis_tilt"):
         assert f"\n{name}  [" in "\n" + r.stdout
     assert "param alpha_factor: float in [0.1, 100.0] (default 3.0)" in r.stdout
+    assert "param method: one of graph, alpha_opening (default 'graph')" in r.stdout
+    assert "param opening_factor: float in [0.0, 10.0] (default 1.0, with method: alpha_opening)" in r.stdout
 
 
 def test_user_rule_file_with_plugin_runs(rocks_scan, tmp_path):
@@ -187,3 +189,162 @@ def test_worked_example_tabletop_rule_base_on_mosd(shared_data, tmp_path):
     for name, index, truth in (("table", 0, (gt >= 1) & (gt <= 9)), ("object", 1, gt >= 20)):
         p = pred == index
         assert (p & truth).sum() / p.sum() > 0.98 and (p & truth).sum() / truth.sum() > 0.95, name
+
+
+# --- CAh with the paper's alpha-opening (method: alpha_opening) ---------------------------------
+
+
+def boulders_joined_by_a_ridge(width: float = 0.06, seed: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Flat ground (12 m x 12 m) and two low boulders (1.2 m wide, 0.55 m high, 0.6 m apart) joined
+    by a low ridge ``width`` wide, all sampled at about 1,800 points per square metre seen from
+    above; sensor frame, 1.5 m above the ground. Labels: 0 ground, 1 and 2 the boulders, 3 the
+    ridge."""
+    rng = np.random.default_rng(seed)
+    ground = np.column_stack([rng.uniform(-6, 6, 12000), rng.uniform(-6, 6, 12000), rng.normal(0, 0.005, 12000)])
+    parts, labels = [ground], [np.zeros(len(ground), int)]
+    for i, cx in enumerate((-0.9, 0.9), start=1):
+        n = int(1800 * np.pi * 0.36)
+        r, t = 0.6 * np.sqrt(rng.uniform(0, 1, n)), rng.uniform(0, 2 * np.pi, n)
+        parts.append(np.c_[cx + r * np.cos(t), 3.0 + r * np.sin(t), 0.5 * (1 - r ** 2 / 0.36) + 0.05])
+        labels.append(np.full(n, i))
+    n = int(1800 * 0.7 * width)
+    parts.append(np.c_[rng.uniform(-0.35, 0.35, n), 3.0 + rng.uniform(-width / 2, width / 2, n), rng.uniform(0.1, 0.15, n)])
+    labels.append(np.full(n, 3))
+    return np.vstack(parts) - [0.0, 0.0, 1.5], np.concatenate(labels)
+
+
+def test_alpha_opening_separates_boulders_that_a_ridge_joins(tmp_path):
+    X, labels = boulders_joined_by_a_ridge()
+    scan = tmp_path / "boulders.ply"
+    write_ply(scan, X, {"truth": labels.astype(np.int32)})
+    text = kbs("rules", "show", "outdoor").stdout
+    rules = tmp_path / "alpha.yaml"
+    rules.write_text(text.replace("params: {alpha_factor: 3.0, min_fraction: 0.05}",
+                                  "params: {alpha_factor: 3.0, min_fraction: 0.05, method: alpha_opening}"))
+    assert kbs("rules", "check", str(rules)).returncode == 0
+    clusters = {}
+    for name, rb in (("graph", "outdoor"), ("alpha", str(rules))):
+        out = tmp_path / name
+        r = kbs("run", "--rules", rb, str(scan), "--out", str(out))
+        assert r.returncode == 0, r.stderr
+        clusters[name] = np.asarray(_ply(out / "boulders.ply")["cluster"])
+        explained = kbs("explain", str(out / "boulders.json")).stdout
+        cah = [ln for ln in explained.splitlines() if "CAh" in ln]
+        if name == "graph":  # the ridge is dense and 6 cm wide: the graph's opening keeps it
+            assert not cah, cah
+        else:  # the disc of radius alpha does not fit in it: two components, one per boulder
+            assert len(cah) == 1 and "split in 2 components: " in cah[0]
+            assert "connexity = 2 components > 1 [alpha.yaml:" in cah[0]
+    for name, expected in (("graph", 1), ("alpha", 2)):
+        c = clusters[name]
+        main = [np.bincount(c[labels == k]).argmax() for k in (1, 2)]
+        assert len(set(main)) == expected, name
+        for k, m in zip((1, 2), main):  # each boulder is (all but its foot on the ground) in one cluster
+            assert (c[labels == k] == m).mean() > 0.95
+
+
+def test_connexity_method_and_opening_factor_are_checked_in_the_rule_file(tmp_path):
+    text = kbs("rules", "show", "outdoor").stdout
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text.replace("params: {alpha_factor: 3.0, min_fraction: 0.05}",
+                                "params: {alpha_factor: 3.0, min_fraction: 0.05, method: alpha_openin}")
+                   .replace("  tiny:\n", "  connected2:\n    predicate: connexity\n    params: {opening_factor: 1.5}\n"
+                            "    max: 1\n  tiny:\n"))
+    r = kbs("rules", "check", str(bad))
+    assert r.returncode == 4 and "Traceback" not in r.stderr
+    line = next(n for n, ln in enumerate(bad.read_text().splitlines(), 1) if "alpha_openin" in ln)
+    col = bad.read_text().splitlines()[line - 1].index("alpha_openin") + 1
+    assert (f"bad.yaml:{line}:{col}: predicate 'connexity': parameter 'method' must be one of graph, "
+            f"alpha_opening, got 'alpha_openin'") in r.stderr
+    line = next(n for n, ln in enumerate(bad.read_text().splitlines(), 1) if "opening_factor" in ln)
+    col = bad.read_text().splitlines()[line - 1].index("1.5") + 1
+    assert (f"bad.yaml:{line}:{col}: predicate 'connexity': parameter 'opening_factor' applies only with "
+            f"method: alpha_opening (here method is 'graph')") in r.stderr
+    assert "2 problems in 1 rule file" in r.stderr
+    good = tmp_path / "good.yaml"
+    good.write_text(text.replace("params: {alpha_factor: 3.0, min_fraction: 0.05}",
+                                 "params: {alpha_factor: 3.0, min_fraction: 0.05, method: alpha_opening, "
+                                 "opening_factor: 1.5}"))
+    assert kbs("rules", "check", str(good)).returncode == 0
+
+
+# --- post.merge_coplanar: ground planes split by the tree come out as one cluster ----------------
+
+MERGE_RULES = """\
+kbs_rules: 1
+name: merge
+units: m
+strategy: divisive
+scene:
+  sensor: [0, 0, 2]
+  ground:
+    normal: [0, 0, 1]
+checks:
+  planar: {predicate: thickness, max: 0.05}
+  level: {predicate: ground_angle, max: 22.5}
+rules:
+  - {name: PAh, if: not planar, then: split}
+labels:
+  - {name: ground, if: [planar, level]}
+  - {name: other}
+post:
+  merge_coplanar: {label: ground, max_angle: 10, max_offset: 0.15}
+"""
+
+
+def ground_patches(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Four planar patches, all labelled ground by MERGE_RULES (thin, within 22.5 deg of
+    horizontal): 0 and 1, two halves of one plane z = 0, 4 m apart (coplanar: must merge); 2, a
+    platform 0.5 m above that plane (parallel, but offset by more than max_offset: must not
+    merge); 3, a ramp tilted 15 deg (more than max_angle: must not merge) in the gap between 0 and
+    1, its centre on their plane and its plane through their centres, so that only the angle keeps
+    it apart."""
+    rng = np.random.default_rng(seed)
+
+    def patch(n, x, y):
+        return np.c_[rng.uniform(*x, n), rng.uniform(*y, n), rng.normal(0, 0.005, n)]
+
+    a, b = patch(4000, (-10, -2), (-5, 5)), patch(4000, (2, 10), (-5, 5))
+    platform = patch(1500, (-3, 3), (8, 12)) + [0.0, 0.0, 0.5]
+    ramp = patch(1500, (-1.5, 1.5), (-3, 3))
+    ramp[:, 2] += np.tan(np.radians(15.0)) * ramp[:, 1]
+    parts = [a, b, platform, ramp]
+    return np.vstack(parts), np.repeat(np.arange(4), [len(p) for p in parts])
+
+
+def test_coplanar_ground_clusters_are_merged_into_one_output_cluster_and_others_are_not(tmp_path):
+    X, part = ground_patches()
+    scan = tmp_path / "patches.ply"
+    write_ply(scan, X, {"truth": part.astype(np.int32)})
+    out = {}
+    for name, text in (("merge", MERGE_RULES), ("no_merge", MERGE_RULES.split("post:")[0])):
+        rules = tmp_path / f"{name}.yaml"
+        rules.write_text(text)
+        r = kbs("run", "--rules", str(rules), str(scan), "--out", str(tmp_path / name))
+        assert r.returncode == 0, r.stderr
+        v = _ply(tmp_path / name / "patches.ply")
+        out[name] = (np.asarray(v["cluster"]), np.asarray(v["label"]),
+                     json.loads((tmp_path / name / "patches.json").read_text()))
+    # without the merge, the split tree leaves the plane z = 0 in several ground clusters
+    cluster, label, doc = out["no_merge"]
+    assert (label == 0).all()  # every patch is ground
+    assert len(np.unique(cluster[part <= 1])) >= 2
+    # with it, they are one output cluster, made of those leaves; the platform and the ramp are not in it
+    cluster, label, doc = out["merge"]
+    assert (label == 0).all()
+    plane = np.unique(cluster[part <= 1])
+    assert len(plane) == 1, plane
+    g = int(plane[0])
+    entry = doc["clusters"][g]
+    assert entry["index"] == g and entry["label"] == "ground" and entry["n_points"] == int((cluster == g).sum())
+    assert len(entry["ids"]) == len(np.unique(out["no_merge"][0][part <= 1])) >= 2
+    assert entry["n_points"] == int((part <= 1).sum())
+    platform, ramp = np.unique(cluster[part == 2]), np.unique(cluster[part == 3])
+    assert len(platform) == 1 and len(ramp) == 1 and len({g, int(platform[0]), int(ramp[0])}) == 3
+    assert len(doc["clusters"]) == 3
+    # and the explanation says so, for each merged leaf
+    leaf = entry["ids"][0]
+    r = kbs("explain", str(tmp_path / "merge" / "patches.json"), "--cluster", leaf)
+    others = len(entry["ids"]) - 1
+    assert (f"note: merged with {others} other coplanar ground cluster{'s' if others > 1 else ''} "
+            f"into output cluster {g}") in r.stdout
