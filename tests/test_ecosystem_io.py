@@ -508,9 +508,9 @@ def test_a_compound_crs_with_heights_in_feet_is_scaled_axis_by_axis(tmp_path, ro
 def test_clusters_no_label_matched_are_unclassified_not_noise(tmp_path, rocks):
     X, truth = rocks
     scan = _las_scene(tmp_path / "scan.las", X, truth)
-    rules = tmp_path / "partial.yaml"  # no default label: a cluster that is not planar and level gets none
+    rules = tmp_path / "partial.yaml"  # no default label: a level cluster that is not ground gets none
     text = kbs("rules", "show", "outdoor").stdout
-    rules.write_text(text.replace("  - name: obstacle\n", "  - name: obstacle\n    if: [level, not planar]\n", 1))
+    rules.write_text(text.replace("  - name: obstacle\n", "  - name: obstacle\n    if: [not level]\n", 1))
     r = kbs("run", "--rules", str(rules), "--sensor", "500000,4000000,100", str(scan), "--out", str(tmp_path / "o"))
     assert r.returncode == 0, r.stderr
     res = laspy.read(tmp_path / "o" / "scan.las")
@@ -518,3 +518,4 @@ def test_clusters_no_label_matched_are_unclassified_not_noise(tmp_path, rocks):
     unmatched = (label < 0) & (cluster >= 0)
     assert unmatched.any()
     assert (code[unmatched] == 1).all() and (code[cluster < 0] == 7).all() and (code[label == 0] == 2).all()
+    assert "no label matched" in r.stdout
