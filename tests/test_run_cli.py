@@ -227,7 +227,7 @@ def test_alpha_opening_separates_boulders_that_a_ridge_joins(tmp_path):
         out = tmp_path / name
         r = kbs("run", "--rules", rb, str(scan), "--out", str(out))
         assert r.returncode == 0, r.stderr
-        clusters[name] = np.asarray(_ply(out / "boulders.ply")["cluster"])
+        clusters[name] = np.asarray(_ply(out / "boulders.ply")["scalar_cluster"])
         explained = kbs("explain", str(out / "boulders.json")).stdout
         cah = [ln for ln in explained.splitlines() if "CAh" in ln]
         if name == "graph":  # the ridge is dense and 6 cm wide: the graph's opening keeps it
@@ -323,7 +323,7 @@ def test_coplanar_ground_clusters_are_merged_into_one_output_cluster_and_others_
         r = kbs("run", "--rules", str(rules), str(scan), "--out", str(tmp_path / name))
         assert r.returncode == 0, r.stderr
         v = _ply(tmp_path / name / "patches.ply")
-        out[name] = (np.asarray(v["cluster"]), np.asarray(v["label"]),
+        out[name] = (np.asarray(v["scalar_cluster"]), np.asarray(v["scalar_label"]),
                      json.loads((tmp_path / name / "patches.json").read_text()))
     # without the merge, the split tree leaves the plane z = 0 in several ground clusters
     cluster, label, doc = out["no_merge"]
