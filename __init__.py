@@ -7,17 +7,22 @@ The package is laid out as in the seed paper's architecture:
 - :mod:`kbs.io` -- point-cloud readers and writers;
 - :mod:`kbs.cli` -- the ``kbs`` command.
 
-:class:`kbs.Segmenter` (from :mod:`kbs.knowledge`) segments clouds with a rule base loaded once;
-:func:`kbs.segment_tiled` (from :mod:`kbs.tiles`) segments a large one tile by tile. Both are
-imported on first use, so ``import kbs`` stays cheap.
+:func:`kbs.segment` segments one cloud (a file, a :class:`~kbs.io.PointCloud` or an array) with a
+rule base in one call; :class:`kbs.Segmenter` (from :mod:`kbs.knowledge`) segments clouds with a
+rule base loaded once; :func:`kbs.segment_tiled` (from :mod:`kbs.tiles`) segments a
+large one tile by tile. They are imported on first use, so ``import kbs`` stays cheap.
+
+>>> import kbs
+>>> out = kbs.segment("examples/data/outdoor.ply", "outdoor")     # doctest: +SKIP
+>>> out.label_names, out.label, out.cluster                        # doctest: +SKIP
 """
 from __future__ import annotations
 
-from importlib.metadata import PackageNotFoundError, version
+import importlib.metadata as _metadata
 
 try:
-    __version__ = version("kbs")
-except PackageNotFoundError:  # pragma: no cover - running from a source tree
+    __version__ = _metadata.version("kbs")
+except _metadata.PackageNotFoundError:  # pragma: no cover - running from a source tree
     __version__ = "0+unknown"
 
 from kbs.errors import (  # noqa: E402
@@ -28,15 +33,19 @@ from kbs.errors import (  # noqa: E402
     ParameterError,
 )
 
-__all__ = ["__version__", "KbsError", "CloudFileError", "ParameterError", "FitError", "ExitCode", "Segmenter", "segment_tiled"]
+__all__ = ["__version__", "segment", "Segmenter", "KbsError", "CloudFileError", "ParameterError", "FitError",
+           "ExitCode", "segment_tiled"]
+#: The sub-packages, importable as ``kbs.<name>`` (listed by ``dir(kbs)``).
+_SUBPACKAGES = ("inference", "knowledge", "io", "cli", "evaluation", "synth", "report", "rules", "units", "errors", "maps", "tiles")
 
 
 def __getattr__(name: str):
-    """``kbs.Segmenter`` is imported when first used (it pulls in the engine: numpy, scipy, ...)."""
-    if name == "Segmenter":
-        from kbs.knowledge.segmenter import Segmenter
+    """``kbs.segment`` and ``kbs.Segmenter`` are imported when first used (they pull in the
+    engine: numpy, scipy, numba ...)."""
+    if name in ("Segmenter", "segment"):
+        from kbs.knowledge import segmenter
 
-        return Segmenter
+        return getattr(segmenter, name)
     if name == "segment_tiled":
         from kbs.tiles import segment_tiled
 
@@ -45,4 +54,5 @@ def __getattr__(name: str):
 
 
 def __dir__() -> list[str]:
-    return sorted(set(globals()) | {"Segmenter", "segment_tiled"})
+    """The public names and the sub-packages: not what the package's own imports left behind."""
+    return sorted({*__all__, *_SUBPACKAGES})

@@ -17,7 +17,7 @@ from tqdm import tqdm
 from kbs.errors import CloudFileError
 from kbs.io import PointCloud
 from kbs.io.atomic import temporary_path
-from kbs.io.result import write_result_cloud
+from kbs.io.result import PLY_NAMES, write_result_cloud
 
 #: The CLOUD argument: existence and readability are checked by the reader, which says what is
 #: wrong in one line with the file's name and exit code 3 (click's own checks, ``readable`` among
@@ -131,17 +131,21 @@ def check_writable_folder(folder: Path, *, create: bool, name: Path | None = Non
 
 def result_fields(cloud: PointCloud, results: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     """The per-vertex properties of a result PLY: the cloud's own fields under PLY-safe names
-    (an input field named like a result is kept with the suffix '_in'), then ``results``, then,
-    for an organised input (a range image, an organised PCD), ``pixel`` (int32): each point's
-    position in the row-major grid of ``cloud.shape``."""
+    (an input field named like a result is kept with the suffix '_in'), then ``results`` (the
+    result fields ``cluster``, ``label``, ``membership`` under their PLY names ``scalar_cluster``
+    ... that CloudCompare loads as scalar fields: :data:`kbs.io.result.PLY_NAMES`), then, for an
+    organised input (a range image, an organised PCD), ``pixel`` (int32): each point's position
+    in the row-major grid of ``cloud.shape``."""
+    named = {PLY_NAMES.get(name, name): values for name, values in results.items()}
+    taken = set(results) | set(named)
     fields = {}
     for name, values in cloud.fields.items():  # the input's own fields, under PLY-safe names
         safe = re.sub(r"\W", "_", name)
-        if safe in results:  # the input's own 'label' stays, as 'label_in'
+        if safe in taken:  # the input's own 'label' stays, as 'label_in'
             safe += "_in"
-        if safe and safe not in results and np.asarray(values).ndim == 1:
+        if safe and safe not in taken and np.asarray(values).ndim == 1:
             fields[safe] = values
-    fields.update(results)
+    fields.update(named)
     if cloud.shape is not None and "pixel" not in fields:  # organised input: where each point sits
         fields["pixel"] = cloud.index.astype(np.int32)
     return fields

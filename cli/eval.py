@@ -25,7 +25,7 @@ from kbs.evaluation.hoover import check_tolerance
 from kbs.evaluation.segcomp import DEFAULT_TOLERANCES, segcomp_table
 from kbs.io import read_cloud, read_result_json
 from kbs.io.segcomp import FIRST_REGION_LABEL, NON_REGION_VALUES, read_gt_seg, read_ms_nor, read_range, read_sunraster
-from kbs.io.result import check_pair
+from kbs.io.result import check_pair, read_result_cloud
 
 
 def _int_list(ctx: click.Context, param: click.Parameter, value: str | None) -> tuple[int, ...] | None:
@@ -208,7 +208,7 @@ def eval_(result: Path, ground_truth: str, tolerance: float, ground_values: tupl
     if image_path is not None:
         raise click.UsageError("--image is for a SegComp evaluation (RESULT X.ms-seg, GROUND_TRUTH X.gt-seg)")
     unlabelled = unlabelled_values or ()
-    cloud = read_cloud(result)
+    cloud = read_result_cloud(result)
     if "cluster" not in cloud.fields:
         raise CloudFileError(str(result), "not a kbs result: no per-vertex 'cluster' field (write one with kbs run)")
     try:

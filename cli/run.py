@@ -1,7 +1,12 @@
 """``kbs run``, ``kbs explain``, ``kbs rules``, ``kbs predicates``: the knowledge-based system."""
 from __future__ import annotations
 
+import dataclasses
+import functools
+import shutil
+import sys
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -12,15 +17,17 @@ import numpy as np
 from kbs import __version__
 from kbs.cli.common import ProgressLines, check_writable_folder, force_option, progress_interval, result_fields
 from kbs.errors import CloudFileError, ExitCode, KbsError
-from kbs.io import SUPPORTED_EXTENSIONS, read_cloud, read_result_json
+from kbs.io import SUPPORTED_EXTENSIONS, PointCloud, read_cloud, read_result_json
 from kbs.io.atomic import replacing
+from kbs.io.las import check_classes_fit, class_codes
 from kbs.io.readers import why_not_a_scan
-from kbs.io.result import RUN_ID_COMMENT, InputFiles, check_output, new_run_id, write_result_pair
+from kbs.io.result import RUN_ID_COMMENT, InputFiles, check_output, new_run_id, write_result_pair, write_result_stream
 from kbs.io.result import jsonable as _jsonable  # noqa: F401 -- benchmarks/profile_run.py times the JSON with it
 from kbs.knowledge import Explanation, PredicateRegistry, Segmenter, load_rule_base
 from kbs.knowledge.explain import limit_lines
 from kbs.knowledge.predicates import UNITS, did_you_mean
 from kbs.knowledge.rulebase import RuleFileError, resolve, shipped_rule_bases
+from kbs.units import UNITS as LENGTH_UNITS, ScanUnits, SpacingWarning
 
 
 def _vector3(ctx, param, value):
@@ -140,56 +147,170 @@ class Tiling:
     resume: bool = False
 
 
-def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path, *, color_by: str = "cluster", meshes: bool = False,
+def default_out_format(cloud: Path, in_format: str | None = None) -> str:
+    """The points format of a result when --out-format is not given: LAS in, LAS out (LAZ in,
+    LAZ out); anything else, PLY."""
+    ext = (in_format or cloud.suffix).lower().lstrip(".")
+    return ext if ext in ("las", "laz") else "ply"
+
+
+def read_scan(cloud: Path, in_format: str | None = None) -> PointCloud:
+    """Read a scan: a file (``in_format`` overrides its extension), or ``-``: standard input,
+    whose format ``in_format`` must give. Errors name ``<stdin>`` for standard input."""
+    if str(cloud) != "-":
+        return read_cloud(cloud, format=in_format)
+    if in_format is None:
+        raise click.UsageError("reading a scan from standard input ('-') needs --in-format (ply, pcd, las, ...)")
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="kbs-") as folder:
+        tmp = Path(folder) / f"stdin.{in_format.lower().lstrip('.')}"
+        with open(tmp, "wb") as out:
+            shutil.copyfileobj(sys.stdin.buffer, out, 1 << 20)
+        try:
+            return dataclasses.replace(read_cloud(tmp, format=in_format), path="-")
+        except CloudFileError as exc:
+            raise CloudFileError("<stdin>", exc.problem) from exc
+
+
+def _scan_units(pc: PointCloud, given: str | None, name: str, quiet: bool) -> ScanUnits | None:
+    """The scan's units: --units, else what its file declares, else None (unknown)."""
+    if given is None:
+        return pc.units
+    units = ScanUnits.uniform(given, source="--units")
+    if pc.units is not None and pc.units.name != units.name and not quiet:
+        click.echo(f"kbs: warning: {name}: --units {given} overrides {pc.units.name}, which {pc.units.source} says",
+                   err=True)
+    return units
+
+
+def _scan_frame(clusters: list[dict], f: np.ndarray) -> tuple[list[dict], str | None]:
+    """The output clusters with their descriptors (computed in the rule base's unit) back in the
+    scan's: centre / f, thickness / f, eigenvalues / f^2 (copies; the explanation keeps the rule
+    base's unit). With a different factor for z, only the centre is converted (and a note says so)."""
+    if np.array_equal(f, np.ones(3)):
+        return clusters, None
+    iso = bool(np.all(f == f[0]))
+    out = []
+    for c in clusters:
+        d = dict(c.get("descriptors") or {})
+        if "center" in d:
+            d["center"] = (np.asarray(d["center"], dtype=float) / f).tolist()
+        if iso:
+            if "thickness" in d:
+                d["thickness"] = float(d["thickness"]) / float(f[0])
+            if "eigenvalues" in d:
+                d["eigenvalues"] = (np.asarray(d["eigenvalues"], dtype=float) / float(f[0]) ** 2).tolist()
+        out.append({**c, "descriptors": d})
+    note = None if iso else ("the clusters' thickness and eigenvalues are in the rule base's unit (x, y and z of the "
+                             "scan are in different units); their centres are in the scan's")
+    return out, note
+
+
+def _ascii_line(text: str) -> str | None:
+    line = " ".join(text.split())
+    return line if line.isascii() and line else None
+
+
+def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_by: str = "cluster", meshes: bool = False,
              report: bool = False, quiet: bool = False, t0: float | None = None,
              inputs: InputFiles | tuple[Path, ...] = (),
-             force: bool = False, tiling: Tiling | None = None) -> ScanResult:
-    """Read one scan, segment it, write DIR/<stem>.ply and DIR/<stem>.json (and the meshes and the
-    report when asked) and print what was done (nothing on stdout when ``quiet``); ``t0`` is when
-    its clock started (default: now).
+             force: bool = False, out_format: str | None = None, in_format: str | None = None,
+             units: str | None = None, sensor=None, tiling: Tiling | None = None) -> ScanResult:
+    """Read one scan, segment it, write DIR/<stem>.ply (or .las/.laz) and DIR/<stem>.json (and the
+    meshes and the report when asked) and print what was done (nothing on stdout when ``quiet``);
+    ``t0`` is when its clock started (default: now). ``out_dir`` None: the points go to standard
+    output (``--out -``), no JSON, and the summary to stderr.
 
     Before reading, each output is checked (:func:`kbs.io.result.check_output`): never ``cloud``
     or one of ``inputs``; an existing file kbs did not write only with ``force``."""
     t0 = time.perf_counter() if t0 is None else t0
-    say = (lambda *args, **kwargs: None) if quiet else click.echo
+    to_stdout = out_dir is None
+    say = (lambda *args, **kwargs: None) if quiet else functools.partial(click.echo, err=to_stdout)
     rb = segmenter.rule_base
-    ply, js = out_dir / f"{cloud.stem}.ply", out_dir / f"{cloud.stem}.json"
-    html = out_dir / f"{cloud.stem}.html"
-    sources = inputs if isinstance(inputs, InputFiles) else InputFiles((cloud, *inputs))
-    for target in (ply, js, *([html] if report else [])):
-        check_output(target, inputs=sources, force=force)
-    pc = read_cloud(cloud)
+    stdin = str(cloud) == "-"
+    stem = "stdin" if stdin else cloud.stem
+    fmt = out_format or default_out_format(cloud, in_format)
+    points = js = html = None
+    if not to_stdout:
+        points, js = out_dir / f"{stem}.{fmt}", out_dir / f"{stem}.json"
+        html = out_dir / f"{stem}.html"
+        sources = inputs if isinstance(inputs, InputFiles) else InputFiles((cloud, *inputs))
+        for target in (points, js, *([html] if report else [])):
+            check_output(target, inputs=sources, force=force)
+    pc = read_scan(cloud, in_format)
+    name = "<stdin>" if stdin else str(cloud)
+    if fmt != "ply":
+        check_classes_fit(pc.source, rb.asprs_classes, name)
+    scan_units = _scan_units(pc, units, name, quiet)
     t_read = time.perf_counter() - t0
     if tiling is None:
-        seg = segmenter.segment(pc.xyz, progress=ProgressLines(str(cloud), _splits, quiet=quiet, start=t0))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", SpacingWarning)
+            seg = segmenter.segment(pc.xyz, units=scan_units, sensor=sensor,
+                                    progress=ProgressLines(name, _splits, quiet=quiet, start=t0))
+        spacing = [w.message for w in caught if isinstance(w.message, SpacingWarning)]
+        for w in caught:
+            if not isinstance(w.message, SpacingWarning):
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     else:
+        if sensor is not None or (scan_units is not None and not np.array_equal(segmenter.scale(scan_units), np.ones(3))):
+            raise click.UsageError("--tile runs a scan in the rule base's own units and sensor: --units, a unit "
+                                   "other than the rule base's, and --sensor are not supported with --tile yet")
         from kbs.tiles.store import TileStore
 
         store = TileStore(out_dir / f"{cloud.stem}.tiles", segmenter)
         seg = _segment_tiled(segmenter, pc.xyz, cloud, tiling, quiet=quiet, t0=t0, store=store)
+        spacing = []
     t1 = time.perf_counter()
-    check_writable_folder(out_dir, create=True)  # checked by `kbs run` already; here for other callers
+    if not to_stdout:
+        check_writable_folder(out_dir, create=True)  # checked by `kbs run` already; here for other callers
     from kbs.report.colors import rgb_fields
 
-    fields = result_fields(pc, {"cluster": seg.cluster, "label": seg.label, "membership": seg.membership,
-                                **rgb_fields(seg.cluster if color_by == "cluster" else seg.label)})
+    f = segmenter.scale(scan_units)
+    clusters, frame_note = _scan_frame(seg.clusters, f)
+    used_sensor = (np.asarray(segmenter.sensor, dtype=float) / f).tolist() if sensor is None else list(sensor)
+    results = {"cluster": seg.cluster, "label": seg.label, "membership": seg.membership}
+    fields = result_fields(pc, {**results, **rgb_fields(seg.cluster if color_by == "cluster" else seg.label)})
     doc = {
-        "kbs_version": __version__, "input": str(cloud), "n_points": len(pc), "n_dropped": pc.n_dropped,
-        "rule_base": rb.name, "rule_file": rb.path, "units": rb.units, "sensor": list(segmenter.sensor),
-        "label_names": seg.label_names, "summary": seg.summary(), "clusters": seg.clusters,
+        "kbs_version": __version__, "input": name, "n_points": len(pc), "n_dropped": pc.n_dropped,
+        "rule_base": rb.name, "rule_file": rb.path, "units": rb.units, "sensor": used_sensor,
+        "label_names": seg.label_names, "summary": seg.summary(), "clusters": clusters,
         "explanation": seg.explanation.to_dict(),
     }
     if tiling is not None:
         doc["tiling"] = seg.tiling
-    run_id = write_result_pair(ply, js, pc.xyz, fields, doc, run_id=new_run_id())
+    if scan_units is not None or pc.crs is not None:
+        doc["scan_units"] = {**(scan_units.to_dict() if scan_units is not None else {}),
+                             "to_rule_base": f.tolist(), "crs": pc.crs}
+    if frame_note:
+        doc["notes"] = [frame_note]
+    if spacing:
+        doc["spacing"] = spacing[0].to_dict()
+    comments = [line for line in (f"units {scan_units.name}" if scan_units is not None and
+                                  scan_units.horizontal == scan_units.vertical else None,
+                                  f"crs {_ascii_line(pc.crs)}" if pc.crs and _ascii_line(pc.crs) else None) if line]
+    las = None
+    if fmt != "ply":
+        classes = rb.asprs_classes
+        codes = class_codes(seg.label, seg.cluster, seg.label_names, classes) if classes else None
+        las = functools.partial(_build_las, pc, results, codes)
+    if to_stdout:
+        run_id = write_result_stream(sys.stdout.buffer, f".{fmt}", pc.xyz, fields, run_id=new_run_id(), las=las,
+                                     comments=comments)
+    else:
+        run_id = write_result_pair(points, js, pc.xyz, fields, doc, run_id=new_run_id(), las=las, comments=comments)
     if tiling is not None:
         store.remove()  # the result is written: the finished tiles are no longer needed
     t_write = time.perf_counter() - t1
     s = seg.summary()
     per_label = ", ".join(f"{k} {v:,}" for k, v in s["points_per_label"].items())
-    say(f"{cloud}: {len(pc):,} points, rule base '{rb.name}' ({rb.strategy})")
+    say(f"{name}: {len(pc):,} points, rule base '{rb.name}' ({rb.strategy})")
+    if scan_units is not None and segmenter.length_unit is not None:
+        scaled = "" if np.array_equal(f, np.ones(3)) else f", scaled to the rule base's {segmenter.length_unit.name}"
+        say(f"  units: {scan_units.name} ({scan_units.source}){scaled}")
     say(f"  {s['clusters']} clusters, {s['splits']} splits, {s['limits']} limits reached; points: {per_label}")
-    for line in limit_lines(s["limits_by_kind"], Path(rb.path).name, result=str(js)):
+    for line in limit_lines(s["limits_by_kind"], Path(rb.path).name, result=str(js or "the result")):
         say(f"  {line}")
     say(f"  ground: {seg.explanation.ground.get('source', 'not used')}")
     if tiling is not None:
@@ -198,25 +319,30 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path, *, color_by: str 
             f"{t['stitched']} clusters stitched across tile edges")
     say(f"  time: {time.perf_counter() - t0:.2f} s (read {t_read:.2f}, segment {seg.seconds:.2f}, "
         f"write {t_write:.2f})")
-    say(f"wrote {ply} and {js}")
+    say(f"wrote {points} and {js}" if not to_stdout else f"wrote the {fmt.upper()} result to standard output")
+    if fmt != "ply" and not rb.asprs_classes and not quiet:
+        click.echo(f"note: rule base '{rb.name}' maps no label to an ASPRS class (asprs_classes): the classification "
+                   "is the input's", err=True)
     if meshes:
         from kbs.report.meshes import write_meshes
 
-        say(write_meshes(out_dir / f"{cloud.stem}-meshes", pc.xyz, seg.cluster, seg.label,
+        say(write_meshes(out_dir / f"{stem}-meshes", pc.xyz, seg.cluster, seg.label,
                          seg.label_names).describe())
     if report:
         from kbs.report.html import write_report
 
         try:
             with replacing(html) as (tmp,):
-                write_report(tmp, pc.xyz, seg.cluster, seg.label, seg.label_names, doc["explanation"], seg.clusters,
-                             title=f"{cloud.name} — rule base '{rb.name}'")
+                write_report(tmp, pc.xyz, seg.cluster, seg.label, seg.label_names, doc["explanation"], clusters,
+                             title=f"{Path(name).name} — rule base '{rb.name}'")
                 with open(tmp, "a", encoding="utf-8") as stream:  # marks the page as kbs's own (--force)
                     stream.write(f"<!-- {RUN_ID_COMMENT} {run_id} -->\n")
         except OSError as exc:
             raise CloudFileError(str(html), f"cannot write: {exc.strerror or exc}") from exc
         say(f"wrote {html}")
     if not quiet:
+        for w in spacing:
+            click.echo(f"kbs: warning: {name}: {w}", err=True)
         for note in seg.explanation.notes + ([seg.explanation.ground["note"]] if "note" in seg.explanation.ground else []):
             click.echo(f"note: {note}", err=True)
     return ScanResult(cloud, len(pc), s["clusters"], t_read, seg.seconds, t_write)
@@ -245,6 +371,12 @@ def _segment_tiled(segmenter: Segmenter, xyz: np.ndarray, cloud: Path, tiling: T
                              workers=tiling.workers, progress=progress, store=store, resume=tiling.resume)
     except SchedulerError as exc:
         raise click.BadParameter(str(exc), param_hint="--scheduler") from exc
+
+
+def _build_las(pc: PointCloud, results: dict, codes, run_id: str):
+    from kbs.io.las import build_las
+
+    return build_las(pc.xyz, pc.fields, results, classification=codes, run_id=run_id, source=pc.source, crs=pc.crs)
 
 
 def _splits(n: int) -> str:
@@ -277,14 +409,28 @@ def time_table(results: list[ScanResult | ScanFailure], t_load: float, t_total: 
               help=f"A shipped rule base ({', '.join(shipped_rule_bases())}) or a rule file.")
 @click.argument("clouds", nargs=-1, required=True, type=click.Path(path_type=Path, readable=False),
                 metavar="CLOUD...")
-@click.option("--sensor", callback=_vector3, metavar="X,Y,Z", help="Sensor position (overrides the rule base's).")
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=Path("kbs-out"),
-              show_default=True, help="Directory for <stem>.ply and <stem>.json (created if needed; checked "
-              "for writing before any segmentation).")
+@click.option("--sensor", callback=_vector3, metavar="X,Y,Z",
+              help="Sensor position (overrides the rule base's), in the scan's coordinates and units.")
+@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path, allow_dash=True),
+              default=Path("kbs-out"), show_default=True,
+              help="Directory for <stem>.ply (or .las/.laz) and <stem>.json (created if needed; checked for writing "
+              "before any segmentation). '-': the points to standard output (one scan; no JSON, no meshes, no report; "
+              "the summary on stderr).")
+@click.option("--out-format", "out_format", type=click.Choice(["ply", "las", "laz"]), default=None,
+              help="Format of the result's points: ply, or las/laz (the input's records with the ASPRS classification "
+              "the rule base's asprs_classes gives each label, and cluster, label, membership as extra bytes). "
+              "Default: the input's for LAS/LAZ input, else ply.")
+@click.option("--in-format", "in_format", type=click.Choice([e.lstrip(".") for e in SUPPORTED_EXTENSIONS]),
+              default=None, help="Read every CLOUD as this format, whatever its name says; needed for '-' "
+              "(standard input).")
+@click.option("--units", type=click.Choice(list(LENGTH_UNITS)), default=None,
+              help="Unit of the scans' coordinates, for files that do not declare one (LAS/LAZ declare it in their "
+              "CRS, PLY/PCD in a 'units' comment); overrides the file's. The points are scaled to the rule base's "
+              "unit before segmenting; the output points are the input's.")
 @force_option
 @plugin_option
 @click.option("--color-by", "color_by", type=click.Choice(["cluster", "label"]), default="cluster", show_default=True,
-              help="Colour of each vertex (red green blue) in <stem>.ply: one per output cluster or per label.")
+              help="Colour of each vertex (red green blue) in a PLY result: one per output cluster or per label.")
 @click.option("--meshes", is_flag=True, help="Also write DIR/<stem>-meshes/: a convex hull per obstacle cluster "
               "(obstacle-<index>.ply) and the ground surface (ground.ply).")
 @click.option("--report", is_flag=True, help="Also write DIR/<stem>.html: a self-contained report (3D view by "
@@ -307,15 +453,22 @@ def time_table(results: list[ScanResult | ScanFailure], t_load: float, t_total: 
 @click.pass_context
 def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_dir: Path, plugins: tuple[Path, ...],
         color_by: str = "cluster", meshes: bool = False, report: bool = False, jobs: int = -1,
-        force: bool = False, tile: float | None = None, buffer: float | None = None,
+        force: bool = False, out_format: str | None = None, in_format: str | None = None,
+        units: str | None = None, tile: float | None = None, buffer: float | None = None,
         scheduler: str | None = None, resume: bool = False) -> None:
-    """Segment each CLOUD with a rule base; write DIR/<stem>.ply (per-vertex cluster, label,
-    membership) and DIR/<stem>.json (label names, clusters, the explanation tree).
+    """Segment each CLOUD with a rule base; write DIR/<stem>.ply (per-vertex scalar_cluster,
+    scalar_label, scalar_membership) or, with --out-format las|laz (the default for LAS/LAZ input),
+    DIR/<stem>.las|.laz (ASPRS classification, cluster, label, membership), and DIR/<stem>.json
+    (label names, clusters, the explanation tree).
 
     A CLOUD that is a directory stands for every point-cloud file directly inside it, in name
-    order. The rule base is loaded once for all the scans; with several, a table of the time each
-    took follows. A scan that fails is reported and the others go on; the exit code is then the
-    first failure's.
+    order; '-' is standard input (give --in-format). The rule base is loaded once for all the
+    scans; with several, a table of the time each took follows. A scan that fails is reported and
+    the others go on; the exit code is then the first failure's.
+
+    Units: a scan whose unit is known (its file's CRS or 'units' comment, --units) is scaled to
+    the rule base's unit before segmenting; a warning says when its point spacing does not fit
+    the rule base (wrong units?).
 
     Outputs: never an input file; an existing file that kbs did not write (no kbs run id) only
     with --force; an earlier kbs result is replaced. Each pair is written whole or not at all.
@@ -325,6 +478,11 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
     t0 = time.perf_counter()
     if not quiet:
         progress_interval()  # a bad KBS_PROGRESS_SECONDS is a usage error before any work
+    to_stdout = str(out_dir) == "-"
+    if to_stdout and (meshes or report):
+        raise click.UsageError("--out - writes the points to standard output: --meshes and --report need a folder")
+    if "-" in map(str, clouds) and in_format is None:
+        raise click.UsageError("reading a scan from standard input ('-') needs --in-format (ply, pcd, las, ...)")
 
     def skipped(path: Path, why: str) -> None:
         if not quiet:
@@ -332,14 +490,20 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
 
     tiling = _tiling(tile, buffer, scheduler, jobs, resume)
     scans = scan_paths(clouds, on_skip=skipped)
+    if to_stdout and len(scans) != 1:
+        raise click.UsageError(f"--out - writes one scan to standard output; {len(scans)} scans given")
+    if to_stdout and tiling is not None:
+        raise click.UsageError("--tile writes a result folder: --out - is not supported with --tile")
     split_jobs = 1 if tiling is not None and tiling.scheduler is not None else jobs  # Dask workers do the work
-    with Segmenter(rules, jobs=split_jobs, sensor=sensor, plugins=plugins) as segmenter:  # workers kept for all scans
+    with Segmenter(rules, jobs=split_jobs, plugins=plugins) as segmenter:  # workers kept for all scans
         if not quiet:
             for w in segmenter.rule_base.warnings:  # `kbs rules check` quotes the line
                 click.echo(f"kbs: warning: {w.pos}: {w.message}", err=True)
-        check_writable_folder(out_dir, create=True)  # before any segmentation
-        _run_scans(segmenter, scans, out_dir, t0, color_by=color_by, meshes=meshes, report=report, quiet=quiet,
-                   inputs=InputFiles(scans), force=force, tiling=tiling)
+        if not to_stdout:
+            check_writable_folder(out_dir, create=True)  # before any segmentation
+        _run_scans(segmenter, scans, None if to_stdout else out_dir, t0, color_by=color_by, meshes=meshes,
+                   report=report, quiet=quiet, inputs=InputFiles(scans), force=force, out_format=out_format,
+                   in_format=in_format, units=units, sensor=sensor, tiling=tiling)
 
 
 def _tiling(tile: float | None, buffer: float | None, scheduler: str | None, jobs: int,

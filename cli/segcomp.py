@@ -7,7 +7,8 @@ import click
 import numpy as np
 
 from kbs.errors import CloudFileError
-from kbs.io import PointCloud, read_cloud
+from kbs.io import PointCloud
+from kbs.io.result import read_result_cloud
 from kbs.io.segcomp import (
     FIRST_REGION_LABEL,
     read_sunraster,
@@ -83,7 +84,7 @@ def segcomp(ctx: click.Context, result: Path, image_path: Path, out: Path | None
         raise click.UsageError("--normals and --no-normals exclude each other")
     out = out if out is not None else result.with_suffix(".ms-seg")
     normals = None if no_normals else (normals if normals is not None else out.with_suffix(".ms-nor"))
-    cloud = read_cloud(result)
+    cloud = read_result_cloud(result)
     cluster, pixel = _result_arrays(result, cloud)
     image = read_sunraster(image_path)
     _check_against_image(result, image_path, image, pixel)

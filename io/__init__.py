@@ -1,11 +1,13 @@
-"""Point-cloud files: read PLY, PCD, LAS/LAZ, text tables, ``.npy`` and KITTI ``.bin``; write PLY.
+"""Point-cloud files: read PLY, PCD, LAS/LAZ, E57, text tables, ``.npy`` and KITTI ``.bin``; write
+PLY, and LAS/LAZ results (:mod:`kbs.io.las`).
 
 >>> from kbs.io import read_cloud, write_ply
 >>> cloud = read_cloud("scan.pcd")              # doctest: +SKIP
 >>> cloud.xyz.shape, cloud.fields.keys()        # doctest: +SKIP
 ((182292, 3), dict_keys(['label', 'rgba']))
 
-Every problem with a file raises :class:`kbs.errors.CloudFileError` (path and problem in one
+A cloud carries the units and CRS its file declares (``cloud.units``, ``cloud.crs``:
+:mod:`kbs.units`). Every problem with a file raises :class:`kbs.errors.CloudFileError` (path and problem in one
 line); points with a NaN/Inf coordinate are dropped, counted in ``n_dropped`` and logged on the
 ``kbs.io`` logger at INFO level.
 

@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from types import MappingProxyType
+from typing import Any
 
 import numpy as np
 
 from kbs.errors import CloudFileError, KbsError, ParameterError
+from kbs.units import ScanUnits
 
 logger = logging.getLogger("kbs.io")
 
@@ -51,6 +53,14 @@ class PointCloud:
         Number of points dropped because a coordinate was NaN or Inf.
     path : str or None
         The file the cloud was read from, None for a cloud built from arrays.
+    units : ScanUnits or None
+        The length units of the coordinates when the file declares them (a LAS/LAZ file's CRS,
+        a ``units`` or ``crs`` comment of a PLY or PCD header, E57's metres), else None.
+    crs : str or None
+        The coordinate reference system the file declares, as text (WKT, ``EPSG:n`` ...), else None.
+    source : object or None
+        The reading library's own object when a writer needs the file's layout to write it back
+        (the ``laspy.LasData`` of a LAS/LAZ file: header, point format, VLRs); None otherwise.
     """
 
     xyz: np.ndarray
@@ -60,6 +70,9 @@ class PointCloud:
     n_read: int
     n_dropped: int
     path: str | None = None
+    units: ScanUnits | None = None
+    crs: str | None = None
+    source: Any = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         xyz = self.xyz
@@ -96,6 +109,9 @@ class PointCloud:
         *,
         shape: tuple[int, int] | None = None,
         path: str | None = None,
+        units: ScanUnits | None = None,
+        crs: str | None = None,
+        source: Any = None,
     ) -> PointCloud:
         """Build a cloud from raw arrays, dropping the points with a NaN/Inf coordinate.
 
@@ -111,6 +127,8 @@ class PointCloud:
             ``(rows, cols)`` of an organised cloud, with ``rows * cols == M``.
         path : str, optional
             The file the arrays come from (used in messages and stored on the cloud).
+        units, crs, source : optional
+            Stored as they are (see the class).
 
         Returns
         -------
@@ -161,6 +179,9 @@ class PointCloud:
             n_read=n_read,
             n_dropped=n_dropped,
             path=None if path is None else str(path),
+            units=units,
+            crs=crs,
+            source=source,
         )
 
     def __len__(self) -> int:
@@ -169,7 +190,8 @@ class PointCloud:
 
     def __repr__(self) -> str:
         organised = f", shape={self.shape}" if self.shape is not None else ""
+        units = f", units={self.units.name!r}" if self.units is not None else ""
         return (
             f"PointCloud(n={len(self)}, fields={list(self.fields)}{organised}, "
-            f"n_read={self.n_read}, n_dropped={self.n_dropped}, path={self.path!r})"
+            f"n_read={self.n_read}, n_dropped={self.n_dropped}{units}, path={self.path!r})"
         )

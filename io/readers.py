@@ -23,6 +23,7 @@ from kbs.errors import CloudFileError, KbsError, ParameterError
 from kbs.io.cloud import PointCloud
 from kbs.io.segcomp import read_range
 from kbs.io.text import TableError, parse_table
+from kbs.units import ScanUnits, crs_units, geokey_units, pyproj_units, units_from_comments, wkt_units
 
 logger = logging.getLogger("kbs.io")
 
@@ -121,6 +122,8 @@ def _from_structured(
     *,
     skip: Callable[[str], bool] = lambda name: False,
     shape: tuple[int, int] | None = None,
+    units: ScanUnits | None = None,
+    crs: str | None = None,
 ) -> PointCloud:
     """A cloud from a structured array with x, y, z fields; every other 1-D field is kept."""
     names = tuple(name for name in data.dtype.names if not skip(name))
@@ -133,7 +136,7 @@ def _from_structured(
             continue
         fields[name] = data[name]
     xyz = np.column_stack([data["x"], data["y"], data["z"]]) if len(data) else np.empty((0, 3))
-    return PointCloud.from_arrays(xyz, fields, shape=shape, path=str(path))
+    return PointCloud.from_arrays(xyz, fields, shape=shape, path=str(path), units=units, crs=crs)
 
 
 def read_ply(path: Path) -> PointCloud:
@@ -149,18 +152,63 @@ def read_ply(path: Path) -> PointCloud:
     vertex = elements["vertex"]
     scalars = tuple(p.name for p in vertex.properties if not isinstance(p, plyfile.PlyListProperty))
     _require_xyz(path, scalars, "the PLY vertex element")
-    return _from_structured(path, vertex.data, skip=lambda name: name not in scalars)
+    units, crs = _declared_units(path, [*ply.comments, *ply.obj_info], "PLY")
+    return _from_structured(path, vertex.data, skip=lambda name: name not in scalars, units=units, crs=crs)
+
+
+def _declared_units(path: Path, comments: list[str], kind: str) -> tuple[ScanUnits | None, str | None]:
+    """The ``units`` and ``crs`` a header's comment lines declare (:func:`kbs.units.units_from_comments`)."""
+    try:
+        return units_from_comments(comments, kind)
+    except ParameterError as exc:
+        raise CloudFileError(str(path), str(exc)) from exc
+
+
+#: PCD header lines at most before DATA (a header has 10 keywords, plus comments).
+_PCD_MAX_HEADER_LINES = 1000
+
+
+def _pcd_header(path: Path) -> tuple[list[str], list[str], int]:
+    """The keyword lines and the ``#`` comment lines (without the ``#``) of a PCD header, and the
+    byte offset of its data."""
+    lines: list[str] = []
+    comments: list[str] = []
+    offset = 0
+    with open(path, "rb") as fp:
+        for _ in range(_PCD_MAX_HEADER_LINES):
+            raw = fp.readline()
+            if not raw:
+                break
+            offset += len(raw)
+            line = raw.decode("utf-8", errors="replace").strip()
+            if line.startswith("#"):
+                comments.append(line[1:].strip())
+            elif line:
+                lines.append(line)
+                if line.upper().startswith("DATA"):
+                    return lines, comments, offset
+    raise CloudFileError(str(path), "malformed PCD header: no DATA line")
 
 
 def read_pcd(path: Path) -> PointCloud:
-    """Read an ascii, binary or binary_compressed PCD file (pypcd4); HEIGHT > 1 gives an organised cloud."""
+    """Read an ascii, binary or binary_compressed PCD file (pypcd4); HEIGHT > 1 gives an organised cloud.
+
+    The ascii body is read with numpy, columns separated by any run of spaces or tabs (as PCL and
+    Open3D read it; pypcd4 itself accepts only single spaces). ``# units mm`` and ``# crs ...``
+    comment lines of the header declare the coordinates' units and CRS."""
     _check_magic(path, (b"#", b"VERSION", b"FIELDS"), "PCD")
     import pypcd4
 
+    lines, comments, offset = _pcd_header(path)
     with _library_errors(path, "PCD"):
-        pcd = pypcd4.PointCloud.from_path(path)
-    meta = pcd.metadata
-    data = np.atleast_1d(pcd.pc_data)
+        if lines[-1].split()[1:2] == ["ascii"]:
+            meta = pypcd4.MetaData.parse_header(lines)
+            with open(path, "rb") as fp:
+                fp.seek(offset)
+                data = _pcd_ascii(path, fp, meta.build_dtype(), meta.points)
+        else:
+            pcd = pypcd4.PointCloud.from_path(path)
+            meta, data = pcd.metadata, np.atleast_1d(pcd.pc_data)
     _check_count(path, "PCD", meta.points, len(data))
     names = tuple(name for name in data.dtype.names if not name.startswith(_PCD_PADDING_PREFIX))
     _require_xyz(path, names, "the PCD header")
@@ -172,7 +220,19 @@ def read_pcd(path: Path) -> PointCloud:
                 f"malformed PCD header: WIDTH {meta.width} x HEIGHT {meta.height} != POINTS {meta.points}",
             )
         shape = (meta.height, meta.width)
-    return _from_structured(path, data, skip=lambda name: name.startswith(_PCD_PADDING_PREFIX), shape=shape)
+    units, crs = _declared_units(path, comments, "PCD")
+    return _from_structured(path, data, skip=lambda name: name.startswith(_PCD_PADDING_PREFIX), shape=shape,
+                            units=units, crs=crs)
+
+
+def _pcd_ascii(path: Path, fp, dtype: np.dtype, n_points: int) -> np.ndarray:
+    """The body of an ascii PCD: one point a line, values separated by blanks (any number)."""
+    if n_points == 0:
+        return np.empty(0, dtype)
+    try:
+        return np.atleast_1d(np.loadtxt(fp, dtype=dtype, ndmin=1, comments="#"))
+    except ValueError as exc:
+        raise CloudFileError(str(path), f"malformed PCD file: {_one_line(exc)}") from exc
 
 
 def _check_las_layout(path: Path, kind: str) -> None:
@@ -206,7 +266,9 @@ def _check_las_layout(path: Path, kind: str) -> None:
 
 
 def read_las(path: Path) -> PointCloud:
-    """Read a LAS or LAZ file (laspy, lazrs backend): scaled float64 xyz and the LAS_FIELDS present."""
+    """Read a LAS or LAZ file (laspy, lazrs backend): scaled float64 xyz, the LAS_FIELDS present and
+    every extra-bytes dimension; the CRS and its units (:func:`las_crs`); the ``laspy.LasData`` kept
+    as the cloud's ``source`` (LAS output writes the file's own records back)."""
     kind = "LAZ" if path.suffix.lower() == ".laz" else "LAS"
     _check_magic(path, (b"LASF",), kind)
     _check_las_layout(path, kind)
@@ -224,7 +286,77 @@ def read_las(path: Path) -> PointCloud:
         )
         present = set(las.point_format.dimension_names)
         fields = {name: np.asarray(las[name]) for name in LAS_FIELDS if name in present}
-    return PointCloud.from_arrays(xyz, fields, path=str(path))
+        for name in las.point_format.extra_dimension_names:
+            values = np.asarray(las[name])
+            if values.ndim == 1 and name not in fields:
+                fields[name] = values
+    units, crs = las_crs(las.header)
+    return PointCloud.from_arrays(xyz, fields, path=str(path), units=units, crs=crs, source=las)
+
+
+def las_crs(header) -> tuple[ScanUnits | None, str | None]:
+    """The units and the CRS text of a LAS header.
+
+    With pyproj (``pip install 'kbs[crs]'``), laspy's ``parse_crs`` reads the WKT or GeoTIFF
+    records and the text is the CRS's WKT. Without it, the WKT record's text is kept as it is and
+    its UNIT nodes give the units; GeoTIFF keys give them through ProjLinearUnitsGeoKey /
+    VerticalUnitsGeoKey (the CRS text is then ``EPSG:<ProjectedCSTypeGeoKey>``)."""
+    from laspy.vlrs.known import GeoKeyDirectoryVlr, WktCoordinateSystemVlr
+
+    source = "the LAS file's CRS"
+    vlrs = list(header.vlrs) + list(header.evlrs or [])
+    wkt = next((v.string for v in vlrs if isinstance(v, WktCoordinateSystemVlr) and v.string.strip()), None)
+    keys: dict[int, int] = {}
+    for v in vlrs:
+        if isinstance(v, GeoKeyDirectoryVlr):
+            keys.update({k.id: k.value_offset for k in v.geo_keys if k.tiff_tag_location == 0})
+    try:
+        crs = header.parse_crs()
+    except ImportError:  # no pyproj: the text as it is
+        crs = None
+    except Exception:  # noqa: BLE001 - a CRS pyproj cannot read: fall back on the text
+        logger.debug("laspy could not parse the CRS", exc_info=True)
+        crs = None
+    if crs is not None:
+        units = pyproj_units(crs, source) or (wkt_units(wkt, source) if wkt else geokey_units(keys, source))
+        return units, wkt or crs.to_wkt()
+    if wkt:
+        return wkt_units(wkt, source) or geokey_units(keys, source), wkt
+    epsg = keys.get(3072)
+    text = f"EPSG:{epsg}" if epsg not in (None, 0, 32767) else None
+    return geokey_units(keys, source), text
+
+
+def read_e57(path: Path) -> PointCloud:
+    """Read every scan of an E57 file (pye57, ``pip install 'kbs[e57]'``), each placed by its pose,
+    with intensity and colours where present; coordinates are metres (the E57 standard)."""
+    _check_magic(path, (b"ASTM-E57",), "E57")
+    try:
+        import pye57
+    except ImportError as exc:
+        raise CloudFileError(str(path), "reading E57 needs the optional package pye57: pip install 'kbs[e57]'") from exc
+    from kbs.units import ScanUnits as _Units
+
+    with _library_errors(path, "E57"):
+        e57 = pye57.E57(str(path))
+        try:
+            scans = [e57.read_scan(i, ignore_missing_fields=True, intensity=True, colors=True, transform=True)
+                     for i in range(e57.scan_count)]
+        finally:
+            close = getattr(e57, "close", None)
+            if callable(close):
+                close()
+    if not scans:
+        raise CloudFileError(str(path), "the E57 file holds no scan")
+    xyz = np.concatenate([np.column_stack([s["cartesianX"], s["cartesianY"], s["cartesianZ"]]) for s in scans])
+    fields: dict[str, np.ndarray] = {}
+    names = {"intensity": "intensity", "colorRed": "red", "colorGreen": "green", "colorBlue": "blue"}
+    for key, name in names.items():
+        if all(key in s and len(s[key]) == len(s["cartesianX"]) for s in scans):
+            fields[name] = np.concatenate([np.asarray(s[key]) for s in scans])
+    if len(scans) > 1:
+        fields["scan"] = np.concatenate([np.full(len(s["cartesianX"]), i, dtype=np.int32) for i, s in enumerate(scans)])
+    return PointCloud.from_arrays(xyz, fields, path=str(path), units=_Units.uniform("m", source="E57 (metres)"))
 
 
 def read_text(path: Path) -> PointCloud:
@@ -304,6 +436,7 @@ READERS: Mapping[str, Callable[[Path], PointCloud]] = {
     ".pcd": read_pcd,
     ".las": read_las,
     ".laz": read_las,
+    ".e57": read_e57,
     ".xyz": read_text,
     ".txt": read_text,
     ".csv": read_text,

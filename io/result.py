@@ -1,14 +1,23 @@
 """The result files kbs writes, read back and told apart from other files.
 
-``kbs run`` writes one result as a pair, ``<stem>.ply`` (the points with per-vertex ``cluster``,
-``label``, ``membership``) and ``<stem>.json`` (label names, clusters, explanation tree);
-``kbs cluster --out`` writes a single PLY. This module owns that format:
+``kbs run`` writes one result as a pair, ``<stem>.ply`` (the points with per-vertex
+``scalar_cluster``, ``scalar_label``, ``scalar_membership``) or ``<stem>.las``/``.laz``
+(:mod:`kbs.io.las`), and ``<stem>.json`` (label names, clusters, explanation tree; its key
+``points`` names the cloud file); ``kbs cluster --out`` writes a single PLY. This module owns that
+format:
+
+- **Field names.** The PLY properties of the result fields are ``scalar_cluster``,
+  ``scalar_label``, ``scalar_membership`` (:data:`PLY_NAMES`): CloudCompare's PLY filter loads a
+  vertex property as a scalar field when its name contains "scal" (and strips a ``scalar_``
+  prefix), and leaves any other unassigned. kbs's readers (:func:`read_result_cloud`) read them,
+  and the plain ``cluster``, ``label``, ``membership`` of results written before, under the plain names.
 
 - **Writing.** :func:`write_result_pair` writes both files to temporary files beside them and
   moves them into place together (:func:`kbs.io.atomic.replacing`): if anything fails (a full
   disk, Ctrl-C) the temporary files are removed and the previous pair stays as it was.
 - **Run id.** Every result carries a run id (a uuid4 hex), the same in both files of a pair: the
-  PLY header comment ``kbs_run_id <hex>`` and the JSON key ``run_id``. :func:`check_pair`, which
+  PLY header comment ``kbs_run_id <hex>`` (in a LAS/LAZ result, a VLR of user id ``kbs``) and the
+  JSON key ``run_id``. :func:`check_pair`, which
   every reader of a pair goes through (:func:`read_result_pair`, ``kbs render``, ``kbs eval``),
   refuses a PLY and a JSON whose ids differ: left by a run interrupted between its two renames,
   or mixed by hand. The id is also how kbs knows a file is its own (:func:`is_kbs_output`).
@@ -19,12 +28,13 @@
 """
 from __future__ import annotations
 
+import dataclasses
 import errno
 import json
 import math
 import os
 import uuid
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -43,6 +53,11 @@ RESULT_FORMAT = 1
 RUN_ID_COMMENT = "kbs_run_id"
 #: Bytes of a PLY header read at most when looking for the run id.
 _MAX_HEADER = 1 << 20
+#: The per-point fields of a result, and their PLY property names (see the module's docstring).
+RESULT_FIELDS = ("cluster", "label", "membership")
+PLY_NAMES = {name: f"scalar_{name}" for name in RESULT_FIELDS}
+#: The formats a result's points can be written in.
+CLOUD_FORMATS = ("ply", "las", "laz")
 
 
 def new_run_id() -> str:
@@ -102,22 +117,29 @@ def result_comments(run_id: str) -> list[str]:
     return [f"written by kbs {__version__}", f"{RUN_ID_COMMENT} {run_id}"]
 
 
-def write_result_pair(ply: str | os.PathLike[str], js: str | os.PathLike[str], xyz: np.ndarray,
+def write_result_pair(points: str | os.PathLike[str], js: str | os.PathLike[str], xyz: np.ndarray,
                       fields: Mapping[str, np.ndarray], doc: Mapping[str, Any], *,
-                      run_id: str | None = None) -> str:
-    """Write one result, ``ply`` and ``js``, as a whole: both or neither.
+                      run_id: str | None = None, las: Callable[[str], Any] | None = None,
+                      comments: Iterable[str] = ()) -> str:
+    """Write one result, the points file and ``js``, as a whole: both or neither.
 
     Parameters
     ----------
-    ply, js : path
-        The PLY and the JSON to create or replace.
+    points, js : path
+        The points file (PLY, or LAS/LAZ with ``las``) and the JSON to create or replace.
     xyz : ndarray, shape (n_points, 3)
     fields : mapping of str to ndarray, each (n_points,)
-        The per-vertex properties (see :func:`kbs.io.write_ply`).
+        The per-vertex properties of a PLY (see :func:`kbs.io.write_ply`).
     doc : mapping
-        The JSON document; ``result_format`` and ``run_id`` are added after ``kbs_version``.
+        The JSON document; ``result_format``, ``run_id`` and ``points`` (the points file's name)
+        are added after ``kbs_version``.
     run_id : str, optional
         Default: a fresh one (:func:`new_run_id`).
+    las : callable, optional
+        ``run_id -> laspy.LasData``: write the points as LAS (LAZ when ``points`` ends with .laz)
+        instead of PLY (:func:`kbs.io.las.build_las`).
+    comments : iterable of str
+        More PLY header comments (``units mm``, ``crs ...``), after the run id.
 
     Returns
     -------
@@ -131,17 +153,53 @@ def write_result_pair(ply: str | os.PathLike[str], js: str | os.PathLike[str], x
     CloudFileError
         A file cannot be written; the files that were there before are left as they were.
     """
-    ply, js = Path(os.fspath(ply)), Path(os.fspath(js))
+    points, js = Path(os.fspath(points)), Path(os.fspath(js))
     run_id = run_id or new_run_id()
-    built = build_ply(xyz, fields, comments=result_comments(run_id))
-    head = {k: doc[k] for k in ("kbs_version",) if k in doc}
-    data = strict_json({**head, "result_format": RESULT_FORMAT, "run_id": run_id, **doc}).encode("utf-8")
+    built = build_ply(xyz, fields, comments=[*result_comments(run_id), *comments]) if las is None else las(run_id)
+    data = _json_bytes(doc, run_id, points.name)
     try:
-        with replacing(ply, js) as (tmp_ply, tmp_js):
-            write_built_ply(built, tmp_ply, target=ply)
+        with replacing(points, js) as (tmp_points, tmp_js):
+            if las is None:
+                write_built_ply(built, tmp_points, target=points)
+            else:
+                from kbs.io.las import write_las
+
+                write_las(tmp_points, built, target=points)
             _write_json_file(tmp_js, data, js)
     except OSError as exc:  # creating a temporary file beside the target
-        raise CloudFileError(str(exc.filename or ply), f"cannot write: {exc.strerror or exc}") from exc
+        raise CloudFileError(str(exc.filename or points), f"cannot write: {exc.strerror or exc}") from exc
+    return run_id
+
+
+def _json_bytes(doc: Mapping[str, Any], run_id: str, points: str | None) -> bytes:
+    head = {k: doc[k] for k in ("kbs_version",) if k in doc}
+    where = {} if points is None else {"points": points}
+    return strict_json({**head, "result_format": RESULT_FORMAT, "run_id": run_id, **where, **doc}).encode("utf-8")
+
+
+def write_result_stream(stream: Any, suffix: str, xyz: np.ndarray, fields: Mapping[str, np.ndarray], *,
+                        run_id: str | None = None, las: Callable[[str], Any] | None = None,
+                        comments: Iterable[str] = ()) -> str:
+    """Write a result's points alone to a binary ``stream`` (``kbs run --out -``): built whole in
+    a temporary file first, so that nothing reaches the stream unless all of it can.
+
+    ``suffix`` is ``.ply``, ``.las`` or ``.laz``; returns the run id."""
+    import shutil
+    import tempfile
+
+    run_id = run_id or new_run_id()
+    built = build_ply(xyz, fields, comments=[*result_comments(run_id), *comments]) if las is None else las(run_id)
+    with tempfile.TemporaryDirectory(prefix="kbs-") as folder:
+        tmp = Path(folder) / f"result{suffix}"
+        if las is None:
+            write_built_ply(built, tmp, target="<stdout>")
+        else:
+            from kbs.io.las import write_las
+
+            write_las(tmp, built, target="<stdout>")
+        with open(tmp, "rb") as source:
+            shutil.copyfileobj(source, stream, 1 << 20)
+    stream.flush()
     return run_id
 
 
@@ -209,6 +267,20 @@ def ply_run_id(path: str | os.PathLike[str]) -> str | None:
     return None
 
 
+def cloud_run_id(path: str | os.PathLike[str]) -> str | None:
+    """The run id in a result's points file: a PLY header comment or a LAS/LAZ VLR; None if none."""
+    try:
+        with open(path, "rb") as stream:
+            magic = stream.read(4)
+    except OSError:
+        return None
+    if magic == b"LASF":
+        from kbs.io.las import las_run_id
+
+        return las_run_id(path)
+    return ply_run_id(path)
+
+
 def read_result_json(path: str | Path, *, require: Iterable[str] = ()) -> dict[str, Any]:
     """The parsed result document; every way it can be unreadable is a one-line CloudFileError.
 
@@ -238,12 +310,12 @@ def read_result_json(path: str | Path, *, require: Iterable[str] = ()) -> dict[s
 
 
 def check_pair(ply: str | os.PathLike[str], js: str | os.PathLike[str], doc: Mapping[str, Any]) -> None:
-    """Refuse a PLY and a JSON that are not the two files of one result.
+    """Refuse a points file (PLY, LAS, LAZ) and a JSON that are not the two files of one result.
 
     Parameters
     ----------
     ply, js : path
-        The two files; ``doc`` is the parsed ``js``.
+        The two files (``ply``: the points, whatever their format); ``doc`` is the parsed ``js``.
 
     Raises
     ------
@@ -252,24 +324,46 @@ def check_pair(ply: str | os.PathLike[str], js: str | os.PathLike[str], doc: Map
         (written by kbs before run ids) pass: there is nothing to compare.
     """
     json_id = doc.get("run_id")
-    ply_id = ply_run_id(ply)
+    ply_id = cloud_run_id(ply)
     if json_id is None and ply_id is None:
         return
     if json_id != ply_id:
         ply_name = Path(os.fspath(ply)).name
+        kind = ply_name.rsplit(".", 1)[-1].upper() if "." in ply_name else "points file"
         raise CloudFileError(
             str(js), f"does not belong with {ply_name}: run id {json_id or 'none'} in the JSON, "
-                     f"{ply_id or 'none'} in the PLY (a run stopped between writing the two, or files of two "
+                     f"{ply_id or 'none'} in the {kind} (a run stopped between writing the two, or files of two "
                      f"runs were put together); run kbs run again to write a matching pair")
 
 
+def points_file(js: Path, doc: Mapping[str, Any]) -> Path:
+    """The points file of a result JSON: ``<stem>.ply``, or ``.las``/``.laz`` when its ``points``
+    key names a file of that format (the stem is the JSON's: a pair renamed together stays a pair)."""
+    name = doc.get("points")
+    suffix = Path(name).suffix.lower() if isinstance(name, str) else ""
+    return js.with_suffix(suffix if suffix in (".ply", ".las", ".laz") else ".ply")
+
+
+def read_result_cloud(path: str | os.PathLike[str]) -> PointCloud:
+    """A result's points file (PLY, LAS, LAZ) read with :func:`kbs.io.read_cloud`, its result
+    fields under their plain names: ``scalar_cluster`` read as ``cluster`` (and so on for
+    :data:`RESULT_FIELDS`) when there is no plain one."""
+    cloud = read_cloud(path)
+    renamed = {PLY_NAMES[k]: k for k in RESULT_FIELDS if PLY_NAMES[k] in cloud.fields and k not in cloud.fields}
+    if not renamed:
+        return cloud
+    fields = {renamed.get(name, name): values for name, values in cloud.fields.items()}
+    return dataclasses.replace(cloud, fields=fields)
+
+
 def read_result_pair(path: str | os.PathLike[str], *, require: Iterable[str] = ()) -> tuple[dict[str, Any], PointCloud]:
-    """Read a result: ``RESULT.json`` and its sibling ``RESULT.ply``, checked to be one result.
+    """Read a result: ``RESULT.json`` and its points file (``RESULT.ply``, or the LAS/LAZ file its
+    ``points`` key names), checked to be one result.
 
     Returns
     -------
     (dict, PointCloud)
-        The JSON document and the PLY's points and fields.
+        The JSON document and the points with their fields (:func:`read_result_cloud`).
 
     Raises
     ------
@@ -278,11 +372,11 @@ def read_result_pair(path: str | os.PathLike[str], *, require: Iterable[str] = (
     """
     js = Path(os.fspath(path))
     doc = read_result_json(js, require=require)
-    ply = js.with_suffix(".ply")
-    if not ply.is_file():
-        raise CloudFileError(str(ply), "no such file (the points of the result, written next to its .json)")
-    check_pair(ply, js, doc)
-    return doc, read_cloud(ply)
+    points = points_file(js, doc)
+    if not points.is_file():
+        raise CloudFileError(str(points), "no such file (the points of the result, written next to its .json)")
+    check_pair(points, js, doc)
+    return doc, read_result_cloud(points)
 
 
 # -- telling kbs's own files from others -----------------------------------------------------------
@@ -290,7 +384,7 @@ def read_result_pair(path: str | os.PathLike[str], *, require: Iterable[str] = (
 
 def is_kbs_output(path: str | os.PathLike[str]) -> bool:
     """True when ``path`` is a file kbs wrote with a run id: a PLY whose header has the
-    ``kbs_run_id`` comment, a JSON object with ``kbs_version`` and ``run_id``, any other file
+    ``kbs_run_id`` comment, a LAS/LAZ file with the run id VLR, a JSON object with ``kbs_version`` and ``run_id``, any other file
     (the HTML report) ending with the ``kbs_run_id`` marker."""
     path = Path(os.fspath(path))
     if not path.is_file():
@@ -299,6 +393,8 @@ def is_kbs_output(path: str | os.PathLike[str]) -> bool:
     try:
         if suffix == ".ply":
             return ply_run_id(path) is not None
+        if suffix in (".las", ".laz"):
+            return cloud_run_id(path) is not None
         if suffix == ".json":
             doc = json.loads(path.read_bytes())
             return isinstance(doc, dict) and "kbs_version" in doc and isinstance(doc.get("run_id"), str)

@@ -6,7 +6,7 @@ motor; predicates measure, rules decide, and every decision is recorded.
 from __future__ import annotations
 
 from kbs.knowledge.explain import APDCurve, CheckRecord, ClusterRecord, Explanation
-from kbs.knowledge.interpreter import Interpreter, Segmentation, segment
+from kbs.knowledge.interpreter import Interpreter, Segmentation
 from kbs.knowledge.predicates import (
     Cluster,
     Ground,
@@ -18,7 +18,7 @@ from kbs.knowledge.predicates import (
     predicate,
 )
 from kbs.knowledge.rulebase import RuleBase, RuleFileError, load_rule_base, shipped_rule_bases
-from kbs.knowledge.segmenter import Segmenter
+from kbs.knowledge.segmenter import Segmenter, segment
 
 __all__ = [
     "APDCurve", "CheckRecord", "ClusterRecord", "Explanation", "Interpreter", "Segmentation", "segment",

@@ -324,6 +324,10 @@ class RuleBase:
     relabel: tuple[Relabel, ...] = ()
     contact: ContactSpec | None = None
     release: ReleaseSpec | None = None
+    #: ASPRS classification code of each label (and of 'noise', the rejected points) in LAS output.
+    asprs_classes: Mapping[str, int] | None = None
+    #: spacing: the median point spacing [min, max] the rule base suits (its unit); None: not declared.
+    spacing: tuple[float, float] | None = None
     #: what is valid but cannot be meant: conditions that can never hold (``kbs rules check``
     #: prints them; they do not make the file invalid)
     warnings: tuple[Problem, ...] = ()
@@ -816,6 +820,11 @@ class _Validator:
         merge = self._merge(d.get("post"), labels)
         gmodel, relabel, contact, release = self._post(d.get("post"), checks, labels)
         self._model_checks_placed(checks, rules, labels)
+        classes = self._asprs_classes(d.get("asprs_classes"), [lb.name for lb in labels])
+        spacing = d.get("spacing")
+        if isinstance(spacing, list) and len(spacing) == 2 and all(isinstance(x, (int, float)) for x in spacing) \
+                and spacing[0] >= spacing[1]:
+            self.add(("spacing",), f"spacing is [min, max]: {spacing[0]!r} is not below {spacing[1]!r}")
         if self.problems:
             return None
         return RuleBase(
@@ -824,7 +833,21 @@ class _Validator:
             checks=checks, rules=tuple(rules), labels=tuple(labels), merge=merge, path=self.pos.file,
             text="\n".join(self.pos.lines), ground_model=gmodel, relabel=tuple(relabel), contact=contact,
             release=release, warnings=tuple(sorted(self.warnings, key=lambda p: (p.pos.line, p.pos.col))),
+            asprs_classes=classes, spacing=None if spacing is None else (float(spacing[0]), float(spacing[1])),
         )
+
+    def _asprs_classes(self, raw: Any, names: list[str]) -> dict[str, int] | None:
+        """asprs_classes: label -> ASPRS code; the keys must be labels (or 'noise'), the codes
+        integers 0-255 (the schema says so)."""
+        if not isinstance(raw, dict):
+            return None
+        for key in raw:
+            if key not in names and key != "noise":
+                hint = did_you_mean(str(key), [*names, "noise"])
+                self.add(("asprs_classes", key), f"unknown label '{key}' in asprs_classes"
+                         + (f" (did you mean '{hint}'?)" if hint else f"; labels: {', '.join(names)}, or noise"),
+                         key=True)
+        return {str(k): int(v) for k, v in raw.items() if isinstance(v, int) and not isinstance(v, bool)}
 
     def _checks(self, raw: Any) -> dict[str, Check]:
         out: dict[str, Check] = {}

@@ -13,6 +13,7 @@ The result of :meth:`Segmenter.segment` is the :class:`~kbs.knowledge.interprete
 from __future__ import annotations
 
 import os
+import warnings
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
@@ -23,6 +24,7 @@ from kbs.errors import ParameterError
 from kbs.knowledge.interpreter import Interpreter, Segmentation
 from kbs.knowledge.predicates import PredicateRegistry
 from kbs.knowledge.rulebase import RuleBase, load_rule_base
+from kbs.units import LengthUnit, ScanUnits, check_spacing, scale_factors, unit
 
 
 class Segmenter:
@@ -103,7 +105,18 @@ class Segmenter:
         """The rule base's labels: ``label`` values index this list (-1 is noise)."""
         return self.rule_base.label_names
 
-    def segment(self, points: Any, *, progress: Callable[[str], None] | None = None) -> Segmentation:
+    @property
+    def length_unit(self) -> LengthUnit | None:
+        """The rule base's unit of length (``units:``), None for ``units: scan`` (no unit)."""
+        return None if self.rule_base.units == "scan" else unit(self.rule_base.units)
+
+    def scale(self, units: Any) -> np.ndarray:
+        """Per-axis factors (3,) that turn coordinates in ``units`` into the rule base's unit
+        (ones when either is unknown). ``units``: as :meth:`segment` takes it."""
+        return scale_factors(as_scan_units(units), self.length_unit)
+
+    def segment(self, points: Any, *, units: Any = None, sensor: Any = None,
+                progress: Callable[[str], None] | None = None) -> Segmentation:
         """Segment one cloud.
 
         Parameters
@@ -112,6 +125,13 @@ class Segmenter:
             Finite x y z coordinates, any real dtype (float32 and float64 give the same result
             once float32 is read as float64, as ``kbs run`` does). Drop other columns first
             (``points[:, :3]``) and non-finite points (``kbs.io.read_cloud`` does).
+        units : str, LengthUnit or ScanUnits, optional
+            The unit of ``points`` (``"mm"``, ``"ft"``; ``read_cloud(...).units`` where the file
+            declares one). The points are scaled to the rule base's unit before segmenting (the
+            arrays returned are per point, whatever the unit). None: the rule base's unit.
+        sensor : array-like (3,), optional
+            The sensor position for this cloud, in ``units`` and the cloud's frame; default: the
+            segmenter's (in the rule base's unit).
         progress : callable, optional
             Called with a short message (``"c1.0 split in 3"``) after each split of this cloud,
             as :class:`~kbs.knowledge.interpreter.Interpreter`'s ``progress``.
@@ -121,21 +141,41 @@ class Segmenter:
         Segmentation
             Per point ``cluster`` (n_points,) int32, ``label`` (n_points,) int32 (index into
             ``label_names``; -1 = noise) and ``membership`` (n_points,) float32, plus
-            ``label_names``, the output ``clusters`` and the ``explanation`` tree.
+            ``label_names``, the output ``clusters`` and the ``explanation`` tree (their lengths
+            and positions in the rule base's unit).
+
+        Warns
+        -----
+        SpacingWarning
+            The median point spacing, in the rule base's unit, lies outside the range the rule
+            base expects (its ``spacing``, or 0.5 mm to 5 m): the units are probably wrong.
 
         Raises
         ------
         ParameterError
-            ``points`` is not a non-empty (n_points, 3) array of finite real numbers.
+            ``points`` is not a non-empty (n_points, 3) array of finite real numbers; an unknown unit.
         FitError
             The engine could not fit the data.
         """
         X = as_points(points)
+        scan_units = as_scan_units(units)
+        f = scale_factors(scan_units, self.length_unit)
+        if not np.array_equal(f, np.ones(3)):
+            X = X * f
+        target = self.length_unit
+        if target is not None:
+            problem = check_spacing(X, scan=scan_units, target=target, declared=self.rule_base.spacing,
+                                    rule_base=self.rule_base.name)
+            if problem is not None:
+                warnings.warn(problem, stacklevel=2)
         self._interpreter.progress = progress
+        if sensor is not None:
+            self._interpreter.sensor = np.asarray(_check_sensor(sensor), dtype=np.float64) * f
         try:
             return self._interpreter.run(X)
         finally:
             self._interpreter.progress = None
+            self._interpreter.sensor = np.asarray(self.sensor, dtype=np.float64)
 
     def close(self) -> None:
         """Stop the split worker processes (``jobs`` > 1); they are started once, at the first
@@ -154,6 +194,59 @@ class Segmenter:
         plugins = f", plugins={list(self.plugins)}" if self.plugins else ""
         return (f"Segmenter(rule base '{rb.name}' from {rb.path}, {rb.strategy}, labels "
                 f"{'/'.join(rb.label_names)}; jobs={self.jobs}, sensor=({sensor}){plugins})")
+
+
+def as_scan_units(units: Any) -> ScanUnits | None:
+    """``units`` (None, a unit name, a LengthUnit or ScanUnits) as ScanUnits, or None."""
+    if units is None or isinstance(units, ScanUnits):
+        return units
+    if isinstance(units, (str, LengthUnit)):
+        return ScanUnits.uniform(units, source="the units given")
+    raise ParameterError(f"The 'units' parameter must be a unit name ('m', 'mm', 'ft', ...), a LengthUnit or "
+                         f"ScanUnits. Got {units!r} instead.")
+
+
+def segment(cloud: Any, rules: str | os.PathLike[str] | RuleBase, *, units: Any = None, sensor: Any = None,
+            jobs: int = 1, plugins: Iterable[str | os.PathLike[str]] = (), format: str | None = None,  # noqa: A002
+            progress: Callable[[str], None] | None = None) -> Segmentation:
+    """Segment one cloud with a rule base, in one call.
+
+    >>> import kbs
+    >>> out = kbs.segment("examples/data/outdoor.ply", "outdoor")        # doctest: +SKIP
+    >>> out.label_names, out.label, out.cluster                           # doctest: +SKIP
+
+    Parameters
+    ----------
+    cloud : path, PointCloud or array-like (n_points, 3)
+        A point-cloud file (any format :func:`kbs.io.read_cloud` reads), a cloud it returned, or
+        the coordinates.
+    rules : str, os.PathLike or RuleBase
+        A shipped rule base name, a rule file, or a loaded rule base (as :class:`Segmenter`).
+    units : optional
+        The unit of the coordinates (as :meth:`Segmenter.segment`); default: the one the file
+        declares (``PointCloud.units``), else the rule base's.
+    sensor, jobs, plugins :
+        As :class:`Segmenter` (``sensor`` in the cloud's units).
+    format : str, optional
+        Read ``cloud`` as this format (as ``read_cloud``).
+    progress : callable, optional
+        As :meth:`Segmenter.segment`.
+
+    Returns
+    -------
+    Segmentation
+        One value per point of the cloud (for a file: per point read, NaN/Inf points dropped).
+    """
+    if isinstance(cloud, (str, os.PathLike)):
+        from kbs.io import read_cloud
+
+        cloud = read_cloud(cloud, format=format)
+    if hasattr(cloud, "xyz") and hasattr(cloud, "units"):
+        points, units = cloud.xyz, units if units is not None else cloud.units
+    else:
+        points = cloud
+    with Segmenter(rules, jobs=jobs, plugins=plugins) as segmenter:
+        return segmenter.segment(points, units=units, sensor=sensor, progress=progress)
 
 
 def as_points(points: Any) -> np.ndarray:

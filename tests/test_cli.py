@@ -40,11 +40,11 @@ def test_cluster_bundled_example_writes_cluster_and_membership(tmp_path):
     assert "chosen K =" in r.stdout
     v = PlyData.read(str(out))["vertex"]
     names = [p.name for p in v.properties]
-    assert {"x", "y", "z", "cluster", "membership", "label"} <= set(names)  # the input's label is kept
-    assert v["cluster"].dtype == np.int32
+    assert {"x", "y", "z", "scalar_cluster", "scalar_membership", "label"} <= set(names)  # the input's label is kept
+    assert v["scalar_cluster"].dtype == np.int32
     chosen = int(r.stdout.split("chosen K = ")[1].split()[0])
-    assert set(np.unique(v["cluster"])) <= set(range(chosen))
-    assert ((v["membership"] >= 1.0 / chosen - 1e-6) & (v["membership"] <= 1.0)).all()
+    assert set(np.unique(v["scalar_cluster"])) <= set(range(chosen))
+    assert ((v["scalar_membership"] >= 1.0 / chosen - 1e-6) & (v["scalar_membership"] <= 1.0)).all()
 
 
 @pytest.mark.parametrize("scan", ["semantickitti/000001.points.npy", "isprs/samp11.txt"])

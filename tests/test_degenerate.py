@@ -153,7 +153,7 @@ def test_a_line_in_a_scene_is_explained_and_the_other_labels_do_not_move(tmp_pat
     r = kbs("run", "--rules", "outdoor", str(scan), "--out", str(tmp_path / "out"), "--meshes")
     assert r.returncode == 0, r.stderr
     v = PlyData.read(str(tmp_path / "out" / "scene.ply"))["vertex"]
-    label, cluster = np.asarray(v["label"]), np.asarray(v["cluster"])
+    label, cluster = np.asarray(v["scalar_label"]), np.asarray(v["scalar_cluster"])
     doc = _no_nan((tmp_path / "out" / "scene.json").read_text())
     ground = doc["label_names"].index("ground")
     # the line's points above its foot are not ground (the cable was labelled ground, level at 0 deg)

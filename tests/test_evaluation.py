@@ -348,8 +348,8 @@ def test_kbs_eval_end_to_end(rocks_result, capsys):
     doc = json.loads(out.read_text())
     v = PlyData.read(str(ply))["vertex"]
     # the numbers are the library's on the result's own arrays
-    g = ground_metrics(np.asarray(v["label"]) == 0, truth, ground_values={0})
-    h = hoover(np.asarray(v["cluster"]), truth, gt_ignore=(), points=np.column_stack([v["x"], v["y"], v["z"]]))
+    g = ground_metrics(np.asarray(v["scalar_label"]) == 0, truth, ground_values={0})
+    h = hoover(np.asarray(v["scalar_cluster"]), truth, gt_ignore=(), points=np.column_stack([v["x"], v["y"], v["z"]]))
     assert doc["ground"]["f1"] == g.f1 > 0.95 and doc["ground"]["tp"] == g.tp
     assert [doc["hoover"][k] for k in ("correct", "over", "under", "missed", "noise")] == list(counts(h))
     assert h.correct + h.over >= 3  # the ground and most rocks are found
@@ -370,7 +370,7 @@ def test_kbs_eval_tolerances_print_the_table_1_rows_of_a_result(rocks_result, ca
     table = json.loads(out.read_text())["table"]
     assert [t["tolerance"] for t in table] == [0.6, 0.95]
     for t in table:  # each row is the library's classification at that T, printed and in the JSON
-        h = hoover(np.asarray(v["cluster"]), truth, tolerance=t["tolerance"], gt_ignore=(), points=X)
+        h = hoover(np.asarray(v["scalar_cluster"]), truth, tolerance=t["tolerance"], gt_ignore=(), points=X)
         assert [t[k] for k in ("correct", "over", "under", "missed", "noise")] == list(counts(h))
         assert f"{t['tolerance']:>5.2f} {h.correct:>7} {h.over:>5} {h.under:>6} {h.missed:>7} {h.noise:>6}" in stdout
     # without --tolerances a result's evaluation prints no table (unchanged)

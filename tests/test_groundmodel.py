@@ -256,7 +256,7 @@ def test_relabel_and_contact_on_semantickitti_through_the_command(shared_data, t
     v = PlyData.read(str(tmp_path / "000001.points.ply"))["vertex"]
     gt = np.load(shared_data / "semantickitti" / "000001.labels.npy").ravel()
     valid = gt != 0
-    truth, pred = np.isin(gt, [9, 10, 11, 12, 17])[valid], (np.asarray(v["label"]) == 0)[valid]
+    truth, pred = np.isin(gt, [9, 10, 11, 12, 17])[valid], (np.asarray(v["scalar_label"]) == 0)[valid]
     f1 = 2 * (truth & pred).sum() / (truth.sum() + pred.sum())
     assert f1 > 0.955, f1
 
@@ -329,7 +329,7 @@ def test_airborne_rules_tell_roofs_from_the_ground_on_isprs(shared_data, tmp_pat
     v = PlyData.read(str(tmp_path / "samp21-utm.ply"))["vertex"]
     pc = read_cloud(scan)
     truth = np.loadtxt(shared_data / "isprs" / "samp21-utm.labels.txt")[pc.index] == 0
-    pred = np.asarray(v["label"]) == 0
+    pred = np.asarray(v["scalar_label"]) == 0
     total_error = ((pred & ~truth).sum() + (~pred & truth).sum()) / truth.size
     assert total_error < 0.05, total_error  # measured 3.7 %; CSF 2.2 %
     doc = json.loads((tmp_path / "samp21-utm.json").read_text())

@@ -319,8 +319,8 @@ def test_format_override_and_case_insensitive_extension(tmp_path: Path) -> None:
     upper = tmp_path / "POINTS.XYZ"
     upper.write_text("1 2 3\n")
     assert len(read_cloud(upper)) == 1
-    with pytest.raises(ParameterError, match="unknown point-cloud format 'e57'"):
-        read_cloud(path, format="e57")
+    with pytest.raises(ParameterError, match="unknown point-cloud format 'dxf'"):
+        read_cloud(path, format="dxf")
 
 
 # --------------------------------------------------------------------------------------------
@@ -472,8 +472,8 @@ BAD_FILES = {
     "missing": (lambda tmp_path: tmp_path / "nowhere.xyz", "no such file"),
     "directory": (_directory, "is a directory"),
     "unknown-extension": (
-        _write("scan.e57", b"1 2 3\n"),
-        "unknown extension '.e57' (supported: .bin, .csv, .las",
+        _write("scan.dxf", b"1 2 3\n"),
+        "unknown extension '.dxf' (supported: .bin, .csv, .e57, .las",
     ),
     "no-extension": (_write("scan", b"1 2 3\n"), "no file extension (supported:"),
     "empty-xyz": (_write("empty.xyz", b""), "empty file"),
@@ -592,6 +592,7 @@ def test_supported_extensions_match_readers() -> None:
     assert SUPPORTED_EXTENSIONS == (
         ".bin",
         ".csv",
+        ".e57",
         ".las",
         ".laz",
         ".npy",

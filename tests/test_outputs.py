@@ -216,7 +216,7 @@ def test_run_does_not_replace_a_file_it_did_not_write_unless_forced(scene_dir, c
                    f"to replace it, or choose another --out\n")
     assert mine.read_text() == "ply\nsomeone else's mesh\n" and not (scene_dir / "scene.json").exists()
     assert main(["-q", *RUN, "--force", str(scene_dir / "scene.npy"), "--out", str(scene_dir)]) == 0
-    assert "cluster" in read_cloud(mine).fields
+    assert "scalar_cluster" in read_cloud(mine).fields
     # an earlier kbs result is replaced without --force (as PDAL and GDAL tools replace their own outputs)
     first = json.loads((scene_dir / "scene.json").read_text())["run_id"]
     assert main(["-q", *RUN, str(scene_dir / "scene.npy"), "--out", str(scene_dir)]) == 0

@@ -33,8 +33,8 @@ needs_chromium = pytest.mark.skipif(not CHROMIUM.exists(), reason="/usr/bin/chro
 def _load(ply: Path, js: Path) -> dict:
     v = PlyData.read(str(ply))["vertex"]
     doc = json.loads(js.read_text())
-    return {"xyz": np.column_stack([v["x"], v["y"], v["z"]]).astype(np.float64), "cluster": np.asarray(v["cluster"]),
-            "label": np.asarray(v["label"]), "label_names": doc["label_names"], "explanation_dict": doc["explanation"],
+    return {"xyz": np.column_stack([v["x"], v["y"], v["z"]]).astype(np.float64), "cluster": np.asarray(v["scalar_cluster"]),
+            "label": np.asarray(v["scalar_label"]), "label_names": doc["label_names"], "explanation_dict": doc["explanation"],
             "clusters": doc["clusters"]}
 
 

@@ -49,9 +49,9 @@ def test_palette_distinct_deterministic_never_grey():
 def test_run_ply_colours_by_cluster(outdoor_run):
     v = PlyData.read(str(outdoor_run / "outdoor.ply"))["vertex"]
     names = [p.name for p in v.properties]
-    assert {"cluster", "label", "membership", "red", "green", "blue"} <= set(names)
+    assert {"scalar_cluster", "scalar_label", "scalar_membership", "red", "green", "blue"} <= set(names)
     assert all(v[c].dtype == np.uint8 for c in ("red", "green", "blue"))
-    rgb, cl = _rgb(v), np.asarray(v["cluster"])
+    rgb, cl = _rgb(v), np.asarray(v["scalar_cluster"])
     seen = {}
     for c in np.unique(cl):
         colours = np.unique(rgb[cl == c], axis=0)
@@ -72,7 +72,7 @@ def test_run_colour_by_label_and_noise_grey(tmp_path):
     r = kbs("run", "--rules", "outdoor", str(cloud), "--out", str(tmp_path / "o"), "--color-by", "label")
     assert r.returncode == 0, r.stderr
     v = PlyData.read(str(tmp_path / "o" / "scene.ply"))["vertex"]
-    rgb, lab = _rgb(v), np.asarray(v["label"])
+    rgb, lab = _rgb(v), np.asarray(v["scalar_label"])
     for k in np.unique(lab):
         assert len(np.unique(rgb[lab == k], axis=0)) == 1
     assert (lab < 0).any(), "the scene should leave some noise"
@@ -112,7 +112,7 @@ def test_obstacle_meshes_are_closed_and_contain_their_points(outdoor_run):
     doc = json.loads((outdoor_run / "outdoor.json").read_text())
     v = PlyData.read(str(outdoor_run / "outdoor.ply"))["vertex"]
     X = np.column_stack([v["x"], v["y"], v["z"]])
-    cl = np.asarray(v["cluster"])
+    cl = np.asarray(v["scalar_cluster"])
     mdir = outdoor_run / "outdoor-meshes"
     obstacles = [c["index"] for c in doc["clusters"] if c["label"] != "ground"]
     assert obstacles

@@ -35,12 +35,12 @@ def test_run_writes_ply_and_json_and_explains_the_cah_split(rocks_scan, tmp_path
     assert r.returncode == 0, r.stderr
     assert "clusters" in r.stdout and "splits" in r.stdout and "time:" in r.stdout
     v = _ply(tmp_path / "rocks.ply")
-    assert v["cluster"].dtype == np.int32 and v["label"].dtype == np.int32 and v["membership"].dtype == np.float32
+    assert v["scalar_cluster"].dtype == np.int32 and v["scalar_label"].dtype == np.int32 and v["scalar_membership"].dtype == np.float32
     doc = json.loads((tmp_path / "rocks.json").read_text())
     assert doc["label_names"] == ["ground", "obstacle"]
-    assert len(doc["clusters"]) == int(v["cluster"].max()) + 1
+    assert len(doc["clusters"]) == int(v["scalar_cluster"].max()) + 1
     assert {"center", "normal", "thickness", "eigenvalues"} <= set(doc["clusters"][0]["descriptors"])
-    ground = v["label"] == 0
+    ground = v["scalar_label"] == 0
     assert ground[labels == 0].mean() > 0.95 and (~ground[labels > 0]).mean() > 0.8
     # the explanation tree, and why the rocks' cluster was split
     r = kbs("explain", str(tmp_path / "rocks.json"))
@@ -151,7 +151,7 @@ def test_bundled_example_runs(tmp_path):
     r = kbs("run", "--rules", "outdoor", str(EXAMPLE), "--out", str(tmp_path))
     assert r.returncode == 0, r.stderr
     v = _ply(tmp_path / "outdoor.ply")
-    truth, pred = np.asarray(v["label_in"]) == 0, np.asarray(v["label"]) == 0  # the scene's own labels stay
+    truth, pred = np.asarray(v["label_in"]) == 0, np.asarray(v["scalar_label"]) == 0  # the scene's own labels stay
     f1 = 2 * (truth & pred).sum() / (truth.sum() + pred.sum())
     assert f1 > 0.9, f1
 
@@ -172,7 +172,7 @@ def test_runs_on_real_scans(shared_data, tmp_path, rules, scan):
         gt = np.load(shared_data / "semantickitti" / "000001.labels.npy").ravel()
         valid = gt != 0
         truth = np.isin(gt, [9, 10, 11, 12, 17])[valid]
-        pred = (np.asarray(v["label"]) == 0)[valid]
+        pred = (np.asarray(v["scalar_label"]) == 0)[valid]
         tp = (truth & pred).sum()
         f1 = 2 * tp / (truth.sum() + pred.sum())
         assert f1 > 0.85, f1
@@ -185,7 +185,7 @@ def test_worked_example_tabletop_rule_base_on_mosd(shared_data, tmp_path):
             str(shared_data / "mosd" / "learn0.pcd"), "--out", str(tmp_path))
     assert r.returncode == 0, r.stderr
     v = _ply(tmp_path / "learn0.ply")
-    gt, pred = np.asarray(v["label_in"]), np.asarray(v["label"])
+    gt, pred = np.asarray(v["label_in"]), np.asarray(v["scalar_label"])
     for name, index, truth in (("table", 0, (gt >= 1) & (gt <= 9)), ("object", 1, gt >= 20)):
         p = pred == index
         assert (p & truth).sum() / p.sum() > 0.98 and (p & truth).sum() / truth.sum() > 0.95, name
@@ -227,7 +227,7 @@ def test_alpha_opening_separates_boulders_that_a_ridge_joins(tmp_path):
         out = tmp_path / name
         r = kbs("run", "--rules", rb, str(scan), "--out", str(out))
         assert r.returncode == 0, r.stderr
-        clusters[name] = np.asarray(_ply(out / "boulders.ply")["cluster"])
+        clusters[name] = np.asarray(_ply(out / "boulders.ply")["scalar_cluster"])
         explained = kbs("explain", str(out / "boulders.json")).stdout
         cah = [ln for ln in explained.splitlines() if "CAh" in ln]
         if name == "graph":  # the ridge is dense and 6 cm wide: the graph's opening keeps it
@@ -323,7 +323,7 @@ def test_coplanar_ground_clusters_are_merged_into_one_output_cluster_and_others_
         r = kbs("run", "--rules", str(rules), str(scan), "--out", str(tmp_path / name))
         assert r.returncode == 0, r.stderr
         v = _ply(tmp_path / name / "patches.ply")
-        out[name] = (np.asarray(v["cluster"]), np.asarray(v["label"]),
+        out[name] = (np.asarray(v["scalar_cluster"]), np.asarray(v["scalar_label"]),
                      json.loads((tmp_path / name / "patches.json").read_text()))
     # without the merge, the split tree leaves the plane z = 0 in several ground clusters
     cluster, label, doc = out["no_merge"]

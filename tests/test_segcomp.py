@@ -369,7 +369,7 @@ def test_segcomp_end_to_end_through_kbs_run(tmp_path):
     assert len(set(facet_label)) == len(FACETS)
     # the labels are the clusters: cluster k -> 10 + k, noise -> 0
     vertex = PlyData.read(str(result))["vertex"]
-    cluster, pixel = np.asarray(vertex["cluster"]), np.asarray(vertex["pixel"])
+    cluster, pixel = np.asarray(vertex["scalar_cluster"]), np.asarray(vertex["pixel"])
     assert cluster.max() + 1 + 10 <= 256
     np.testing.assert_array_equal(ms.ravel()[pixel], np.where(cluster >= 0, cluster + 10, 0))
     # the normals file gives each facet's plane

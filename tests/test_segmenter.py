@@ -15,6 +15,7 @@ import pytest
 import kbs
 from kbs.errors import ExitCode, ParameterError
 from kbs.io import read_cloud
+from kbs.io.result import read_result_cloud
 from kbs.knowledge import PredicateError, RuleFileError, Segmentation, load_rule_base
 from scenes import ground_and_boxes, ground_and_rocks, ground_with_small_obstacles
 from test_cli import EXAMPLE, ROOT, kbs as kbs_command
@@ -36,7 +37,7 @@ def _same(a: Segmentation, b: Segmentation) -> None:
 
 def _equals_written(seg: Segmentation, ply: Path) -> None:
     """``seg`` holds exactly the per-point arrays `kbs run` wrote to ``ply``."""
-    written = read_cloud(ply)
+    written = read_result_cloud(ply)  # scalar_cluster ... read as cluster ...
     for name in PER_POINT:
         values = written.fields[name]
         assert values.dtype == getattr(seg, name).dtype and np.array_equal(values, getattr(seg, name)), name
