@@ -93,7 +93,7 @@ def test_a_rock_across_a_tile_edge_is_one_stitched_cluster_and_its_neighbours_st
     assert "tiles: 4 of 6 x 6 with a 1.5 buffer; 2 clusters stitched across tile edges" in r.stdout
     v = _vertex(tmp_path / "rocks.ply")
     doc = json.loads((tmp_path / "rocks.json").read_text())
-    cluster, label = np.asarray(v["cluster"]), np.asarray(v["label"])
+    cluster, label = np.asarray(v["scalar_cluster"]), np.asarray(v["scalar_label"])
     assert len(doc["clusters"]) == cluster.max() + 1
     assert [c["index"] for c in doc["clusters"]] == list(range(len(doc["clusters"])))
     sizes = [c["n_points"] for c in doc["clusters"]]
@@ -126,8 +126,8 @@ def test_the_python_api_gives_what_the_command_writes(rocks, tmp_path):
     assert kbs_cmd("-q", "run", "--rules", "outdoor", "-j", "1", "--tile", "6", "--buffer", "1.5", str(scan),
                    "--out", str(tmp_path)).returncode == 0
     v = _vertex(tmp_path / "rocks.ply")
-    np.testing.assert_array_equal(out.cluster, v["cluster"])
-    np.testing.assert_array_equal(out.label, v["label"])
+    np.testing.assert_array_equal(out.cluster, v["scalar_cluster"])
+    np.testing.assert_array_equal(out.label, v["scalar_label"])
     assert out.tiling == json.loads((tmp_path / "rocks.json").read_text())["tiling"]
 
 
@@ -206,7 +206,7 @@ def test_tiles_on_a_local_dask_cluster_of_2_workers_give_the_in_process_bytes(sh
     whole = kbs_cmd(*args[:4], str(scan), "-j", "1", "--out", str(tmp_path / "whole"))
     assert whole.returncode == 0, whole.stderr
     tiled, untiled = _vertex(tmp_path / "here" / "samp21-utm.ply"), _vertex(tmp_path / "whole" / "samp21-utm.ply")
-    assert np.mean(np.asarray(tiled["label"]) == np.asarray(untiled["label"])) > 0.95
+    assert np.mean(np.asarray(tiled["scalar_label"]) == np.asarray(untiled["scalar_label"])) > 0.95
 
 
 def test_an_unreachable_scheduler_is_a_usage_error(rocks, tmp_path):
