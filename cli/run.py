@@ -20,7 +20,7 @@ from kbs.errors import CloudFileError, ExitCode, KbsError
 from kbs.io import SUPPORTED_EXTENSIONS, PointCloud, read_cloud, read_result_json
 from kbs.io.atomic import replacing
 from kbs.io.las import check_classes_fit, class_codes
-from kbs.io.readers import why_not_a_scan
+from kbs.io.readers import cloud_files_in, why_not_a_scan
 from kbs.io.result import RUN_ID_COMMENT, InputFiles, check_output, new_run_id, write_result_pair, write_result_stream
 from kbs.io.result import jsonable as _jsonable  # noqa: F401 -- benchmarks/profile_run.py times the JSON with it
 from kbs.knowledge import Explanation, PredicateRegistry, Segmenter, load_rule_base
@@ -103,11 +103,7 @@ def scan_paths(clouds: tuple[Path, ...], *,
         if not arg.is_dir():
             scans.append(arg)  # the reader says what is wrong with it, if anything
             continue
-        try:
-            found = sorted((p for p in arg.iterdir() if p.suffix.lower() in SUPPORTED_EXTENSIONS and p.is_file()),
-                           key=lambda p: p.name)
-        except OSError as exc:
-            raise CloudFileError(str(arg), f"cannot list the directory: {exc.strerror or exc}") from exc
+        found = cloud_files_in(arg)
         names = {p.name for p in found}
         kept = []
         for p in found:

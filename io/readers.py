@@ -23,7 +23,7 @@ from kbs.errors import CloudFileError, KbsError, ParameterError
 from kbs.io.cloud import PointCloud
 from kbs.io.segcomp import read_range
 from kbs.io.text import TableError, parse_table
-from kbs.units import ScanUnits, crs_units, geokey_units, pyproj_units, units_from_comments, wkt_units
+from kbs.units import ScanUnits, geokey_units, pyproj_units, units_from_comments, wkt_units
 
 logger = logging.getLogger("kbs.io")
 
@@ -448,6 +448,21 @@ READERS: Mapping[str, Callable[[Path], PointCloud]] = {
 
 #: The file extensions :func:`read_cloud` understands.
 SUPPORTED_EXTENSIONS: tuple[str, ...] = tuple(sorted(READERS))
+
+
+def cloud_files_in(folder: Path) -> list[Path]:
+    """The point-cloud files directly inside ``folder`` (by extension), in name order.
+
+    Raises
+    ------
+    CloudFileError
+        When the folder cannot be listed.
+    """
+    try:
+        return sorted((p for p in folder.iterdir() if p.suffix.lower() in SUPPORTED_EXTENSIONS and p.is_file()),
+                      key=lambda p: p.name)
+    except OSError as exc:
+        raise CloudFileError(str(folder), f"cannot list the directory: {exc.strerror or exc}") from exc
 
 
 def _stat_problem(file: Path) -> str | None:

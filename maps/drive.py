@@ -142,6 +142,7 @@ def scan_files(paths: Iterable[str | os.PathLike[str]]) -> list[Path]:
         that cannot be listed.
     """
     from kbs.io import SUPPORTED_EXTENSIONS
+    from kbs.io.readers import cloud_files_in
 
     out: list[Path] = []
     for arg in map(Path, paths):
@@ -154,11 +155,7 @@ def scan_files(paths: Iterable[str | os.PathLike[str]]) -> list[Path]:
                                      f"{', '.join(SUPPORTED_EXTENSIONS)})" if arg.suffix else "no file extension")
             out.append(arg)
             continue
-        try:
-            found = sorted((p for p in arg.iterdir() if p.suffix.lower() in SUPPORTED_EXTENSIONS and p.is_file()),
-                           key=lambda p: p.name)
-        except OSError as exc:
-            raise CloudFileError(str(arg), f"cannot list the directory: {exc.strerror or exc}") from exc
+        found = cloud_files_in(arg)
         if not found:
             raise CloudFileError(str(arg), f"no point-cloud file in this directory (extensions: "
                                  f"{', '.join(SUPPORTED_EXTENSIONS)})")

@@ -21,6 +21,7 @@ import numpy as np
 
 from kbs.errors import CloudFileError, ParameterError
 from kbs.inference._validation import Interval, validate_params
+from kbs.synth.outdoor import _OUTDOOR_CONSTRAINTS
 from kbs.synth._params import check_pair, count
 from kbs.synth.outdoor import Bin, Rock, _bin, _rock, _terrain
 from kbs.synth.raycast import HeightField, pinhole_rays, ray_heightfield
@@ -238,19 +239,10 @@ def _jsonable(o: Any) -> Any:
 
 
 _DRIVE_CONSTRAINTS = {
-    "seed": [Interval(numbers.Integral, 0, None)],
+    **_OUTDOOR_CONSTRAINTS,  # the scene's own settings, as outdoor_scene checks them
     "n_frames": [Interval(numbers.Integral, 1, None)],
     "step": [Interval(numbers.Real, 0, None, closed="neither")],
     "yaw_rate": [Interval(numbers.Real, -45, 45, closed="both")],
-    "extent": [Interval(numbers.Real, 5, None)],
-    "n_rocks": [Interval(numbers.Integral, 0, None)],
-    "noise": [Interval(numbers.Real, 0, None)],
-    "sensor_height": [Interval(numbers.Real, 0, None, closed="neither")],
-    "tilt_deg": [Interval(numbers.Real, -90, 90, closed="both")],
-    "density_r0": [Interval(numbers.Real, 0, None, closed="neither")],
-    "ground_amplitude": [Interval(numbers.Real, 0, None)],
-    "gap": [Interval(numbers.Real, 0, None)],
-    "max_tries": [Interval(numbers.Integral, 1, None)],
 }
 
 
