@@ -115,12 +115,14 @@ def auto_voxel_size(X: np.ndarray, target: int) -> float:
     if extent == 0.0:
         return 1.0
     fine = max(extent / 4096.0, _min_size(X))
-    fine_cells = _decode(_distinct(_keys(_cells(X, lo, fine))), X.shape[1])
+    jit = _jit()
+    fine_keys = _keys(_cells(X, lo, fine))
+    # the counts below do not depend on the order of the distinct cells: no sort needed
+    fine_cells = _decode(jit.distinct_keys(fine_keys) if jit is not None else _distinct(fine_keys), X.shape[1])
     n_fine = fine_cells.shape[0]
     if n_fine <= target:
         return fine
 
-    jit = _jit()
 
     def occupied(factor: float) -> int:
         if jit is not None:
@@ -157,21 +159,32 @@ def voxel_reduce(X: np.ndarray, size: float, sample_weight: np.ndarray | None = 
         keys, inverse = np.unique(_keys(cells), return_inverse=True)
     M = keys.size
     w = np.ones(n) if sample_weight is None else sample_weight
-    weights = np.bincount(inverse, weights=w, minlength=M)
-    # moments of coordinates local to each voxel corner: small numbers, no cancellation
-    local = X - (origin + cells * size)
-    s1 = np.stack([np.bincount(inverse, weights=w * local[:, a], minlength=M) for a in range(D)], axis=1)
-    safe = np.where(weights > 0, weights, 1.0)
-    mean_local = s1 / safe[:, None]
-    scatter = np.empty((M, D, D))
-    for a in range(D):
-        for b in range(a, D):
-            s2 = np.bincount(inverse, weights=w * local[:, a] * local[:, b], minlength=M)
-            scatter[:, a, b] = scatter[:, b, a] = s2 - weights * mean_local[:, a] * mean_local[:, b]
-    corner = np.empty((M, D))
-    first = np.zeros(M, dtype=np.int64)
-    first[inverse[::-1]] = np.arange(n - 1, -1, -1)  # any member gives the voxel's corner
-    corner[:] = origin + cells[first] * size
+    if jit is not None and X.dtype == np.float64:  # the same sums, one compiled pass
+        weights, s1, s2, first = jit.voxel_sums(np.ascontiguousarray(X), cells, origin, float(size), inverse,
+                                                np.ascontiguousarray(w, dtype=np.float64), M)
+        safe = np.where(weights > 0, weights, 1.0)
+        mean_local = s1 / safe[:, None]
+        scatter = np.empty((M, D, D))
+        for a in range(D):
+            for b in range(a, D):
+                scatter[:, a, b] = scatter[:, b, a] = s2[:, a, b] - weights * mean_local[:, a] * mean_local[:, b]
+        corner = origin + cells[first] * size
+    else:
+        weights = np.bincount(inverse, weights=w, minlength=M)
+        # moments of coordinates local to each voxel corner: small numbers, no cancellation
+        local = X - (origin + cells * size)
+        s1 = np.stack([np.bincount(inverse, weights=w * local[:, a], minlength=M) for a in range(D)], axis=1)
+        safe = np.where(weights > 0, weights, 1.0)
+        mean_local = s1 / safe[:, None]
+        scatter = np.empty((M, D, D))
+        for a in range(D):
+            for b in range(a, D):
+                s2 = np.bincount(inverse, weights=w * local[:, a] * local[:, b], minlength=M)
+                scatter[:, a, b] = scatter[:, b, a] = s2 - weights * mean_local[:, a] * mean_local[:, b]
+        corner = np.empty((M, D))
+        first = np.zeros(M, dtype=np.int64)
+        first[inverse[::-1]] = np.arange(n - 1, -1, -1)  # any member gives the voxel's corner
+        corner[:] = origin + cells[first] * size
     keep = weights > 0
     return VoxelReduction(
         centroids=(corner + mean_local)[keep],
