@@ -603,11 +603,27 @@ def distinct_keys(keys):
 
 
 @njit(cache=True, nogil=True)
-def voxel_sums(X, cells, origin, size, inv, w, M):
+def cell_keys(X, origin, size):
+    """The 20-bit-per-axis int64 key of each point's cell ``floor((x - origin) / size)`` (the
+    cells non-negative and below 2^20 on each axis), as :func:`kbs.inference.voxel._keys` of
+    :func:`kbs.inference.voxel._cells`, without their (n, D) temporaries."""
+    n, D = X.shape
+    keys = np.empty(n, dtype=np.int64)
+    for j in range(n):
+        key = np.int64(0)
+        for a in range(D):
+            key = (key << 20) | np.int64(math.floor((X[j, a] - origin[a]) / size))
+        keys[j] = key
+    return keys
+
+
+@njit(cache=True, nogil=True)
+def voxel_sums(X, origin, size, inv, w, M):
     """The per-voxel sums of :func:`kbs.inference.voxel.voxel_reduce` in one pass: weights
     ``sum w``, first moments ``sum w l`` and second moments ``sum (w l_a) l_b`` of the coordinates
-    ``l`` local to each point's voxel corner, and each voxel's first member. The same operations
-    in the same order as numpy's ``bincount`` (sequential, in point order): identical sums."""
+    ``l`` local to each point's voxel corner ``origin + floor((x - origin) / size) size``, and each
+    voxel's first member. The same operations in the same order as numpy's ``bincount``
+    (sequential, in point order): identical sums."""
     n, D = X.shape
     weights = np.zeros(M)
     s1 = np.zeros((M, D))
@@ -619,7 +635,8 @@ def voxel_sums(X, cells, origin, size, inv, w, M):
         wj = w[j]
         first[g] = min(first[g], j)
         for a in range(D):
-            la[a] = X[j, a] - (origin[a] + cells[j, a] * size)
+            c = np.int64(math.floor((X[j, a] - origin[a]) / size))
+            la[a] = X[j, a] - (origin[a] + c * size)
         weights[g] += wj
         for a in range(D):
             wa = wj * la[a]

@@ -116,7 +116,10 @@ def auto_voxel_size(X: np.ndarray, target: int) -> float:
         return 1.0
     fine = max(extent / 4096.0, _min_size(X))
     jit = _jit()
-    fine_keys = _keys(_cells(X, lo, fine))
+    if jit is not None and X.dtype == np.float64:
+        fine_keys = jit.cell_keys(np.ascontiguousarray(X), lo, float(fine))
+    else:
+        fine_keys = _keys(_cells(X, lo, fine))
     # the counts below do not depend on the order of the distinct cells: no sort needed
     fine_cells = _decode(jit.distinct_keys(fine_keys) if jit is not None else _distinct(fine_keys), X.shape[1])
     n_fine = fine_cells.shape[0]
@@ -151,16 +154,13 @@ def voxel_reduce(X: np.ndarray, size: float, sample_weight: np.ndarray | None = 
     n, D = X.shape
     size = max(float(size), _min_size(X))
     origin = bounds(X)[0]
-    cells = _cells(X, origin, size)
     jit = _jit()
-    if jit is not None:
-        keys, inverse = jit.unique_inverse(_keys(cells))
-    else:
-        keys, inverse = np.unique(_keys(cells), return_inverse=True)
-    M = keys.size
     w = np.ones(n) if sample_weight is None else sample_weight
-    if jit is not None and X.dtype == np.float64:  # the same sums, one compiled pass
-        weights, s1, s2, first = jit.voxel_sums(np.ascontiguousarray(X), cells, origin, float(size), inverse,
+    if jit is not None and X.dtype == np.float64 and D <= 3:  # the same arrays, compiled, no (n, D) temporaries
+        Xc = np.ascontiguousarray(X)
+        keys, inverse = jit.unique_inverse(jit.cell_keys(Xc, origin, float(size)))
+        M = keys.size
+        weights, s1, s2, first = jit.voxel_sums(Xc, origin, float(size), inverse,
                                                 np.ascontiguousarray(w, dtype=np.float64), M)
         safe = np.where(weights > 0, weights, 1.0)
         mean_local = s1 / safe[:, None]
@@ -168,8 +168,11 @@ def voxel_reduce(X: np.ndarray, size: float, sample_weight: np.ndarray | None = 
         for a in range(D):
             for b in range(a, D):
                 scatter[:, a, b] = scatter[:, b, a] = s2[:, a, b] - weights * mean_local[:, a] * mean_local[:, b]
-        corner = origin + cells[first] * size
+        corner = origin + _cells(X[first], origin, size) * size
     else:
+        cells = _cells(X, origin, size)
+        keys, inverse = np.unique(_keys(cells), return_inverse=True)
+        M = keys.size
         weights = np.bincount(inverse, weights=w, minlength=M)
         # moments of coordinates local to each voxel corner: small numbers, no cancellation
         local = X - (origin + cells * size)
