@@ -30,7 +30,7 @@ from kbs.inference.engine import (
     worst_point_memberships,
 )
 from kbs.inference.kernels import FlooredGaussians, Moments, validity
-from kbs.inference.voxel import HorizontalFrame, auto_voxel_size, bounds, voxel_reduce
+from kbs.inference.voxel import HorizontalFrame, auto_voxel_size, bounds, ladder_size, voxel_reduce
 
 #: Allowed values of the engine settings, declared as data.
 ENGINE_CONSTRAINTS: dict[str, list] = {
@@ -182,7 +182,9 @@ def prepare_fit_set(X: np.ndarray, w: np.ndarray, *, max_fit_points: int | None,
     the axes the cloud is given in (a grid along x and y changed 4 % of the labels of a
     SemanticKITTI scan turned by 90 degrees). The reduction is then put back in the centred input
     coordinates. A cloud fitted point by point needs no frame: every step of the fit turns with
-    the points (their order, by x, y then z, only changes the rounding of the sums)."""
+    the points (their order, by x, y then z, only changes the rounding of the sums). The voxel
+    edge, when not given, is the rung of :func:`~kbs.inference.voxel.ladder_size` above the
+    counted one, so that the rounding of a turned file does not move it."""
     lo, hi = bounds(X)
     offset = 0.5 * (lo + hi)
     Xc = X - offset
@@ -190,10 +192,11 @@ def prepare_fit_set(X: np.ndarray, w: np.ndarray, *, max_fit_points: int | None,
     if reduce and X.shape[1] <= 3:
         frame = HorizontalFrame.of(Xc, w)
         Y = frame.to_frame(Xc)
-        size = voxel_size if voxel_size is not None else auto_voxel_size(Y, max_fit_points)
+        size = voxel_size if voxel_size is not None else ladder_size(auto_voxel_size(Y, max_fit_points))
         red = voxel_reduce(Y, size, w)
         while voxel_size is None and len(red) > max_fit_points:  # the size search counts on a finer grid
-            red = voxel_reduce(Y, red.voxel_size * 1.05, w)
+            size = ladder_size(size, up=1)
+            red = voxel_reduce(Y, size, w)
         red = frame.from_frame(red)
         return FitSet(Moments.build(red.centroids, red.weights, red.scatter), offset, red.voxel_size)
     order = np.lexsort(Xc.T[::-1])

@@ -26,8 +26,8 @@ from kbs.inference import (
 )
 from kbs.inference.kernels import Moments, fuzzy_covariances
 from kbs.inference.ufp_onc import prepare_fit_set
-from kbs.inference.voxel import HorizontalFrame
-from scenes import anisotropic_blobs, ground_and_boxes
+from kbs.inference.voxel import HorizontalFrame, ladder_size
+from scenes import anisotropic_blobs, ground_and_boxes, rz, turn
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -225,23 +225,6 @@ def test_voxel_reduction_keeps_weights_and_moments():
     assert len(voxel_reduce(X, size)) <= 2000 < len(voxel_reduce(X, size / 1.25))
 
 
-def turn(X: np.ndarray, degrees: float, shift=(0.0, 0.0, 0.0)) -> np.ndarray:
-    """``X`` (n, 3) turned about the vertical (z) axis by ``degrees``, then shifted. Multiples of
-    90 degrees are exact (coordinates swapped and negated), as a scan saved in other axes would be."""
-    P = np.array(X, dtype=np.float64)
-    if degrees % 90 == 0:
-        for _ in range(int(degrees // 90) % 4):
-            P = np.column_stack([-P[:, 1], P[:, 0], P[:, 2]])
-    else:
-        P = P @ _rz(degrees).T
-    return P + np.asarray(shift, dtype=np.float64)
-
-
-def _rz(degrees: float) -> np.ndarray:
-    t = np.radians(degrees)
-    return np.array([[np.cos(t), -np.sin(t), 0.0], [np.sin(t), np.cos(t), 0.0], [0.0, 0.0, 1.0]])
-
-
 def _weights(n: int) -> np.ndarray:
     return np.random.default_rng(2).integers(1, 4, n).astype(float)
 
@@ -256,7 +239,7 @@ def test_quarter_turned_cloud_gets_exactly_the_quarter_turned_fit_set(degrees):
     # the same voxels in the same order, to the last bit
     assert np.array_equal(turn(a.moments.X, degrees), b.moments.X)
     assert np.array_equal(a.moments.w, b.moments.w)
-    R = _rz(degrees)
+    R = rz(degrees)
     np.testing.assert_allclose(R @ a.moments.scatter @ R.T, b.moments.scatter, rtol=0, atol=1e-12)
 
 
@@ -270,8 +253,35 @@ def test_cloud_turned_about_the_vertical_and_shifted_gets_the_same_fit_set_turne
     assert b.voxel_size == pytest.approx(a.voxel_size, rel=1e-12)
     assert b.moments.n == a.moments.n and np.array_equal(a.moments.w, b.moments.w)
     np.testing.assert_allclose(turn(a.moments.X + a.offset, degrees, shift), b.moments.X + b.offset, rtol=0, atol=1e-9)
-    R = _rz(degrees)
+    R = rz(degrees)
     np.testing.assert_allclose(R @ a.moments.scatter @ R.T, b.moments.scatter, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("degrees", [45.0, 123.4])
+def test_voxel_edge_stays_when_a_turned_cloud_is_rounded_to_float32(degrees):
+    """A turned scan is saved rounded to float32: its points move by a micrometre. The voxel edge,
+    taken from a ladder, stays, and so does every voxel (counted to the voxel, the edge moved with
+    the counts: on SemanticKITTI 000001 turned by 45 degrees, 6 % of the cluster ids changed)."""
+    X = ground_and_boxes(6000, 800)
+    w = _weights(len(X))
+    shift = [25.0, -13.0, 1.5]
+    a = prepare_fit_set(X, w, max_fit_points=1500, voxel_size=None)
+    rounded = turn(X, degrees, shift).astype(np.float32).astype(np.float64)
+    b = prepare_fit_set(rounded, w, max_fit_points=1500, voxel_size=None)
+    assert b.voxel_size == a.voxel_size
+    assert np.array_equal(a.moments.w, b.moments.w)  # no point changed voxel
+    np.testing.assert_allclose(turn(a.moments.X + a.offset, degrees, shift), b.moments.X + b.offset, rtol=0, atol=1e-5)
+
+
+def test_ladder_size_takes_the_rung_at_or_above():
+    rung = 2.0 ** (1 / 16)
+    assert ladder_size(1.0) == 1.0 and ladder_size(2.0 ** (5 / 16)) == 2.0 ** (5 / 16)  # a rung stays
+    assert ladder_size(1.0 + 1e-9) == rung
+    assert ladder_size(0.3) == 2.0 ** (-27 / 16) and 0.3 > 2.0 ** (-28 / 16)
+    assert ladder_size(0.3, up=1) == 2.0 ** (-26 / 16)
+    X = ground_and_boxes(6000, 800)
+    fit = prepare_fit_set(X, np.ones(len(X)), max_fit_points=1500, voxel_size=None)
+    assert fit.moments.n <= 1500 and ladder_size(fit.voxel_size) == fit.voxel_size
 
 
 def test_fit_set_from_the_cloud_frame_keeps_the_cloud_moments():
