@@ -18,7 +18,7 @@ KITTI_GROUND = (9, 10, 11, 12, 17)
 
 def _result(out: Path, stem: str) -> tuple[np.ndarray, np.ndarray]:
     v = PlyData.read(str(out / f"{stem}.ply"))["vertex"]
-    return np.asarray(v["cluster"]), np.asarray(v["label"])
+    return np.asarray(v["scalar_cluster"]), np.asarray(v["scalar_label"])
 
 
 def test_kbs_run_segments_a_scan_turned_about_the_sensor_vertical_as_the_scan(shared_data, tmp_path):
