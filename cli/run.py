@@ -16,7 +16,7 @@ import numpy as np
 
 from kbs import __version__
 from kbs.cli.common import ProgressLines, check_writable_folder, force_option, progress_interval, result_fields
-from kbs.errors import CloudFileError, ExitCode, KbsError
+from kbs.errors import CloudFileError, ExitCode, KbsError, require
 from kbs.io import SUPPORTED_EXTENSIONS, PointCloud, read_cloud, read_result_json
 from kbs.io.atomic import replacing
 from kbs.io.las import check_classes_fit, class_codes
@@ -477,6 +477,8 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
     to_stdout = str(out_dir) == "-"
     if to_stdout and (meshes or report):
         raise click.UsageError("--out - writes the points to standard output: --meshes and --report need a folder")
+    if report:  # known before any segmentation
+        require("plotly", "report", "--report (the HTML report)")
     if "-" in map(str, clouds) and in_format is None:
         raise click.UsageError("reading a scan from standard input ('-') needs --in-format (ply, pcd, las, ...)")
 

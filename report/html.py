@@ -40,6 +40,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from kbs.errors import require
 from kbs.knowledge.explain import Explanation
 
 __all__ = ["write_report", "eigen_boxes"]
@@ -163,7 +164,7 @@ def write_report(path: str | Path, xyz: np.ndarray, cluster: np.ndarray, label: 
     Path
         ``path``.
     """
-    from plotly.offline import get_plotlyjs
+    get_plotlyjs = require("plotly.offline", "report", "the HTML report").get_plotlyjs
 
     xyz = np.asarray(xyz, dtype=np.float64)
     cluster = np.asarray(cluster).astype(np.int32, copy=False)
