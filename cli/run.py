@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import re
 import shutil
 import sys
 import time
@@ -604,12 +605,38 @@ def rules_check(files: tuple[str, ...], plugins: tuple[Path, ...]) -> None:
         raise click.exceptions.Exit(int(ExitCode.RULES))
 
 
+def _schema_path() -> Path:
+    from importlib import resources
+
+    from kbs.knowledge.rulebase import SCHEMA_FILE
+
+    return Path(str(resources.files("kbs.rules").joinpath(SCHEMA_FILE))).resolve()
+
+
+_SCHEMA_LINE = re.compile(r"^(#\s*yaml-language-server:\s*\$schema=)(\S+)(.*)$")
+
+
 @rules.command("show")
 @click.argument("name")
 def rules_show(name: str) -> None:
-    """Print a shipped rule base (or a rule file)."""
+    """Print a shipped rule base (or a rule file). Its editor schema line points at the installed
+    schema (a file URI), so that `kbs rules show outdoor > my.yaml` keeps completion and checks in
+    editors that read it (yaml-language-server)."""
     _, text = resolve(name)
+    first, sep, rest = text.partition("\n")
+    m = _SCHEMA_LINE.match(first)
+    if m and "://" not in m.group(2) and not Path(m.group(2)).is_absolute():
+        text = f"{m.group(1)}{_schema_path().as_uri()}{m.group(3)}{sep}{rest}"
     click.echo(text, nl=not text.endswith("\n"))
+
+
+@rules.command("schema")
+@click.option("--json", "as_json", is_flag=True, help="Print the schema itself instead of its path.")
+def rules_schema(as_json: bool) -> None:
+    """Print the installed path of the rule files' JSON Schema (for editors: yaml-language-server's
+    `$schema=` line, VS Code's yaml.schemas)."""
+    path = _schema_path()
+    click.echo(path.read_text(encoding="utf-8") if as_json else str(path), nl=not as_json)
 
 
 @rules.command("list")

@@ -558,3 +558,24 @@ def test_the_core_install_does_not_import_the_figure_libraries():
         r = subprocess.run([sys.executable, "-c", code, d], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_rules_show_writes_a_schema_reference_that_works_from_anywhere(tmp_path):
+    """`kbs rules show outdoor > my.yaml` in any folder: the editor line points at the installed
+    schema (a file URI to a file that exists), and the file checks clean; `kbs rules schema` prints
+    that path, `--json` the schema."""
+    from urllib.parse import unquote, urlparse
+
+    r = kbs("rules", "show", "outdoor")
+    assert r.returncode == 0, r.stderr
+    first = r.stdout.splitlines()[0]
+    assert first.startswith("# yaml-language-server: $schema=file://")
+    schema = Path(unquote(urlparse(first.split("$schema=", 1)[1]).path))
+    assert schema.is_file() and json.loads(schema.read_text())["$schema"].startswith("https://json-schema.org/")
+    mine = tmp_path / "elsewhere" / "my.yaml"
+    mine.parent.mkdir()
+    mine.write_text(r.stdout)
+    assert kbs("rules", "check", str(mine)).returncode == 0
+    r = kbs("rules", "schema")
+    assert r.returncode == 0 and Path(r.stdout.strip()) == schema
+    assert json.loads(kbs("rules", "schema", "--json").stdout) == json.loads(schema.read_text())
