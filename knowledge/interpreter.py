@@ -29,7 +29,7 @@ import numpy as np
 from kbs.errors import FitError, KbsError
 from kbs.inference import UFPONCResult, ufp_onc
 from kbs.knowledge.connexity import Connexity, assign_to_nearest, project_on_plane
-from kbs.knowledge.explain import NO_LABEL, APDCurve, CheckRecord, ClusterRecord, Explanation
+from kbs.knowledge.explain import NO_LABEL, APDCurve, Catalogue, CheckRecord, ClusterRecord, Explanation
 from kbs.knowledge.predicates import Cluster, Ground, Measurement, PredicateError, Scene
 from kbs.knowledge.rulebase import Condition, RuleBase
 
@@ -591,7 +591,7 @@ class Interpreter:
                                  "descriptors": leaves[members[0]][2].descriptors if len(members) == 1 else
                                  self._group_descriptors(X, [leaves[i][0] for i in members])})
         expl = Explanation(rule_base=rb.name, rule_file=rb.path, strategy=rb.strategy, label_names=rb.label_names,
-                           records=records, root="c", ground=ground_info, notes=notes)
+                           records=records, root="c", ground=ground_info, notes=notes, catalogue=Catalogue.of(rb))
         return Segmentation(cluster=cluster, label=label, membership=membership, label_names=rb.label_names,
                             explanation=expl, clusters=out_clusters, seconds=time.perf_counter() - t0)
 
