@@ -403,7 +403,7 @@ class Explanation:
             head = f"as {given}" if given else f", {NO_LABEL}"
             return f"{head}: {why}" if why else head
         outcome = {c.check: c.passed for c in rec.checks}
-        rejected = []
+        rejected: list[str] = []
         for lab in self.catalogue.labels:
             holds, terms = evaluate(lab.condition, outcome)
             if lab.name == given:
