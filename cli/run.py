@@ -120,14 +120,14 @@ def scan_paths(clouds: tuple[Path, ...], *,
                                  f"{', '.join(SUPPORTED_EXTENSIONS)}{skipped})")
         scans.extend(kept)
     seen: dict[str, Path] = {}
-    for scan in scans:
-        if scan.stem in seen:
-            first = seen[scan.stem]
-            what = (f"{scan} is given twice" if first.resolve() == scan.resolve() else
-                    f"{first} and {scan} would both write {scan.stem}.ply and {scan.stem}.json; give scans with "
+    for path in scans:
+        if path.stem in seen:
+            first = seen[path.stem]
+            what = (f"{path} is given twice" if first.resolve() == path.resolve() else
+                    f"{first} and {path} would both write {path.stem}.ply and {path.stem}.json; give scans with "
                     f"different names (or run them apart with different --out)")
             raise click.BadParameter(what, param_hint="CLOUD")
-        seen[scan.stem] = scan
+        seen[path.stem] = path
     return scans
 
 
@@ -578,7 +578,7 @@ def explain(result: Path, cluster_id: str | None, depth: int | str | None) -> No
         raise click.BadParameter(f"no cluster {cluster_id!r} in {result}" + (f"; did you mean {hint!r}?" if hint else ""),
                                  param_hint="--cluster")
     start = cluster_id or expl.root
-    levels = None if depth == "all" else depth if depth is not None else expl.fitting_depth(start)
+    levels = None if depth == "all" else int(depth) if depth is not None else expl.fitting_depth(start)
     if cluster_id is None:
         click.echo(f"rule base '{expl.rule_base}' ({expl.rule_file}), strategy {expl.strategy}; "
                    f"labels: {', '.join(expl.label_names)}")
@@ -631,8 +631,8 @@ def rules_check(files: tuple[str, ...], plugins: tuple[Path, ...]) -> None:
         for w in rb.warnings:
             click.echo(w.format(), err=True)
     if bad:
-        for exc in bad:
-            click.echo(exc.format(), err=True)
+        for problem in bad:
+            click.echo(problem.format(), err=True)
         n = sum(len(e.problems) for e in bad)
         click.echo(f"kbs: error: {n} problem{'s' if n != 1 else ''} in {len(bad)} rule file"
                    f"{'s' if len(bad) != 1 else ''}", err=True)

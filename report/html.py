@@ -37,7 +37,8 @@ import html
 import json
 import re
 from pathlib import Path
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -124,9 +125,12 @@ def _box_lines(boxes: Sequence[dict[str, Any] | None]) -> dict[str, list]:
             continue
         for a, e in _EDGES:
             for p in (b["corners"][a], b["corners"][e]):
-                xs.append(round(float(p[0]), 5)), ys.append(round(float(p[1]), 5)), zs.append(round(float(p[2]), 5))
+                xs.append(round(float(p[0]), 5))
+                ys.append(round(float(p[1]), 5))
+                zs.append(round(float(p[2]), 5))
                 text.append(i)
-            xs.append(None), ys.append(None), zs.append(None), text.append(None)
+            for column in (xs, ys, zs, text):
+                column.append(None)
     return {"x": xs, "y": ys, "z": zs, "cluster": text}
 
 
