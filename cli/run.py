@@ -593,10 +593,10 @@ def explain(result: Path, cluster_id: str | None, depth: int | str | None) -> No
         if not rec.children:
             return
         lines = expl.tree_lines(cluster_id, levels)[1:]
-    shown = len(lines)
-    total = sum(1 for _ in expl.walk(start)) - (cluster_id is not None)
-    folded = "" if shown == total else (f" (to depth {levels} of its {total:,} clusters: --depth N or --depth all "
-                                         f"unfolds it, --cluster ID shows one branch)")
+    shown = len(lines) - (cluster_id is None)  # the clusters below the root or --cluster
+    total = sum(1 for _ in expl.walk(start)) - 1
+    folded = "" if shown == total else (f" (to depth {levels}, {shown:,} of its {total:,} clusters: --depth N or "
+                                         f"--depth all unfolds it, --cluster ID shows one branch)")
     click.echo(f"tree{' below ' + cluster_id if cluster_id else ''}{folded}:")
     for line in lines:
         click.echo(line)

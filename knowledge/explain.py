@@ -453,7 +453,18 @@ class Explanation:
             sep = " " if rec.label else ""
             why = "; ".join(c.sentence() for c in rec.checks) or "no check measured"
             return f"{head} accepted{sep}{label}: {why}"
+        if self.catalogue is not None and ":" not in label:  # a label without a condition: why no rule acted
+            label += f": {self._no_rule_why(rec)}" if self.catalogue.rules else ""
         return f"{head} accepted{' ' if rec.label or rec.relabel else ''}{label}{self._relabel_text(rec)}"
+
+    def _no_rule_why(self, rec: ClusterRecord) -> str:
+        """For a cluster no rule acted on: the terms that kept each rule's condition from holding."""
+        assert self.catalogue is not None
+        outcome = {c.check: c.passed for c in rec.checks}
+        terms: list[Term] = []
+        for rule in self.catalogue.rules:
+            terms += [t for t in evaluate(rule.condition, outcome)[1] if t not in terms]
+        return self._terms_text(rec, terms) or "no rule acted"
 
     def _subtree(self, rec: ClusterRecord) -> list[ClusterRecord]:
         return list(self.walk(rec.id))[1:]

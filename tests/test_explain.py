@@ -106,13 +106,15 @@ def test_explain_of_a_large_scan_is_short_and_unfolds_with_depth_and_cluster(sha
     records = json.loads(js.read_text())["explanation"]["clusters"]
     code, short, _ = _explain(capsys, js)
     assert code == 0 and len(short.splitlines()) < 80 and len(records) > 600
-    assert re.search(r"tree \(to depth \d of its [\d,]+ clusters: --depth N or --depth all unfolds it", short)
+    m = re.search(r"\ntree \(to depth (\d), ([\d,]+) of its ([\d,]+) clusters: --depth N or --depth all unfolds it", short)
+    assert m and int(m.group(3).replace(",", "")) == len(records) - 1
+    assert int(m.group(2)) == len(short.split(m.group(0))[1].splitlines()) - 2  # the root, and the heading's end
     assert re.search(r"\[\+ \d+ clusters below, ending as ground \d+ \([\d,]+ pts\), obstacle \d+", short)
     code, full, _ = _explain(capsys, js, "--depth", "all")
     tree = full.split("\ntree:\n")[1].splitlines()
     assert code == 0 and [ln.split()[0] for ln in tree] == [r["id"] for r in records]
     code, two, _ = _explain(capsys, js, "--depth", "2")
-    tree = two.split("clusters: --depth N or --depth all unfolds it, --cluster ID shows one branch):\n")[1].splitlines()
+    tree = two.split("--depth all unfolds it, --cluster ID shows one branch):\n")[1].splitlines()
     depth = {r["id"]: r["depth"] for r in records}
     assert code == 0 and {depth[ln.split()[0]] for ln in tree} == {0, 1, 2}
     deep = max(records, key=lambda r: r["depth"])
@@ -238,3 +240,14 @@ def test_the_report_tells_unlabelled_clusters_from_noise(tmp_path):
     assert (label == -2).any() and (cluster[label == -2] >= 0).all()  # in an output cluster, no label
     assert (cluster[label == -1] < 0).all()  # noise: in no output cluster
     assert '"unlabelled (no label matched)"' in page and "(unlabelled: no label matched)" in page
+
+
+def test_a_cluster_given_the_default_label_says_why_no_rule_acted(tmp_path, capsys):
+    """planar_contest's only label has no condition: what decided is that no rule's condition held."""
+    assert main(["-q", "run", "--rules", "planar_contest", "-j", "1", str(EXAMPLE), "--out", str(tmp_path)]) == 0
+    code, out, _ = _explain(capsys, tmp_path / "outdoor.json", "--depth", "all")
+    accepted = [ln for ln in out.splitlines() if " accepted as plane" in ln]
+    assert code == 0 and accepted
+    for line in accepted:
+        assert re.fullmatch(r" *c[\d.]+ \([\d,]+ pts\) accepted as plane: tiny does not hold \(point_count = [\d,]+ pts "
+                            r"> 10 pts\), not planar does not hold \(thickness = [\d.e-]+ m <= 0\.01 m\)", line), line
