@@ -19,7 +19,7 @@ rules and checks without their docs.
 from __future__ import annotations
 
 from collections.abc import Iterator, Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from typing import TYPE_CHECKING, Any
 
 from kbs.formats import Version, document_version
@@ -30,6 +30,13 @@ if TYPE_CHECKING:
 #: The ``format`` of an explanation's dictionary form, and the version this kbs writes.
 EXPLANATION_FORMAT = "kbs-explanation"
 EXPLANATION_VERSION = Version(1, 1)
+
+
+def _known(cls: type, d: Mapping[str, Any]) -> dict[str, Any]:
+    """The keys of ``d`` that are fields of the dataclass ``cls``: a newer minor version of the
+    format may add keys, which this reader ignores."""
+    names = {f.name for f in fields(cls)}
+    return {k: v for k, v in d.items() if k in names}
 
 
 def _number(value: float, unit: str) -> str:
@@ -217,10 +224,10 @@ class Catalogue:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> Catalogue:
-        return cls(checks={c["name"]: CheckInfo(**c) for c in d.get("checks", [])},
-                   rules=tuple(RuleInfo(**r) for r in d.get("rules", [])),
-                   labels=tuple(RuleInfo(**r) for r in d.get("labels", [])),
-                   relabel=tuple(RuleInfo(**r) for r in d.get("relabel", [])))
+        return cls(checks={c["name"]: CheckInfo(**_known(CheckInfo, c)) for c in d.get("checks", [])},
+                   rules=tuple(RuleInfo(**_known(RuleInfo, r)) for r in d.get("rules", [])),
+                   labels=tuple(RuleInfo(**_known(RuleInfo, r)) for r in d.get("labels", [])),
+                   relabel=tuple(RuleInfo(**_known(RuleInfo, r)) for r in d.get("relabel", [])))
 
 
 @dataclass(frozen=True)
@@ -345,8 +352,8 @@ class Explanation:
         document_version(d, format=EXPLANATION_FORMAT, reads=EXPLANATION_VERSION)
         records = {}
         for r in d["clusters"]:
-            r = dict(r)
-            r["checks"] = [CheckRecord(**c) for c in r.get("checks", [])]
+            r = _known(ClusterRecord, r)
+            r["checks"] = [CheckRecord(**_known(CheckRecord, c)) for c in r.get("checks", [])]
             if r.get("apd"):
                 a = r["apd"]
                 r["apd"] = APDCurve(tuple(a["ks"]), tuple(a["apd"]), a["chosen"])

@@ -208,8 +208,18 @@ def test_results_written_before_versions_and_newer_minor_versions_still_read(exa
     assert code == 0 and "c1 (6,874 pts) split in 4 by SAh [outdoor.yaml:65]: thickness = 0.1179 m > 0.05 m" in out
     code, out, _ = _explain(capsys, js, "--cluster", "c1.3.0")
     assert code == 0 and "accepted as obstacle" in out and "FAIL" not in out
-    newer_minor = _copy_pair(example, tmp_path / "minor", lambda doc: doc.update(version="1.9", extra={"a": 1}))
-    assert _explain(capsys, newer_minor)[0] == 0
+    def minor(doc):  # keys a newer 1.x may add, at every level: ignored
+        doc.update(version="1.9", extra={"a": 1})
+        e = doc["explanation"]
+        e.update(version="1.9", extra=1)
+        e["catalogue"]["checks"][0]["extra"] = 1
+        e["catalogue"]["rules"][0]["extra"] = 1
+        e["clusters"][1]["extra"] = 1
+        e["clusters"][1]["checks"][0]["extra"] = 1
+
+    newer_minor = _copy_pair(example, tmp_path / "minor", minor)
+    code, out, _ = _explain(capsys, newer_minor, "--cluster", "c0")
+    assert code == 0 and "c0 (19,359 pts) accepted as ground: planar (thickness = 0.01392 m <= 0.05 m)" in out
     assert main(["render", str(newer_minor), "--kind", "map", "--out", str(tmp_path / "m.png")]) == 0
 
 
