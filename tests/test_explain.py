@@ -45,8 +45,8 @@ def test_the_summary_names_each_rule_label_and_check_with_its_doc(example, capsy
     assert "  ground [outdoor.yaml:75] if planar and level (navigable): 6 clusters" in out
     assert re.search(r"\n  planar +thickness <= 0\.05 m \[outdoor\.yaml:34\]: PAh, planar ambiguity — thin across", out)
     # the tree's lines name the rule that acted and the terms of its condition
-    assert ("c1 (6,874 pts) split in 4 by SAh [outdoor.yaml:65]: not planar (thickness = 0.1179 m > 0.05 m), "
-            "level (ground_angle = 0.9918 deg <= 22.5 deg), sheet (flatness = 0.03933 <= 0.3)\n") in out
+    assert ("c1 (6,869 pts) split in 4 by SAh [outdoor.yaml:65]: not planar (thickness = 0.1179 m > 0.05 m), "
+            "level (ground_angle = 0.9913 deg <= 22.5 deg), sheet (flatness = 0.03933 <= 0.3)\n") in out
 
 
 def test_why_shows_each_check_with_its_doc_and_no_fail_for_a_check_that_went_the_rules_way(example, capsys):
@@ -55,12 +55,12 @@ def test_why_shows_each_check_with_its_doc_and_no_fail_for_a_check_that_went_the
     code, out, _ = _explain(capsys, example, "--cluster", "c1")
     assert code == 0 and "FAIL" not in out and "pass " not in out
     assert ("    noise [outdoor.yaml:62] reject if tiny: does not hold: tiny does not hold "
-            "(point_count = 6,874 pts > 15 pts)\n") in out
+            "(point_count = 6,869 pts > 15 pts)\n") in out
     assert ("    SAh [outdoor.yaml:65] split if not planar and level and sheet: holds: not planar "
-            "(thickness = 0.1179 m > 0.05 m), level (ground_angle = 0.9918 deg <= 22.5 deg), sheet") in out
+            "(thickness = 0.1179 m > 0.05 m), level (ground_angle = 0.9913 deg <= 22.5 deg), sheet") in out
     assert "CAh" not in out.split("checks measured")[0].split("SAh [outdoor.yaml:65] split if")[1]  # not evaluated
     assert re.search(r"\n    planar +no +thickness = 0\.1179 m > 0\.05 m +\[outdoor\.yaml:34\] +PAh, planar ambiguity", out)
-    assert re.search(r"\n    tiny +no +point_count = 6,874 pts > 15 pts +\[outdoor\.yaml:51\] +too few points", out)
+    assert re.search(r"\n    tiny +no +point_count = 6,869 pts > 15 pts +\[outdoor\.yaml:51\] +too few points", out)
     assert "tree below c1" in out and "  c1.2.1.1 (128 pts) split in 2 components by CAh" in out
 
 
@@ -83,11 +83,11 @@ def test_a_cluster_stopped_by_a_limit_says_which_rule_wanted_a_split_and_how_it_
     assert main(["-q", "run", "--rules", str(rules), "-j", "1", str(EXAMPLE), "--out", str(tmp_path)]) == 0
     code, out, _ = _explain(capsys, tmp_path / "outdoor.json")
     assert code == 0
-    assert ("  c1 (6,874 pts) kept as obstacle (limit reached: limits.max_depth = 1): SAh [shallow.yaml:65] would "
-            "split it: not planar (thickness = 0.1179 m > 0.05 m), level (ground_angle = 0.9918 deg <= 22.5 deg), "
+    assert ("  c1 (6,869 pts) kept as obstacle (limit reached: limits.max_depth = 1): SAh [shallow.yaml:65] would "
+            "split it: not planar (thickness = 0.1179 m > 0.05 m), level (ground_angle = 0.9913 deg <= 22.5 deg), "
             "sheet (flatness = 0.03933 <= 0.3); label obstacle, not ground: planar does not hold "
             "(thickness = 0.1179 m > 0.05 m)\n") in out
-    assert "    kept by a limit (max_depth): 1 cluster, 6,874 pts: c1 (6,874 pts)\n" in out
+    assert "    kept by a limit (max_depth): 1 cluster, 6,869 pts: c1 (6,869 pts)\n" in out
     code, out, _ = _explain(capsys, tmp_path / "outdoor.json", "--cluster", "c1")
     assert code == 0
     assert "    the split did not happen (limit reached: limits.max_depth = 1): the cluster is kept as it is and labelled\n" in out
@@ -205,7 +205,7 @@ def test_results_written_before_versions_and_newer_minor_versions_still_read(exa
 
     js = _copy_pair(example, tmp_path / "legacy", legacy)
     code, out, _ = _explain(capsys, js)
-    assert code == 0 and "c1 (6,874 pts) split in 4 by SAh [outdoor.yaml:65]: thickness = 0.1179 m > 0.05 m" in out
+    assert code == 0 and "c1 (6,869 pts) split in 4 by SAh [outdoor.yaml:65]: thickness = 0.1179 m > 0.05 m" in out
     code, out, _ = _explain(capsys, js, "--cluster", "c1.3.0")
     assert code == 0 and "accepted as obstacle" in out and "FAIL" not in out
     def minor(doc):  # keys a newer 1.x may add, at every level: ignored
@@ -219,7 +219,7 @@ def test_results_written_before_versions_and_newer_minor_versions_still_read(exa
 
     newer_minor = _copy_pair(example, tmp_path / "minor", minor)
     code, out, _ = _explain(capsys, newer_minor, "--cluster", "c0")
-    assert code == 0 and "c0 (19,359 pts) accepted as ground: planar (thickness = 0.01392 m <= 0.05 m)" in out
+    assert code == 0 and "c0 (19,364 pts) accepted as ground: planar (thickness = 0.01393 m <= 0.05 m)" in out
     assert main(["render", str(newer_minor), "--kind", "map", "--out", str(tmp_path / "m.png")]) == 0
 
 
@@ -261,3 +261,41 @@ def test_a_cluster_given_the_default_label_says_why_no_rule_acted(tmp_path, caps
     for line in accepted:
         assert re.fullmatch(r" *c[\d.]+ \([\d,]+ pts\) accepted as plane: tiny does not hold \(point_count = [\d,]+ pts "
                             r"> 10 pts\), not planar does not hold \(thickness = [\d.e-]+ m <= 0\.01 m\)", line), line
+
+
+# -- the README's printed outputs ------------------------------------------------------------------
+
+
+def test_the_readme_run_and_explain_block_is_what_kbs_prints(tmp_path):
+    """The README's first example block (`kbs run` on the bundled scene, then `kbs explain` and
+    `kbs explain --cluster`): every line it shows, but the elisions (`...`) and the time line, is a
+    line of the real output, in the same order."""
+    import shlex
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    readme = (root / "README.md").read_text(encoding="utf-8")
+    section = readme[readme.index("## `kbs run`: segment a scan with a rule base"):]
+    block = re.search(r"```\n(.*?)```", section, re.S).group(1)
+    commands: list[tuple[str, list[str]]] = []
+    for line in block.splitlines():
+        if line.startswith("$ "):
+            commands.append((line[2:].split("#")[0].strip(), []))
+        else:
+            commands[-1][1].append(line)
+    assert [c.split()[:2] for c, _ in commands] == [["kbs", "run"], ["kbs", "explain"], ["kbs", "explain"]]
+    (tmp_path / "examples" / "data").mkdir(parents=True)
+    (tmp_path / "examples" / "data" / "outdoor.ply").write_bytes((root / "examples" / "data" / "outdoor.ply").read_bytes())
+    for command, shown in commands:
+        args = shlex.split(command)[1:]
+        r = subprocess.run([sys.executable, "-c", "import sys; from kbs.cli.main import main; sys.exit(main())", *args],
+                           capture_output=True, text=True, cwd=tmp_path, timeout=300)
+        assert r.returncode == 0, r.stderr
+        got = (r.stderr + r.stdout).splitlines() if args[0] == "run" else r.stdout.splitlines()
+        at = 0
+        for line in shown:
+            if line.strip() in ("...", "") or line.startswith("  time: "):
+                continue
+            assert line in got[at:], f"README line not printed (in order) by `{command}`:\n{line}"
+            at = got.index(line, at) + 1
