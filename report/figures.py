@@ -148,7 +148,8 @@ def obstacle_map_figure(X: np.ndarray, label: np.ndarray, label_names: list[str]
                         cell: float | None = None, title: str = "") -> Any:
     """Top-down map of ground vs obstacle cells (a cell is an obstacle when any of its points has
     a label other than ``ground_label``; empty cells white, noise-only cells grey), the sensor
-    marked with a star."""
+    marked with a star when it lies in or near the scan (an airborne or georeferenced scan's
+    default sensor, the origin, would shrink the scan to a sliver: it is named in a note instead)."""
     require("matplotlib", "render", "drawing figures")
     from matplotlib.colors import ListedColormap
     from matplotlib.patches import Patch
@@ -164,9 +165,15 @@ def obstacle_map_figure(X: np.ndarray, label: np.ndarray, label_names: list[str]
     handles = [Patch(color="#b8d8a8", label=ground_label), Patch(color="#c0392b", label="obstacle"),
                Patch(facecolor="white", edgecolor="0.6", label="no point")]
     if sensor is not None:
-        h = ax.scatter([sensor[0]], [sensor[1]], marker="*", s=220, c="#1f4e99", edgecolors="k", zorder=3,
-                       label="sensor")
-        handles.append(h)
+        w, h_ = nx * c, ny * c
+        near = (x0 - 0.25 * w <= sensor[0] <= x0 + 1.25 * w) and (y0 - 0.25 * h_ <= sensor[1] <= y0 + 1.25 * h_)
+        if near:
+            h = ax.scatter([sensor[0]], [sensor[1]], marker="*", s=220, c="#1f4e99", edgecolors="k", zorder=3,
+                           label="sensor")
+            handles.append(h)
+        else:
+            ax.text(0.01, 0.01, f"sensor at ({sensor[0]:.6g}, {sensor[1]:.6g}), far outside the scan: not drawn",
+                    transform=ax.transAxes, fontsize=7, color="0.3")
     ax.legend(handles=handles, loc="upper right", fontsize=8, framealpha=0.9)
     ax.set_aspect("equal")
     ax.set_xlabel("x")
