@@ -179,3 +179,28 @@ def test_render_map_of_georeferenced_data_keeps_the_scan_in_view_and_names_the_p
                         "render", str(out / "utm.json"), "--kind", "map", "--ground-label", "road"],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 2 and "no label 'road' in this result (labels: ground, obstacle)" in r.stderr
+
+
+def test_clusters_figure_boxes_the_largest_clusters_only():
+    """Thousands of clusters (an airborne tile): boxes and labels for the 30 largest, said in the
+    figure; every point is still drawn in its cluster's colour."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from kbs.report import figures
+
+    rng = np.random.default_rng(0)
+    n, k = 200_000, 2_000
+    cluster = rng.integers(0, k, n)
+    X = rng.uniform(0, 100, (n, 3))
+    sizes = np.bincount(cluster, minlength=k)
+    clusters = [{"index": i, "label": "object", "n_points": int(sizes[i]),
+                 "descriptors": {"center": X[cluster == i].mean(axis=0).tolist(), "eigenvalues": [1.0, 0.5, 0.1],
+                                 "normal": [0.0, 0.0, 1.0]}} for i in range(k)]
+    fig = figures.clusters_figure(X, cluster, clusters, title="tile")
+    ax = fig.axes[0]
+    assert len(ax.lines) == 30 * 12  # 12 edges a box
+    assert sum(t.get_text()[0].isdigit() for t in ax.texts) == 30
+    assert any("the 30 largest of 2000 clusters" in t.get_text() for t in ax.texts)
+    largest = {c["index"] for c in sorted(clusters, key=lambda c: -c["n_points"])[:30]}
+    assert {int(t.get_text().split()[0]) for t in ax.texts if t.get_text()[0].isdigit()} == largest
