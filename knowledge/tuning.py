@@ -75,7 +75,12 @@ def substitute(text: str, edits: Mapping[Tunable, str], comments: Mapping[Tunabl
             m = _SCALAR.match(line, start)
             if m is None:  # pragma: no cover - the validation saw a number here
                 raise ValueError(f"no value at {t.pos}")
-            line = line[:start] + edits[t] + line[m.end():]
+            new, rest = edits[t], line[m.end():]
+            gap = len(rest) - len(rest.lstrip(" "))
+            if gap and rest[gap:].startswith("#"):  # keep an aligned comment where it was
+                shift = len(new) - (m.end() - start)
+                rest = " " * max(1, gap - shift) + rest[gap:]
+            line = line[:start] + new + rest
         notes = [comments[t] for t in ts if comments and comments.get(t)]
         if notes:
             cr = "\r" if line.endswith("\r") else ""
