@@ -105,11 +105,11 @@ def with_values(rule_base: RuleBase, values: Mapping[str, float], registry: Pred
     edits = {marks[name]: yaml_number(v, marks[name].integer) for name, v in values.items()}
     notes = {marks[name]: c for name, c in (comments or {}).items()}
     text = substitute(rule_base.text if text is None else text, edits, notes)
-    registry = registry or _registry_of(rule_base)
+    registry = registry or registry_of(rule_base)
     return text, parse_rule_base(text, rule_base.path, registry)
 
 
-def _registry_of(rule_base: RuleBase) -> PredicateRegistry:
+def registry_of(rule_base: RuleBase) -> PredicateRegistry:
     """A registry holding the rule base's predicates (plugins included)."""
     reg = PredicateRegistry.default()
     for check in rule_base.checks.values():

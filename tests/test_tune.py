@@ -345,3 +345,39 @@ def test_the_shared_semantickitti_labels_read_as_the_data_readme_counts(shared_d
     assert len(cls) == 124_668 and int(np.isin(cls, SEMANTICKITTI_GROUND).sum()) == 67_873
     assert 1_500 < int(np.isin(cls, (0, 1)).sum()) < 2_500
     assert cls.max() < 1 << 16
+
+
+# --- the example and the split --------------------------------------------------------------------
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_the_marked_outdoor_example_is_the_shipped_rule_base_plus_marks():
+    """examples/rules/outdoor-tune.yaml: outdoor.yaml with its header and 'tune:' lines; drop them
+    and the text is the shipped file's, so it segments as the shipped rule base does."""
+    example = (ROOT / "examples" / "rules" / "outdoor-tune.yaml").read_text().splitlines()
+    body = [ln for ln in example if not ln.lstrip().startswith("tune:")]
+    first = body.index("# Outdoor navigation (Loménie et al.): navigable ground versus obstacles.")
+    assert body[first:] == OUTDOOR.splitlines()[1:]
+    rb = load_rule_base(str(ROOT / "examples" / "rules" / "outdoor-tune.yaml"))
+    assert [t.name for t in rb.tunables] == ["checks.planar.max", "checks.low.max", "post.ground_release.tolerance",
+                                             "post.ground_contact.tolerance"]
+    assert [split_relevant(rb, t) for t in rb.tunables] == [True, False, False, False]
+
+
+def test_the_split_puts_each_shared_scan_in_one_part(shared_data):
+    import yaml
+
+    doc = yaml.safe_load((ROOT / "benchmarks" / "splits.yaml").read_text())
+    seen: dict[str, str] = {}
+    for kind in ("vehicle", "airborne", "table-top"):
+        assert doc[kind]["tune"] and doc[kind]["validate"]
+        for part in ("tune", "validate"):
+            for key in doc[kind][part]:
+                assert key not in seen, f"{key} is in {seen[key]} and {kind}.{part}"
+                seen[key] = f"{kind}.{part}"
+    frames = [k for k in seen if k.startswith("SemanticKITTI-seq00/")]
+    assert len(frames) == 3 and len({seen[k] for k in frames}) == 1  # one drive: one part
+    # every labelled scan of the data README is placed (simple.las, 1,065 points of Autzen: not)
+    assert len(seen) == 6 + 6 + 3 + 5
+    assert (shared_data / "semantickitti-seq00" / "seq00_000002.label").is_file()
