@@ -7,7 +7,6 @@ those values again from a file holding others."""
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 
 import numpy as np
@@ -233,6 +232,22 @@ def test_kbs_tune_bounds_the_evaluations(tmp_path, capsys, scenes):
     doc = json.loads(report.read_text())
     assert doc["grid"]["evaluated"] == 2 and doc["grid"]["stopped"] == "--max-evals 2"
     assert "stopped at --max-evals 2" in stdout
+
+
+def test_kbs_tune_time_limit_and_progress(tmp_path, capsys, scenes, monkeypatch):
+    truths = truth_from_known_values(tmp_path, scenes[:2], "0.05", "0.05")
+    rules = marked(tmp_path, b=(CONTACT, CONTACT + "    tune: [0.02, 0.14, 0.2]\n"))
+    report = tmp_path / "r.json"
+    pairs = [str(p) for pair in zip(scenes[:2], truths) for p in pair]
+    monkeypatch.setenv("KBS_PROGRESS_SECONDS", "0")
+    code, stdout, err = run_kbs(capsys, "tune", "--rules", str(rules), *pairs, "--ground-values", "1", "--time-limit",
+                                "0.001", "--out", str(tmp_path / "t.yaml"), "--report", str(report), "-j", "1")
+    assert code == 0, err
+    doc = json.loads(report.read_text())
+    # the file's own values are scored on every scan whatever the limit; nothing else was started in time
+    assert doc["grid"]["evaluated"] == 1 and doc["grid"]["stopped"] == "--time-limit 0.001 s"
+    assert doc["per_scan"][0]["original"] == 1.0 and not doc["moved"]
+    assert "kbs: tune: 1 of 8 scores (settings x scans)" in err and "kbs: tune: 2 of 8 scores" in err
 
 
 def test_kbs_tune_bad_inputs(tmp_path, capsys, scenes):
