@@ -12,6 +12,7 @@ Usage: python benchmarks/bench_tune.py [--rules FILE] [--folds K] [--time-limit 
 from __future__ import annotations
 
 import argparse
+import difflib
 import statistics
 import sys
 import time
@@ -64,11 +65,9 @@ def main() -> None:
         Path(args.out).write_text(text)
     print("\nLines of the tuned rule file that changed:\n\n```")
     old = Path(args.rules).read_text().splitlines()
-    new = text.splitlines()
-    print(new[0])
-    for a, b in zip(old, new[1:]):
-        if a != b:
-            print(b)
+    for line in difflib.ndiff(old, text.splitlines()):
+        if line.startswith("+ "):
+            print(line[2:])
     print(f"```\n\n(tuning: {time.perf_counter() - t0:.0f} s)")
     if args.no_validate:
         return

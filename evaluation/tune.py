@@ -271,6 +271,12 @@ def tune(rule_base: RuleBase, scans: Sequence[LabelledScan], *, ground_label: st
     notes = []
     if stopped:
         notes.append(f"the search stopped at {stopped}: {len(evaluated)} of {len(settings)} settings evaluated")
+    cv = float(np.mean([f.score for f in fold_list]))
+    cv0 = float(np.mean([f.original_score for f in fold_list]))
+    if sign * cv < sign * cv0 - 1e-12:
+        notes.append(f"on the held-back scans, the values chosen on the other scans score worse than the file's own "
+                     f"({cv:.4f} against {cv0:.4f}): these scans do not show that moving the thresholds helps on "
+                     "scans not tuned on; more (or more varied) scans would, or keep the file's values")
     return TuneResult(tunables=tunables, relevant=relevant, settings=settings, scans=tuple(s.name for s in scans),
                       metric=metric, scores=scores, metrics=mets, original=original, chosen=chosen, folds=fold_list,
                       evaluated=evaluated, segmentations=n_seg, seconds=time.perf_counter() - t0, stopped=stopped,
@@ -289,6 +295,8 @@ def tuned_text(rule_base: RuleBase, result: TuneResult, text: str | None = None)
     text, _ = with_values(rule_base, values, comments=comments, text=text)
     head = (f"# kbs tune: {len(moved)} of {len(result.tunables)} marked thresholds moved on {len(result.scans)} scans "
             f"({len(result.folds)} folds), {cv}\n")
+    if METRICS[result.metric][1] * result.cv_score < METRICS[result.metric][1] * result.cv_original - 1e-12:
+        head += "# kbs tune: held back, the tuned values scored worse than the file's: see the report\n"
     return head + text
 
 

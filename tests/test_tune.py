@@ -158,6 +158,7 @@ def test_labelling_the_split_tree_again_gives_a_full_runs_result(tmp_path, scene
 def truth_from_known_values(tmp_path: Path, scenes: list[Path], planar: str, contact: str) -> list[Path]:
     """Ground truth made by kbs run with checks.planar.max = planar and
     post.ground_contact.tolerance = contact: one .npy of 0/1 (1 ground) per scene."""
+    tmp_path.mkdir(exist_ok=True)
     rules = marked(tmp_path, "truth.yaml", a=(PLANAR, f"    max: {planar}\n"), b=(CONTACT, f"    tolerance: {contact}\n"))
     out = []
     for scene in scenes:
@@ -396,3 +397,24 @@ def test_the_split_puts_each_shared_scan_in_one_part(shared_data):
     # every labelled scan of the data README is placed (simple.las, 1,065 points of Autzen: not)
     assert len(seen) == 6 + 6 + 3 + 5
     assert (shared_data / "semantickitti-seq00" / "seq00_000002.label").is_file()
+
+
+def test_kbs_tune_says_when_the_held_back_scans_do_not_support_the_move(tmp_path, capsys, scenes):
+    """Two scans whose truths were made with contact tolerances on either side of the file's value:
+    each fold's choice (the other scan's value) scores worse on its held-back scan than the
+    file's value, and the report and the new file say so."""
+    a = truth_from_known_values(tmp_path / "a", scenes[:1], "0.05", "0.14")
+    b = truth_from_known_values(tmp_path / "b", scenes[1:2], "0.05", "0.02")
+    rules = marked(tmp_path, b=(CONTACT, CONTACT + "    tune: [0.02, 0.14]\n"))
+    out, report = tmp_path / "tuned.yaml", tmp_path / "r.json"
+    code, stdout, err = run_kbs(capsys, "tune", "--rules", str(rules), str(scenes[0]), str(a[0]), str(scenes[1]),
+                                str(b[0]), "--ground-values", "1", "--out", str(out), "--report", str(report), "-j", "1")
+    assert code == 0, err
+    doc = json.loads(report.read_text())
+    assert [f["chosen"]["post.ground_contact.tolerance"] for f in doc["folds"]] == [0.02, 0.14]
+    first, second = doc["folds"]
+    assert first["score"] <= first["original_score"] and second["score"] < second["original_score"]
+    assert doc["cv_score"] < doc["cv_original_score"]
+    assert "note: on the held-back scans, the values chosen on the other scans score worse than the file's own" in stdout
+    assert out.read_text().splitlines()[1] == ("# kbs tune: held back, the tuned values scored worse than the file's: "
+                                               "see the report")
