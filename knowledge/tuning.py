@@ -155,11 +155,11 @@ class SplitTree:
     segmentation: Segmentation
     seconds: float
     _state: tuple = dataclasses.field(repr=False, default=())
-    _sensor: np.ndarray = dataclasses.field(repr=False, default=None)
+    _sensor: np.ndarray | None = dataclasses.field(repr=False, default=None)
 
     @classmethod
     def grow(cls, rule_base: RuleBase, X: np.ndarray, *, sensor: Any = None, jobs: int = 1,
-             progress: Callable[[str], None] | None = None, interpreter: Interpreter | None = None) -> SplitTree:
+             progress: Callable[[str], None] | None = None, interpreter: _Recorder | None = None) -> SplitTree:
         """Segment ``X`` (n, 3) with ``rule_base`` and keep its leaves. ``interpreter``: a
         :class:`_Recorder` to reuse (its worker processes), from :func:`recorder`."""
         rec = interpreter if interpreter is not None else recorder(rule_base, sensor=sensor, jobs=jobs)
@@ -173,6 +173,7 @@ class SplitTree:
             rec.progress = None
             if interpreter is None:
                 rec.close()
+        assert rec.state is not None  # set by the run's _finish
         return cls(rule_base, seg, time.perf_counter() - t0, rec.state, rec.sensor.copy())
 
     def label(self, rule_base: RuleBase) -> Segmentation:
@@ -189,7 +190,7 @@ class SplitTree:
         return it._finish(X, fresh, scene, recs, copy.deepcopy(ground_info), list(notes), time.perf_counter())
 
 
-def recorder(rule_base: RuleBase, *, sensor: Any = None, jobs: int = 1) -> Interpreter:
+def recorder(rule_base: RuleBase, *, sensor: Any = None, jobs: int = 1) -> _Recorder:
     """An interpreter for :meth:`SplitTree.grow` to reuse over several rule bases and scans
     (close it when done)."""
     return _Recorder(rule_base, sensor=sensor, jobs=jobs)
