@@ -125,6 +125,7 @@ def robust_plane(X: np.ndarray, inlier_distance: float, min_share: float, *,
         inl = new
     if inl.sum() >= 3:
         normal, point, thickness = _principal_plane(P[inl])
+        inl = np.abs((P - point) @ normal) <= inlier_distance  # the points on the plane returned
     inliers = np.empty(n, dtype=bool)
     inliers[order] = inl
     return RobustPlane(normal=normal, point=point, inliers=inliers, thickness=thickness)

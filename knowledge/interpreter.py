@@ -267,9 +267,9 @@ class Interpreter:
         candidates (the clusters of the initial partition with at least min_points points): a
         candidate passing the candidate check gives the plane of all its points; one that fails it
         but whose robust plane (scene.ground.plane) holds enough of its points within the inlier
-        distance gives that plane. With max_tilt, a plane farther than that from the fallback
-        normal is not the ground. The fallback only when no candidate gives a plane. ``info`` (the
-        explanation's ``ground``) records which cluster, how it was found, and every candidate's verdict."""
+        distance, and lies within its max_tilt of the fallback normal, gives that plane. The
+        fallback only when no candidate gives a plane. ``info`` (the explanation's ``ground``)
+        records which cluster, how it was found, and every candidate's verdict."""
         spec = self.rb.ground
         if not self.rb.needs_ground and spec.normal is None and spec.candidate is None and spec.plane is None \
                 and self.rb.ground_model is None:
@@ -278,7 +278,7 @@ class Interpreter:
             return self._plane_from_normal(X, np.asarray(spec.normal, float), "fixed", info)
         fallback = np.asarray(spec.fallback, float)
         fallback = fallback / np.linalg.norm(fallback)
-        best, no_plane, verdicts = None, [], []
+        best, no_plane, verdicts, tilted = None, [], [], []
         if spec.candidate is not None or spec.plane is not None:
             provisional = Scene(self.sensor, None, self.rb.units)
             for cl, rec in candidates:
@@ -299,8 +299,10 @@ class Interpreter:
                     n = -n
                 tilt = float(np.degrees(np.arccos(min(1.0, abs(float(n @ fallback))))))
                 verdict["angle_to_fallback"] = round(tilt, 3)
-                if spec.max_tilt is not None and tilt > spec.max_tilt:
-                    verdict["why"] = f"its plane is {tilt:.1f} deg from the fallback normal > max_tilt {spec.max_tilt:g} deg"
+                max_tilt = spec.plane.max_tilt if spec.plane is not None else None
+                if found["method"] == "robust plane" and max_tilt is not None and tilt > max_tilt:
+                    verdict["why"] = f"its robust plane is {tilt:.1f} deg from the fallback normal > max_tilt {max_tilt:g} deg"
+                    tilted.append(cl.id)
                     continue
                 dist = float(np.sqrt(((on - self.sensor) ** 2).sum(axis=1).min()))
                 verdict["distance_to_sensor"] = dist
@@ -309,25 +311,29 @@ class Interpreter:
         if best is None:
             tests = [f"passes '{spec.candidate}'"] if spec.candidate is not None else []
             if spec.plane is not None:
-                tests.append(f"has a plane holding >= {spec.plane.min_inlier_share:.0%} of its points within "
+                tests.append(f"has a robust plane holding >= {spec.plane.min_inlier_share:.0%} of its points within "
                              f"{spec.plane.inlier_distance:g}{self.rb.length_unit and ' ' + self.rb.length_unit}")
-            tilted = [v for v in verdicts if "angle_to_fallback" in v]
-            why = (f"no cluster of the initial partition with >= {spec.min_points} points "
-                   f"{' or '.join(tests) if tests else 'is a candidate (no candidate check)'}"
-                   f"{f' and has a plane ({len(no_plane)} degenerate)' if no_plane else ''}"
-                   f"{f' within max_tilt {spec.max_tilt:g} deg of the fallback ({len(tilted)} tilted more)' if tilted else ''}")
-            shares = [f"{v['cluster']} {v['inlier_share']:.0%}" for v in verdicts if v.get("inlier_share") is not None]
-            if shares and not tilted:
-                why += f" (on their planes: {', '.join(shares[:5])})"
+            why = f"no cluster of the initial partition with >= {spec.min_points} points {' or '.join(tests)}"
+            if no_plane:
+                why += (f" and has a plane ({len(no_plane)} degenerate)" if spec.plane is None else
+                        f" ({len(no_plane)} degenerate: no plane)")
+            if tilted:
+                why += (f" within max_tilt {spec.plane.max_tilt:g} deg of the fallback (the robust plane of "
+                        f"{', '.join(tilted[:5])}{' ...' if len(tilted) > 5 else ''} is tilted more)")
+            shares = [f"{v['cluster']} {v['inlier_share']:.0%}" for v in verdicts
+                      if v.get("inlier_share") is not None and v["cluster"] not in tilted]
+            if shares:
+                why += f" (the share of their points on their robust planes: {', '.join(shares[:5])})"
             info["note"] = f"{why}: the fallback normal {list(spec.fallback)} is used"
-            if verdicts and (spec.plane is not None or spec.max_tilt is not None):
-                info["candidates"] = verdicts
+            if verdicts and spec.plane is not None:
+                info.update(candidates=verdicts, unit=self.rb.length_unit)
             return self._plane_from_normal(X, np.asarray(spec.fallback, float), "fallback", info)
         dist, cl, n, point, tilt, found = best
         info.update(source=f"cluster {cl.id}", cluster=cl.id, normal=n.tolist(), point=point.tolist(),
                     distance_to_sensor=dist, thickness=found.get("plane_thickness", found["thickness"]))
-        if spec.plane is not None or spec.max_tilt is not None:
-            info.update(method=found["method"], angle_to_fallback=round(tilt, 3), candidates=verdicts)
+        if spec.plane is not None:
+            info.update(method=found["method"], angle_to_fallback=round(tilt, 3), candidates=verdicts,
+                        unit=self.rb.length_unit)
             if found["method"] == "robust plane":
                 info.update(inliers=found["inliers"], inlier_share=found["inlier_share"])
         return Ground(normal=n, point=np.asarray(point, float).copy(), source=f"cluster {cl.id}")

@@ -43,7 +43,7 @@ ENGINE_DEFAULTS: dict[str, Any] = {
 #: which makes a point's result depend on the rest of the file; no shipped rule base sets it.
 LIMIT_DEFAULTS: dict[str, Any] = {"max_depth": 8, "min_points": 30, "max_clusters": None}
 GROUND_DEFAULTS: dict[str, Any] = {"normal": "auto", "candidate": None, "min_points": 500, "fallback": [0.0, 0.0, 1.0],
-                                   "plane": None, "max_tilt": None}
+                                   "plane": None}
 
 
 # --- positions and problems ------------------------------------------------------------------
@@ -256,10 +256,12 @@ class Label:
 @dataclass(frozen=True)
 class PlaneSpec:
     """scene.ground.plane: a candidate whose robust plane holds ``min_inlier_share`` of its points
-    within ``inlier_distance`` (length units) is a ground plane, even if it fails the candidate check."""
+    within ``inlier_distance`` (length units), and whose normal lies within ``max_tilt`` degrees of
+    the fallback normal (None: any direction), is a ground plane, even if it fails the candidate check."""
 
     inlier_distance: float
     min_inlier_share: float
+    max_tilt: float | None
     pos: SourcePos
 
 
@@ -271,8 +273,6 @@ class GroundSpec:
     fallback: tuple[float, float, float]
     #: the robust plane test of a candidate (None: only the candidate check finds the ground)
     plane: PlaneSpec | None = None
-    #: degrees: a plane whose normal is farther than this from the fallback is not the ground (None: any)
-    max_tilt: float | None = None
 
 
 @dataclass(frozen=True)
@@ -760,8 +760,8 @@ class _Validator:
     def add(self, path: tuple, message: str, *, key: bool = False) -> None:
         self.problems.append(self.pos.problem(path, message, key=key))
 
-    def warn(self, path: tuple, message: str) -> None:
-        self.warnings.append(self.pos.problem(path, message, warning=True))
+    def warn(self, path: tuple, message: str, *, key: bool = False) -> None:
+        self.warnings.append(self.pos.problem(path, message, key=key, warning=True))
 
     def hint(self, name: Any, candidates: Any) -> str | None:
         """The closest of ``candidates`` to ``name`` (did you mean), within the file's budget."""
@@ -1037,15 +1037,16 @@ class _Validator:
                      "nor does scene.ground.normal fix it")
         plane = None
         if isinstance(g["plane"], dict):  # its keys, types and ranges: the schema
+            tilt = g["plane"].get("max_tilt")
             plane = PlaneSpec(_number(g["plane"].get("inlier_distance"), 0.1),
                               _number(g["plane"].get("min_inlier_share"), 0.5),
+                              None if tilt is None else _number(tilt, 90.0),
                               self.pos.pos(("scene", "ground", "plane"), key=True))
             if not auto:
                 self.warn(("scene", "ground", "plane"), "scene.ground.plane is not used: scene.ground.normal "
-                          "fixes the ground direction (plane only applies with 'normal: auto')")
-        tilt = _number(g["max_tilt"], None) if g["max_tilt"] is not None else None
+                          "fixes the ground direction (plane only applies with 'normal: auto')", key=True)
         return GroundSpec(normal=normal, candidate=cand, min_points=_number(g["min_points"], 0, int),
-                          fallback=fallback or (0.0, 0.0, 1.0), plane=plane, max_tilt=tilt)
+                          fallback=fallback or (0.0, 0.0, 1.0), plane=plane)
 
     def _merge(self, raw: Any, labels: list[Label]) -> MergeSpec | None:
         if not isinstance(raw, dict) or not isinstance(raw.get("merge_coplanar"), dict):
