@@ -30,6 +30,7 @@ from kbs.errors import FitError, KbsError
 from kbs.inference import UFPONCResult, ufp_onc
 from kbs.knowledge.connexity import Connexity, assign_to_nearest, project_on_plane
 from kbs.knowledge.explain import NO_LABEL, APDCurve, CheckRecord, ClusterRecord, Explanation
+from kbs.knowledge.groundplane import robust_plane
 from kbs.knowledge.predicates import Cluster, Ground, Measurement, PredicateError, Scene
 from kbs.knowledge.rulebase import Condition, RuleBase
 
@@ -286,7 +287,7 @@ class Interpreter:
                     continue
                 if cl.geometry.degenerate:  # its points on a line: no plane to give
                     no_plane.append(cl.id)
-                    verdicts.append({"cluster": cl.id, "points": cl.n_points, "plane": None,
+                    verdicts.append({"cluster": cl.id, "points": cl.n_points,
                                      "why": f"degenerate: {cl.geometry.degeneracy}"})
                     continue
                 found = self._candidate_plane(cl, rec, provisional)
@@ -313,7 +314,8 @@ class Interpreter:
             if spec.plane is not None:
                 tests.append(f"has a robust plane holding >= {spec.plane.min_inlier_share:.0%} of its points within "
                              f"{spec.plane.inlier_distance:g}{self.rb.length_unit and ' ' + self.rb.length_unit}")
-            why = f"no cluster of the initial partition with >= {spec.min_points} points {' or '.join(tests)}"
+            why = (f"no cluster of the initial partition with >= {spec.min_points} points {' or '.join(tests)}"
+                   if tests else "scene.ground declares neither a candidate check nor a robust plane")
             if no_plane:
                 why += (f" and has a plane ({len(no_plane)} degenerate)" if spec.plane is None else
                         f" ({len(no_plane)} degenerate: no plane)")
@@ -351,8 +353,6 @@ class Interpreter:
             out["why"] = f"fails '{spec.candidate}'"
         if spec.plane is None:
             return out
-        from kbs.knowledge.groundplane import robust_plane
-
         p = spec.plane
         rp = robust_plane(cl.X, p.inlier_distance, p.min_inlier_share)
         if rp is None:
