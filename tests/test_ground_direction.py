@@ -97,7 +97,10 @@ def test_the_ground_is_explained(tmp_path):
     X, _ = two_planes(cluttered=True)
     scan = tmp_path / "two.ply"
     write_ply(scan, X)
-    assert kbs("run", "--rules", "outdoor", "-j", "1", str(scan), "--out", str(tmp_path / "out")).returncode == 0
+    r = kbs("run", "--rules", "outdoor", "-j", "1", str(scan), "--out", str(tmp_path / "out"), "--report")
+    assert r.returncode == 0, r.stderr
+    page = (tmp_path / "out" / "two.html").read_text(encoding="utf-8")
+    assert '"ground":"cluster c0, its robust plane (80% of its points' in page  # the report's header line
     e = kbs("explain", str(tmp_path / "out" / "two.json"))
     assert e.returncode == 0, e.stderr
     lines = e.stdout.splitlines()
