@@ -236,7 +236,7 @@ class Explanation:
         elif method:
             parts.append(f"it passes {method.removeprefix('check ')}")
         if g.get("normal") is not None:
-            parts.append("normal [" + ", ".join(f"{x:.3f}" for x in g["normal"]) + "]")
+            parts.append("normal [" + ", ".join(f"{x:.3f}".replace("-0.000", "0.000") for x in g["normal"]) + "]")
         if g.get("angle_to_fallback") is not None:
             parts.append(f"{g['angle_to_fallback']:.1f} deg from the fallback normal")
         return ", ".join(parts)
