@@ -55,12 +55,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--synthetic", type=int, default=5, help="how many generated polyhedral scenes")
     ap.add_argument("--no-mosd", action="store_true")
+    ap.add_argument("--methods", nargs="+", choices=list(METHODS), default=list(METHODS),
+                    help="which methods (GMM + BIC takes 1-3 minutes a scene)")
     args = ap.parse_args()
-    missing = {name: peers.available(mod) for name, (mod, _) in METHODS.items() if mod}
+    missing = {name: peers.available(mod) for name, (mod, _) in METHODS.items() if mod and name in args.methods}
     for name, why in missing.items():
         if why:
             print(f"> {name} is not available and is skipped: {why}")
-    methods = {k: v for k, v in METHODS.items() if not missing.get(k)}
+    methods = {k: v for k, v in METHODS.items() if k in args.methods and not missing.get(k)}
     if not DATA.is_dir() and not args.no_mosd:
         print(f"> the mOSD scans are not available ({DATA} is absent): generated scenes only")
     per = {}

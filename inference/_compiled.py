@@ -583,6 +583,70 @@ def unique_inverse(keys):
 
 
 @njit(cache=True, nogil=True)
+def distinct_keys(keys):
+    """The distinct keys (non-negative int64) in order of first appearance: a hash table, no sort."""
+    n = keys.shape[0]
+    table = np.full(_START_SIZE, _EMPTY)
+    group = np.empty(_START_SIZE, dtype=np.int64)
+    shift = _START_SHIFT
+    out = np.empty(n, dtype=np.int64)
+    m = 0
+    for j in range(n):
+        _, new = _insert(table, group, keys[j], m, shift)
+        if new:
+            out[m] = keys[j]
+            m += 1
+            if 2 * m > table.shape[0]:
+                table, group = _grow(table, group, shift)
+                shift -= 1
+    return out[:m].copy()
+
+
+@njit(cache=True, nogil=True)
+def cell_keys(X, origin, size):
+    """The 20-bit-per-axis int64 key of each point's cell ``floor((x - origin) / size)`` (the
+    cells non-negative and below 2^20 on each axis), as :func:`kbs.inference.voxel._keys` of
+    :func:`kbs.inference.voxel._cells`, without their (n, D) temporaries."""
+    n, D = X.shape
+    keys = np.empty(n, dtype=np.int64)
+    for j in range(n):
+        key = np.int64(0)
+        for a in range(D):
+            key = (key << 20) | np.int64(math.floor((X[j, a] - origin[a]) / size))
+        keys[j] = key
+    return keys
+
+
+@njit(cache=True, nogil=True)
+def voxel_sums(X, origin, size, inv, w, M):
+    """The per-voxel sums of :func:`kbs.inference.voxel.voxel_reduce` in one pass: weights
+    ``sum w``, first moments ``sum w l`` and second moments ``sum (w l_a) l_b`` of the coordinates
+    ``l`` local to each point's voxel corner ``origin + floor((x - origin) / size) size``, and each
+    voxel's first member. The same operations in the same order as numpy's ``bincount``
+    (sequential, in point order): identical sums."""
+    n, D = X.shape
+    weights = np.zeros(M)
+    s1 = np.zeros((M, D))
+    s2 = np.zeros((M, D, D))
+    first = np.full(M, n, dtype=np.int64)
+    la = np.empty(D)
+    for j in range(n):
+        g = inv[j]
+        wj = w[j]
+        first[g] = min(first[g], j)
+        for a in range(D):
+            c = np.int64(math.floor((X[j, a] - origin[a]) / size))
+            la[a] = X[j, a] - (origin[a] + c * size)
+        weights[g] += wj
+        for a in range(D):
+            wa = wj * la[a]
+            s1[g, a] += wa
+            for b in range(a, D):
+                s2[g, a, b] += wa * la[b]
+    return weights, s1, s2, first
+
+
+@njit(cache=True, nogil=True)
 def count_coarse_cells(cells, factor):
     """Number of distinct rows of ``floor(cells / factor)`` (cells (n, D <= 3) non-negative
     int64), the 20-bit-per-axis keys of :mod:`kbs.inference.voxel`."""

@@ -415,7 +415,7 @@ class Interpreter:
             raise FitError(f"expected a non-empty (n, 3) cloud, got shape {X.shape}")
         n = X.shape[0]
         root = _Node("c", None, 0, np.arange(n), np.ones(n), np.ones(n))
-        root_cl, root_rec = self._record(root, X)
+        _, root_rec = self._record(root, X)  # its descriptors; the cluster itself (a copy of X) is not kept
         root_rec.action = "partition"
         records: dict[str, ClusterRecord] = {"c": root_rec}
         global_mode = self.rb.strategy == "global"
@@ -439,7 +439,9 @@ class Interpreter:
         if global_mode:
             leaves, scene = self._run_global(X, root, res, k0, records, ground_info, notes)
         else:
-            leaves, scene = self._run_divisive(X, root, res, k0, records, ground_info, notes)
+            children = self._initial_children(X, root, res, k0)
+            del res, root  # the (n, K) memberships and the root's arrays: the children hold copies of their part
+            leaves, scene = self._run_divisive(X, children, records, ground_info, notes)
         seg = self._finish(X, leaves, scene, records, ground_info, notes, t0)
         return seg
 
@@ -448,16 +450,16 @@ class Interpreter:
         u = res.memberships if k == res.chosen_k else part.predict_proba(X)
         return self._children_from_memberships(root, u)
 
-    def _run_divisive(self, X, root, res, k0, records, ground_info, notes):
+    def _run_divisive(self, X, children, records, ground_info, notes):
         """Breadth first, one level of the split tree (a wave) at a time: every cluster of the wave
         is judged, the UFP-ONC splits it asks for are started (side by side when jobs > 1), then
         the decisions are applied in order — exactly the order of a first-in first-out queue, so
         the optional max_clusters, when a rule file sets it, stops the same clusters whatever the
         number of jobs. Without it, what happens under a cluster depends on its points alone."""
         rb = self.rb
-        children = self._initial_children(X, root, res, k0)
         records["c"].children = [c.id for c in children]
         wave = [(c, *self._record(c, X)) for c in children]
+        children.clear()  # the wave holds them now: a node split below is freed with its wave
         scene = Scene(self.sensor, self._ground(X, [(cl, rec) for _, cl, rec in wave], ground_info), rb.units)
         leaves: list[tuple[_Node, Cluster, ClusterRecord]] = []
         n_clusters = len(wave)
@@ -470,7 +472,7 @@ class Interpreter:
                     action, rule = self._judge(cl, scene, rec)
                     job = None
                     if action == "split" and self._cannot_split(node, 0) is None:  # max_clusters: known later
-                        job = splitter.submit(X[node.idx])
+                        job = splitter.submit(cl.X)  # the cluster's points, X[node.idx]: no second copy
                     judged.append((node, cl, rec, action, rule, job))
                 wave = []
                 for node, cl, rec, action, rule, job in judged:
@@ -915,6 +917,7 @@ class _Job:
             status, value = self.future.result() if self.future is not None else _split_job(self.X, self.kwargs)
         except BrokenProcessPool:  # a worker died (killed, out of memory): do this split here
             status, value = _split_job(self.X, self.kwargs)
+        self.X = self.future = None  # the points and the result are the caller's now: nothing kept here
         if status == "error":
             raise FitError(value)
         return value

@@ -93,3 +93,21 @@ def box_on_table(seed: int = 5) -> tuple[np.ndarray, np.ndarray]:
     X = X + rng.normal(0, 0.001, X.shape)
     labels = np.concatenate([np.full(len(p), i) for i, p in enumerate(parts)])
     return X, labels
+
+
+def turn(X: np.ndarray, degrees: float, shift=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """``X`` (n, 3) turned about the vertical (z) axis by ``degrees``, then shifted. Multiples of
+    90 degrees are exact (coordinates swapped and negated), as a scan saved in other axes would be."""
+    P = np.array(X, dtype=np.float64)
+    if degrees % 90 == 0:
+        for _ in range(int(degrees // 90) % 4):
+            P = np.column_stack([-P[:, 1], P[:, 0], P[:, 2]])
+    else:
+        P = P @ rz(degrees).T
+    return P + np.asarray(shift, dtype=np.float64)
+
+
+def rz(degrees: float) -> np.ndarray:
+    """The rotation matrix of a turn by ``degrees`` about the z axis."""
+    t = np.radians(degrees)
+    return np.array([[np.cos(t), -np.sin(t), 0.0], [np.sin(t), np.cos(t), 0.0], [0.0, 0.0, 1.0]])

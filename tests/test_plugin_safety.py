@@ -101,7 +101,7 @@ def test_a_failing_predicate_names_its_file_and_the_failing_line(tmp_path):
     plugin = _plugin(tmp_path, "broken", "x = 1.0\nreturn x / 0\n")
     r = _run(tmp_path, plugin, "broken")
     assert r.returncode == 7
-    assert (f"predicate 'broken' ({plugin}:5) failed on cluster c0 (19,359 points) at {plugin}:9: "
+    assert (f"predicate 'broken' ({plugin}:5) failed on cluster c0 (19,364 points) at {plugin}:9: "
             "ZeroDivisionError: float division by zero") in r.stderr, r.stderr
     assert "kbs_plugin_" not in r.stderr
 
@@ -146,7 +146,7 @@ def test_a_predicate_changing_the_ground_normal_is_a_plugin_error_and_labels_do_
     plugin = _plugin(tmp_path, "tilt", "scene.ground.normal[:] = [1.0, 0.0, 0.0]\nreturn 0.0\n")
     r = _run(tmp_path, plugin, "tilt")
     assert r.returncode == 7, (r.returncode, r.stdout, r.stderr)
-    assert f"predicate 'tilt' ({plugin}:5) failed on cluster c0 (19,359 points) at {plugin}:8: ValueError: " \
+    assert f"predicate 'tilt' ({plugin}:5) failed on cluster c0 (19,364 points) at {plugin}:8: ValueError: " \
            "assignment destination is read-only" in r.stderr, r.stderr
     assert "must not change the cluster or the scene" in r.stderr
     assert "wrote" not in r.stdout
@@ -221,7 +221,7 @@ def test_a_plugin_raising_a_kbs_error_is_still_named(tmp_path):
     plugin = _plugin(tmp_path, "picky", "from kbs.errors import FitError\nraise FitError('too few points for me')\n")
     r = _run(tmp_path, plugin, "picky")
     assert r.returncode == 7
-    assert f"predicate 'picky' ({plugin}:5) failed on cluster c0 (19,359 points) at {plugin}:9: FitError: " \
+    assert f"predicate 'picky' ({plugin}:5) failed on cluster c0 (19,364 points) at {plugin}:9: FitError: " \
            "too few points for me" in r.stderr, r.stderr
 
 
@@ -237,5 +237,5 @@ def test_a_relative_plugin_path_is_named_as_given(tmp_path):
     r = kbs("run", "--rules", str(_rules(tmp_path, "broken")), str(EXAMPLE), "--plugin", "broken_plugin.py",
             "--out", "out", "-j", "1", cwd=tmp_path)
     assert r.returncode == 7
-    assert "predicate 'broken' (broken_plugin.py:5) failed on cluster c0 (19,359 points) at broken_plugin.py:8: " \
+    assert "predicate 'broken' (broken_plugin.py:5) failed on cluster c0 (19,364 points) at broken_plugin.py:8: " \
            "ZeroDivisionError" in r.stderr, r.stderr
