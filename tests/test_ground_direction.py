@@ -188,12 +188,11 @@ def level_f1(shared_data) -> dict[str, float]:
 @pytest.mark.parametrize("name", VEHICLE)
 def test_a_tilted_vehicle_scan_finds_its_ground(shared_data, level_f1, name, degrees):
     """Rotated about the sensor's x axis: the ground normal found is the rotated true ground normal
-    (within 1 deg; 0.2 measured), and the ground F1 stays within 0.015 of the level scan's (measured:
-    SemanticKITTI 0.964 -> 0.951 (10 deg) and 0.957 (20 deg), GndNet 0.977 -> 0.972 and 0.975, seq00
-    0.971 -> 0.976 and 0.976; what remains is the engine's own dependence on the axes: its voxel grid
-    of fitting points is laid along them). With the fallback [0, 0, 1] (before scene.ground.plane)
-    the normal was 8 and 18 deg off and the F1 fell: SemanticKITTI 0.965 -> 0.949 and 0.712, GndNet
-    0.977 -> 0.967 and 0.951, seq00 0.971 -> 0.974 and 0.959."""
+    (within 1 deg; 0.1-0.25 measured), and the ground F1 stays within 0.01 of the level scan's
+    (measured, level -> 10 deg and 20 deg: SemanticKITTI 0.9489 -> 0.9497 and 0.9504, GndNet 0.9737
+    -> 0.9741 and 0.9746, seq00 0.9760 -> 0.9761 and 0.9733). With the fallback [0, 0, 1] (before
+    scene.ground.plane) the normal was 8 and 18 deg off and the F1 fell at 20 deg: SemanticKITTI
+    0.9484 -> 0.9404, GndNet 0.9732 -> 0.9535, seq00 0.9760 -> 0.9593."""
     X, truth, valid = _vehicle(shared_data, name)
     R = rotation_x(degrees)
     seg = Interpreter(load_rule_base("outdoor")).run(X @ R.T)
@@ -202,7 +201,7 @@ def test_a_tilted_vehicle_scan_finds_its_ground(shared_data, level_f1, name, deg
     assert angle(g["normal"], R @ _true_ground_normal(X, truth)) < 1.0
     assert abs(g["angle_to_fallback"] - degrees) < 3.0
     f1 = ground_metrics((seg.label == 0)[valid], truth[valid].astype(int), ground_values=(1,)).f1
-    assert f1 > level_f1[name] - 0.015, (f1, level_f1[name])
+    assert f1 > level_f1[name] - 0.01, (f1, level_f1[name])
 
 
 def test_a_tilted_scan_through_kbs_run(shared_data, tmp_path):
