@@ -28,6 +28,25 @@ class KbsError(Exception):
     exit_code: ExitCode = ExitCode.INTERNAL
 
 
+class MissingExtra(KbsError, ImportError):
+    """A feature needs an optional package that is not installed (``pip install 'kbs[EXTRA]'``);
+    the command exits with the usage code, before any work."""
+
+    exit_code = ExitCode.USAGE
+
+
+def require(module: str, extra: str, feature: str):
+    """Import ``module`` for ``feature``, or raise :class:`MissingExtra` naming the extra that
+    installs it."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        raise MissingExtra(f"{feature} needs {module.split('.')[0]}, which is not installed: "
+                           f"pip install 'kbs[{extra}]'") from exc
+
+
 class ParameterError(KbsError, ValueError):
     """An invalid parameter value (also a ``ValueError``, as scikit-learn users expect)."""
 

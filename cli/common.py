@@ -8,7 +8,8 @@ import re
 import sys
 import time
 from pathlib import Path
-from typing import Callable, Iterator, Mapping, TextIO
+from collections.abc import Callable, Iterator, Mapping
+from typing import TextIO
 
 import click
 import numpy as np

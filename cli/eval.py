@@ -23,7 +23,7 @@ from kbs.evaluation import (
 )
 from kbs.evaluation.hoover import check_tolerance
 from kbs.evaluation.segcomp import DEFAULT_TOLERANCES, segcomp_table
-from kbs.io import read_cloud, read_result_json
+from kbs.io import read_result_json
 from kbs.io.segcomp import FIRST_REGION_LABEL, NON_REGION_VALUES, read_gt_seg, read_ms_nor, read_range, read_sunraster
 from kbs.io.result import check_pair, read_result_cloud
 

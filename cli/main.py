@@ -78,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
         return int(ExitCode.USAGE if isinstance(exc, click.UsageError) else exc.exit_code)
     except click.exceptions.Abort:
         click.echo("kbs: aborted", err=True)
-        return int(130)
+        return 130
     except KbsError as exc:
         click.echo(f"kbs: error: {exc}", err=True)
         return int(exc.exit_code)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from kbs.errors import CloudFileError
+from kbs.errors import CloudFileError, require
 from kbs.io.atomic import replacing
 from kbs.io.result import InputFiles, check_output
 
@@ -38,8 +38,7 @@ def _outputs(result: Path, out: Path | None, kind: str) -> dict[str, Path]:
 def render(result: Path, out: Path | None, kind: str, max_points: int, dpi: int) -> None:
     """Draw figures of a `kbs run` RESULT.json (its points are read from the sibling RESULT.ply;
     the two must be the same run's)."""
-    import matplotlib
-
+    matplotlib = require("matplotlib", "render", "kbs render")
     matplotlib.use("Agg")  # headless whatever MPLBACKEND says
     from kbs.report import figures
 

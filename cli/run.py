@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import re
 import shutil
 import sys
 import time
@@ -16,7 +17,8 @@ import numpy as np
 
 from kbs import __version__
 from kbs.cli.common import ProgressLines, check_writable_folder, force_option, progress_interval, result_fields
-from kbs.errors import CloudFileError, ExitCode, KbsError
+from kbs.errors import CloudFileError, ExitCode, KbsError, require
+from kbs.formats import FormatVersionError
 from kbs.io import SUPPORTED_EXTENSIONS, PointCloud, read_cloud, read_result_json
 from kbs.io.atomic import replacing
 from kbs.io.las import check_classes_fit, class_codes
@@ -24,7 +26,7 @@ from kbs.io.readers import cloud_files_in, why_not_a_scan
 from kbs.io.result import RUN_ID_COMMENT, InputFiles, check_output, new_run_id, write_result_pair, write_result_stream
 from kbs.io.result import jsonable as _jsonable  # noqa: F401 -- benchmarks/profile_run.py times the JSON with it
 from kbs.knowledge import Explanation, PredicateRegistry, Segmenter, load_rule_base
-from kbs.knowledge.explain import limit_lines
+from kbs.knowledge.explain import TREE_LINES, limit_lines
 from kbs.knowledge.predicates import UNITS, did_you_mean
 from kbs.knowledge.rulebase import RuleFileError, resolve, shipped_rule_bases
 from kbs.units import UNITS as LENGTH_UNITS, ScanUnits, SpacingWarning
@@ -119,14 +121,14 @@ def scan_paths(clouds: tuple[Path, ...], *,
                                  f"{', '.join(SUPPORTED_EXTENSIONS)}{skipped})")
         scans.extend(kept)
     seen: dict[str, Path] = {}
-    for scan in scans:
-        if scan.stem in seen:
-            first = seen[scan.stem]
-            what = (f"{scan} is given twice" if first.resolve() == scan.resolve() else
-                    f"{first} and {scan} would both write {scan.stem}.ply and {scan.stem}.json; give scans with "
+    for path in scans:
+        if path.stem in seen:
+            first = seen[path.stem]
+            what = (f"{path} is given twice" if first.resolve() == path.resolve() else
+                    f"{first} and {path} would both write {path.stem}.ply and {path.stem}.json; give scans with "
                     f"different names (or run them apart with different --out)")
             raise click.BadParameter(what, param_hint="CLOUD")
-        seen[scan.stem] = scan
+        seen[path.stem] = path
     return scans
 
 
@@ -477,6 +479,8 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
     to_stdout = str(out_dir) == "-"
     if to_stdout and (meshes or report):
         raise click.UsageError("--out - writes the points to standard output: --meshes and --report need a folder")
+    if report:  # known before any segmentation
+        require("plotly", "report", "--report (the HTML report)")
     if "-" in map(str, clouds) and in_format is None:
         raise click.UsageError("reading a scan from standard input ('-') needs --in-format (ply, pcd, las, ...)")
 
@@ -541,28 +545,64 @@ def _run_scans(segmenter, scans, out_dir: Path, t0: float, **options) -> None:
         raise click.exceptions.Exit(failures[0])
 
 
+def _depth(ctx, param, value):
+    if value is None or value == "all":
+        return value
+    try:
+        depth = int(value)
+    except ValueError:
+        depth = -1
+    if depth < 0:
+        raise click.BadParameter(f"expected a number of levels (0 or more) or 'all', got {value!r}")
+    return depth
+
+
 @click.command()
 @click.argument("result", type=click.Path(path_type=Path, readable=False))
-@click.option("--cluster", "cluster_id", metavar="ID", help="Say why this cluster ended as it did (e.g. c0.2).")
-def explain(result: Path, cluster_id: str | None) -> None:
-    """Print the explanation tree of a `kbs run` RESULT.json, or why one cluster ended as it did."""
+@click.option("--cluster", "cluster_id", metavar="ID", help="Say why this cluster ended as it did (e.g. c0.2): the "
+              "rules and labels evaluated on it, every check, then the tree below it.")
+@click.option("--depth", callback=_depth, metavar="N|all",
+              help="Show the tree to N levels below the root (or below --cluster); 'all': the whole tree. "
+              f"Default: the whole tree when it has at most {TREE_LINES} clusters, else the levels that fit "
+              f"in {TREE_LINES} lines.")
+def explain(result: Path, cluster_id: str | None, depth: int | str | None) -> None:
+    """Print what a `kbs run` RESULT.json did, grouped (rules, labels by outcome, checks with their
+    docs), then its explanation tree; or why one cluster ended as it did (--cluster). Deeper
+    parts of a large tree are folded into counts: --depth and --cluster unfold them."""
     doc = read_result_json(result, require=("explanation",))
     try:
         expl = Explanation.from_dict(doc["explanation"])
-    except (KeyError, TypeError) as exc:
+    except FormatVersionError as exc:
+        raise CloudFileError(str(result), f"its explanation: {exc}") from exc
+    except (KeyError, TypeError, ValueError) as exc:
         raise CloudFileError(str(result), f"not a kbs result file ({type(exc).__name__}: {exc})") from exc
+    if cluster_id is not None and cluster_id not in expl.records:
+        hint = did_you_mean(cluster_id, list(expl.records))
+        raise click.BadParameter(f"no cluster {cluster_id!r} in {result}" + (f"; did you mean {hint!r}?" if hint else ""),
+                                 param_hint="--cluster")
+    start = cluster_id or expl.root
+    levels = None if depth == "all" else int(depth) if depth is not None else expl.fitting_depth(start)
     if cluster_id is None:
         click.echo(f"rule base '{expl.rule_base}' ({expl.rule_file}), strategy {expl.strategy}; "
                    f"labels: {', '.join(expl.label_names)}")
         if expl.ground:
             click.echo(expl.ground_text())
-        click.echo(expl.render())
-        return
-    if cluster_id not in expl.records:
-        hint = did_you_mean(cluster_id, list(expl.records))
-        raise click.BadParameter(f"no cluster {cluster_id!r} in {result}" + (f"; did you mean {hint!r}?" if hint else ""),
-                                 param_hint="--cluster")
-    click.echo(expl.why(cluster_id))
+        for line in expl.summary():
+            click.echo(line)
+        lines = expl.tree_lines(depth=levels)
+    else:
+        click.echo(expl.why(cluster_id))
+        rec = expl.records[cluster_id]
+        if not rec.children:
+            return
+        lines = expl.tree_lines(cluster_id, levels)[1:]
+    shown = len(lines) - (cluster_id is None)  # the clusters below the root or --cluster
+    total = sum(1 for _ in expl.walk(start)) - 1
+    folded = "" if shown == total else (f" (to depth {levels}, {shown:,} of its {total:,} clusters: --depth N or "
+                                         f"--depth all unfolds it, --cluster ID shows one branch)")
+    click.echo(f"tree{' below ' + cluster_id if cluster_id else ''}{folded}:")
+    for line in lines:
+        click.echo(line)
 
 
 @click.group()
@@ -594,20 +634,46 @@ def rules_check(files: tuple[str, ...], plugins: tuple[Path, ...]) -> None:
         for w in rb.warnings:
             click.echo(w.format(), err=True)
     if bad:
-        for exc in bad:
-            click.echo(exc.format(), err=True)
+        for problem in bad:
+            click.echo(problem.format(), err=True)
         n = sum(len(e.problems) for e in bad)
         click.echo(f"kbs: error: {n} problem{'s' if n != 1 else ''} in {len(bad)} rule file"
                    f"{'s' if len(bad) != 1 else ''}", err=True)
         raise click.exceptions.Exit(int(ExitCode.RULES))
 
 
+def _schema_path() -> Path:
+    from importlib import resources
+
+    from kbs.knowledge.rulebase import SCHEMA_FILE
+
+    return Path(str(resources.files("kbs.rules").joinpath(SCHEMA_FILE))).resolve()
+
+
+_SCHEMA_LINE = re.compile(r"^(#\s*yaml-language-server:\s*\$schema=)(\S+)(.*)$")
+
+
 @rules.command("show")
 @click.argument("name")
 def rules_show(name: str) -> None:
-    """Print a shipped rule base (or a rule file)."""
+    """Print a shipped rule base (or a rule file). Its editor schema line points at the installed
+    schema (a file URI), so that `kbs rules show outdoor > my.yaml` keeps completion and checks in
+    editors that read it (yaml-language-server)."""
     _, text = resolve(name)
+    first, sep, rest = text.partition("\n")
+    m = _SCHEMA_LINE.match(first)
+    if m and "://" not in m.group(2) and not Path(m.group(2)).is_absolute():
+        text = f"{m.group(1)}{_schema_path().as_uri()}{m.group(3)}{sep}{rest}"
     click.echo(text, nl=not text.endswith("\n"))
+
+
+@rules.command("schema")
+@click.option("--json", "as_json", is_flag=True, help="Print the schema itself instead of its path.")
+def rules_schema(as_json: bool) -> None:
+    """Print the installed path of the rule files' JSON Schema (for editors: yaml-language-server's
+    `$schema=` line, VS Code's yaml.schemas)."""
+    path = _schema_path()
+    click.echo(path.read_text(encoding="utf-8") if as_json else str(path), nl=not as_json)
 
 
 @rules.command("list")

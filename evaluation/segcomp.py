@@ -39,7 +39,7 @@ def grid_adjacency(labels_image: np.ndarray) -> set[tuple[int, int]]:
     set of (int, int)
     """
     L = np.asarray(labels_image).astype(np.int64)
-    pairs = set()
+    pairs: set[tuple[int, int]] = set()
     for a, b in ((L[:, :-1], L[:, 1:]), (L[:-1, :], L[1:, :])):
         touch = (a != b) & (a >= FIRST_REGION_LABEL) & (b >= FIRST_REGION_LABEL)
         if touch.any():

@@ -843,7 +843,6 @@ def connexity_degrees(U, mult, r, max_cells):
     """Degree (m,) of each distinct position (``mult`` input points at each): the number of other
     input points within ``r``; an empty array when the grid would be too large (see
     :func:`_cell_grid`)."""
-    m = U.shape[0]
     ny, start, order, ix, iy = _cell_grid(U, r, max_cells)
     if ny < 0:
         return np.zeros(0, dtype=np.int64)

@@ -182,7 +182,7 @@ class FuzzyCMeans(_FuzzyBase):
         self.min_cluster_size = min_cluster_size
         self.random_state = random_state
 
-    def fit(self, X, y=None, sample_weight=None) -> "FuzzyCMeans":
+    def fit(self, X, y=None, sample_weight=None) -> FuzzyCMeans:
         """Fit on points ``X`` (n_samples, n_features) with optional ``sample_weight``."""
         X, w, fit = self._prepare(X, sample_weight)
         mom = fit.moments
@@ -286,7 +286,7 @@ class GathGeva(_FuzzyBase):
         self.min_cluster_size = min_cluster_size
         self.random_state = random_state
 
-    def fit(self, X, y=None, sample_weight=None) -> "GathGeva":
+    def fit(self, X, y=None, sample_weight=None) -> GathGeva:
         """Fit on points ``X`` (n_samples, n_features) with optional ``sample_weight``."""
         X, w, fit = self._prepare(X, sample_weight)
         if isinstance(self.init, str) and self.init == "incremental":

@@ -83,7 +83,7 @@ class Moments:
     scatter: np.ndarray | None = None  # (n, D, D)
 
     @classmethod
-    def build(cls, X: np.ndarray, w: np.ndarray, scatter: np.ndarray | None = None) -> "Moments":
+    def build(cls, X: np.ndarray, w: np.ndarray, scatter: np.ndarray | None = None) -> Moments:
         X = np.ascontiguousarray(X, dtype=np.float64)
         w = np.ascontiguousarray(w, dtype=np.float64)
         return cls(X=X, XT=np.ascontiguousarray(X.T), w=w, scatter=scatter)
@@ -162,7 +162,7 @@ class FlooredGaussians:
         V = self.eigenvectors
         return np.einsum("kij,kj,klj->kil", V, self.eigenvalues, V)
 
-    def subset(self, keep: np.ndarray) -> "FlooredGaussians":
+    def subset(self, keep: np.ndarray) -> FlooredGaussians:
         return FlooredGaussians(self.eigenvalues[keep], self.eigenvectors[keep], self.whitening[keep],
                                 self.logdet[keep])
 

@@ -77,7 +77,7 @@ class HorizontalFrame:
     ISOTROPIC = 1e-6
 
     @classmethod
-    def of(cls, X: np.ndarray, w: np.ndarray | None = None) -> "HorizontalFrame":
+    def of(cls, X: np.ndarray, w: np.ndarray | None = None) -> HorizontalFrame:
         """The frame of points ``X`` (n, D) with weights ``w`` (n,) (ones when None)."""
         n, D = X.shape
         w = np.ones(n) if w is None else np.asarray(w, dtype=np.float64)
@@ -119,7 +119,7 @@ class HorizontalFrame:
             Y[:, 1] = dy * c - dx * s
         return Y
 
-    def from_frame(self, red: "VoxelReduction") -> "VoxelReduction":
+    def from_frame(self, red: VoxelReduction) -> VoxelReduction:
         """A reduction computed in this frame, in the coordinates the frame was taken from."""
         P = red.centroids
         S = red.scatter

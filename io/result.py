@@ -23,8 +23,15 @@ format:
   or mixed by hand. The id is also how kbs knows a file is its own (:func:`is_kbs_output`).
 - **Strict JSON.** The JSON is strict (RFC 8259): a non-finite number (NaN, +-Infinity, e.g. an
   infinite measurement of a plugin predicate) is written as ``null``.
-- **Format version.** The JSON key ``result_format`` (:data:`RESULT_FORMAT`); results without it
-  (kbs before run ids) are read as format 1, and have no run id to check.
+- **Format version.** The JSON's first keys ``"format": "kbs-result"`` and ``"version":
+  "MAJOR.MINOR"`` (:data:`RESULT_FORMAT`, :data:`RESULT_VERSION`; :mod:`kbs.formats`): a reader
+  reads every minor version of its major one and refuses a newer major version, saying to upgrade
+  kbs (:func:`read_result_json`, through which ``kbs explain``, ``kbs eval``, ``kbs render`` and
+  the report read). Results written before read as version 1.0: those with the integer
+  ``result_format`` key of kbs 0.1 (its value is the major version), and those without any
+  (kbs before run ids), which have no run id to check either. Version 1.1 added the
+  explanation's own ``format``/``version`` and its catalogue of the rule base's checks, rules and
+  labels with their docs (:class:`kbs.knowledge.explain.Catalogue`).
 """
 from __future__ import annotations
 
@@ -41,13 +48,17 @@ from typing import Any
 import numpy as np
 
 from kbs.errors import CloudFileError
+from kbs.formats import FormatVersionError, NewerVersionError, Version, document_version
 from kbs.io.atomic import replacing
 from kbs.io.cloud import PointCloud
 from kbs.io.ply import build_ply, write_built_ply
 from kbs.io.readers import read_cloud
 
-#: Version of the result files this kbs writes and reads (the JSON's ``result_format``).
-RESULT_FORMAT = 1
+#: The ``format`` of a result JSON, and the version this kbs writes (it reads every 1.x).
+RESULT_FORMAT = "kbs-result"
+RESULT_VERSION = Version(1, 1)
+#: The key that held the major version before ``format``/``version`` (kbs 0.1 wrote 1).
+LEGACY_VERSION_KEY = "result_format"
 #: The PLY header comment word before a result's run id (``comment kbs_run_id <hex>``); also the
 #: marker kbs appends to its HTML report.
 RUN_ID_COMMENT = "kbs_run_id"
@@ -131,8 +142,8 @@ def write_result_pair(points: str | os.PathLike[str], js: str | os.PathLike[str]
     fields : mapping of str to ndarray, each (n_points,)
         The per-vertex properties of a PLY (see :func:`kbs.io.write_ply`).
     doc : mapping
-        The JSON document; ``result_format``, ``run_id`` and ``points`` (the points file's name)
-        are added after ``kbs_version``.
+        The JSON document; ``format``, ``version`` (:data:`RESULT_FORMAT`, :data:`RESULT_VERSION`),
+        ``run_id`` and ``points`` (the points file's name) are added after ``kbs_version``.
     run_id : str, optional
         Default: a fresh one (:func:`new_run_id`).
     las : callable, optional
@@ -174,7 +185,8 @@ def write_result_pair(points: str | os.PathLike[str], js: str | os.PathLike[str]
 def _json_bytes(doc: Mapping[str, Any], run_id: str, points: str | None) -> bytes:
     head = {k: doc[k] for k in ("kbs_version",) if k in doc}
     where = {} if points is None else {"points": points}
-    return strict_json({**head, "result_format": RESULT_FORMAT, "run_id": run_id, **where, **doc}).encode("utf-8")
+    version = {"format": RESULT_FORMAT, "version": str(RESULT_VERSION)}
+    return strict_json({**version, **head, "run_id": run_id, **where, **doc}).encode("utf-8")
 
 
 def write_result_stream(stream: Any, suffix: str, xyz: np.ndarray, fields: Mapping[str, np.ndarray], *,
@@ -294,18 +306,18 @@ def read_result_json(path: str | Path, *, require: Iterable[str] = ()) -> dict[s
         doc = json.loads(path.read_text(encoding="utf-8"))
         if not isinstance(doc, dict):
             raise TypeError(f"a JSON {type(doc).__name__}, not an object")
+        # the version first: a newer file may lack a key this kbs requires
+        document_version(doc, format=RESULT_FORMAT, reads=RESULT_VERSION, legacy_key=LEGACY_VERSION_KEY)
         for key in require:
             doc[key]  # noqa: B018 -- a KeyError says which key is missing
     except OSError as exc:
         raise CloudFileError(str(path), _os_problem(exc, "a result file")) from exc
+    except NewerVersionError as exc:
+        raise CloudFileError(str(path), str(exc)) from exc
+    except FormatVersionError as exc:
+        raise CloudFileError(str(path), f"not a kbs result file ({exc})") from exc
     except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as exc:
         raise CloudFileError(str(path), f"not a kbs result file ({type(exc).__name__}: {exc})") from exc
-    version = doc.get("result_format", 1)
-    if not isinstance(version, int) or isinstance(version, bool):
-        raise CloudFileError(str(path), f"not a kbs result file ('result_format' is {version!r})")
-    if version > RESULT_FORMAT:
-        raise CloudFileError(str(path), f"written by a newer kbs (result format {version}; this kbs "
-                                        f"reads format {RESULT_FORMAT}): upgrade kbs to read it")
     return doc
 
 

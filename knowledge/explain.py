@@ -2,13 +2,50 @@
 acted, with what result. Only the renderers here turn them into sentences.
 
 Like hdbscan's ``CondensedTree``: a first-class object with exporters (:meth:`Explanation.to_dict`,
-:meth:`Explanation.to_networkx`) and renderers (:meth:`Explanation.render`,
-:meth:`Explanation.why`).
+:meth:`Explanation.to_networkx`) and renderers (:meth:`Explanation.summary`,
+:meth:`Explanation.render`, :meth:`Explanation.why`).
+
+The explanation carries the rule base's vocabulary it was made with (:class:`Catalogue`: each
+check's predicate, bounds and ``doc``, each rule's, label's and relabel rule's condition and
+``doc``), so that a result file explains itself without its rule file, which may have changed
+since. The renderers evaluate those conditions again over the recorded check outcomes to say which
+terms decided (``not planar (thickness = 0.12 m > 0.05 m)``); they know no predicate by name.
+
+Its dictionary form (:meth:`Explanation.to_dict`, the ``explanation`` of a result JSON) is the
+format ``kbs-explanation`` (:data:`EXPLANATION_FORMAT`, version :data:`EXPLANATION_VERSION`;
+:mod:`kbs.formats`). Version 1.0 (no ``version`` key) has no catalogue: its explanations name
+rules and checks without their docs.
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
-from typing import Any, Iterator
+from collections.abc import Iterator, Mapping
+from dataclasses import asdict, dataclass, field, fields
+from typing import TYPE_CHECKING, Any
+
+from kbs.formats import Version, document_version
+
+if TYPE_CHECKING:
+    from kbs.knowledge.rulebase import Condition, RuleBase
+
+#: The ``format`` of an explanation's dictionary form, and the version this kbs writes.
+EXPLANATION_FORMAT = "kbs-explanation"
+EXPLANATION_VERSION = Version(1, 1)
+
+
+def _known(cls: type, d: Mapping[str, Any]) -> dict[str, Any]:
+    """The keys of ``d`` that are fields of the dataclass ``cls``: a newer minor version of the
+    format may add keys, which this reader ignores."""
+    names = {f.name for f in fields(cls)}
+    return {k: v for k, v in d.items() if k in names}
+
+
+def _number(value: float, unit: str) -> str:
+    """'0.1179 m', '6,874 pts', '2': integral values as integers with thousands separators (counts
+    of points or components), others with 4 significant digits."""
+    u = f" {unit}" if unit else ""
+    if float(value).is_integer() and abs(value) < 1e15:
+        return f"{int(value):,}{u}"
+    return f"{value:.4g}{u}"
 
 
 @dataclass(frozen=True)
@@ -29,10 +66,13 @@ class CheckRecord:
 
     def bound(self) -> tuple[str, float]:
         """The comparison that decided: ('<=', max) when within the upper bound, ('>', max) above
-        it, ('>=', min) or ('<', min) for a lower bound."""
-        if self.max is not None and (self.value > self.max or self.min is None or self.value >= self.min):
-            return ("<=" if self.value <= self.max else ">"), self.max
-        return (">=" if self.value >= self.min else "<"), self.min
+        it, ('>=', min) or ('<', min) for a lower bound (the value must be known)."""
+        v = self.value
+        assert v is not None, "bound() of an undefined value"
+        if self.max is not None and (v > self.max or self.min is None or v >= self.min):
+            return ("<=" if v <= self.max else ">"), self.max
+        assert self.min is not None, "a check has a bound"
+        return (">=" if v >= self.min else "<"), self.min
 
     def _unknown(self) -> str:
         """For a value read back as null (a result JSON writes NaN and infinities so): what is known."""
@@ -45,22 +85,149 @@ class CheckRecord:
         if self.value is None:
             return "undefined" if self.note else self._unknown()
         op, b = self.bound()
-        u = f" {self.unit}" if self.unit else ""
-        return f"{self.value:.4g}{u} {op} {b:g}{u}"
+        return f"{_number(self.value, self.unit)} {op} {_number(b, self.unit)}"
 
     def sentence(self) -> str:
-        """'connexity = 3 components > 1', 'thickness = 0.12 m > 0.05 m', 'ground_angle undefined
+        """'connexity = 3 > 1', 'thickness = 0.12 m > 0.05 m', 'ground_angle undefined
         (degenerate: its points lie on a line, no plane)'."""
         if self.value is None:
             return f"{self.predicate} undefined ({self.note})" if self.note else f"{self.predicate} = {self._unknown()}"
-        op, b = self.bound()
-        u = f" {self.unit}" if self.unit else ""
-        if self.predicate == "connexity":
-            n = int(round(self.value))
-            return f"connexity = {n} component{'s' if n != 1 else ''} {op} {b:g}"
-        if self.predicate == "point_count":
-            return f"point_count = {int(self.value):,} {op} {b:g}"
-        return f"{self.predicate} = {self.value:.4g}{u} {op} {b:g}{u}"
+        return f"{self.predicate} = {self.comparison()}"
+
+    def verdict(self) -> str:
+        """'yes' when the value is within the check's bounds, 'no' otherwise (which is what a
+        condition ``not NAME`` asks for: 'no' is not a failure of the cluster)."""
+        return "yes" if self.passed else "no"
+
+
+# -- the rule base's vocabulary ------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CheckInfo:
+    """A check of the rule base: ``predicate`` compared with ``min``/``max`` (in ``unit``)."""
+
+    name: str
+    predicate: str
+    unit: str
+    min: float | None
+    max: float | None
+    doc: str
+    source: str
+
+    def bounds_text(self) -> str:
+        """'thickness <= 0.05 m', '1 cm <= height >= 50 cm'."""
+        parts = [f"{_number(self.min, self.unit)} <="] if self.min is not None else []
+        parts.append(self.predicate)
+        if self.max is not None:
+            parts.append(f"<= {_number(self.max, self.unit)}")
+        return " ".join(parts)
+
+
+@dataclass(frozen=True)
+class RuleInfo:
+    """A rule, label or relabel rule of the rule base.
+
+    ``condition`` is plain data in the rule file's own terms: a check name, ``"not NAME"``,
+    ``{"all": [...]}`` or ``{"any": [...]}``; None: always holds (a default label). ``action``:
+    a rule's action (``reject``, ``split``, ``split_components``), a relabel rule's
+    ``"FROM -> TO"``, '' for a label.
+    """
+
+    name: str
+    condition: Any
+    doc: str
+    source: str
+    action: str = ""
+
+    def condition_text(self) -> str:
+        return "always" if self.condition is None else _condition_text(self.condition)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "condition": self.condition, "doc": self.doc, "source": self.source,
+                "action": self.action}
+
+
+def _condition_data(cond: Condition | None) -> Any:
+    if cond is None:
+        return None
+    if cond.kind == "fact":
+        return f"not {cond.name}" if cond.negated else cond.name
+    return {cond.kind: [_condition_data(c) for c in cond.items]}
+
+
+def _condition_text(cond: Any, top: bool = True) -> str:
+    if isinstance(cond, str):
+        return cond
+    ((kind, items),) = cond.items()
+    text = (" and " if kind == "all" else " or ").join(_condition_text(c, False) for c in items)
+    return text if top or len(items) < 2 else f"({text})"
+
+
+#: One term of a condition as evaluated: (check name, negated, holds: None when not measured).
+Term = tuple[str, bool, "bool | None"]
+
+
+def evaluate(cond: Any, outcome: Mapping[str, bool]) -> tuple[bool | None, list[Term]]:
+    """Evaluate a condition (:class:`RuleInfo` form) over check outcomes, as the interpreter does
+    (in order, lazily): whether it holds (None: a check it needed was not measured) and the terms
+    that decided it (all of an ``all`` that holds, the first that fails of one that fails; the
+    first that holds of an ``any`` that holds, all of one that fails)."""
+    if cond is None:
+        return True, []
+    if isinstance(cond, str):
+        negated = cond.startswith("not ")
+        name = cond[4:].strip() if negated else cond
+        passed = outcome.get(name)
+        holds = None if passed is None else passed != negated
+        return holds, [(name, negated, holds)]
+    ((kind, items),) = cond.items()
+    terms: list[Term] = []
+    for item in items:
+        holds, t = evaluate(item, outcome)
+        if holds is None:
+            return None, terms + t
+        if holds != (kind == "all"):  # decided: a failing term of 'all', a holding one of 'any'
+            return holds, t
+        terms += t
+    return kind == "all", terms
+
+
+@dataclass(frozen=True)
+class Catalogue:
+    """What the rule base of a run said: its checks, rules, labels and relabel rules, in order."""
+
+    checks: Mapping[str, CheckInfo]
+    rules: tuple[RuleInfo, ...]
+    labels: tuple[RuleInfo, ...]
+    relabel: tuple[RuleInfo, ...] = ()
+
+    @classmethod
+    def of(cls, rb: RuleBase) -> Catalogue:
+        """The catalogue of a validated rule base."""
+        checks = {name: CheckInfo(name, c.predicate.name, c.predicate.unit_label(rb.length_unit), c.min, c.max,
+                                  c.doc.strip(), c.pos.short) for name, c in rb.checks.items()}
+        rules = tuple(RuleInfo(r.name, _condition_data(r.condition), r.doc.strip(), r.pos.short, r.action)
+                      for r in rb.rules)
+        labels = tuple(RuleInfo(lb.name, _condition_data(lb.condition), lb.doc.strip(), lb.pos.short)
+                       for lb in rb.labels)
+        relabel = tuple(RuleInfo(r.name, _condition_data(r.condition), " ".join(r.doc.split()), r.pos.short,
+                                 f"{r.source} -> {r.target}") for r in rb.relabel)
+        return cls(checks, rules, labels, relabel)
+
+    def rule(self, name: str | None) -> RuleInfo | None:
+        return next((r for r in self.rules if r.name == name), None)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"checks": [asdict(c) for c in self.checks.values()], "rules": [r.to_dict() for r in self.rules],
+                "labels": [r.to_dict() for r in self.labels], "relabel": [r.to_dict() for r in self.relabel]}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> Catalogue:
+        return cls(checks={c["name"]: CheckInfo(**_known(CheckInfo, c)) for c in d.get("checks", [])},
+                   rules=tuple(RuleInfo(**_known(RuleInfo, r)) for r in d.get("rules", [])),
+                   labels=tuple(RuleInfo(**_known(RuleInfo, r)) for r in d.get("labels", [])),
+                   relabel=tuple(RuleInfo(**_known(RuleInfo, r)) for r in d.get("relabel", [])))
 
 
 @dataclass(frozen=True)
@@ -115,6 +282,16 @@ class ClusterRecord:
     def failing_checks(self) -> list[CheckRecord]:
         return [c for c in self.checks if not c.passed]
 
+    @property
+    def first_label(self) -> str | None:
+        """The label its labels' conditions gave it, before any relabel rule."""
+        return self.relabel["from"] if self.relabel else self.label
+
+
+#: How many records a tree may have to be printed whole by default (``kbs explain`` without
+#: ``--depth``); above it, the tree is cut at the deepest level that keeps it within this many lines.
+TREE_LINES = 40
+
 
 @dataclass
 class Explanation:
@@ -128,6 +305,8 @@ class Explanation:
     root: str
     ground: dict[str, Any] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    #: the rule base's checks, rules and labels (None: an explanation read from a version 1.0 file)
+    catalogue: Catalogue | None = None
 
     # -- access ----------------------------------------------------------------------------
 
@@ -148,25 +327,41 @@ class Explanation:
     # -- export ----------------------------------------------------------------------------
 
     def to_dict(self) -> dict[str, Any]:
-        return {
+        d: dict[str, Any] = {"format": EXPLANATION_FORMAT, "version": str(EXPLANATION_VERSION)}
+        d.update({
             "rule_base": self.rule_base, "rule_file": self.rule_file, "strategy": self.strategy,
             "label_names": list(self.label_names), "root": self.root, "ground": self.ground,
-            "notes": list(self.notes), "clusters": [_record_dict(r) for r in self.walk()],
-        }
+            "notes": list(self.notes),
+        })
+        if self.catalogue is not None:
+            d["catalogue"] = self.catalogue.to_dict()
+        d["clusters"] = [_record_dict(r) for r in self.walk()]
+        return d
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "Explanation":
+    def from_dict(cls, d: dict[str, Any]) -> Explanation:
+        """Read :meth:`to_dict`'s form back.
+
+        Raises
+        ------
+        kbs.formats.FormatVersionError
+            Another format, or a newer major version (a ValueError).
+        KeyError, TypeError
+            Not an explanation.
+        """
+        document_version(d, format=EXPLANATION_FORMAT, reads=EXPLANATION_VERSION)
         records = {}
         for r in d["clusters"]:
-            r = dict(r)
-            r["checks"] = [CheckRecord(**c) for c in r.get("checks", [])]
+            r = _known(ClusterRecord, r)
+            r["checks"] = [CheckRecord(**_known(CheckRecord, c)) for c in r.get("checks", [])]
             if r.get("apd"):
                 a = r["apd"]
                 r["apd"] = APDCurve(tuple(a["ks"]), tuple(a["apd"]), a["chosen"])
             records[r["id"]] = ClusterRecord(**r)
+        cat = d.get("catalogue")
         return cls(rule_base=d["rule_base"], rule_file=d["rule_file"], strategy=d["strategy"],
                    label_names=list(d["label_names"]), records=records, root=d["root"], ground=d.get("ground", {}),
-                   notes=list(d.get("notes", [])))
+                   notes=list(d.get("notes", [])), catalogue=None if cat is None else Catalogue.from_dict(cat))
 
     def to_networkx(self):
         """A ``networkx.DiGraph`` parent -> child with each record's fields as node attributes."""
@@ -179,48 +374,228 @@ class Explanation:
                 g.add_edge(r.parent, r.id)
         return g
 
+    # -- the words of one decision ----------------------------------------------------------------
+
+    @staticmethod
+    def _terms_text(rec: ClusterRecord, terms: list[Term]) -> str:
+        """'not planar (thickness = 0.12 m > 0.05 m), level (ground_angle = 2 deg <= 22.5 deg)'."""
+        by_name = {c.check: c for c in rec.checks}
+        out = []
+        for name, negated, holds in terms:
+            term = f"not {name}" if negated else name
+            c = by_name.get(name)
+            if holds is None or c is None:
+                out.append(f"{term} (not measured)")
+            else:
+                out.append(f"{term} ({c.sentence()})" if holds else f"{term} does not hold ({c.sentence()})")
+        return ", ".join(out)
+
+    def _rule_why(self, rec: ClusterRecord) -> str:
+        """Why the rule of ``rec`` held: its terms, or (without a catalogue) its decisive checks."""
+        info = self.catalogue.rule(rec.rule) if self.catalogue else None
+        if info is None:
+            return "; ".join(c.sentence() for c in rec.decisive_checks())
+        _, terms = evaluate(info.condition, {c.check: c.passed for c in rec.checks})
+        return self._terms_text(rec, terms)
+
+    def _rule_name(self, rec: ClusterRecord) -> str:
+        return f"{rec.rule} [{rec.rule_source}]" if rec.rule_source else str(rec.rule)
+
+    def _label_why(self, rec: ClusterRecord) -> str:
+        """How a leaf got its label: 'as ground: planar (...), level (...)', 'as obstacle, not
+        ground: planar does not hold (...)', ', no label matched: not ground: ...'."""
+        given = rec.first_label
+        if self.catalogue is None or not self.catalogue.labels:
+            why = "; ".join(c.sentence() for c in (rec.decisive_checks() if rec.action == "accept" else []))
+            head = f"as {given}" if given else f", {NO_LABEL}"
+            return f"{head}: {why}" if why else head
+        outcome = {c.check: c.passed for c in rec.checks}
+        rejected: list[str] = []
+        for lab in self.catalogue.labels:
+            holds, terms = evaluate(lab.condition, outcome)
+            if lab.name == given:
+                why = self._terms_text(rec, terms)
+                head = f"as {given}" + "".join(f", not {r}" for r in rejected)
+                return f"{head}: {why}" if why else head
+            rejected.append(f"{lab.name}: {self._terms_text(rec, terms)}" if terms else lab.name)
+        if given is None:
+            return f", {NO_LABEL}: " + "; ".join(f"not {r}" for r in rejected)
+        return f"as {given}"
+
+    def _relabel_text(self, rec: ClusterRecord) -> str:
+        """', relabelled ground by low_level [outdoor.yaml:95]: level (...), low (...)'."""
+        if not rec.relabel:
+            return ""
+        r = rec.relabel
+        info = next((x for x in self.catalogue.relabel if x.name == r["rule"]), None) if self.catalogue else None
+        if info is None:
+            names = set(r["checks"])
+            why = "; ".join(c.sentence() for c in rec.checks if c.check in names)
+        else:
+            why = self._terms_text(rec, evaluate(info.condition, {c.check: c.passed for c in rec.checks})[1])
+        return f", relabelled {r['to']} by {r['rule']} [{r['source']}]: {why}"
+
     # -- renderers -------------------------------------------------------------------------
 
     def line(self, rec: ClusterRecord) -> str:
-        """One line: 'c0.2 (1,204 pts) split in 3: connexity = 3 components > 1 [outdoor.yaml:31 CAh]'."""
+        """One line: 'c0.2 (1,204 pts) split in 3 components by CAh [outdoor.yaml:31]: not planar
+        (thickness = 0.12 m > 0.05 m), not connected (connexity = 3 > 1)'."""
         head = f"{rec.id} ({rec.n_points:,} pts)"
-        src = f" [{rec.rule_source} {rec.rule}]" if rec.rule_source else ""
-        why = "; ".join(c.sentence() for c in rec.decisive_checks())
         if rec.action == "partition":
             k = len(rec.children)
             chosen = f" (APD first local maximum: {rec.apd.text()})" if rec.apd else ""
             return f"{head} partitioned in {k}{chosen}"
         if rec.action in ("split", "split_components"):
             how = "" if rec.action == "split" else " components"
-            return f"{head} split in {len(rec.children)}{how}: {why}{src}"
+            return f"{head} split in {len(rec.children)}{how} by {self._rule_name(rec)}: {self._rule_why(rec)}"
         if rec.action == "reject":
-            return f"{head} rejected as noise: {why}{src}"
+            return f"{head} rejected as noise by {self._rule_name(rec)}: {self._rule_why(rec)}"
+        label = self._label_why(rec)
         if rec.action == "limit":
             kept = rec.label or f"it is, {NO_LABEL}"
-            return f"{head} kept as {kept} ({'; '.join(rec.notes)}): {why}{src}{self._relabel_text(rec)}"
-        label = f" as {rec.label}" if rec.label else f", {NO_LABEL}"
-        if rec.relabel:
-            return f"{head} accepted as {rec.relabel['from']}{self._relabel_text(rec)}"
-        why = why or "; ".join(c.sentence() for c in rec.checks) or "no check measured"
-        return f"{head} accepted{label}: {why}"
+            wanted = f"{self._rule_name(rec)} would split it: {self._rule_why(rec)}; " if rec.rule else ""
+            label = label[2:] if label.startswith(", ") else label.removeprefix("as ")
+            return f"{head} kept as {kept} ({_stop_text(rec)}): {wanted}label {label}{self._relabel_text(rec)}"
+        if self.catalogue is None and not rec.decisive and not rec.relabel:  # a version 1.0 file
+            sep = " " if rec.label else ""
+            why = "; ".join(c.sentence() for c in rec.checks) or "no check measured"
+            return f"{head} accepted{sep}{label}: {why}"
+        if self.catalogue is not None and ":" not in label:  # a label without a condition: why no rule acted
+            label += f": {self._no_rule_why(rec)}" if self.catalogue.rules else ""
+        return f"{head} accepted{' ' if rec.label or rec.relabel else ''}{label}{self._relabel_text(rec)}"
 
-    @staticmethod
-    def _relabel_text(rec: ClusterRecord) -> str:
-        """', relabelled ground: height_above_local_ground = 0.08 m <= 0.25 m [outdoor.yaml:95 low_sheet]'."""
-        if not rec.relabel:
-            return ""
-        r = rec.relabel
-        names = set(r["checks"])
-        why = "; ".join(c.sentence() for c in rec.checks if c.check in names)
-        return f", relabelled {r['to']}: {why} [{r['source']} {r['rule']}]"
+    def _no_rule_why(self, rec: ClusterRecord) -> str:
+        """For a cluster no rule acted on: the terms that kept each rule's condition from holding."""
+        assert self.catalogue is not None
+        outcome = {c.check: c.passed for c in rec.checks}
+        terms: list[Term] = []
+        for rule in self.catalogue.rules:
+            terms += [t for t in evaluate(rule.condition, outcome)[1] if t not in terms]
+        return self._terms_text(rec, terms) or "no rule acted"
 
-    def render(self, start: str | None = None) -> str:
-        """The tree as indented text."""
+    def _subtree(self, rec: ClusterRecord) -> list[ClusterRecord]:
+        return list(self.walk(rec.id))[1:]
+
+    def _fold(self, records: list[ClusterRecord]) -> str:
+        """'37 clusters below: ground 20 (5,021 pts), obstacle 15 (1,200 pts), noise 2 (12 pts)'."""
+        groups: dict[str, list[int]] = {}
+        for r in records:
+            if r.children:
+                continue
+            key = "noise" if r.action == "reject" else (r.label or NO_LABEL)
+            g = groups.setdefault(key, [0, 0])
+            g[0] += 1
+            g[1] += r.n_points
+        order = {name: i for i, name in enumerate([*self.label_names, NO_LABEL, "noise"])}
+        parts = ", ".join(f"{k} {n} ({p:,} pts)" for k, (n, p) in sorted(groups.items(), key=lambda kv: order.get(kv[0], -1)))
+        return f"{len(records)} cluster{'s' if len(records) != 1 else ''} below, ending as {parts}"
+
+    def tree_lines(self, start: str | None = None, depth: int | None = None) -> list[str]:
+        """The tree as indented lines, to ``depth`` levels below ``start`` (None: all); a cluster
+        whose children are not shown ends with '[+ N clusters below: ground 20 (5,021 pts), ...]'."""
         base = self.records[start or self.root].depth
         lines = []
-        for rec in self.walk(start):
-            lines.append("  " * (rec.depth - base) + self.line(rec))
-        return "\n".join(lines)
+        stack = [start or self.root]
+        while stack:
+            rec = self.records[stack.pop()]
+            line = "  " * (rec.depth - base) + self.line(rec)
+            if rec.children and depth is not None and rec.depth - base >= depth:
+                line += f"  [+ {self._fold(self._subtree(rec))}]"
+            else:
+                stack.extend(reversed(rec.children))
+            lines.append(line)
+        return lines
+
+    def render(self, start: str | None = None, depth: int | None = None) -> str:
+        """The tree as indented text (to ``depth`` levels below ``start``; None: all)."""
+        return "\n".join(self.tree_lines(start, depth))
+
+    def fitting_depth(self, start: str | None = None, lines: int = TREE_LINES) -> int | None:
+        """The deepest level to which the tree below ``start`` prints in at most ``lines`` lines
+        (at least 1); None when the whole of it does."""
+        base = self.records[start or self.root].depth
+        per_depth: dict[int, int] = {}
+        for r in self.walk(start):
+            per_depth[r.depth - base] = per_depth.get(r.depth - base, 0) + 1
+        if sum(per_depth.values()) <= lines:
+            return None
+        total, d = 0, 0
+        for level in sorted(per_depth):
+            total += per_depth[level]
+            if total > lines:
+                break
+            d = level
+        return max(d, 1)
+
+    def summary(self, show: int = 3) -> list[str]:
+        """What the run did, grouped and counted: each rule with how often it acted, each label
+        with its clusters by outcome (the ``show`` largest named), the checks with their docs."""
+        recs = [r for r in self.records.values() if r.action != "partition"]
+        leaves = [r for r in recs if not r.children and r.action in ("accept", "limit")]
+        rejected = [r for r in recs if r.action == "reject"]
+        outputs = {r.output_index for r in leaves if r.output_index is not None}
+        depth = max((r.depth for r in recs), default=0)
+        splits = sum(r.action in ("split", "split_components") for r in recs)
+        out = [f"{len(recs):,} clusters judged, {splits:,} split, {len(leaves):,} kept, {len(rejected):,} rejected "
+               f"(tree depth {depth}); {len(outputs):,} output clusters"]
+
+        def largest(group: list[ClusterRecord]) -> str:
+            top = sorted(group, key=lambda r: (-r.n_points, r.id))[:show]
+            more = ", ..." if len(group) > show else ""
+            return ", ".join(f"{r.id} ({r.n_points:,} pts)" for r in top) + more
+
+        def counted(group: list[ClusterRecord]) -> str:
+            n = len(group)
+            return f"{n:,} cluster{'s' if n != 1 else ''}, {sum(r.n_points for r in group):,} pts"
+
+        cat = self.catalogue
+        if cat is not None and cat.rules:
+            out.append("rules, in order (the first whose condition holds acts):")
+            for rule in cat.rules:
+                acted = [r for r in recs if r.rule == rule.name and r.action != "accept"]
+                done = [r for r in acted if r.action != "limit"]
+                stopped = [r for r in acted if r.action == "limit"]
+                what = {"reject": "rejected", "split": "split", "split_components": "split in components"}.get(
+                    rule.action, rule.action)
+                count = f"{len(done):,} {what}" + (f", {len(stopped):,} kept by a limit" if stopped else "")
+                out.append(f"  {rule.name} [{rule.source}] {rule.action} if {rule.condition_text()}: {count}")
+                if rule.doc:
+                    out.append(f"      {rule.doc}")
+        out.append("clusters kept, by label and outcome (points when judged; the largest first):")
+        groups: dict[tuple[str, str], list[ClusterRecord]] = {}
+        for r in leaves:
+            how = "accepted" if r.action == "accept" else f"kept by a limit ({(r.limit or {}).get('kind', 'limit')})"
+            if r.relabel:
+                how += f", relabelled from {r.relabel['from']} by {r.relabel['rule']}"
+            groups.setdefault((r.label or NO_LABEL, how), []).append(r)
+        order = {name: i for i, name in enumerate(self.label_names)}
+        labels = {lab.name: lab for lab in cat.labels} if cat else {}
+        shown_label = None
+        for (label, how), group in sorted(groups.items(), key=lambda kv: (order.get(kv[0][0], len(order)), kv[0][1])):
+            if label != shown_label:
+                shown_label = label
+                info = labels.get(label)
+                total = [r for (lb, _), g in groups.items() if lb == label for r in g]
+                cond = (f" [{info.source}] if {info.condition_text()}" if info and info.condition is not None
+                        else " (the default label)" if info else "")
+                doc = f" ({info.doc})" if info and info.doc else ""
+                out.append(f"  {label}{cond}{doc}: {counted(total)}")
+            out.append(f"    {how}: {counted(group)}: {largest(group)}")
+        if rejected:
+            out.append(f"  noise (rejected, in no output cluster): {counted(rejected)}: {largest(rejected)}")
+        if cat is not None and cat.relabel:
+            out.append("post.relabel:")
+            for rl in cat.relabel:
+                n = sum(1 for r in leaves if r.relabel and r.relabel["rule"] == rl.name)
+                out.append(f"  {rl.name} [{rl.source}] {rl.action} if {rl.condition_text()}: {n:,} relabelled")
+                if rl.doc:
+                    out.append(f"      {rl.doc}")
+        if cat is not None and cat.checks:
+            out.append("checks:")
+            w = max(len(c.name) for c in cat.checks.values())
+            for c in cat.checks.values():
+                out.append(f"  {c.name:<{w}}  {c.bounds_text()} [{c.source}]" + (f": {c.doc}" if c.doc else ""))
+        return out
 
     def ground_line(self) -> str:
         """The ground plane in one line: where it came from and how it was found, e.g. 'cluster c0,
@@ -260,22 +635,32 @@ class Explanation:
         return "\n".join(out)
 
     def why(self, cluster_id: str) -> str:
-        """Why one cluster ended as it did: its ancestry, its decision, every check with values."""
+        """Why one cluster ended as it did: its ancestry, the rules and labels evaluated on it,
+        every check with its value, its docs."""
         if cluster_id not in self.records:
             raise KeyError(cluster_id)
         chain = []
-        rec: ClusterRecord | None = self.records[cluster_id]
-        while rec is not None:
-            chain.append(rec)
-            rec = self.records[rec.parent] if rec.parent else None
+        cur: ClusterRecord | None = self.records[cluster_id]
+        while cur is not None:
+            chain.append(cur)
+            cur = self.records[cur.parent] if cur.parent else None
         out = [self.line(r) for r in reversed(chain)]
         rec = chain[0]
         out.append("")
+        where = f" (output cluster {rec.output_index})" if rec.output_index is not None else ""
         out.append(f"{rec.id}: {rec.n_points:,} points, action {rec.action}"
-                   + (f", label {rec.label}" if rec.label else f", {NO_LABEL}" if _is_leaf(rec) else ""))
-        for c in rec.checks:
-            out.append(f"  {'pass' if c.passed else 'FAIL'}  {c.check}: {c.predicate} = {c.comparison()}  [{c.source}]"
-                       + (f"  ({c.note})" if c.note else ""))
+                   + (f", label {rec.label}" if rec.label else f", {NO_LABEL}" if _is_leaf(rec) else "") + where)
+        out += self._why_decisions(rec)
+        if rec.checks:
+            out.append("  checks measured (yes: the value is within the check's bounds; 'not NAME' asks for no):")
+            docs = self.catalogue.checks if self.catalogue else {}
+            w = max(len(c.check) for c in rec.checks)
+            for c in rec.checks:
+                info = docs.get(c.check)
+                doc = f"  {info.doc}" if info and info.doc else ""
+                note = f"  ({c.note})" if c.note else ""
+                out.append(f"    {c.check:<{w}}  {c.verdict():<3}  {c.predicate} = {c.comparison()}  [{c.source}]"
+                           f"{note}{doc}")
         for k, v in rec.descriptors.items():
             out.append(f"  {k}: {_fmt(v)}")
         for n in rec.notes:
@@ -284,11 +669,77 @@ class Explanation:
             out.append(f"  APD: {rec.apd.text()}")
         return "\n".join(out)
 
+    def _why_decisions(self, rec: ClusterRecord) -> list[str]:
+        """The rules, labels and relabel rules evaluated on ``rec``, in order, with their outcome."""
+        cat = self.catalogue
+        if cat is None or rec.action == "partition":
+            return []
+        outcome = {c.check: c.passed for c in rec.checks}
+        out = ["  rules, in order (the first whose condition holds acts):"]
+        for rule in cat.rules:
+            holds, terms = evaluate(rule.condition, outcome)
+            verdict = ("holds" if holds else "does not hold" if holds is False else "not evaluated")
+            out.append(f"    {rule.name} [{rule.source}] {rule.action} if {rule.condition_text()}: {verdict}"
+                       + (f": {self._terms_text(rec, terms)}" if terms and holds is not None else ""))
+            if rule.doc:
+                out.append(f"        {rule.doc}")
+            if holds:
+                break
+        else:
+            out.append("    no rule acted: the cluster is accepted")
+        if rec.action == "limit":
+            out.append(f"    the split did not happen ({_stop_text(rec)}): the cluster is kept as it is and labelled")
+        if not _is_leaf(rec):
+            return out
+        out.append("  labels, in order (the first whose condition holds gives the label):")
+        for lab in cat.labels:
+            holds, terms = evaluate(lab.condition, outcome)
+            if lab.condition is None:
+                verdict = "no condition (the default label)"
+            else:
+                verdict = (f"if {lab.condition_text()}: "
+                           + ("holds" if holds else "does not hold" if holds is False else "not evaluated")
+                           + (f": {self._terms_text(rec, terms)}" if terms and holds is not None else ""))
+            out.append(f"    {lab.name} [{lab.source}] {verdict}" + (f"; {lab.doc}" if lab.doc else ""))
+            if holds:
+                break
+        else:
+            out.append(f"    {NO_LABEL}")
+        given = rec.first_label
+        relabel = [r for r in cat.relabel if r.action.split(" -> ")[0] == given]
+        if relabel:
+            out.append(f"  post.relabel, the rules for clusters labelled {given}:")
+            for rl in relabel:
+                holds, terms = evaluate(rl.condition, outcome)
+                if rec.relabel and rec.relabel["rule"] == rl.name:
+                    holds = True
+                verdict = "holds" if holds else "does not hold" if holds is False else "not evaluated"
+                out.append(f"    {rl.name} [{rl.source}] {rl.action} if {rl.condition_text()}: {verdict}"
+                           + (f": {self._terms_text(rec, terms)}" if terms and holds is not None else ""))
+                if rl.doc:
+                    out.append(f"        {rl.doc}")
+                if holds:
+                    break
+        return out
+
 
 #: What an accepted cluster no label's condition holds for is called (its points have label -1,
 #: as rejected ones do, but they are in an output cluster): never 'noise', which a rule base may
 #: use as one of its labels.
 NO_LABEL = "no label matched"
+
+
+def _stop_text(rec: ClusterRecord) -> str:
+    """What kept a cluster a rule wanted split: 'limit reached: limits.max_depth = 11', 'limit
+    reached: 30 points < limits.min_points = 40', 'the split failed'."""
+    lim = rec.limit
+    if lim is None:  # a version 1.0 file without the limit's kind: its notes say it
+        return "; ".join(rec.notes)
+    if lim.get("kind") == "min_points":
+        return f"limit reached: {rec.n_points:,} points < {lim['setting']} = {lim['value']}"
+    if lim.get("setting"):
+        return f"limit reached: {lim['setting']} = {lim['value']}"
+    return _NOT_SPLIT_TEXT.get(lim.get("kind", ""), str(lim.get("kind")))
 
 
 def _is_leaf(rec: ClusterRecord) -> bool:

@@ -22,14 +22,15 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, Self
+from collections.abc import Callable
+from typing import Any, Self
 
 import numpy as np
 
 from kbs.errors import FitError, KbsError
 from kbs.inference import UFPONCResult, ufp_onc
 from kbs.knowledge.connexity import Connexity, assign_to_nearest, project_on_plane
-from kbs.knowledge.explain import NO_LABEL, APDCurve, CheckRecord, ClusterRecord, Explanation
+from kbs.knowledge.explain import NO_LABEL, APDCurve, Catalogue, CheckRecord, ClusterRecord, Explanation
 from kbs.knowledge.groundplane import robust_plane
 from kbs.knowledge.predicates import Cluster, Ground, Measurement, PredicateError, Scene
 from kbs.knowledge.rulebase import Condition, RuleBase
@@ -637,7 +638,7 @@ class Interpreter:
 
     def _finish(self, X, leaves, scene, records, ground_info, notes, t0) -> Segmentation:
         rb = self.rb
-        for node, cl, rec in leaves:
+        for _node, cl, rec in leaves:
             self._label(cl, scene, rec)
         if rb.ground_model is not None and leaves:
             leaves = self._post_ground(X, leaves, scene, ground_info)
@@ -667,7 +668,7 @@ class Interpreter:
                                  "descriptors": leaves[members[0]][2].descriptors if len(members) == 1 else
                                  self._group_descriptors(X, [leaves[i][0] for i in members])})
         expl = Explanation(rule_base=rb.name, rule_file=rb.path, strategy=rb.strategy, label_names=rb.label_names,
-                           records=records, root="c", ground=ground_info, notes=notes)
+                           records=records, root="c", ground=ground_info, notes=notes, catalogue=Catalogue.of(rb))
         return Segmentation(cluster=cluster, label=label, membership=membership, label_names=rb.label_names,
                             explanation=expl, clusters=out_clusters, seconds=time.perf_counter() - t0)
 
@@ -700,7 +701,7 @@ class Interpreter:
         if rb.relabel:
             post_scene = Scene(scene.sensor, scene.ground, scene.unit, ground_model=model)
             changed = 0
-            for node, cl, rec in leaves:
+            for _node, cl, rec in leaves:
                 for r in rb.relabel:
                     if rec.label != r.source or not r.condition.evaluate(self._facts(cl, post_scene, rec)):
                         continue
@@ -787,7 +788,7 @@ class Interpreter:
                 and (spec.condition is None or spec.condition.evaluate(self._facts(lf[1], scene, lf[2])))]
         # queries for batches of clusters (the surface does not change while points move: they
         # are received after the loop)
-        for (node, cl, rec), (h, nearest) in zip(todo, self._surface_batches(X, todo, model)):
+        for (node, _cl, rec), (h, nearest) in zip(todo, self._surface_batches(X, todo, model)):
             move = np.abs(np.nan_to_num(h, nan=np.inf)) <= spec.tolerance
             n_move, size = int(move.sum()), node.idx.size
             if not n_move:
@@ -820,7 +821,7 @@ class Interpreter:
         total = 0
         todo = [lf for lf in leaves if lf[2].label == gl and lf[0].idx.size]
         # queries for batches of clusters (points move only after the loop)
-        for (node, cl, rec), (h, _) in zip(todo, self._surface_batches(X, todo, model)):
+        for (node, _cl, rec), (h, _) in zip(todo, self._surface_batches(X, todo, model)):
             move = np.nan_to_num(h, nan=-np.inf) > spec.tolerance
             n_move, size = int(move.sum()), node.idx.size
             if not n_move:
@@ -929,7 +930,7 @@ class _Splitter:
     the next runs, so a loaded segmenter does not fork again frame after frame), or lazily in
     this process when ``jobs`` is 1."""
 
-    def __init__(self, owner: "Interpreter", kwargs: dict[str, Any]) -> None:
+    def __init__(self, owner: Interpreter, kwargs: dict[str, Any]) -> None:
         self.owner, self.jobs, self.kwargs = owner, owner.jobs, kwargs
         self.jobs_started: list[_Job] = []
 

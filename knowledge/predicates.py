@@ -22,7 +22,8 @@ from functools import cached_property
 from importlib.metadata import entry_points
 from pathlib import Path
 from types import ModuleType
-from typing import Any, Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -97,7 +98,7 @@ class Cluster:
         its arrays are read-only."""
         return cluster_geometry(self.X, self.weights)
 
-    def view(self) -> "ClusterView":
+    def view(self) -> ClusterView:
         """The read-only view a predicate is given."""
         return ClusterView(self)
 
@@ -236,7 +237,7 @@ class Param:
             rng = f" in [{'-inf' if self.low is None else self.low}, {'inf' if self.high is None else self.high}]"
         return f"{self.name}: {self.type.__name__}{rng} (default {self.default!r}{only})"
 
-    def check_with(self, params: Mapping[str, Any], defaults: Mapping[str, "Param"]) -> str | None:
+    def check_with(self, params: Mapping[str, Any], defaults: Mapping[str, Param]) -> str | None:
         """None when the parameters given with this one (``params``, the others at their
         ``defaults``) are those it applies with, else what is wrong."""
         if self.applies_with is None:
@@ -492,7 +493,7 @@ class PredicateRegistry:
             self.add(p)
 
     @classmethod
-    def default(cls, *, entry_points_too: bool = True) -> "PredicateRegistry":
+    def default(cls, *, entry_points_too: bool = True) -> PredicateRegistry:
         """The built-ins, plus the predicates of installed packages' ``kbs.predicates`` entry points."""
         reg = cls(BUILTINS)
         if entry_points_too:

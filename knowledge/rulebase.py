@@ -23,7 +23,8 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 from importlib import resources
 from pathlib import Path
-from typing import Any, Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
+from typing import Any
 
 import yaml
 import yaml.cyaml  # noqa: F401 (libyaml when present)
@@ -213,7 +214,7 @@ class Condition:
     kind: str  # 'fact', 'all', 'any'
     name: str = ""
     negated: bool = False
-    items: tuple["Condition", ...] = ()
+    items: tuple[Condition, ...] = ()
 
     def evaluate(self, fact: Callable[[str], bool]) -> bool:
         """Evaluate lazily (checks are measured only when needed)."""
@@ -223,7 +224,7 @@ class Condition:
             return all(c.evaluate(fact) for c in self.items)
         return any(c.evaluate(fact) for c in self.items)
 
-    def facts(self) -> Iterator["Condition"]:
+    def facts(self) -> Iterator[Condition]:
         if self.kind == "fact":
             yield self
         for c in self.items:

@@ -189,24 +189,24 @@ def read_drive(scans: Sequence[str | os.PathLike[str]], poses: str | os.PathLike
         No scan, a folder without scans; :class:`PoseFileError` (a CloudFileError) for a bad
         poses file or a count that differs from the frames'.
     """
-    scans = [Path(s) for s in scans]
-    if not scans:
+    paths = [Path(s) for s in scans]
+    if not paths:
         raise ParameterError("no scan given")
     from kbs.maps.bags import is_bag
 
-    if topic is not None and not (len(scans) == 1 and is_bag(scans[0])):
+    if topic is not None and not (len(paths) == 1 and is_bag(paths[0])):
         from kbs.maps.bags import TopicError
 
         raise TopicError("a topic is for a ROS bag: give one bag (a .bag, .db3 or .mcap file, or a rosbag2 folder)")
-    if len(scans) == 1 and is_bag(scans[0]):
+    if len(paths) == 1 and is_bag(paths[0]):
         from kbs.maps.bags import read_bag
 
-        frames, topic = read_bag(scans[0], topic)
+        frames, topic = read_bag(paths[0], topic)
         p = read_poses(poses, calib=calib) if poses is not None else None
         return Drive(tuple(frames), p if p is not None else Poses.identity(len(frames)),
-                     f"ROS bag {scans[0]}, topic {topic} ({len(frames)} point clouds)")
-    if len(scans) == 1 and is_kitti_sequence(scans[0]):
-        seq = scans[0]
+                     f"ROS bag {paths[0]}, topic {topic} ({len(frames)} point clouds)")
+    if len(paths) == 1 and is_kitti_sequence(paths[0]):
+        seq = paths[0]
         files = sorted((p for p in (seq / "velodyne").iterdir() if p.suffix.lower() == ".bin" and p.is_file()),
                        key=lambda p: p.name)
         if not files:
@@ -219,9 +219,9 @@ def read_drive(scans: Sequence[str | os.PathLike[str]], poses: str | os.PathLike
         else:
             p = None
     else:
-        files = scan_files(scans)
+        files = scan_files(paths)
         source = f"{len(files)} scan{'s' if len(files) != 1 else ''} in name order" if any(
-            s.is_dir() for s in scans) else f"{len(files)} scan{'s' if len(files) != 1 else ''}"
+            s.is_dir() for s in paths) else f"{len(files)} scan{'s' if len(files) != 1 else ''}"
         p = None
     if poses is not None:
         p = read_poses(poses, calib=calib)

@@ -16,7 +16,8 @@ import json
 import os
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator
+from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 
@@ -44,6 +45,15 @@ def _atomic(path: Path) -> Iterator[Path]:
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def png_available() -> bool:
+    """Whether matplotlib (in the ``map`` and ``render`` extras) is installed."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 def geotiff_available() -> bool:
@@ -253,8 +263,11 @@ def write_map(m: DriveMap, out_dir: str | os.PathLike[str], *, crs: str | None =
         with open(tmp, "wb") as fh:
             np.save(fh, m.grid.bands())
     files["npy"] = "map.npy"
-    write_png(m, out / "map.png")
-    files["png"] = "map.png"
+    if png_available():
+        write_png(m, out / "map.png")
+        files["png"] = "map.png"
+    else:
+        notes.append("map.png not written: matplotlib is not installed (pip install 'kbs[map]')")
     cl = m.cloud
     with _atomic(out / "cloud.ply") as tmp:
         write_ply(tmp, cl.xyz, {"label": cl.label, "obstacle": cl.obstacle.astype(np.uint8), "object": cl.object,

@@ -171,7 +171,7 @@ def read_kitti_poses(path: str | os.PathLike[str], calib: str | os.PathLike[str]
     """
     path = Path(path)
     text = _read_text(path)
-    mats = []
+    mats: list[np.ndarray] = []
     for lineno, raw in enumerate(text.splitlines(), start=1):
         line = raw.split("#", 1)[0]
         if not line.strip():
@@ -290,7 +290,7 @@ def read_csv_poses(path: str | os.PathLike[str]) -> Poses:
     optional header line first."""
     path = Path(path)
     text = _read_text(path)
-    mats = []
+    mats: list[np.ndarray] = []
     for lineno, raw in enumerate(text.splitlines(), start=1):
         if not raw.strip() or raw.lstrip().startswith("#"):
             continue

@@ -52,9 +52,10 @@ def palette(n: int) -> np.ndarray:
     for i in range(out.shape[0]):
         while tuple(int(c) for c in out[i]) in seen:
             out[i, 2] = (int(out[i, 2]) + 1) % 256
-        seen.add(tuple(int(c) for c in out[i]))
+        seen.add((int(out[i, 0]), int(out[i, 1]), int(out[i, 2])))
     if n > out.shape[0]:
-        rest, j = [], 0
+        rest: list[tuple[int, int, int]] = []
+        j = 0
         while len(rest) < n - out.shape[0]:
             j += 1
             c = (j * 0x9E3779) & 0xFFFFFF  # an odd multiplier: a bijection of the 24-bit colours

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from kbs.errors import CloudFileError
+from kbs.errors import CloudFileError, require
 from kbs.report.colors import NOISE_RGB, colors_for
 
 #: The K of the seed paper's figure 2.
@@ -77,7 +77,7 @@ def decimate(n: int, max_points: int) -> np.ndarray:
 
 
 def _figure(width: float, height: float):
-    from matplotlib.figure import Figure
+    Figure = require("matplotlib.figure", "render", "drawing figures").Figure
 
     return Figure(figsize=(width, height), dpi=100, layout="constrained")
 
@@ -149,6 +149,7 @@ def obstacle_map_figure(X: np.ndarray, label: np.ndarray, label_names: list[str]
     """Top-down map of ground vs obstacle cells (a cell is an obstacle when any of its points has
     a label other than ``ground_label``; empty cells white, noise-only cells grey), the sensor
     marked with a star."""
+    require("matplotlib", "render", "drawing figures")
     from matplotlib.colors import ListedColormap
     from matplotlib.patches import Patch
 

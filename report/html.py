@@ -3,7 +3,8 @@
 :func:`write_report` writes a single HTML page holding
 
 - a 3D scatter of the cloud (plotly) coloured by output cluster or by label, with a toggle between
-  the two; noise (cluster -1) is grey;
+  the two; noise (rejected points: cluster -1) is grey, and the points of a cluster no label's
+  condition held for ("unlabelled (no label matched)": label -1 in a cluster) magenta;
 - the fuzzy centre of each output cluster (its ``descriptors.center``) as a marker and its
   eigen-box: a wireframe box centred on the mean of the cluster's points, along the eigenvectors of
   their covariance, with half-sides ``2 sqrt(eigenvalue)``. The result JSON keeps only the
@@ -36,10 +37,12 @@ import html
 import json
 import re
 from pathlib import Path
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
+from kbs.errors import require
 from kbs.knowledge.explain import Explanation
 
 __all__ = ["write_report", "eigen_boxes"]
@@ -49,6 +52,11 @@ PALETTE = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e
            "#17becf", "#393b79", "#637939", "#8c6d31", "#843c39", "#7b4173", "#3182bd", "#e6550d",
            "#31a354", "#756bb1", "#636363", "#fd8d3c")
 NOISE = "#a0a0a0"
+#: The colour of the points of an output cluster no label's condition held for (label -1 in a
+#: cluster): not noise, which they are not (and which a rule base may use as a label's name).
+UNLABELLED = "#ff00ff"
+#: The label key of those points in the page (noise keeps -1).
+_UNLABELLED_KEY = -2
 
 
 def _json(obj: Any) -> str:
@@ -118,9 +126,12 @@ def _box_lines(boxes: Sequence[dict[str, Any] | None]) -> dict[str, list]:
             continue
         for a, e in _EDGES:
             for p in (b["corners"][a], b["corners"][e]):
-                xs.append(round(float(p[0]), 5)), ys.append(round(float(p[1]), 5)), zs.append(round(float(p[2]), 5))
+                xs.append(round(float(p[0]), 5))
+                ys.append(round(float(p[1]), 5))
+                zs.append(round(float(p[2]), 5))
                 text.append(i)
-            xs.append(None), ys.append(None), zs.append(None), text.append(None)
+            for column in (xs, ys, zs, text):
+                column.append(None)
     return {"x": xs, "y": ys, "z": zs, "cluster": text}
 
 
@@ -163,7 +174,7 @@ def write_report(path: str | Path, xyz: np.ndarray, cluster: np.ndarray, label: 
     Path
         ``path``.
     """
-    from plotly.offline import get_plotlyjs
+    get_plotlyjs = require("plotly.offline", "report", "the HTML report").get_plotlyjs
 
     xyz = np.asarray(xyz, dtype=np.float64)
     cluster = np.asarray(cluster).astype(np.int32, copy=False)
@@ -195,13 +206,14 @@ def write_report(path: str | Path, xyz: np.ndarray, cluster: np.ndarray, label: 
         "n": int(n), "shown": int(len(shown)), "notice": notice,
         "origin": origin.tolist(),
         "xyz": _b64((xyz[shown] - origin).astype(np.float32), "f4"),
-        "cluster": _b64(cluster[shown], "i4"), "label": _b64(label[shown], "i4"),
+        "cluster": _b64(cluster[shown], "i4"),
+        "label": _b64(np.where((label < 0) & (cluster >= 0), _UNLABELLED_KEY, label)[shown].astype(np.int32), "i4"),
         "label_names": list(label_names),
         "clusters": [{"index": int(c.get("index", i)), "ids": list(c.get("ids", [])), "label": c.get("label"),
                       "n_points": int(c.get("n_points", 0)), "center": centres[i]} for i, c in enumerate(clusters)],
         "boxes": _box_lines(boxes),
         "records": records, "root": expl.root, "apd": apd,
-        "palette": list(PALETTE), "noise": NOISE,
+        "palette": list(PALETTE), "noise": NOISE, "unlabelled": UNLABELLED, "unlabelled_key": _UNLABELLED_KEY,
         "head": {"rule_base": expl.rule_base, "rule_file": expl.rule_file, "strategy": expl.strategy,
                  "ground": expl.ground_line() if expl.ground else "", "notes": list(expl.notes)},
     }
@@ -304,7 +316,7 @@ _TEMPLATE = r"""<!DOCTYPE html>
   var o = D.origin, m = D.shown;
   var recById = {};
   D.records.forEach(function (r) { recById[r.id] = r; });
-  function colour(i) { return i < 0 ? D.noise : D.palette[i % D.palette.length]; }
+  function colour(i) { return i === D.unlabelled_key ? D.unlabelled : i < 0 ? D.noise : D.palette[i % D.palette.length]; }
 
   document.getElementById("meta").textContent = "rule base '" + D.head.rule_base + "' (" + D.head.rule_file +
     "), strategy " + D.head.strategy + (D.head.ground ? "; ground: " + D.head.ground : "") +
@@ -327,9 +339,11 @@ _TEMPLATE = r"""<!DOCTYPE html>
   }
   function clusterName(k) {
     var c = D.clusters[k];
-    return k < 0 ? "noise" : "cluster " + k + (c && c.label ? " (" + c.label + ")" : "");
+    return k < 0 ? "noise" : "cluster " + k + (c && c.label ? " (" + c.label + ")" : " (unlabelled: no label matched)");
   }
-  function labelName(k) { return k < 0 ? "noise" : (D.label_names[k] || "label " + k); }
+  function labelName(k) {
+    return k === D.unlabelled_key ? "unlabelled (no label matched)" : k < 0 ? "noise" : (D.label_names[k] || "label " + k);
+  }
   function legendTrace(k, name, visible) {
     return { type: "scatter3d", mode: "markers", name: name, x: [null], y: [null], z: [null], visible: visible,
              marker: { size: 6, color: colour(k) }, hoverinfo: "skip", showlegend: true };
@@ -350,7 +364,7 @@ _TEMPLATE = r"""<!DOCTYPE html>
   D.clusters.forEach(function (c, i) {
     if (!c.center) return;
     cx.push(c.center[0]); cy.push(c.center[1]); cz.push(c.center[2]); cc.push(i);
-    ct.push("cluster " + i + (c.label ? " (" + c.label + ")" : "") + ": " + c.ids.join(", "));
+    ct.push("cluster " + i + (c.label ? " (" + c.label + ")" : " (unlabelled: no label matched)") + ": " + c.ids.join(", "));
   });
   var centreTrace = traces.length;
   traces.push({ type: "scatter3d", mode: "markers", name: "fuzzy centres", x: cx, y: cy, z: cz, text: ct,
@@ -389,7 +403,7 @@ _TEMPLATE = r"""<!DOCTYPE html>
       return;
     }
     var c = D.clusters[i];
-    showWhy(c.ids, "cluster " + i + (c.label ? " (" + c.label + ")" : "") + ", " + c.n_points.toLocaleString("en") +
+    showWhy(c.ids, "cluster " + i + (c.label ? " (" + c.label + ")" : " (unlabelled: no label matched)") + ", " + c.n_points.toLocaleString("en") +
             " points, from record" + (c.ids.length > 1 ? "s " : " ") + c.ids.join(", ") + ":");
   }
 

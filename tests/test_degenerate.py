@@ -94,10 +94,11 @@ def test_a_cloud_with_no_plane_is_not_ground_and_says_why(tmp_path, name):
     assert level["note"] == f"degenerate: {what}, no plane"
     e = kbs("explain", str(tmp_path / "out" / "degenerate.json"), "--cluster", "c0")
     assert e.returncode == 0
-    assert f"FAIL  level: ground_angle = undefined  [outdoor.yaml:42]  (degenerate: {what}, no plane)" in e.stdout
+    assert f"level   no   ground_angle = undefined  [outdoor.yaml:42]  (degenerate: {what}, no plane)" in e.stdout
     assert f"note: degenerate: {what}, no plane: normal/ground angle undefined" in e.stdout
     e = kbs("explain", str(tmp_path / "out" / "degenerate.json"))
-    assert "accepted as obstacle: " in e.stdout and f"ground_angle undefined (degenerate: {what}, no plane)" in e.stdout
+    assert (f"accepted as obstacle, not ground: level does not hold (ground_angle undefined (degenerate: {what}, "
+            f"no plane))") in e.stdout
 
 
 def test_meshes_write_no_surface_for_ground_points_on_a_line(tmp_path):

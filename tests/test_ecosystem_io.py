@@ -519,3 +519,63 @@ def test_clusters_no_label_matched_are_unclassified_not_noise(tmp_path, rocks):
     assert unmatched.any()
     assert (code[unmatched] == 1).all() and (code[cluster < 0] == 7).all() and (code[label == 0] == 2).all()
     assert "no label matched" in r.stdout
+
+
+# --- optional extras: the report (plotly) and the figures (matplotlib) ------------------------------
+
+
+def test_report_without_plotly_is_a_usage_error_before_any_work(tmp_path):
+    """plotly is the `report` extra (64 MB installed, only to inline plotly.js): without it
+    `kbs run --report` stops at once, exit 2, naming the extra, and writes nothing."""
+    out = tmp_path / "o"
+    r = _kbs_without("plotly", "run", "--rules", "outdoor", str(EXAMPLE), "--out", str(out), "--report")
+    assert r.returncode == 2, r.stderr
+    assert "pip install 'kbs[report]'" in r.stderr and "Traceback" not in r.stderr
+    assert not out.exists() or not any(out.iterdir())
+    # the run itself needs no plotly
+    r = _kbs_without("plotly", "-q", "run", "--rules", "outdoor", str(EXAMPLE), "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    assert (out / "outdoor.ply").is_file() and (out / "outdoor.json").is_file()
+
+
+def test_render_without_matplotlib_names_the_extra(tmp_path):
+    out = tmp_path / "o"
+    assert kbs("-q", "run", "--rules", "outdoor", str(EXAMPLE), "--out", str(out)).returncode == 0
+    r = _kbs_without("matplotlib", "render", str(out / "outdoor.json"), "--kind", "map")
+    assert r.returncode == 2, r.stderr
+    assert "pip install 'kbs[render]'" in r.stderr and "Traceback" not in r.stderr
+    assert not list(out.glob("*.png"))
+
+
+def test_the_core_install_does_not_import_the_figure_libraries():
+    """`kbs run` (the main job) imports neither matplotlib nor plotly."""
+    code = ("import sys; from kbs.cli.main import main; code = main(['-q', 'run', '--rules', 'outdoor', "
+            f"{str(EXAMPLE)!r}, '--out', sys.argv[1]]); "
+            "print(sorted(m for m in ('matplotlib', 'plotly') if m in sys.modules)); sys.exit(code)")
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        r = subprocess.run([sys.executable, "-c", code, d], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_rules_show_writes_a_schema_reference_that_works_from_anywhere(tmp_path):
+    """`kbs rules show outdoor > my.yaml` in any folder: the editor line points at the installed
+    schema (a file URI to a file that exists), and the file checks clean; `kbs rules schema` prints
+    that path, `--json` the schema."""
+    from urllib.parse import unquote, urlparse
+
+    r = kbs("rules", "show", "outdoor")
+    assert r.returncode == 0, r.stderr
+    first = r.stdout.splitlines()[0]
+    assert first.startswith("# yaml-language-server: $schema=file://")
+    schema = Path(unquote(urlparse(first.split("$schema=", 1)[1]).path))
+    assert schema.is_file() and json.loads(schema.read_text())["$schema"].startswith("https://json-schema.org/")
+    mine = tmp_path / "elsewhere" / "my.yaml"
+    mine.parent.mkdir()
+    mine.write_text(r.stdout)
+    assert kbs("rules", "check", str(mine)).returncode == 0
+    r = kbs("rules", "schema")
+    assert r.returncode == 0 and Path(r.stdout.strip()) == schema
+    assert json.loads(kbs("rules", "schema", "--json").stdout) == json.loads(schema.read_text())

@@ -282,7 +282,8 @@ def test_rocks_gathered_by_ufp_onc_are_split_by_cah():
     assert len(cah) == 1 and cah[0].action == "split_components" and len(cah[0].children) == 3
     conn = [c for c in cah[0].checks if c.predicate == "connexity"][0]
     assert conn.value == 3 and not conn.passed
-    assert "split in 3 components: " in expl.line(cah[0]) and "connexity = 3 components > 1" in expl.line(cah[0])
+    assert "split in 3 components by CAh [outdoor.yaml:" in expl.line(cah[0])
+    assert "not connected (connexity = 3 > 1)" in expl.line(cah[0])
     for rock in (1, 2, 3):  # each rock is one obstacle cluster
         got = seg.cluster[labels == rock]
         assert np.bincount(got[got >= 0]).max() / got.size > 0.8

@@ -565,3 +565,26 @@ def test_a_kitti_sequence_folder_gives_its_scans_and_lidar_poses(tmp_path):
     assert "taken as LiDAR poses" in read_drive([seq]).poses.note
     (seq / "poses.txt").unlink()
     assert read_drive([seq]).poses.source == "identity"
+
+
+def test_kbs_map_without_matplotlib_or_rasterio_writes_the_rest_and_says_so(drive_map, tmp_path):
+    """matplotlib (the PNG) and rasterio (the GeoTIFF) come with the `map` extra; without them the
+    map's arrays, cloud, objects and index are written and the index's notes say what is missing."""
+    import subprocess
+    import sys
+
+    code = ("import sys; sys.modules['matplotlib'] = None; sys.modules['rasterio'] = None; "
+            "from kbs.cli.main import main; sys.exit(main())")
+    out = tmp_path / "map"
+    r = subprocess.run([sys.executable, "-c", code, "-q", "map", "--rules", "outdoor",
+                        str(drive_map / "drive" / "scans"), "--poses", str(drive_map / "drive" / "poses.txt"),
+                        "--out", str(out), "-j", "1"], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    from kbs.maps.files import read_map_index
+
+    doc = read_map_index(out)
+    assert "png" not in doc["files"] and "geotiff" not in doc["files"]
+    assert not (out / "map.png").exists() and not (out / "map.tif").exists()
+    assert (out / "map.npy").is_file() and (out / "cloud.ply").is_file()
+    assert any("map.png not written" in n and "kbs[map]" in n for n in doc["notes"])
+    assert any("map.tif not written" in n for n in doc["notes"])

@@ -45,12 +45,12 @@ def test_run_writes_ply_and_json_and_explains_the_cah_split(rocks_scan, tmp_path
     # the explanation tree, and why the rocks' cluster was split
     r = kbs("explain", str(tmp_path / "rocks.json"))
     assert r.returncode == 0
-    line = [ln for ln in r.stdout.splitlines() if "CAh" in ln][0]
-    assert "split in 3 components: " in line and "connexity = 3 components > 1 [outdoor.yaml:" in line
+    line = [ln for ln in r.stdout.splitlines() if "by CAh" in ln][0]
+    assert "split in 3 components by CAh [outdoor.yaml:" in line and "not connected (connexity = 3 > 1)" in line
     cid = line.split()[0]
     r = kbs("explain", str(tmp_path / "rocks.json"), "--cluster", cid + ".0")
     assert r.returncode == 0 and line.strip() in r.stdout and "accepted as obstacle" in r.stdout
-    assert "FAIL  sheet: flatness = " in r.stdout and "pass  level: ground_angle = " in r.stdout
+    assert re.search(r"\n    sheet +no +flatness = ", r.stdout) and re.search(r"\n    level +yes +ground_angle = ", r.stdout)
 
 
 def test_run_says_which_limit_stopped_which_clusters(rocks_scan, tmp_path):
@@ -229,12 +229,12 @@ def test_alpha_opening_separates_boulders_that_a_ridge_joins(tmp_path):
         assert r.returncode == 0, r.stderr
         clusters[name] = np.asarray(_ply(out / "boulders.ply")["scalar_cluster"])
         explained = kbs("explain", str(out / "boulders.json")).stdout
-        cah = [ln for ln in explained.splitlines() if "CAh" in ln]
+        cah = [ln for ln in explained.splitlines() if "by CAh" in ln]
         if name == "graph":  # the ridge is dense and 6 cm wide: the graph's opening keeps it
             assert not cah, cah
         else:  # the disc of radius alpha does not fit in it: two components, one per boulder
-            assert len(cah) == 1 and "split in 2 components: " in cah[0]
-            assert "connexity = 2 components > 1 [alpha.yaml:" in cah[0]
+            assert len(cah) == 1 and "split in 2 components by CAh [alpha.yaml:" in cah[0]
+            assert "not connected (connexity = 2 > 1)" in cah[0]
     for name, expected in (("graph", 1), ("alpha", 2)):
         c = clusters[name]
         main = [np.bincount(c[labels == k]).argmax() for k in (1, 2)]

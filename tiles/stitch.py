@@ -229,4 +229,4 @@ def _explanation(tiles, results, offsets, roots, out_of_root, shared, stitched, 
     summary = f"{len(tiles)} tiles; {k} output cluster{'s' if k != 1 else ''} stitched across tile edges"
     return Explanation(rule_base=first.rule_base, rule_file=first.rule_file, strategy=first.strategy,
                        label_names=list(first.label_names), records=records, root=ROOT, ground=ground,
-                       notes=[summary, *notes, *tile_notes])
+                       notes=[summary, *notes, *tile_notes], catalogue=first.catalogue)
