@@ -624,8 +624,8 @@ class Explanation:
             what = [f"{v['points']:,} points"]
             if v.get("inlier_share") is not None:
                 what.append(f"{v['inlier_share']:.0%} on its robust plane")
-            if v.get("distance_to_sensor") is not None:
-                what.append(f"{v['distance_to_sensor']:.2f}{unit} from the sensor")
+            if v.get("distance") is not None:
+                what.append(f"{v['distance']:.2f}{unit} from the sensor")
             method = v.get("method")
             verdict = v["why"] if v.get("why") else "no plane" if not method else \
                 "a plane: it passes " + method.removeprefix("check ") if method.startswith("check ") else f"a plane: its {method}"

@@ -307,7 +307,7 @@ class Interpreter:
                     tilted.append(cl.id)
                     continue
                 dist = float(np.sqrt(((on - self.sensor) ** 2).sum(axis=1).min()))
-                verdict["distance_to_sensor"] = dist
+                verdict["distance"] = dist  # to the sensor, of its plane's nearest point
                 if best is None or dist < best[0]:
                     best = (dist, cl, n, point, tilt, found)
         if best is None:

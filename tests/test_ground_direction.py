@@ -83,7 +83,7 @@ def test_the_near_ground_is_the_ground_not_the_farther_larger_plane(tmp_path, cl
     verdicts = {v["cluster"]: v for v in g["candidates"]}
     far = [v for c, v in verdicts.items() if c != chosen and v.get("method")]
     assert far, "the farther plane is a candidate that gives a plane too"
-    assert all(abs(v["angle_to_fallback"] - 15.0) < 1.0 and v["distance_to_sensor"] > g["distance_to_sensor"] + 15
+    assert all(abs(v["angle_to_fallback"] - 15.0) < 1.0 and v["distance"] > g["distance_to_sensor"] + 15
                for v in far), verdicts
     assert g["method"] == ("robust plane" if cluttered else "check 'planar'")
     how = "its robust plane (" if cluttered else "it passes 'planar'"
