@@ -5,7 +5,10 @@ Prints markdown: one row per scan and method (precision, recall, F1, IoU of the 
 with unlabelled points ignored, ISPRS total error, wall time), then the median over the scans of
 each data set. Every method runs in this process on the same points.
 
-Usage: python benchmarks/bench_ground.py [--sets kitti gndnet isprs mosd] [--jobs N] [--outdoor RULES]
+Usage: python benchmarks/bench_ground.py [--sets kitti gndnet seq00 isprs las mosd] [--part tune|validate|all]
+                                        [--jobs N] [--outdoor RULES]
+Each scan is in the tuning or the validation part of benchmarks/splits.yaml (the 'part' column);
+``--part`` keeps one part, and the medians are given per data set and part.
 kbs runs its splits in ``--jobs`` processes (default -1, one per core, as ``kbs run``); the peers
 run as their libraries do by default. ``--outdoor`` runs the "kbs outdoor" rows with another rule
 file (a variant of rules/outdoor.yaml, e.g. its connexity check with ``method: alpha_opening``).
@@ -27,7 +30,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import peers  # noqa: E402
 
-from kbs.evaluation import ground_metrics  # noqa: E402
+from kbs.evaluation import SEMANTICKITTI_GROUND, SEMANTICKITTI_IGNORED, ground_metrics, load_ground_truth  # noqa: E402
 from kbs.io import read_cloud  # noqa: E402
 from kbs.knowledge import Interpreter, load_rule_base  # noqa: E402
 
@@ -62,6 +65,14 @@ def scans(sets: list[str]) -> list[Scan]:
             lab = np.load(DATA / "gndnet" / f"{s}.labels.npy")
             out.append(Scan("GndNet", s, X - [0, 0, 1.73], lab == 0, lab >= 0, peers.Frame(Z_UP, 1.73),
                             np.zeros(3), 0.2))
+    if "seq00" in sets:
+        for n in range(3):
+            # full-resolution SemanticKITTI frames: raw classes in the .label (see kbs eval --help)
+            path = DATA / "semantickitti-seq00" / f"seq00_00000{n}.bin"
+            pc = read_cloud(path)
+            cls = load_ground_truth(path.with_suffix(".label"), pc)
+            out.append(Scan("SemanticKITTI-seq00", path.stem, pc.xyz, np.isin(cls, SEMANTICKITTI_GROUND),
+                            ~np.isin(cls, SEMANTICKITTI_IGNORED), peers.Frame(Z_UP, 1.73), np.zeros(3), 0.2))
     if "isprs" in sets:
         items = [(f"samp{n}", DATA / "isprs" / f"samp{n}.txt", None) for n in ("11", "12")]
         items += [(f"samp{n}", DATA / "isprs" / f"samp{n}-utm.pcd", DATA / "isprs" / f"samp{n}-utm.labels.txt")
@@ -75,6 +86,14 @@ def scans(sets: list[str]) -> list[Scan]:
             sensor = np.array([0.0, 0.0, X[:, 2].min() - 10.0])
             out.append(Scan("ISPRS", name, X, lab == 0, np.ones(len(X), bool), peers.Frame(Z_UP, 0.0, airborne=True),
                             sensor, 0.5))
+    if "las" in sets:
+        for name in ("autzen_trim", "4_6_crop", "sample_c"):
+            pc = read_cloud(DATA / "las" / f"{name}.las")
+            cls = pc.fields["classification"].astype(int)
+            X = pc.xyz - pc.xyz.mean(axis=0)
+            # ASPRS 2 = ground; noise (7, 18) left out; the provider's classification, not hand-checked
+            out.append(Scan("LAS", name, X, cls == 2, ~np.isin(cls, (7, 18)), peers.Frame(Z_UP, 0.0, airborne=True),
+                            np.array([0.0, 0.0, X[:, 2].min() - 10.0]), 0.5))
     if "mosd" in sets:
         for n in (0, 5, 17, 25, 33):
             pc = read_cloud(DATA / "mosd" / f"learn{n}.pcd")
@@ -88,13 +107,32 @@ def scans(sets: list[str]) -> list[Scan]:
 
 ROOT = Path(__file__).resolve().parents[1]
 JOBS = {"kbs": -1}
+SPLITS = ROOT / "benchmarks" / "splits.yaml"
 
 
-def kbs_with(rules: str, ground_label: str, only: str | None = None):
+def splits() -> dict[str, dict]:
+    """benchmarks/splits.yaml: kind -> {rule_base, tune: [...], validate: [...]}."""
+    import yaml
+
+    doc = yaml.safe_load(SPLITS.read_text())
+    return {k: v for k, v in doc.items() if isinstance(v, dict)}
+
+
+def part_of(scan: Scan) -> str:
+    """'tune' or 'validate' (benchmarks/splits.yaml), '-' for a scan it does not list."""
+    key = f"{scan.dataset}/{scan.name}"
+    for kind in splits().values():
+        for part in ("tune", "validate"):
+            if key in kind.get(part, []):
+                return part
+    return "-"
+
+
+def kbs_with(rules: str, ground_label: str, only: str | tuple[str, ...] | None = None):
     """kbs with a rule base; ``only``: the data set it was written for (None: all)."""
 
     def run(scan: Scan) -> np.ndarray | None:
-        if only is not None and scan.dataset != only:
+        if only is not None and scan.dataset not in ((only,) if isinstance(only, str) else only):
             return None
         rb = load_rule_base(rules)
         seg = Interpreter(rb, sensor=scan.sensor, jobs=JOBS["kbs"]).run(scan.xyz)
@@ -105,7 +143,7 @@ def kbs_with(rules: str, ground_label: str, only: str | None = None):
 
 METHODS: dict[str, tuple[str | None, Callable[[Scan], np.ndarray | None]]] = {
     "kbs outdoor": (None, kbs_with("outdoor", "ground")),
-    "kbs airborne": (None, kbs_with("airborne", "ground", only="ISPRS")),
+    "kbs airborne": (None, kbs_with("airborne", "ground", only=("ISPRS", "LAS"))),
     "kbs tabletop": (None, kbs_with(str(ROOT / "examples" / "rules" / "tabletop.yaml"), "table", only="mOSD table")),
     "Patchwork++": ("pypatchworkpp", lambda s: peers.patchworkpp(s.xyz, s.frame)),
     "CSF": ("CSF", lambda s: peers.csf(s.xyz, s.frame)),
@@ -115,7 +153,9 @@ METHODS: dict[str, tuple[str | None, Callable[[Scan], np.ndarray | None]]] = {
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sets", nargs="+", default=["kitti", "gndnet", "isprs", "mosd"])
+    ap.add_argument("--sets", nargs="+", default=["kitti", "gndnet", "seq00", "isprs", "las", "mosd"])
+    ap.add_argument("--part", choices=["tune", "validate", "all"], default="all",
+                    help="only the scans of this part of benchmarks/splits.yaml")
     ap.add_argument("--jobs", type=int, default=-1, help="kbs split processes (-1: one per core)")
     ap.add_argument("--outdoor", default="outdoor", help="rule file of the 'kbs outdoor' rows (default: the shipped one)")
     args = ap.parse_args()
@@ -131,9 +171,12 @@ def main() -> None:
             print(f"> {name} is not available and is skipped: {why}")
     methods = {k: v for k, v in METHODS.items() if not missing.get(k)}
     rows, per_set = [], {}
-    print("| data set | scan | points | method | precision | recall | F1 | IoU | total error % | seconds |")
-    print("|---|---|---:|---|---:|---:|---:|---:|---:|---:|")
+    print("| data set | scan | part | points | method | precision | recall | F1 | IoU | total error % | seconds |")
+    print("|---|---|---|---:|---|---:|---:|---:|---:|---:|---:|")
     for scan in scans(args.sets):
+        part = part_of(scan)
+        if args.part != "all" and part != args.part:
+            continue
         for name, (_, fn) in methods.items():
             t0 = time.perf_counter()
             pred = fn(scan)
@@ -142,16 +185,16 @@ def main() -> None:
                 continue
             m = ground_metrics(pred[scan.valid], np.where(scan.truth, 1, 0)[scan.valid], ground_values=(1,))
             rows.append((scan, name, m, dt))
-            per_set.setdefault((scan.dataset, name), []).append((m, dt))
-            print(f"| {scan.dataset} | {scan.name} | {len(scan.xyz):,} | {name} | {m.precision:.3f} | {m.recall:.3f} | "
+            per_set.setdefault((scan.dataset, part, name), []).append((m, dt))
+            print(f"| {scan.dataset} | {scan.name} | {part} | {len(scan.xyz):,} | {name} | {m.precision:.3f} | {m.recall:.3f} | "
                   f"{m.f1:.3f} | {m.iou:.3f} | {100 * m.total_error:.2f} | {dt:.3f} |", flush=True)
-    print("\nMedian over the scans of each data set:\n")
-    print("| data set | scans | method | precision | recall | F1 | IoU | total error % | seconds |")
-    print("|---|---:|---|---:|---:|---:|---:|---:|---:|")
-    for (ds, name), vals in per_set.items():
+    print("\nMedian over the scans of each data set and part:\n")
+    print("| data set | part | scans | method | precision | recall | F1 | IoU | total error % | seconds |")
+    print("|---|---|---:|---|---:|---:|---:|---:|---:|---:|")
+    for (ds, part, name), vals in per_set.items():
         med = {k: statistics.median(getattr(m, k) for m, _ in vals) for k in ("precision", "recall", "f1", "iou",
                                                                                "total_error")}
-        print(f"| {ds} | {len(vals)} | {name} | {med['precision']:.3f} | {med['recall']:.3f} | {med['f1']:.3f} | "
+        print(f"| {ds} | {part} | {len(vals)} | {name} | {med['precision']:.3f} | {med['recall']:.3f} | {med['f1']:.3f} | "
               f"{med['iou']:.3f} | {100 * med['total_error']:.2f} | {statistics.median(d for _, d in vals):.3f} |")
 
 

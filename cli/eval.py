@@ -13,12 +13,15 @@ import numpy as np
 from kbs import __version__
 from kbs.errors import CloudFileError, ParameterError
 from kbs.evaluation import (
+    SEMANTICKITTI_GROUND,
+    SEMANTICKITTI_IGNORED,
     GroundMetrics,
     HooverResult,
     UnknownFieldError,
     adjusted_rand,
     ground_metrics,
     hoover,
+    is_semantickitti_label,
     load_ground_truth,
 )
 from kbs.evaluation.hoover import check_tolerance
@@ -166,9 +169,11 @@ def format_ground(g: GroundMetrics) -> str:
 @click.option("--tolerance", type=float, default=0.8, show_default=True, callback=_tolerance,
               help="Hoover tolerance T, in (0.5, 1].")
 @click.option("--ground-values", callback=_int_list, metavar="V,V,...",
-              help="GT labels that are ground (e.g. 9,10,11,12,17 for SemanticKITTI); gives the ground metrics.")
+              help="GT labels that are ground (e.g. 9,10,11,12,17 for SemanticKITTI's learning ids); gives the ground "
+                   "metrics. Default for a .label GT: " + ",".join(map(str, SEMANTICKITTI_GROUND)) + ".")
 @click.option("--unlabelled-values", callback=_int_list, metavar="V,V,...",
-              help="GT labels whose points are ignored (e.g. 0 for SemanticKITTI and mOSD); default: none.")
+              help="GT labels whose points are ignored (e.g. 0 for SemanticKITTI and mOSD); default: none ("
+                   + ",".join(map(str, SEMANTICKITTI_IGNORED)) + " for a .label GT).")
 @click.option("--ground-label", default="ground", show_default=True, metavar="NAME",
               help="The result's label that means ground (from its <stem>.json label_names).")
 @click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), metavar="OUT.json",
@@ -183,9 +188,16 @@ def format_ground(g: GroundMetrics) -> str:
 def eval_(result: Path, ground_truth: str, tolerance: float, ground_values: tuple[int, ...] | None,
           unlabelled_values: tuple[int, ...] | None, ground_label: str, json_out: Path | None,
           do_hoover: bool, tolerances: tuple[float, ...] | None, image_path: Path | None) -> None:
-    """Compare a `kbs run` RESULT (.ply) with GROUND_TRUTH: a label file (.npy, or text with one
-    integer per line) or field:NAME, a field of RESULT (e.g. field:label_in, the input's own
-    'label').
+    """Compare a `kbs run` RESULT (.ply) with GROUND_TRUTH: a label file (.npy, a SemanticKITTI
+    .label, or text with one integer per line) or field:NAME, a field of RESULT (e.g.
+    field:label_in, the input's own 'label').
+
+    SemanticKITTI: a .label file (uint32 per point, the raw class id in the low 16 bits) is read
+    as the class ids; unless given otherwise, ground is road 40, parking 44, sidewalk 48,
+    other-ground 49, lane-marking 60 and terrain 72 (terrain counts, as in the learning-id scans
+    9,10,11,12,17 of the benchmarks), and unlabelled 0 and outlier 1 are ignored. Its size must
+    be a multiple of 4 bytes, match the KITTI .bin of the same name beside it, and hold one label
+    per point of RESULT (exit code 3 otherwise).
 
     Prints the Hoover et al. (1996) counts of the result's clusters against the GT regions,
     the ground metrics (with --ground-values; the ground label is found in RESULT's sibling
@@ -207,6 +219,11 @@ def eval_(result: Path, ground_truth: str, tolerance: float, ground_values: tupl
         return
     if image_path is not None:
         raise click.UsageError("--image is for a SegComp evaluation (RESULT X.ms-seg, GROUND_TRUTH X.gt-seg)")
+    kitti = is_semantickitti_label(ground_truth)
+    if kitti and ground_values is None:
+        ground_values = SEMANTICKITTI_GROUND
+    if kitti and unlabelled_values is None:
+        unlabelled_values = SEMANTICKITTI_IGNORED
     unlabelled = unlabelled_values or ()
     cloud = read_result_cloud(result)
     if "cluster" not in cloud.fields:

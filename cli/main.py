@@ -24,6 +24,7 @@ COMMANDS = {
     "rules": "kbs.cli.run:rules",
     "predicates": "kbs.cli.run:predicates",
     "eval": "kbs.cli.eval:eval_",
+    "tune": "kbs.cli.tune:tune_",
     "cluster": "kbs.cli.cluster:cluster",
     "synth": "kbs.cli.synth:synth",
     "segcomp": "kbs.cli.segcomp:segcomp",

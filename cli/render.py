@@ -18,8 +18,8 @@ def _outputs(result: Path, out: Path | None, kind: str) -> dict[str, Path]:
     result). ``all``: three files, ``<out stem>-series.png``, ``-map.png``, ``-clusters.png``
     (default ``<result stem>-...`` next to the result)."""
     kinds = KINDS if kind == "all" else (kind,)
-    if out is not None and kind != "all":
-        return {kind: out}
+    if out is not None and kind != "all":  # no suffix: a PNG, as matplotlib's savefig names it
+        return {kind: out if out.suffix else out.with_name(out.name + ".png")}
     base = (out.with_suffix("") if out is not None else result.with_suffix(""))
     return {k: base.with_name(f"{base.name}-{k}.png") for k in kinds}
 
@@ -35,7 +35,9 @@ def _outputs(result: Path, out: Path | None, kind: str) -> dict[str, Path]:
 @click.option("--max-points", type=click.IntRange(100, None), default=30000, show_default=True,
               help="Points drawn (and clustered for the series), a deterministic stride sample.")
 @click.option("--dpi", type=click.IntRange(30, 600), default=100, show_default=True)
-def render(result: Path, out: Path | None, kind: str, max_points: int, dpi: int) -> None:
+@click.option("--ground-label", default="ground", show_default=True, metavar="NAME",
+              help="The map's ground: cells whose points all have this label (from RESULT's label_names).")
+def render(result: Path, out: Path | None, kind: str, max_points: int, dpi: int, ground_label: str) -> None:
     """Draw figures of a `kbs run` RESULT.json (its points are read from the sibling RESULT.ply;
     the two must be the same run's)."""
     matplotlib = require("matplotlib", "render", "kbs render")
@@ -48,6 +50,9 @@ def render(result: Path, out: Path | None, kind: str, max_points: int, dpi: int)
     for path in outputs.values():  # a figure never replaces the result it is drawn from
         check_output(path, inputs=sources, force=True)
     res = figures.load_result(result)
+    if "map" in outputs and ground_label not in res.label_names:
+        raise click.BadParameter(f"no label {ground_label!r} in this result (labels: {', '.join(res.label_names) or 'none'}): "
+                                 "the map draws that label against the others", param_hint="--ground-label")
     stem = result.stem
     for k, path in outputs.items():
         t = time.perf_counter()
@@ -55,7 +60,7 @@ def render(result: Path, out: Path | None, kind: str, max_points: int, dpi: int)
             fig = figures.series_figure(res.X, max_points=max_points, title=f"{stem}: UFP-ONC partitions, top view")
         elif k == "map":
             fig = figures.obstacle_map_figure(res.X, res.label, res.label_names, sensor=res.sensor,
-                                              title=f"{stem}: obstacle map")
+                                              ground_label=ground_label, title=f"{stem}: obstacle map")
         else:
             fig = figures.clusters_figure(res.X, res.cluster, res.doc["clusters"], membership=res.membership,
                                           max_points=max_points, title=f"{stem}: output clusters")

@@ -11,7 +11,14 @@ says which conflict-resolution order is followed and why.
 """
 from __future__ import annotations
 
-from kbs.evaluation.groundtruth import FIELD_PREFIX, UnknownFieldError, load_ground_truth
+from kbs.evaluation.groundtruth import (
+    FIELD_PREFIX,
+    SEMANTICKITTI_GROUND,
+    SEMANTICKITTI_IGNORED,
+    UnknownFieldError,
+    is_semantickitti_label,
+    load_ground_truth,
+)
 from kbs.evaluation.hoover import (
     AngleError,
     HooverInstance,
@@ -26,7 +33,8 @@ from kbs.evaluation.hoover import (
 from kbs.evaluation.metrics import GroundMetrics, adjusted_rand, ground_metrics
 
 __all__ = [
-    "AngleError", "FIELD_PREFIX", "GroundMetrics", "HooverInstance", "HooverResult", "UnknownFieldError",
+    "AngleError", "FIELD_PREFIX", "GroundMetrics", "HooverInstance", "HooverResult", "SEMANTICKITTI_GROUND",
+    "SEMANTICKITTI_IGNORED", "UnknownFieldError",
     "adjacent_regions", "adjusted_rand", "folded_angle", "ground_metrics", "hoover", "hoover_average",
-    "load_ground_truth", "median_spacing", "region_normals",
+    "is_semantickitti_label", "load_ground_truth", "median_spacing", "region_normals",
 ]

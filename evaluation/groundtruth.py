@@ -1,5 +1,5 @@
-"""Ground-truth labels: a per-point label file (``.npy``, or text with one integer per line), or a
-field of the evaluated cloud (``field:NAME``)."""
+"""Ground-truth labels: a per-point label file (``.npy``, a SemanticKITTI ``.label``, or text with
+one integer per line), or a field of the evaluated cloud (``field:NAME``)."""
 from __future__ import annotations
 
 import difflib
@@ -14,6 +14,24 @@ from kbs.io import PointCloud
 
 #: Prefix of a ground-truth spec naming a field of the cloud.
 FIELD_PREFIX = "field:"
+
+#: SemanticKITTI raw class ids (the low 16 bits of a ``.label`` entry) that are ground, as the
+#: dataset's own benchmark maps them to its learning classes road (40 road, 60 lane-marking),
+#: parking (44), sidewalk (48), other-ground (49) and terrain (72): the same set as the learning
+#: ids 9, 10, 11, 12, 17 of the ``semantickitti/*.labels.npy`` scans (benchmarks/bench_ground.py).
+SEMANTICKITTI_GROUND = (40, 44, 48, 49, 60, 72)
+#: SemanticKITTI raw classes whose points are ignored: 0 unlabelled, 1 outlier.
+SEMANTICKITTI_IGNORED = (0, 1)
+#: Bytes per entry of a SemanticKITTI ``.label`` file (uint32: class id low 16 bits, instance high 16).
+LABEL_BYTES = 4
+#: Bytes per point of a KITTI ``.bin`` scan (float32 x y z remission).
+KITTI_BIN_BYTES = 16
+
+
+def is_semantickitti_label(spec: str | os.PathLike[str]) -> bool:
+    """Whether a ground-truth spec is a SemanticKITTI ``.label`` file (by its extension)."""
+    text = os.fspath(spec)
+    return not text.startswith(FIELD_PREFIX) and Path(text).suffix.lower() == ".label"
 
 
 class UnknownFieldError(ParameterError):
@@ -48,8 +66,10 @@ def load_ground_truth(spec: str | os.PathLike[str], cloud: PointCloud | None = N
         ``field:NAME``: the field NAME of ``cloud`` (e.g. ``field:label`` of a PCD,
         ``field:classification`` of a LAS file, ``field:col3`` of a text table,
         ``field:label_in`` of a ``kbs run`` result made from a labelled cloud); or a file:
-        ``.npy`` of shape (N,) or (N, 1), or any other extension read as text with one integer
-        label per line (e.g. ``samp21-utm.labels.txt``).
+        ``.npy`` of shape (N,) or (N, 1); ``.label``, SemanticKITTI's binary format (one uint32
+        per point, the semantic class in the low 16 bits, the instance in the high 16: the class
+        is returned, see :data:`SEMANTICKITTI_GROUND`); or any other extension read as text with
+        one integer label per line (e.g. ``samp21-utm.labels.txt``).
     cloud : PointCloud, optional
         The evaluated cloud: required for ``field:``; when given, the labels must have one
         entry per point of it.
@@ -82,7 +102,9 @@ def load_ground_truth(spec: str | os.PathLike[str], cloud: PointCloud | None = N
             raise CloudFileError(where, f"field {name!r} does not hold integer labels "
                                         f"({cloud.fields[name].dtype})") from exc
     path = Path(text)
-    labels = _read_npy(path) if path.suffix.lower() == ".npy" else _read_text(path)
+    suffix = path.suffix.lower()
+    labels = (_read_npy(path) if suffix == ".npy" else _read_semantickitti(path) if suffix == ".label"
+              else _read_text(path))
     if cloud is not None and len(labels) != len(cloud):
         raise CloudFileError(str(path), f"{len(labels):,} labels for the {len(cloud):,} points of {where}")
     return labels
@@ -108,6 +130,34 @@ def _read_npy(path: Path) -> np.ndarray:
     except KbsError as exc:
         raise CloudFileError(str(path), f"expected integer labels of shape (N,) or (N, 1), "
                                         f"got {a.dtype} {a.shape}") from exc
+
+
+def _read_semantickitti(path: Path) -> np.ndarray:
+    """The semantic classes of a SemanticKITTI ``.label`` file (uint32 little-endian per point,
+    class in the low 16 bits). The file's size must be a whole number of entries, and match the
+    KITTI ``.bin`` scan of the same name beside it when there is one."""
+    _check_file(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise CloudFileError(str(path), f"cannot read: {exc.strerror or exc}") from exc
+    if not data:
+        raise CloudFileError(str(path), "the label file is empty (0 bytes)")
+    if len(data) % LABEL_BYTES:
+        raise CloudFileError(str(path), f"size {len(data):,} bytes is not a multiple of {LABEL_BYTES}: not a "
+                                        f"SemanticKITTI .label file (one uint32 per point); the last "
+                                        f"{len(data) % LABEL_BYTES} byte(s), from byte offset "
+                                        f"{len(data) - len(data) % LABEL_BYTES:,}, are not a whole label")
+    n = len(data) // LABEL_BYTES
+    scan = path.with_suffix(".bin")
+    if scan.is_file():
+        size = scan.stat().st_size
+        if size % KITTI_BIN_BYTES == 0 and size // KITTI_BIN_BYTES != n:
+            raise CloudFileError(str(path), f"{n:,} labels ({len(data):,} bytes), but the scan {scan} beside it has "
+                                            f"{size // KITTI_BIN_BYTES:,} points ({size:,} bytes of "
+                                            f"{KITTI_BIN_BYTES}): not the labels of that scan")
+    raw = np.frombuffer(data, dtype="<u4")
+    return (raw & 0xFFFF).astype(np.int64)
 
 
 def _read_text(path: Path) -> np.ndarray:

@@ -26,6 +26,7 @@ from pathlib import Path
 from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
+import numpy as np
 import yaml
 import yaml.cyaml  # noqa: F401 (libyaml when present)
 from jsonschema import Draft202012Validator
@@ -318,6 +319,52 @@ class ReleaseSpec:
     pos: SourcePos
 
 
+#: The thresholds ``kbs tune`` may fit, per part of a rule file: post step -> its numeric fields
+#: (a check's are its ``min`` and ``max``). ``tune`` on anything else is a problem.
+TUNABLE_POST_FIELDS: dict[str, tuple[str, ...]] = {
+    "merge_coplanar": ("max_angle", "max_offset"),
+    "ground_model": ("neighbours", "radius"),
+    "ground_contact": ("tolerance",),
+    "ground_release": ("tolerance",),
+}
+#: Evenly spaced values a ``tune: {min, max}`` mark tries when it gives no ``steps``.
+TUNE_STEPS = 5
+
+
+@dataclass(frozen=True)
+class Tunable:
+    """A threshold marked ``tune:`` in a rule file: the values ``kbs tune`` tries for it.
+
+    Attributes
+    ----------
+    path : tuple of str
+        Where the value is in the document, e.g. ``("checks", "planar", "max")`` or
+        ``("post", "ground_contact", "tolerance")``.
+    value : float
+        The value the file gives it now.
+    values : tuple of float
+        The candidates, ascending, the current value among them.
+    integer : bool
+        Whether the field takes integers (``ground_model.neighbours``).
+    pos : SourcePos
+        Position of the value in the file (what ``kbs tune`` replaces).
+    mark : SourcePos
+        Position of the ``tune`` key.
+    """
+
+    path: tuple[str, ...]
+    value: float
+    values: tuple[float, ...]
+    integer: bool
+    pos: SourcePos
+    mark: SourcePos
+
+    @property
+    def name(self) -> str:
+        """'checks.planar.max', 'post.ground_contact.tolerance'."""
+        return ".".join(self.path)
+
+
 @dataclass(frozen=True)
 class RuleBase:
     """A validated rule base."""
@@ -347,6 +394,8 @@ class RuleBase:
     #: what is valid but cannot be meant: conditions that can never hold (``kbs rules check``
     #: prints them; they do not make the file invalid)
     warnings: tuple[Problem, ...] = ()
+    #: the thresholds marked ``tune:`` (for ``kbs tune``; a run ignores the marks), in file order
+    tunables: tuple[Tunable, ...] = ()
 
     @property
     def label_names(self) -> list[str]:
@@ -837,6 +886,7 @@ class _Validator:
         gmodel, relabel, contact, release = self._post(d.get("post"), checks, labels)
         self._model_checks_placed(checks, rules, labels)
         classes = self._asprs_classes(d.get("asprs_classes"), [lb.name for lb in labels])
+        tunables = self._tunables(checks)
         spacing = d.get("spacing")
         if isinstance(spacing, list) and len(spacing) == 2 and all(isinstance(x, (int, float)) for x in spacing) \
                 and spacing[0] >= spacing[1]:
@@ -850,7 +900,136 @@ class _Validator:
             text="\n".join(self.pos.lines), ground_model=gmodel, relabel=tuple(relabel), contact=contact,
             release=release, warnings=tuple(sorted(self.warnings, key=lambda p: (p.pos.line, p.pos.col))),
             asprs_classes=classes, spacing=None if spacing is None else (float(spacing[0]), float(spacing[1])),
+            tunables=tuple(tunables),
         )
+
+    # -- tune marks ------------------------------------------------------------------------------
+
+    def _tunables(self, checks: Mapping[str, Check]) -> list[Tunable]:
+        """The ``tune:`` marks of the checks and post steps, validated (positioned problems)."""
+        out: list[Tunable] = []
+        raw_checks = self.data.get("checks")
+        for name, spec in (raw_checks.items() if isinstance(raw_checks, dict) else ()):
+            if isinstance(spec, dict) and "tune" in spec:
+                fields = tuple(f for f in ("min", "max") if f in spec)
+                t = self._tunable(("checks", name), spec, fields, ("min", "max"), checks.get(name))
+                if t is not None:
+                    out.append(t)
+        post = self.data.get("post")
+        for step, allowed in TUNABLE_POST_FIELDS.items():
+            spec = post.get(step) if isinstance(post, dict) else None
+            if isinstance(spec, dict) and "tune" in spec:
+                fields = tuple(f for f in allowed if f in spec)
+                t = self._tunable(("post", step), spec, fields, allowed, None)
+                if t is not None:
+                    out.append(t)
+        out.sort(key=lambda t: (t.mark.line, t.mark.col))
+        return out
+
+    def _tunable(self, base: tuple, spec: dict, present: tuple[str, ...], allowed: tuple[str, ...],
+                 check: Check | None) -> Tunable | None:
+        mark = spec["tune"]
+        at = base + ("tune",)
+        what = _where(base)
+        if isinstance(mark, list):
+            mark = {"values": mark}
+        if not isinstance(mark, dict):
+            return None  # the schema reported it
+        field = mark.get("field")
+        if field is None:
+            if len(present) != 1:
+                self.add(at, f"tune on {what}: say which threshold with 'field' ("
+                         + (f"it has {', '.join(present)})" if present else f"thresholds: {', '.join(allowed)}; "
+                            "none is set)"), key=True)
+                return None
+            field = present[0]
+        elif not isinstance(field, str):
+            return None  # the schema reported it
+        elif field not in allowed:
+            hint = self.hint(field, allowed)
+            kind = "not a number" if field in spec else "not a field"
+            self.add(at + ("field",), f"tune on {what}: '{_clip(field, 30)}' is {kind} kbs tune can fit "
+                     f"(numeric thresholds here: {', '.join(allowed)})" + (f"; did you mean '{hint}'?" if hint else ""))
+            return None
+        elif field not in present:
+            self.add(at + ("field",), f"tune on {what}: {field} is not set; write its current value "
+                     f"({what}.{field}) before marking it")
+            return None
+        current = spec.get(field)
+        if isinstance(current, bool) or not isinstance(current, (int, float)):
+            return None  # the schema reported it
+        integer = base == ("post", "ground_model") and field == "neighbours"
+        has_range = "min" in mark or "max" in mark
+        if "values" in mark and (has_range or "steps" in mark):
+            self.add(at, f"tune on {what}: give either 'values' or 'min'/'max' (with 'steps'), not both", key=True)
+            return None
+        if "values" in mark:
+            values = mark["values"]
+            if not isinstance(values, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                       for v in values):
+                return None  # the schema reported it
+            vpath = at if isinstance(spec["tune"], list) else at + ("values",)
+            lo, hi = min(values), max(values)
+            if integer and any(float(v) != int(v) for v in values):
+                self.add(vpath, f"tune on {what}.{field}: the values must be integers")
+                return None
+            grid = [float(v) for v in values]
+        else:
+            lo, hi = mark.get("min"), mark.get("max")
+            if lo is None or hi is None:
+                self.add(at, f"tune on {what}: give 'min' and 'max' (and 'steps', default {TUNE_STEPS}), or "
+                         "'values', or a list of values", key=True)
+                return None
+            if any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in (lo, hi)):
+                return None  # the schema reported it
+            vpath = at + ("min",)
+            if lo > hi:
+                self.add(at + ("min",), f"tune on {what}.{field}: min {lo:g} > max {hi:g}")
+                return None
+            steps = mark.get("steps", TUNE_STEPS)
+            if isinstance(steps, bool) or not isinstance(steps, int):
+                return None  # the schema reported it
+            grid = [float(v) for v in np.linspace(float(lo), float(hi), max(int(steps), 2))]
+            if integer:
+                grid = [float(round(v)) for v in grid]
+        if not lo <= current <= hi:
+            self.add(vpath, f"tune on {what}.{field}: the range [{lo:g}, {hi:g}] does not hold the current value "
+                     f"{current:g}")
+            return None
+        bad = self._tune_value_problem(base, field, [*grid, float(current)], check, spec)
+        if bad:
+            self.add(vpath, f"tune on {what}.{field}: {bad}")
+            return None
+        values = tuple(sorted({round(v, 12) for v in [*grid, float(current)]}))
+        return Tunable(path=tuple(str(p) for p in base) + (field,), value=float(current), values=values,
+                       integer=integer, pos=self.pos.pos(base + (field,)), mark=self.pos.pos(at, key=True))
+
+    def _tune_value_problem(self, base: tuple, field: str, values: list[float], check: Check | None,
+                            spec: dict) -> str | None:
+        """Why some candidate cannot be the field's value (what the predicate measures, the
+        schema's bounds, a check's other bound), or None."""
+        if base[0] == "checks":
+            if check is None:
+                return None  # the check is broken; reported there
+            lo, hi = check.predicate.value_range
+            out = [v for v in values if (lo is not None and v < lo) or (hi is not None and v > hi)]
+            if out:
+                return (f"value {out[0]:g} is outside what '{check.predicate.name}' can measure "
+                        f"[{'-inf' if lo is None else f'{lo:g}'}, {'inf' if hi is None else f'{hi:g}'}]")
+            other = "max" if field == "min" else "min"
+            o = spec.get(other)
+            if isinstance(o, (int, float)) and not isinstance(o, bool):
+                clash = [v for v in values if (v > o if field == "min" else v < o)]
+                if clash:
+                    return f"value {clash[0]:g} would make the check never pass ({other} is {o:g})"
+            return None
+        prop = schema()["properties"]["post"]["properties"][base[1]]["properties"].get(field, {})
+        for v in values:
+            if "minimum" in prop and v < prop["minimum"] or "maximum" in prop and v > prop["maximum"]:
+                return f"value {v:g} is outside [{prop.get('minimum', '-inf')}, {prop.get('maximum', 'inf')}]"
+            if "exclusiveMinimum" in prop and v <= prop["exclusiveMinimum"]:
+                return f"value {v:g} must be above {prop['exclusiveMinimum']:g}"
+        return None
 
     def _asprs_classes(self, raw: Any, names: list[str]) -> dict[str, int] | None:
         """asprs_classes: label -> ASPRS code; the keys must be labels (or 'noise'), the codes

@@ -148,7 +148,8 @@ def obstacle_map_figure(X: np.ndarray, label: np.ndarray, label_names: list[str]
                         cell: float | None = None, title: str = "") -> Any:
     """Top-down map of ground vs obstacle cells (a cell is an obstacle when any of its points has
     a label other than ``ground_label``; empty cells white, noise-only cells grey), the sensor
-    marked with a star."""
+    marked with a star when it lies in or near the scan (an airborne or georeferenced scan's
+    default sensor, the origin, would shrink the scan to a sliver: it is named in a note instead)."""
     require("matplotlib", "render", "drawing figures")
     from matplotlib.colors import ListedColormap
     from matplotlib.patches import Patch
@@ -164,9 +165,15 @@ def obstacle_map_figure(X: np.ndarray, label: np.ndarray, label_names: list[str]
     handles = [Patch(color="#b8d8a8", label=ground_label), Patch(color="#c0392b", label="obstacle"),
                Patch(facecolor="white", edgecolor="0.6", label="no point")]
     if sensor is not None:
-        h = ax.scatter([sensor[0]], [sensor[1]], marker="*", s=220, c="#1f4e99", edgecolors="k", zorder=3,
-                       label="sensor")
-        handles.append(h)
+        w, h_ = nx * c, ny * c
+        near = (x0 - 0.25 * w <= sensor[0] <= x0 + 1.25 * w) and (y0 - 0.25 * h_ <= sensor[1] <= y0 + 1.25 * h_)
+        if near:
+            h = ax.scatter([sensor[0]], [sensor[1]], marker="*", s=220, c="#1f4e99", edgecolors="k", zorder=3,
+                           label="sensor")
+            handles.append(h)
+        else:
+            ax.text(0.01, 0.01, f"sensor at ({sensor[0]:.6g}, {sensor[1]:.6g}), far outside the scan: not drawn",
+                    transform=ax.transAxes, fontsize=7, color="0.3")
     ax.legend(handles=handles, loc="upper right", fontsize=8, framealpha=0.9)
     ax.set_aspect("equal")
     ax.set_xlabel("x")
@@ -210,23 +217,28 @@ def cluster_axes(X: np.ndarray, weights: np.ndarray, normal: np.ndarray | None) 
 
 def clusters_figure(X: np.ndarray, cluster: np.ndarray, clusters: list[dict[str, Any]], *,
                     membership: np.ndarray | None = None, max_points: int = 30000, point_size: float = 0.6,
-                    elev: float = 35.0, azim: float = -60.0, title: str = "") -> Any:
-    """Oblique 3-D view: points (decimated) coloured by output cluster, each cluster's fuzzy
-    centre (a dot) and its box along the covariance eigenvectors with half-sides
-    2 sqrt(eigenvalue) (centre, eigenvalues and normal from the JSON descriptors; the in-plane
-    directions from the cluster's points weighted by membership)."""
+                    elev: float = 35.0, azim: float = -60.0, title: str = "", max_boxes: int = 30) -> Any:
+    """Oblique 3-D view: points (decimated) coloured by output cluster and, for the ``max_boxes``
+    largest clusters (a scene of thousands stays readable, and fast), the fuzzy centre (a dot)
+    and the box along the covariance eigenvectors with half-sides 2 sqrt(eigenvalue) (centre,
+    eigenvalues and normal from the JSON descriptors; the in-plane directions from the cluster's
+    points weighted by membership)."""
     X = np.asarray(X, dtype=float)
     cluster = np.asarray(cluster)
     fig = _figure(8.0, 6.4)
     ax = fig.add_subplot(1, 1, 1, projection="3d", computed_zorder=False)  # boxes over points
     idx = decimate(len(X), max_points)
     w_all = np.ones(len(X)) if membership is None else np.asarray(membership, dtype=float)
-    for cl in clusters:
+    boxed = sorted(clusters, key=lambda cl: (-int(cl.get("n_points", 0)), cl["index"]))[:max(max_boxes, 0)]
+    order = np.argsort(cluster, kind="stable")  # each cluster's points at once, not a pass per cluster
+    sorted_ids = cluster[order]
+    for cl in boxed:
         d = cl.get("descriptors") or {}
         if "center" not in d or "eigenvalues" not in d:
             continue
-        sel = cluster == cl["index"]
-        if sel.sum() < 3:
+        a, b = np.searchsorted(sorted_ids, [cl["index"], cl["index"] + 1])
+        sel = order[a:b]
+        if sel.size < 3:
             continue
         col = _rgb(np.array([cl["index"]]))[0]
         center = np.asarray(d["center"], dtype=float)
@@ -252,5 +264,9 @@ def clusters_figure(X: np.ndarray, cluster: np.ndarray, clusters: list[dict[str,
     ax.set_ylabel("y", fontsize=8)
     ax.set_zlabel("z", fontsize=8)
     ax.tick_params(labelsize=6)
-    ax.set_title(title or f"{len(clusters)} output clusters: fuzzy centres and 2-sigma boxes", fontsize=11)
+    boxes = "fuzzy centres and 2-sigma boxes" + (f" of the {len(boxed)} largest" if len(boxed) < len(clusters) else "")
+    ax.set_title(title or f"{len(clusters)} output clusters: {boxes}", fontsize=11)
+    if len(boxed) < len(clusters) and title:
+        ax.text2D(0.01, 0.01, f"boxes: the {len(boxed)} largest of {len(clusters)} clusters", transform=ax.transAxes,
+                  fontsize=7, color="0.3")
     return fig

@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -143,3 +145,62 @@ def test_hull_skips_degenerate_clusters():
     # outward: every face normal points away from the centroid
     n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
     assert (np.einsum("ij,ij->i", n, V[F].mean(axis=1) - V.mean(axis=0)) > 0).all()
+
+
+def test_render_map_of_georeferenced_data_keeps_the_scan_in_view_and_names_the_png(tmp_path):
+    """UTM-like coordinates with the sensor left at the origin: the map's axes cover the scan,
+    not the origin (the scan was an invisible sliver); `--out fig` writes fig.png and says so; a
+    result without a 'ground' label is refused for the map unless --ground-label names one."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from kbs.cli.main import main
+    from kbs.io import read_cloud, write_ply
+    from kbs.report import figures
+
+    root = Path(__file__).resolve().parents[1]
+    X = read_cloud(root / "examples" / "data" / "outdoor.ply").xyz + [600000.0, 5000000.0, 0.0]
+    scan = tmp_path / "utm.ply"
+    write_ply(scan, X, {})
+    out = tmp_path / "o"
+    assert main(["-q", "run", "--rules", "outdoor", "--sensor", "0,0,0", str(scan), "--out", str(out)]) in (0, None)
+    res = figures.load_result(out / "utm.json")
+    fig = figures.obstacle_map_figure(res.X, res.label, res.label_names, sensor=np.zeros(3))
+    x0, x1 = fig.axes[0].get_xlim()
+    assert x0 > 599000.0 and x1 - x0 < 200.0, (x0, x1)
+    assert any("far outside the scan" in t.get_text() for t in fig.axes[0].texts)
+    r = subprocess.run([sys.executable, "-c", "import sys; from kbs.cli.main import main; sys.exit(main())",
+                        "render", str(out / "utm.json"), "--kind", "map", "--out", str(tmp_path / "fig")],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "fig.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and not (tmp_path / "fig").exists()
+    assert f"wrote {tmp_path / 'fig.png'}" in r.stdout
+    r = subprocess.run([sys.executable, "-c", "import sys; from kbs.cli.main import main; sys.exit(main())",
+                        "render", str(out / "utm.json"), "--kind", "map", "--ground-label", "road"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and "no label 'road' in this result (labels: ground, obstacle)" in r.stderr
+
+
+def test_clusters_figure_boxes_the_largest_clusters_only():
+    """Thousands of clusters (an airborne tile): boxes and labels for the 30 largest, said in the
+    figure; every point is still drawn in its cluster's colour."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from kbs.report import figures
+
+    rng = np.random.default_rng(0)
+    n, k = 200_000, 2_000
+    cluster = rng.integers(0, k, n)
+    X = rng.uniform(0, 100, (n, 3))
+    sizes = np.bincount(cluster, minlength=k)
+    clusters = [{"index": i, "label": "object", "n_points": int(sizes[i]),
+                 "descriptors": {"center": X[cluster == i].mean(axis=0).tolist(), "eigenvalues": [1.0, 0.5, 0.1],
+                                 "normal": [0.0, 0.0, 1.0]}} for i in range(k)]
+    fig = figures.clusters_figure(X, cluster, clusters, title="tile")
+    ax = fig.axes[0]
+    assert len(ax.lines) == 30 * 12  # 12 edges a box
+    assert sum(t.get_text()[0].isdigit() for t in ax.texts) == 30
+    assert any("the 30 largest of 2000 clusters" in t.get_text() for t in ax.texts)
+    largest = {c["index"] for c in sorted(clusters, key=lambda c: -c["n_points"])[:30]}
+    assert {int(t.get_text().split()[0]) for t in ax.texts if t.get_text()[0].isdigit()} == largest
