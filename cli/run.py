@@ -310,7 +310,7 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
     say(f"  {s['clusters']} clusters, {s['splits']} splits, {s['limits']} limits reached; points: {per_label}")
     for line in limit_lines(s["limits_by_kind"], Path(rb.path).name, result=str(js or "the result")):
         say(f"  {line}")
-    say(f"  ground: {seg.explanation.ground.get('source', 'not used')}")
+    say(f"  ground: {seg.explanation.ground_line()}")
     if tiling is not None:
         t = seg.tiling
         say(f"  tiles: {len(t['tiles'])} of {t['size']:g} x {t['size']:g} with a {t['buffer']:g} buffer; "
@@ -586,7 +586,7 @@ def explain(result: Path, cluster_id: str | None, depth: int | str | None) -> No
         click.echo(f"rule base '{expl.rule_base}' ({expl.rule_file}), strategy {expl.strategy}; "
                    f"labels: {', '.join(expl.label_names)}")
         if expl.ground:
-            click.echo(f"ground: {expl.ground.get('source')}")
+            click.echo(expl.ground_text())
         for line in expl.summary():
             click.echo(line)
         lines = expl.tree_lines(depth=levels)

@@ -31,6 +31,7 @@ from kbs.errors import FitError, KbsError
 from kbs.inference import UFPONCResult, ufp_onc
 from kbs.knowledge.connexity import Connexity, assign_to_nearest, project_on_plane
 from kbs.knowledge.explain import NO_LABEL, APDCurve, Catalogue, CheckRecord, ClusterRecord, Explanation
+from kbs.knowledge.groundplane import robust_plane
 from kbs.knowledge.predicates import Cluster, Ground, Measurement, PredicateError, Scene
 from kbs.knowledge.rulebase import Condition, RuleBase
 
@@ -264,38 +265,111 @@ class Interpreter:
     # -- ground ----------------------------------------------------------------------------------
 
     def _ground(self, X: np.ndarray, candidates: list[tuple[Cluster, ClusterRecord]], info: dict) -> Ground | None:
+        """The ground plane (scene.ground): fixed, or the closest large plane to the sensor among the
+        candidates (the clusters of the initial partition with at least min_points points): a
+        candidate passing the candidate check gives the plane of all its points; one that fails it
+        but whose robust plane (scene.ground.plane) holds enough of its points within the inlier
+        distance, and lies within its max_tilt of the fallback normal, gives that plane. The
+        fallback only when no candidate gives a plane. ``info`` (the explanation's ``ground``)
+        records which cluster, how it was found, and every candidate's verdict."""
         spec = self.rb.ground
-        if not self.rb.needs_ground and spec.normal is None and spec.candidate is None and self.rb.ground_model is None:
+        if not self.rb.needs_ground and spec.normal is None and spec.candidate is None and spec.plane is None \
+                and self.rb.ground_model is None:
             return None
         if spec.normal is not None:
             return self._plane_from_normal(X, np.asarray(spec.normal, float), "fixed", info)
-        best, no_plane = None, []
-        if spec.candidate is not None:
+        fallback = np.asarray(spec.fallback, float)
+        fallback = fallback / np.linalg.norm(fallback)
+        best, no_plane, verdicts, tilted = None, [], [], []
+        if spec.candidate is not None or spec.plane is not None:
             provisional = Scene(self.sensor, None, self.rb.units)
             for cl, rec in candidates:
                 if cl.n_points < spec.min_points:
                     continue
                 if cl.geometry.degenerate:  # its points on a line: no plane to give
                     no_plane.append(cl.id)
+                    verdicts.append({"cluster": cl.id, "points": cl.n_points,
+                                     "why": f"degenerate: {cl.geometry.degeneracy}"})
                     continue
-                if not self._facts(cl, provisional, rec)(spec.candidate):
+                found = self._candidate_plane(cl, rec, provisional)
+                verdict = {"cluster": cl.id, "points": cl.n_points, **{k: v for k, v in found.items() if k != "plane"}}
+                verdicts.append(verdict)
+                if found["plane"] is None:
                     continue
-                dist = float(np.sqrt(((cl.X - self.sensor) ** 2).sum(axis=1).min()))
+                n, point, on = found["plane"]
+                if (self.sensor - point) @ n < 0:  # point up, towards the sensor
+                    n = -n
+                tilt = float(np.degrees(np.arccos(min(1.0, abs(float(n @ fallback))))))
+                verdict["angle_to_fallback"] = round(tilt, 3)
+                max_tilt = spec.plane.max_tilt if spec.plane is not None else None
+                if found["method"] == "robust plane" and max_tilt is not None and tilt > max_tilt:
+                    verdict["why"] = f"its robust plane is {tilt:.1f} deg from the fallback normal > max_tilt {max_tilt:g} deg"
+                    tilted.append(cl.id)
+                    continue
+                dist = float(np.sqrt(((on - self.sensor) ** 2).sum(axis=1).min()))
+                verdict["distance"] = dist  # to the sensor, of its plane's nearest point
                 if best is None or dist < best[0]:
-                    best = (dist, cl)
+                    best = (dist, cl, n, point, tilt, found)
         if best is None:
-            info["note"] = (f"no cluster of the initial partition with >= {spec.min_points} points passes "
-                            f"'{spec.candidate}'{f' and has a plane ({len(no_plane)} degenerate)' if no_plane else ''}: "
-                            f"the fallback normal {list(spec.fallback)} is used")
+            tests = [f"passes '{spec.candidate}'"] if spec.candidate is not None else []
+            if spec.plane is not None:
+                tests.append(f"has a robust plane holding >= {spec.plane.min_inlier_share:.0%} of its points within "
+                             f"{spec.plane.inlier_distance:g}{self.rb.length_unit and ' ' + self.rb.length_unit}")
+            why = (f"no cluster of the initial partition with >= {spec.min_points} points {' or '.join(tests)}"
+                   if tests else "scene.ground declares neither a candidate check nor a robust plane")
+            if no_plane:
+                why += (f" and has a plane ({len(no_plane)} degenerate)" if spec.plane is None else
+                        f" ({len(no_plane)} degenerate: no plane)")
+            if tilted:
+                why += (f" within max_tilt {spec.plane.max_tilt:g} deg of the fallback (the robust plane of "
+                        f"{', '.join(tilted[:5])}{' ...' if len(tilted) > 5 else ''} is tilted more)")
+            shares = [f"{v['cluster']} {v['inlier_share']:.0%}" for v in verdicts
+                      if v.get("inlier_share") is not None and v["cluster"] not in tilted]
+            if shares:
+                why += f" (the share of their points on their robust planes: {', '.join(shares[:5])})"
+            info["note"] = f"{why}: the fallback normal {list(spec.fallback)} is used"
+            if verdicts and spec.plane is not None:
+                info.update(candidates=verdicts, unit=self.rb.length_unit)
             return self._plane_from_normal(X, np.asarray(spec.fallback, float), "fallback", info)
-        dist, cl = best
+        dist, cl, n, point, tilt, found = best
+        info.update(source=f"cluster {cl.id}", cluster=cl.id, normal=n.tolist(), point=point.tolist(),
+                    distance_to_sensor=dist, thickness=found.get("plane_thickness", found["thickness"]))
+        if spec.plane is not None:
+            info.update(method=found["method"], angle_to_fallback=round(tilt, 3), candidates=verdicts,
+                        unit=self.rb.length_unit)
+            if found["method"] == "robust plane":
+                info.update(inliers=found["inliers"], inlier_share=found["inlier_share"])
+        return Ground(normal=n, point=np.asarray(point, float).copy(), source=f"cluster {cl.id}")
+
+    def _candidate_plane(self, cl: Cluster, rec: ClusterRecord, provisional: Scene) -> dict[str, Any]:
+        """How a ground candidate gives a plane: ``plane`` (normal, point, its points) or None,
+        ``method``, and what was measured."""
+        spec = self.rb.ground
         geo = cl.geometry
-        n = geo.normal
-        if (self.sensor - geo.center) @ n < 0:  # point up, towards the sensor
-            n = -n
-        info.update(source=f"cluster {cl.id}", cluster=cl.id, normal=n.tolist(), point=geo.center.tolist(),
-                    distance_to_sensor=dist, thickness=geo.thickness)
-        return Ground(normal=n, point=geo.center.copy(), source=f"cluster {cl.id}")
+        if spec.candidate is not None and self._facts(cl, provisional, rec)(spec.candidate):
+            return {"plane": (geo.normal, geo.center, cl.X), "method": f"check '{spec.candidate}'",
+                    "thickness": geo.thickness}
+        out: dict[str, Any] = {"plane": None, "thickness": geo.thickness}
+        if spec.candidate is not None:
+            out["why"] = f"fails '{spec.candidate}'"
+        if spec.plane is None:
+            return out
+        p = spec.plane
+        rp = robust_plane(cl.X, p.inlier_distance, p.min_inlier_share)
+        if rp is None:
+            out["why"] = "no plane through its points"
+            return out
+        out.update(inliers=rp.n_inliers, inlier_share=round(rp.share, 4), plane_thickness=rp.thickness)
+        unit = self.rb.length_unit and " " + self.rb.length_unit
+        if rp.share < p.min_inlier_share:
+            out["why"] = (f"its robust plane holds {rp.share:.0%} of its points within {p.inlier_distance:g}{unit}"
+                          f" < {p.min_inlier_share:.0%}")
+        elif rp.n_inliers < spec.min_points:
+            out["why"] = f"its robust plane holds {rp.n_inliers} points < min_points {spec.min_points}"
+        else:
+            out.update(plane=(rp.normal, rp.point, cl.X[rp.inliers]), method="robust plane")
+            out.pop("why", None)
+        return out
 
     @staticmethod
     def _plane_from_normal(X: np.ndarray, n: np.ndarray, source: str, info: dict) -> Ground:

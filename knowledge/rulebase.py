@@ -44,7 +44,8 @@ ENGINE_DEFAULTS: dict[str, Any] = {
 #: Limits are per cluster. max_clusters (None: absent) is an optional cap on the whole split tree,
 #: which makes a point's result depend on the rest of the file; no shipped rule base sets it.
 LIMIT_DEFAULTS: dict[str, Any] = {"max_depth": 8, "min_points": 30, "max_clusters": None}
-GROUND_DEFAULTS: dict[str, Any] = {"normal": "auto", "candidate": None, "min_points": 500, "fallback": [0.0, 0.0, 1.0]}
+GROUND_DEFAULTS: dict[str, Any] = {"normal": "auto", "candidate": None, "min_points": 500, "fallback": [0.0, 0.0, 1.0],
+                                   "plane": None}
 
 
 # --- positions and problems ------------------------------------------------------------------
@@ -255,11 +256,25 @@ class Label:
 
 
 @dataclass(frozen=True)
+class PlaneSpec:
+    """scene.ground.plane: a candidate whose robust plane holds ``min_inlier_share`` of its points
+    within ``inlier_distance`` (length units), and whose normal lies within ``max_tilt`` degrees of
+    the fallback normal (None: any direction), is a ground plane, even if it fails the candidate check."""
+
+    inlier_distance: float
+    min_inlier_share: float
+    max_tilt: float | None
+    pos: SourcePos
+
+
+@dataclass(frozen=True)
 class GroundSpec:
     normal: tuple[float, float, float] | None  # None = auto
     candidate: str | None
     min_points: int
     fallback: tuple[float, float, float]
+    #: the robust plane test of a candidate (None: only the candidate check finds the ground)
+    plane: PlaneSpec | None = None
 
 
 @dataclass(frozen=True)
@@ -795,8 +810,8 @@ class _Validator:
     def add(self, path: tuple, message: str, *, key: bool = False) -> None:
         self.problems.append(self.pos.problem(path, message, key=key))
 
-    def warn(self, path: tuple, message: str) -> None:
-        self.warnings.append(self.pos.problem(path, message, warning=True))
+    def warn(self, path: tuple, message: str, *, key: bool = False) -> None:
+        self.warnings.append(self.pos.problem(path, message, key=key, warning=True))
 
     def hint(self, name: Any, candidates: Any) -> str | None:
         """The closest of ``candidates`` to ``name`` (did you mean), within the file's budget."""
@@ -1193,14 +1208,25 @@ class _Validator:
             elif cand in checks and checks[cand].predicate.needs_ground:
                 self.add(("scene", "ground", "candidate"), f"check '{cand}' needs the ground itself "
                          f"('{checks[cand].predicate.name}'): it cannot be what finds the ground")
-        elif needs and auto:
+        elif needs and auto and not isinstance(g["plane"], dict):
             first = needs[0]
             self.add(("checks", first.name, "predicate"),
                      f"check '{first.name}' uses the ground ('{first.predicate.name}'), found automatically, but "
                      "scene.ground.candidate does not name the check a ground candidate must pass "
-                     "(e.g. 'candidate: planar'), nor does scene.ground.normal fix it")
+                     "(e.g. 'candidate: planar'), nor does scene.ground.plane ask for a robust plane, "
+                     "nor does scene.ground.normal fix it")
+        plane = None
+        if isinstance(g["plane"], dict):  # its keys, types and ranges: the schema
+            tilt = g["plane"].get("max_tilt")
+            plane = PlaneSpec(_number(g["plane"].get("inlier_distance"), 0.1),
+                              _number(g["plane"].get("min_inlier_share"), 0.5),
+                              None if tilt is None else _number(tilt, 90.0),
+                              self.pos.pos(("scene", "ground", "plane"), key=True))
+            if not auto:
+                self.warn(("scene", "ground", "plane"), "scene.ground.plane is not used: scene.ground.normal "
+                          "fixes the ground direction (plane only applies with 'normal: auto')", key=True)
         return GroundSpec(normal=normal, candidate=cand, min_points=_number(g["min_points"], 0, int),
-                          fallback=fallback or (0.0, 0.0, 1.0))
+                          fallback=fallback or (0.0, 0.0, 1.0), plane=plane)
 
     def _merge(self, raw: Any, labels: list[Label]) -> MergeSpec | None:
         if not isinstance(raw, dict) or not isinstance(raw.get("merge_coplanar"), dict):

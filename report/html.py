@@ -215,7 +215,7 @@ def write_report(path: str | Path, xyz: np.ndarray, cluster: np.ndarray, label: 
         "records": records, "root": expl.root, "apd": apd,
         "palette": list(PALETTE), "noise": NOISE, "unlabelled": UNLABELLED, "unlabelled_key": _UNLABELLED_KEY,
         "head": {"rule_base": expl.rule_base, "rule_file": expl.rule_file, "strategy": expl.strategy,
-                 "ground": expl.ground.get("source", ""), "notes": list(expl.notes)},
+                 "ground": expl.ground_line() if expl.ground else "", "notes": list(expl.notes)},
     }
     fill = {"TITLE": html.escape(title), "NOTICE": html.escape(notice),
             "PLOTLYJS": get_plotlyjs().replace("</script", "<\\/script"), "DATA": _json(data)}

@@ -113,7 +113,7 @@ def test_a_bad_tune_mark_exits_4_from_kbs_tune_with_its_position(tmp_path, capsy
     code, _, err = run_kbs(capsys, "tune", "--rules", str(rules), str(scenes[0]), "field:ground", str(scenes[1]),
                            "field:ground", "--ground-values", "1", "--out", str(tmp_path / "new.yaml"))
     assert code == 4
-    assert f"{rules}:38:17:" in err and "min 0.1 > max 0.02" in err
+    assert f"{rules}:42:17:" in err and "min 0.1 > max 0.02" in err
 
 
 def test_kbs_run_ignores_the_tune_marks(tmp_path, capsys, scenes):
