@@ -551,33 +551,42 @@ def _insert(table, group, key, m, shift):
         s = (s + 1) & mask
 
 
-@njit(cache=True, nogil=True)
-def unique_inverse(keys):
-    """``(distinct keys sorted, inverse)`` as ``np.unique(keys, return_inverse=True)`` for
-    non-negative int64 keys: a hash table gives each key a group in order of first appearance,
-    then only the distinct keys are sorted."""
+@njit(nogil=True)
+def _first_appearance(keys, want_inverse):
+    """The distinct keys (non-negative int64) in order of first appearance, by a hash table, and
+    (when ``want_inverse``, else an empty array) each key's group: its distinct key's position."""
     n = keys.shape[0]
     table = np.full(_START_SIZE, _EMPTY)
     group = np.empty(_START_SIZE, dtype=np.int64)
     shift = _START_SHIFT
     first_keys = np.empty(n, dtype=np.int64)
-    inv = np.empty(n, dtype=np.int64)
+    inv = np.empty(n if want_inverse else 0, dtype=np.int64)
     m = 0
     for j in range(n):
         g, new = _insert(table, group, keys[j], m, shift)
-        inv[j] = g
+        if want_inverse:
+            inv[j] = g
         if new:
             first_keys[m] = keys[j]
             m += 1
             if 2 * m > table.shape[0]:
                 table, group = _grow(table, group, shift)
                 shift -= 1
-    distinct = first_keys[:m]
+    return first_keys[:m].copy(), inv
+
+
+@njit(cache=True, nogil=True)
+def unique_inverse(keys):
+    """``(distinct keys sorted, inverse)`` as ``np.unique(keys, return_inverse=True)`` for
+    non-negative int64 keys: a hash table gives each key a group in order of first appearance,
+    then only the distinct keys are sorted."""
+    distinct, inv = _first_appearance(keys, True)
+    m = distinct.shape[0]
     order = np.argsort(distinct)
     rank = np.empty(m, dtype=np.int64)
     for i in range(m):
         rank[order[i]] = i
-    for j in range(n):
+    for j in range(inv.shape[0]):
         inv[j] = rank[inv[j]]
     return distinct[order], inv
 
@@ -585,21 +594,7 @@ def unique_inverse(keys):
 @njit(cache=True, nogil=True)
 def distinct_keys(keys):
     """The distinct keys (non-negative int64) in order of first appearance: a hash table, no sort."""
-    n = keys.shape[0]
-    table = np.full(_START_SIZE, _EMPTY)
-    group = np.empty(_START_SIZE, dtype=np.int64)
-    shift = _START_SHIFT
-    out = np.empty(n, dtype=np.int64)
-    m = 0
-    for j in range(n):
-        _, new = _insert(table, group, keys[j], m, shift)
-        if new:
-            out[m] = keys[j]
-            m += 1
-            if 2 * m > table.shape[0]:
-                table, group = _grow(table, group, shift)
-                shift -= 1
-    return out[:m].copy()
+    return _first_appearance(keys, False)[0]
 
 
 @njit(cache=True, nogil=True)
