@@ -470,7 +470,9 @@ def resolve(name_or_path: str) -> tuple[str, str]:
         if len(data) > MAX_RULE_FILE_BYTES:  # grew since
             raise RuleFileError([Problem(where, _too_large(len(data)))])
         return str(name_or_path), _decode(data, str(name_or_path))
-    if p.exists():
+    if p.exists() and not (p.is_dir() and str(name_or_path) in shipped_rule_bases()):
+        # a folder named as a shipped rule base (`abw/` where `--rules abw` is run) is not a rule
+        # file: the name means the shipped one
         raise RuleFileError([Problem(SourcePos(str(name_or_path), 1, 1), "not a file")])
     name = p.name[:-5] if p.name.endswith(".yaml") and p.parent == Path(".") else str(name_or_path)
     if name in shipped_rule_bases():

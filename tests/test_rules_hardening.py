@@ -482,3 +482,16 @@ def test_values_the_schema_refuses_are_not_converted_anyway(tmp_path, capsys, ol
     code, out, err = check(capsys, write(tmp_path, text))
     assert code == 4 and "Traceback" not in err, err
     assert f"t.yaml:{line_col(text, at)}: {message}" in err, err
+
+
+def test_a_folder_named_as_a_shipped_rule_base_does_not_hide_it(tmp_path, monkeypatch):
+    """`kbs rules check abw` run where a folder `abw/` happens to be (a SegComp data set, say):
+    the folder is not a rule file, the name means the shipped rule base; any other folder given as
+    rules is still refused as not a file."""
+    from kbs.cli.main import main
+
+    (tmp_path / "abw").mkdir()
+    (tmp_path / "mine").mkdir()
+    monkeypatch.chdir(tmp_path)
+    assert main(["rules", "check", "abw"]) == 0
+    assert main(["rules", "check", "mine"]) == 4
