@@ -669,6 +669,11 @@ class Explanation:
             out.append(f"  APD: {rec.apd.text()}")
         return "\n".join(out)
 
+    def _outcome_text(self, rec: ClusterRecord, holds: bool | None, terms) -> str:
+        """'holds' / 'does not hold' / 'not evaluated', and the terms that decided it."""
+        verdict = "holds" if holds else "does not hold" if holds is False else "not evaluated"
+        return verdict + (f": {self._terms_text(rec, terms)}" if terms and holds is not None else "")
+
     def _why_decisions(self, rec: ClusterRecord) -> list[str]:
         """The rules, labels and relabel rules evaluated on ``rec``, in order, with their outcome."""
         cat = self.catalogue
@@ -678,9 +683,8 @@ class Explanation:
         out = ["  rules, in order (the first whose condition holds acts):"]
         for rule in cat.rules:
             holds, terms = evaluate(rule.condition, outcome)
-            verdict = ("holds" if holds else "does not hold" if holds is False else "not evaluated")
-            out.append(f"    {rule.name} [{rule.source}] {rule.action} if {rule.condition_text()}: {verdict}"
-                       + (f": {self._terms_text(rec, terms)}" if terms and holds is not None else ""))
+            out.append(f"    {rule.name} [{rule.source}] {rule.action} if {rule.condition_text()}: "
+                       + self._outcome_text(rec, holds, terms))
             if rule.doc:
                 out.append(f"        {rule.doc}")
             if holds:
@@ -697,9 +701,7 @@ class Explanation:
             if lab.condition is None:
                 verdict = "no condition (the default label)"
             else:
-                verdict = (f"if {lab.condition_text()}: "
-                           + ("holds" if holds else "does not hold" if holds is False else "not evaluated")
-                           + (f": {self._terms_text(rec, terms)}" if terms and holds is not None else ""))
+                verdict = f"if {lab.condition_text()}: " + self._outcome_text(rec, holds, terms)
             out.append(f"    {lab.name} [{lab.source}] {verdict}" + (f"; {lab.doc}" if lab.doc else ""))
             if holds:
                 break
@@ -713,9 +715,8 @@ class Explanation:
                 holds, terms = evaluate(rl.condition, outcome)
                 if rec.relabel and rec.relabel["rule"] == rl.name:
                     holds = True
-                verdict = "holds" if holds else "does not hold" if holds is False else "not evaluated"
-                out.append(f"    {rl.name} [{rl.source}] {rl.action} if {rl.condition_text()}: {verdict}"
-                           + (f": {self._terms_text(rec, terms)}" if terms and holds is not None else ""))
+                out.append(f"    {rl.name} [{rl.source}] {rl.action} if {rl.condition_text()}: "
+                           + self._outcome_text(rec, holds, terms))
                 if rl.doc:
                     out.append(f"        {rl.doc}")
                 if holds:
