@@ -111,3 +111,19 @@ def rz(degrees: float) -> np.ndarray:
     """The rotation matrix of a turn by ``degrees`` about the z axis."""
     t = np.radians(degrees)
     return np.array([[np.cos(t), -np.sin(t), 0.0], [np.sin(t), np.cos(t), 0.0], [0.0, 0.0, 1.0]])
+
+
+
+def ground_and_parked_cars(seed: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """Flat ground (20 m x 20 m) and a row of parked cars seen from a vehicle 5 m away: three cars
+    bumper to bumper (12.6 m x 1.8 m) whose roofs, 1.45 m up, make one level sheet as thin as the
+    road, and their near sides (sparse: the beams graze them). The sensor is 1.73 m above the
+    ground. Labels: 0 ground, 1 the roofs, 2 the sides."""
+    rng = np.random.default_rng(seed)
+    g = _ground(rng, 20000, 10.0, 0.005)
+    g = g[~((np.abs(g[:, 0]) < 6.3) & (np.abs(g[:, 1] - 6.0) < 0.9))]  # under the cars: hidden
+    roof = np.column_stack([rng.uniform(-6.3, 6.3, 4000), rng.uniform(5.1, 6.9, 4000), rng.normal(1.45, 0.005, 4000)])
+    side = np.column_stack([rng.uniform(-6.3, 6.3, 300), np.full(300, 5.1) + rng.normal(0, 0.005, 300),
+                            rng.uniform(0.15, 1.45, 300)])
+    X = np.vstack([g, roof, side]) - [0.0, 0.0, 1.73]
+    return X, np.concatenate([np.zeros(len(g), int), np.ones(len(roof), int), np.full(len(side), 2)])

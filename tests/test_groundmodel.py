@@ -15,7 +15,7 @@ from kbs.io import write_ply
 from kbs.knowledge import Interpreter, PredicateRegistry, RuleFileError, load_rule_base
 from kbs.knowledge.groundmodel import LocalGround, plane_basis
 from kbs.knowledge.rulebase import parse_rule_base
-from scenes import ground_and_rocks
+from scenes import ground_and_parked_cars, ground_and_rocks
 from test_cli import kbs
 
 # --- the surface ---------------------------------------------------------------------------------
@@ -240,8 +240,10 @@ def test_relabel_and_contact_on_semantickitti_through_the_command(shared_data, t
     assert r.returncode == 0, r.stderr
     doc = json.loads((tmp_path / "000001.points.json").read_text())
     records = doc["explanation"]["clusters"]
-    relabelled = [c for c in records if c["relabel"]]
+    relabelled = [c for c in records if c["relabel"] and c["relabel"]["rule"] == "low_level"]
     assert relabelled, "the verges and the rough terrain of this scan are relabelled ground"
+    raised = [c for c in records if c["relabel"] and c["relabel"]["rule"] == "raised"]
+    assert raised and all(c["label"] == "obstacle" for c in raised)  # level patches of hedges and walls standing high
     for c in relabelled:
         checks = {k["check"]: k for k in c["checks"]}
         assert c["label"] == "ground" and checks["low"]["passed"] and checks["level"]["passed"]
@@ -251,7 +253,7 @@ def test_relabel_and_contact_on_semantickitti_through_the_command(shared_data, t
     assert r.returncode == 0, r.stderr
     assert "relabelled ground by low_level [outdoor.yaml:" in r.stdout and "low (height_above_local_ground = " in r.stdout
     assert re.search(r"\n    low +yes +height_above_local_ground = ", r.stdout)
-    assert doc["explanation"]["ground"]["local_model"]["relabelled"] == len(relabelled)
+    assert doc["explanation"]["ground"]["local_model"]["relabelled"] == len(relabelled) + len(raised)
     assert sum(c["contact"] for c in records) > 0
     # the measured benefit holds: ground F1 0.948, well above what the rules give without the
     # surface (0.917; benchmarks/bench_rotations.py and docs/PERFORMANCE.md have both)
@@ -402,3 +404,22 @@ def test_ground_release_moves_raised_ground_points_to_the_nearest_obstacle(share
     assert f1(seg.label) > f1(seg_off.label)
     for c in seg.clusters:
         assert c["n_points"] == (seg.cluster == c["index"]).sum()
+
+
+def test_outdoor_rules_take_a_row_of_parked_cars_roofs_for_obstacles_not_ground(tmp_path):
+    """Issue 12: parked cars became ground. Their roofs are as planar and as level as the road, so
+    PAh and the ground angle pass them; what tells them from the ground is where they stand: 1.45 m
+    above the ground around them, more than any kerb (outdoor.yaml's 'raised' relabel rule)."""
+    X, labels = ground_and_parked_cars()
+    path = tmp_path / "cars.ply"
+    write_ply(path, X)
+    r = kbs("run", "--rules", "outdoor", str(path), "--out", str(tmp_path / "o"))
+    assert r.returncode == 0, r.stderr
+    v = PlyData.read(str(tmp_path / "o" / "cars.ply"))["vertex"]
+    ground = np.asarray(v["scalar_label"]) == 0
+    assert ground[labels == 0].mean() > 0.99 and not ground[labels > 0].any()  # 1.0 of the roofs before
+    doc = json.loads((tmp_path / "o" / "cars.json").read_text())
+    raised = [c for c in doc["explanation"]["clusters"] if c["relabel"] and c["relabel"]["rule"] == "raised"]
+    assert raised and all(c["label"] == "obstacle" for c in raised)
+    r = kbs("explain", str(tmp_path / "o" / "cars.json"), "--cluster", raised[0]["id"])
+    assert "relabelled obstacle by raised [outdoor.yaml:" in r.stdout and "raised (height_above_local_ground = 1.4" in r.stdout
