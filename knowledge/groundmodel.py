@@ -165,6 +165,33 @@ class LocalGround:
         key = ij[:, 0] * (ij[:, 1].max() + 1.0) + ij[:, 1]
         return np.argsort(key, kind="stable")
 
+    def height_above_slope(self, P: np.ndarray, slope: float, radius: float, exclude: str | None = None) -> np.ndarray:
+        """Heights (q,) of points ``P`` above the lowest terrain that the surface's points within
+        ``radius`` (plane distance) allow when the terrain is no steeper than ``slope`` degrees:
+        ``h(p) - min_j (h(j) + tan(slope) d(p, j))`` (a slope-based filter: a point on terrain no
+        steeper than ``slope`` is at most 0; a roof stands its height less the slope's rise over
+        the distance to the ground beside the building). NaN where no surface point lies within
+        ``radius``; ``exclude``: a cluster whose own points do not count."""
+        P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
+        out = np.full(P.shape[0], np.nan)
+        if P.shape[0] == 0 or self.n_points == 0:
+            return out
+        own = -1
+        if exclude is not None and self.owners is not None and exclude in self.owner_ids:
+            own = self.owner_ids.index(exclude)
+        G = P - self.point
+        Q, hp = G @ self.basis.T, G @ self.normal
+        rise = float(np.tan(np.radians(slope)))
+        data = self.tree.data  # type: ignore[attr-defined]
+        for k, found in enumerate(self.tree.query_ball_point(Q, r=radius)):  # type: ignore[attr-defined]
+            j = np.asarray(found, dtype=np.int64)
+            if own >= 0 and j.size:
+                j = j[self.owners[j] != own]
+            if j.size:
+                d = np.sqrt(((data[j] - Q[k]) ** 2).sum(axis=1))
+                out[k] = hp[k] - float(np.min(self.heights[j] + rise * d))
+        return out
+
     def height(self, P: np.ndarray, exclude: str | None = None) -> np.ndarray:
         """Heights (q,) of points ``P`` above the local ground surface (NaN where it is unknown);
         ``exclude``: a cluster whose own points do not count (see :meth:`query`)."""
