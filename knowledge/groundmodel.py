@@ -182,14 +182,20 @@ class LocalGround:
         G = P - self.point
         Q, hp = G @ self.basis.T, G @ self.normal
         rise = float(np.tan(np.radians(slope)))
-        data = self.tree.data  # type: ignore[attr-defined]
-        for k, found in enumerate(self.tree.query_ball_point(Q, r=radius)):  # type: ignore[attr-defined]
-            j = np.asarray(found, dtype=np.int64)
-            if own >= 0 and j.size:
-                j = j[self.owners[j] != own]
-            if j.size:
-                d = np.sqrt(((data[j] - Q[k]) ** 2).sum(axis=1))
-                out[k] = hp[k] - float(np.min(self.heights[j] + rise * d))
+        found = self.tree.query_ball_point(Q, r=radius)  # type: ignore[attr-defined]
+        sizes = np.fromiter((len(f) for f in found), dtype=np.int64, count=len(found))
+        if not sizes.sum():
+            return out
+        j = np.concatenate([np.asarray(f, dtype=np.int64) for f in found])
+        k = np.repeat(np.arange(P.shape[0]), sizes)
+        if own >= 0:
+            keep = self.owners[j] != own
+            j, k = j[keep], k[keep]
+        d = np.sqrt(((self.tree.data[j] - Q[k]) ** 2).sum(axis=1))  # type: ignore[attr-defined]
+        lowest = np.full(P.shape[0], np.inf)
+        np.minimum.at(lowest, k, self.heights[j] + rise * d)
+        reached = np.isfinite(lowest)
+        out[reached] = hp[reached] - lowest[reached]
         return out
 
     def height(self, P: np.ndarray, exclude: str | None = None) -> np.ndarray:
