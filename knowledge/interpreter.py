@@ -192,7 +192,7 @@ class Interpreter:
 
     def _ufp_kwargs(self, stop: str, min_k: int = 1) -> dict[str, Any]:
         e = self.rb.engine
-        return {"k_max": e["k_max"], "m": e["m"], "tol": e["tol"], "max_iter": e["max_iter"],
+        return {"k_max": e["k_max"], "m": e["m"], "tol": e["tol"], "fcm_tol": e["fcm_tol"], "max_iter": e["max_iter"],
                 "min_variance": e["min_variance"], "max_condition": e["max_condition"],
                 "new_prototype": e["new_prototype"], "stop": stop, "min_k": min_k, "max_fit_points": e["max_fit_points"]}
 
