@@ -88,6 +88,37 @@ def test_a_cluster_can_be_compared_with_the_ground_around_it():
     assert np.allclose(model.height(ground[:50], exclude="nobody"), model.height(ground[:50]))
 
 
+def test_max_points_bounds_the_points_a_cluster_asks_the_surface_for(monkeypatch):
+    """height_above_local_ground's max_points: a large roof asks the surface for that many of its
+    points, evenly spread, and measures about the same height as with all of them; 0 asks for all."""
+    from kbs.knowledge import Cluster, Scene
+    from kbs.knowledge.groundmodel import LocalGround as LG
+    from kbs.knowledge.predicates import Ground, height_above_local_ground
+
+    rng = np.random.default_rng(5)
+    ground = np.column_stack([rng.uniform(0, 30, (6000, 2)), rng.normal(0, 0.02, 6000)])
+    ground = ground[~((np.abs(ground[:, 0] - 15) < 4) & (np.abs(ground[:, 1] - 15) < 4))]
+    roof = np.column_stack([rng.uniform(11, 19, (5000, 2)), 3 + rng.normal(0, 0.02, 5000)])
+    X = np.vstack([ground, roof])
+    owners = np.r_[np.zeros(len(ground), int), np.ones(len(roof), int)]
+    model = LG.build(X, np.arange(len(X)), np.array([0, 0, 1.0]), np.zeros(3), neighbours=8, radius=5.0,
+                     owners=owners, owner_ids=("c0", "c1"))
+    scene = Scene(np.zeros(3), Ground(np.array([0, 0, 1.0]), np.zeros(3), "fixed"), "m", ground_model=model)
+    asked = []
+    real = LG.height
+    monkeypatch.setattr(LG, "height", lambda self, P, exclude=None: asked.append(len(P)) or real(self, P, exclude))
+    cl = Cluster("c1", roof, np.ones(len(roof)))
+    full = height_above_local_ground.func(cl, scene, stat="median", exclude_self=True)
+    some = height_above_local_ground.func(cl, scene, stat="median", exclude_self=True, max_points=500)
+    assert asked == [5000, 500]
+    assert full == pytest.approx(3.0, abs=0.1) and some == pytest.approx(full, abs=0.05)
+    assert height_above_local_ground.func(cl, scene, stat="median", exclude_self=True, max_points=0) == full
+    _parse(post=POST_OK)  # the base is valid; a negative bound is not
+    with pytest.raises(RuleFileError, match="max_points"):
+        parse_rule_base(BASE.format(rule_if="not planar", label_if="planar", post=POST_OK).replace(
+            "max: 0.2}", "max: 0.2, params: {max_points: -1}}"), "t.yaml", PredicateRegistry.default(entry_points_too=False))
+
+
 # --- rule files ------------------------------------------------------------------------------------
 
 BASE = textwrap.dedent("""\
@@ -164,6 +195,13 @@ def test_queries_in_chunks_give_the_answers_of_one_query(monkeypatch, jit, exclu
     np.testing.assert_array_equal(g1, g0)
     np.testing.assert_array_equal(n1, n0)
     assert np.isfinite(g1).mean() > (0.99 if exclude is None else 0.8)  # c2's interior: its own points only
+    # two query threads (kbs run -j 2 gives the surface its jobs): the same answers
+    threaded = LocalGround.build(X, np.arange(0, 9000, 2), np.array([0.0, 0.0, 1.0]), np.zeros(3), neighbours=8,
+                                 radius=2.5, owners=owners[::2], owner_ids=("c0", "c1", "c2", "c3"), workers=2)
+    monkeypatch.setattr(LocalGround, "QUERY_BUDGET", 1 << 20)
+    g2, n2 = threaded.query(P, exclude)
+    np.testing.assert_array_equal(g1, g2)
+    np.testing.assert_array_equal(n1, n2)
 
 
 def test_post_steps_parse_with_defaults():
