@@ -170,6 +170,58 @@ class LocalGround:
         key = ij[:, 0] * (ij[:, 1].max() + 1.0) + ij[:, 1]
         return np.argsort(key, kind="stable")
 
+    #: the block grid of :meth:`height_bounds` is skipped when it would have more cells than this
+    #: many per surface point (an extent absurd for the radius)
+    BOUND_CELLS_PER_POINT = 4
+
+    def height_bounds(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """For points ``P`` (q, 3): bounds ``(lo, hi)`` of the local ground height :meth:`query`
+        can give under each, without a k-d tree query: the lowest and highest surface point of the
+        3 x 3 block of square cells (side just above ``radius``) around the point's cell, which
+        holds every surface point within ``radius`` of it. Where the block is empty, ``lo`` is +inf
+        and ``hi`` -inf (the query finds nothing there). None when the grid would be absurdly large.
+
+        Exact in floating point: a median of heights between ``lo`` and ``hi`` is between them, so
+        ``fl(h_p - hi) <= fl(h_p - ground) <= fl(h_p - lo)``: a caller may skip the query of a
+        point whose bounds already decide its outcome."""
+        P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
+        T = self.tree.data  # the surface points' plane coordinates, as the tree holds them
+        if T.shape[0] == 0:
+            return None
+        side = self.radius * 1.001
+        origin = T.min(axis=0) - side  # one empty ring of cells around the surface
+        shape = np.floor((T.max(axis=0) - origin) / side).astype(np.int64) + 2
+        if not side > 0.0 or float(shape[0]) * float(shape[1]) > self.BOUND_CELLS_PER_POINT * T.shape[0] + 4096:
+            return None
+        ij = np.floor((T - origin) / side).astype(np.int64)
+        cell = ij[:, 0] * shape[1] + ij[:, 1]
+        lo_c = np.full(int(shape[0] * shape[1]), np.inf)
+        hi_c = np.full(int(shape[0] * shape[1]), -np.inf)
+        np.minimum.at(lo_c, cell, self.heights)
+        np.maximum.at(hi_c, cell, self.heights)
+        lo_c, hi_c = lo_c.reshape(shape), hi_c.reshape(shape)
+        lo_b, hi_b = lo_c.copy(), hi_c.copy()  # the 3 x 3 block around each cell
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                if di or dj:
+                    src = (slice(max(di, 0), shape[0] + min(di, 0)), slice(max(dj, 0), shape[1] + min(dj, 0)))
+                    dst = (slice(max(-di, 0), shape[0] + min(-di, 0)), slice(max(-dj, 0), shape[1] + min(-dj, 0)))
+                    np.minimum(lo_b[dst], lo_c[src], out=lo_b[dst])
+                    np.maximum(hi_b[dst], hi_c[src], out=hi_b[dst])
+        q = P.shape[0]
+        lo, hi = np.full(q, np.inf), np.full(q, -np.inf)
+        for s in range(0, q, 1 << 16):  # plane coordinates as query() computes them
+            Q = (P[s:s + (1 << 16)] - self.point) @ self.basis.T
+            with np.errstate(invalid="ignore"):
+                qij = np.floor((Q - origin) / side)
+            inside = np.isfinite(qij).all(axis=1) & (qij >= 0).all(axis=1) & (qij[:, 0] < shape[0]) & \
+                (qij[:, 1] < shape[1])
+            k = np.flatnonzero(inside)
+            qi = qij[k].astype(np.int64)
+            lo[s + k] = lo_b[qi[:, 0], qi[:, 1]]
+            hi[s + k] = hi_b[qi[:, 0], qi[:, 1]]
+        return lo, hi
+
     def height(self, P: np.ndarray, exclude: str | None = None) -> np.ndarray:
         """Heights (q,) of points ``P`` above the local ground surface (NaN where it is unknown);
         ``exclude``: a cluster whose own points do not count (see :meth:`query`)."""

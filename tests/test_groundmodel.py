@@ -440,3 +440,44 @@ def test_ground_release_moves_raised_ground_points_to_the_nearest_obstacle(share
     assert f1(seg.label) > f1(seg_off.label)
     for c in seg.clusters:
         assert c["n_points"] == (seg.cluster == c["index"]).sum()
+
+
+def test_height_bounds_hold_every_answer_of_the_query():
+    """LocalGround.height_bounds: the surface height a query gives under a point lies within the
+    bounds of its cell block; where no surface point lies within the radius, both say so."""
+    rng = np.random.default_rng(8)
+    X = np.column_stack([rng.uniform(0, 60, 8000), rng.uniform(0, 60, 8000), rng.normal(0, 0.3, 8000)])
+    X[:, 2] += 0.05 * X[:, 0]  # a slope: the bounds must follow it
+    model = LocalGround.build(X, np.arange(0, 8000, 2), np.array([0.0, 0.0, 1.0]), np.zeros(3), neighbours=16,
+                              radius=3.0)
+    P = np.vstack([X[1::2], [[200.0, 200.0, 0.0], [-3.5, 30.0, 0.0], [63.2, 10.0, 1.0]]])  # far, near the edges
+    lo, hi = model.height_bounds(P)
+    ground, _ = model.query(P)
+    known = ~np.isnan(ground)
+    assert known.sum() > 3900 and np.all(lo[known] <= ground[known]) and np.all(ground[known] <= hi[known])
+    assert lo[-3] == np.inf and hi[-3] == -np.inf and np.isnan(ground[-3])
+    assert (hi - lo)[known].max() < 0.05 * 12 + 3.0  # a block, not the whole surface
+    # an extent absurd for the radius: no grid, the callers ask the surface for every point
+    far = LocalGround.build(np.array([[0.0, 0, 0], [1e7, 0, 0], [0, 1e7, 0]]), np.arange(3), np.array([0.0, 0, 1]),
+                            np.zeros(3), radius=1.0)
+    assert far.height_bounds(P) is None
+
+
+def test_post_steps_ask_only_for_the_points_the_bounds_leave_open(monkeypatch, shared_data):
+    """ground_contact and ground_release skip the surface query of points whose bounds decide
+    their outcome: the result is the same as asking for every point (SemanticKITTI, outdoor)."""
+    X = np.load(shared_data / "semantickitti" / "000001.points.npy")[:, :3].astype(np.float64)
+    rb = load_rule_base("outdoor")
+    asked = []
+    real = LocalGround.query
+    monkeypatch.setattr(LocalGround, "query", lambda self, P, exclude=None: asked.append(len(P)) or real(self, P, exclude))
+    fast = Interpreter(rb).run(X)
+    n_fast = sum(asked)
+    asked.clear()
+    monkeypatch.setattr(LocalGround, "height_bounds", lambda self, P: None)
+    full = Interpreter(rb).run(X)
+    assert n_fast < 0.9 * sum(asked)
+    np.testing.assert_array_equal(fast.cluster, full.cluster)
+    np.testing.assert_array_equal(fast.label, full.label)
+    assert sum(r.contact for r in full.explanation.records.values()) > 0
+    assert [r.released for r in fast.explanation.records.values()] == [r.released for r in full.explanation.records.values()]
