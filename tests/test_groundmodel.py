@@ -457,10 +457,35 @@ def test_height_bounds_hold_every_answer_of_the_query():
     assert known.sum() > 3900 and np.all(lo[known] <= ground[known]) and np.all(ground[known] <= hi[known])
     assert lo[-3] == np.inf and hi[-3] == -np.inf and np.isnan(ground[-3])
     assert (hi - lo)[known].max() < 0.05 * 12 + 3.0  # a block, not the whole surface
+    # a dense surface: the fine cells (radius / 6) hold the neighbours, and bound more tightly
+    D = np.column_stack([rng.uniform(0, 20, 20000), rng.uniform(0, 20, 20000), rng.normal(0, 0.05, 20000)])
+    D[:, 2] += 0.2 * D[:, 0]
+    dense = LocalGround.build(D, np.arange(0, 20000, 2), np.array([0.0, 0.0, 1.0]), np.zeros(3), neighbours=16,
+                              radius=3.0)
+    lo, hi = dense.height_bounds(D[1::2])
+    ground, _ = dense.query(D[1::2])
+    assert np.all(lo <= ground) and np.all(ground <= hi)
+    assert np.median(hi - lo) < 1.2  # a 7 x 7 block of 0.5 m cells (3.5 m of slope: 0.7 m), not 9 m (1.8 m)
     # an extent absurd for the radius: no grid, the callers ask the surface for every point
     far = LocalGround.build(np.array([[0.0, 0, 0], [1e7, 0, 0], [0, 1e7, 0]]), np.arange(3), np.array([0.0, 0, 1]),
                             np.zeros(3), radius=1.0)
     assert far.height_bounds(P) is None
+
+
+@pytest.mark.parametrize("reach", [1, 3])
+def test_block_reductions_are_those_of_every_block(reach):
+    """The separable block minimum, maximum and sum of the bounds' grids equal a direct loop over
+    each cell's (2 reach + 1)^2 block (cells beyond the edges left out)."""
+    from kbs.knowledge.groundmodel import _slide
+
+    rng = np.random.default_rng(reach)
+    A = rng.normal(size=(9, 13))
+    A[rng.random(A.shape) < 0.3] = np.inf
+    for op, red in ((np.minimum, np.min), (np.maximum, np.max), (np.add, np.sum)):
+        B = np.where(np.isinf(A), 0.0, A) if op is np.add else A
+        want = np.array([[red(B[max(i - reach, 0):i + reach + 1, max(j - reach, 0):j + reach + 1])
+                          for j in range(A.shape[1])] for i in range(A.shape[0])])
+        np.testing.assert_allclose(_slide(B, reach, op), want)
 
 
 def test_post_steps_ask_only_for_the_points_the_bounds_leave_open(monkeypatch, shared_data):
