@@ -12,6 +12,7 @@ global plane, the ground-contact step leaves such points alone).
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -232,10 +233,9 @@ class LocalGround:
         P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
         if self.n_points == 0 or not self.radius > 0.0:
             return None
-        coarse = self._block_grid(self.radius * 1.001, reach=1)
+        coarse, fine = self._bound_grids
         if coarse is None:
             return None
-        fine = self._block_grid(self.radius / 6.0, reach=3)
         q = P.shape[0]
         lo, hi = np.full(q, np.inf), np.full(q, -np.inf)
         for s in range(0, q, 1 << 16):  # plane coordinates as query() computes them
@@ -249,6 +249,12 @@ class LocalGround:
                 lo[s + j] = np.maximum(lo[s + j], lo_b[a, b])
                 hi[s + j] = np.minimum(hi[s + j], hi_b[a, b])
         return lo, hi
+
+    @functools.cached_property
+    def _bound_grids(self) -> tuple[_BlockGrid | None, _BlockGrid | None]:
+        """The two grids of :meth:`height_bounds` (built once per surface: the post steps ask twice)."""
+        coarse = self._block_grid(self.radius * 1.001, reach=1)
+        return coarse, None if coarse is None else self._block_grid(self.radius / 6.0, reach=3)
 
     def _block_grid(self, side: float, reach: int) -> _BlockGrid | None:
         """The surface on cells of ``side``: per cell, the lowest and highest height over the
@@ -264,8 +270,11 @@ class LocalGround:
         cell = ij[:, 0] * shape[1] + ij[:, 1]
         size = int(shape[0] * shape[1])
         lo_c, hi_c = np.full(size, np.inf), np.full(size, -np.inf)
-        np.minimum.at(lo_c, cell, self.heights)
-        np.maximum.at(hi_c, cell, self.heights)
+        order = np.argsort(cell, kind="stable")  # per occupied cell: a run of the sorted cells
+        cs, hs = cell[order], self.heights[order]
+        starts = np.flatnonzero(np.r_[True, cs[1:] != cs[:-1]])
+        lo_c[cs[starts]] = np.minimum.reduceat(hs, starts)
+        hi_c[cs[starts]] = np.maximum.reduceat(hs, starts)
         n_c = np.bincount(cell, minlength=size).astype(np.float64)
         shape2 = (int(shape[0]), int(shape[1]))
         blocks = (_slide(lo_c.reshape(shape2), reach, np.minimum), _slide(hi_c.reshape(shape2), reach, np.maximum),
