@@ -5,6 +5,7 @@ import dataclasses
 import functools
 import re
 import shutil
+import tempfile
 import sys
 import time
 import warnings
@@ -143,6 +144,9 @@ class Tiling:
     scheduler: str | None = None
     workers: int | None = None
     resume: bool = False
+    #: LAS/LAZ in and out: read (and write) this many points at a time, the tiles spilled to disk
+    #: (kbs.tiles.stream); 0: the whole file read into memory
+    chunk_points: int = 0
 
 
 def default_out_format(cloud: Path, in_format: str | None = None) -> str:
@@ -225,7 +229,6 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
     t0 = time.perf_counter() if t0 is None else t0
     to_stdout = out_dir is None
     say = (lambda *args, **kwargs: None) if quiet else functools.partial(click.echo, err=to_stdout)
-    rb = segmenter.rule_base
     stdin = str(cloud) == "-"
     stem = "stdin" if stdin else cloud.stem
     fmt = out_format or default_out_format(cloud, in_format)
@@ -236,7 +239,48 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
         sources = inputs if isinstance(inputs, InputFiles) else InputFiles((cloud, *inputs))
         for target in (points, js, *([html] if report else [])):
             check_output(target, inputs=sources, force=force)
-    pc = read_scan(cloud, in_format)
+    spilled = None
+    if _streams(tiling, cloud, in_format, fmt):
+        from kbs.tiles.stream import spill_las, streamed_cloud
+
+        spill_folder = Path(tempfile.mkdtemp(prefix=f".{cloud.stem}.spill-", dir=out_dir))
+        try:
+            spilled = spill_las(cloud, spill_folder, tiling.size, _buffer(segmenter, tiling),
+                                segmenter.rule_base.ground.normal, tiling.chunk_points)
+        except BaseException:
+            shutil.rmtree(spill_folder, ignore_errors=True)
+            raise
+        pc = streamed_cloud(spilled, cloud)
+    else:
+        pc = read_scan(cloud, in_format)
+    try:
+        return _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, stdin=stdin, stem=stem, fmt=fmt,
+                                  points=points, js=js, html=html, to_stdout=to_stdout, color_by=color_by,
+                                  meshes=meshes, report=report, quiet=quiet, units=units, sensor=sensor,
+                                  tiling=tiling, say=say)
+    finally:
+        if spilled is not None:
+            spilled.remove()
+            shutil.rmtree(spilled.folder, ignore_errors=True)
+
+
+def _streams(tiling: Tiling | None, cloud: Path, in_format: str | None, fmt: str) -> bool:
+    """Whether a tiled run reads (and writes) the LAS/LAZ file in chunks: LAS/LAZ in and out, a
+    file (not standard input), --chunk-points not 0."""
+    ext = (in_format or cloud.suffix).lower().lstrip(".")
+    return (tiling is not None and tiling.chunk_points > 0 and str(cloud) != "-" and ext in ("las", "laz")
+            and fmt in ("las", "laz"))
+
+
+def _buffer(segmenter: Segmenter, tiling: Tiling) -> float:
+    from kbs.tiles import default_buffer
+
+    return default_buffer(segmenter, tiling.size) if tiling.buffer is None else tiling.buffer
+
+
+def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, stem, fmt, points, js, html, to_stdout,
+                       color_by, meshes, report, quiet, units, sensor, tiling, say) -> ScanResult:
+    rb = segmenter.rule_base
     name = "<stdin>" if stdin else str(cloud)
     if fmt != "ply":
         check_classes_fit(pc.source, rb.asprs_classes, name)
@@ -258,7 +302,8 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
         from kbs.tiles.store import TileStore
 
         store = TileStore(out_dir / f"{cloud.stem}.tiles", segmenter)
-        seg = _segment_tiled(segmenter, pc.xyz, cloud, tiling, quiet=quiet, t0=t0, store=store)
+        seg = _segment_tiled(segmenter, pc.xyz, cloud, tiling, quiet=quiet, t0=t0, store=store,
+                             plan=None if spilled is None else (spilled.grid, spilled.tiles))
         spacing = []
     t1 = time.perf_counter()
     if not to_stdout:
@@ -292,7 +337,12 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
     if fmt != "ply":
         classes = rb.asprs_classes
         codes = class_codes(seg.label, seg.cluster, seg.label_names, classes) if classes else None
-        las = functools.partial(_build_las, pc, results, codes)
+        if spilled is not None:
+            from kbs.tiles.stream import ChunkedLas
+
+            las = functools.partial(ChunkedLas, cloud, results, codes, chunk_points=tiling.chunk_points)
+        else:
+            las = functools.partial(_build_las, pc, results, codes)
     if to_stdout:
         run_id = write_result_stream(sys.stdout.buffer, f".{fmt}", pc.xyz, fields, run_id=new_run_id(), las=las,
                                      comments=comments)
@@ -347,7 +397,7 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
 
 
 def _segment_tiled(segmenter: Segmenter, xyz: np.ndarray, cloud: Path, tiling: Tiling, *, quiet: bool, t0: float,
-                   store=None):
+                   store=None, plan=None):
     from kbs.tiles import segment_tiled
     from kbs.tiles.run import SchedulerError
 
@@ -366,7 +416,8 @@ def _segment_tiled(segmenter: Segmenter, xyz: np.ndarray, cloud: Path, tiling: T
 
     try:
         return segment_tiled(segmenter, xyz, tiling.size, tiling.buffer, scheduler=tiling.scheduler,
-                             workers=tiling.workers, progress=progress, store=store, resume=tiling.resume)
+                             workers=tiling.workers, progress=progress, store=store, resume=tiling.resume,
+                             plan=plan)
     except SchedulerError as exc:
         raise click.BadParameter(str(exc), param_hint="--scheduler") from exc
 
@@ -448,12 +499,15 @@ def time_table(results: list[ScanResult | ScanFailure], t_load: float, t_total: 
               "it the tiles run one after the other in this process. The result is the same.")
 @click.option("--resume", is_flag=True, help="With --tile: take the tiles an earlier run that failed kept in "
               "DIR/<stem>.tiles/ (same cloud, rule base and grid) and segment only the others.")
+@click.option("--chunk-points", "chunk_points", type=click.IntRange(min=0), metavar="N",
+              help="With --tile, a LAS/LAZ scan written as LAS/LAZ: read and write N points at a time, the tiles "
+              f"spilled to a temporary folder in DIR (default {1_000_000:,}); 0: read the whole file into memory.")
 @click.pass_context
 def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_dir: Path, plugins: tuple[Path, ...],
         color_by: str = "cluster", meshes: bool = False, report: bool = False, jobs: int = -1,
         force: bool = False, out_format: str | None = None, in_format: str | None = None,
         units: str | None = None, tile: float | None = None, buffer: float | None = None,
-        scheduler: str | None = None, resume: bool = False) -> None:
+        scheduler: str | None = None, resume: bool = False, chunk_points: int | None = None) -> None:
     """Segment each CLOUD with a rule base; write DIR/<stem>.ply (per-vertex scalar_cluster,
     scalar_label, scalar_membership) or, with --out-format las|laz (the default for LAS/LAZ input),
     DIR/<stem>.las|.laz (ASPRS classification, cluster, label, membership), and DIR/<stem>.json
@@ -488,7 +542,7 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
         if not quiet:
             click.echo(f"kbs: skipped {path}: {why}", err=True)
 
-    tiling = _tiling(tile, buffer, scheduler, jobs, resume)
+    tiling = _tiling(tile, buffer, scheduler, jobs, resume, chunk_points)
     scans = scan_paths(clouds, on_skip=skipped)
     if to_stdout and len(scans) != 1:
         raise click.UsageError(f"--out - writes one scan to standard output; {len(scans)} scans given")
@@ -507,10 +561,12 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
 
 
 def _tiling(tile: float | None, buffer: float | None, scheduler: str | None, jobs: int,
-            resume: bool = False) -> Tiling | None:
-    """The --tile/--buffer/--scheduler/--resume options, checked together (usage errors, exit 2)."""
+            resume: bool = False, chunk_points: int | None = None) -> Tiling | None:
+    """The --tile/--buffer/--scheduler/--resume/--chunk-points options, checked together (usage
+    errors, exit 2)."""
     if tile is None:
-        for name, value in (("--buffer", buffer), ("--scheduler", scheduler), ("--resume", resume or None)):
+        for name, value in (("--buffer", buffer), ("--scheduler", scheduler), ("--resume", resume or None),
+                            ("--chunk-points", chunk_points)):
             if value is not None:
                 raise click.UsageError(f"{name} only applies to a tiled run: give --tile SIZE too")
         return None
@@ -523,7 +579,10 @@ def _tiling(tile: float | None, buffer: float | None, scheduler: str | None, job
         except ImportError as exc:
             raise click.UsageError(f"--scheduler needs Dask ({exc}): pip install 'kbs[dask]', or leave "
                                    f"--scheduler out to run the tiles in this process") from exc
-    return Tiling(size=tile, buffer=buffer, scheduler=scheduler, workers=None if jobs == -1 else jobs, resume=resume)
+    from kbs.tiles.stream import DEFAULT_CHUNK_POINTS
+
+    return Tiling(size=tile, buffer=buffer, scheduler=scheduler, workers=None if jobs == -1 else jobs, resume=resume,
+                  chunk_points=DEFAULT_CHUNK_POINTS if chunk_points is None else chunk_points)
 
 
 def _run_scans(segmenter, scans, out_dir: Path, t0: float, **options) -> None:
