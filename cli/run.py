@@ -494,9 +494,10 @@ def time_table(results: list[ScanResult | ScanFailure], t_load: float, t_total: 
               help="How far each tile reaches beyond its core (default: a tenth of --tile, at least twice the "
               "local ground surface's radius).")
 @click.option("--scheduler", "scheduler", metavar="ADDRESS|local",
-              help="Run the tiles as Dask tasks: on the scheduler at ADDRESS (tcp://host:8786), or on a "
-              "LocalCluster of -j workers ('local'; -1: one per core). Needs pip install 'kbs[dask]'. Without "
-              "it the tiles run one after the other in this process. The result is the same.")
+              help="Run the tiles (with --tile) or the scans (a folder, several scans) as Dask tasks: on the "
+              "scheduler at ADDRESS (tcp://host:8786), or on a LocalCluster of -j workers ('local'; -1: one per "
+              "core). Needs pip install 'kbs[dask]'. Without it they run one after the other in this process. The "
+              "result is the same.")
 @click.option("--resume", is_flag=True, help="With --tile: take the tiles an earlier run that failed kept in "
               "DIR/<stem>.tiles/ (same cloud, rule base and grid) and segment only the others.")
 @click.option("--chunk-points", "chunk_points", type=click.IntRange(min=0), metavar="N",
@@ -542,13 +543,18 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
         if not quiet:
             click.echo(f"kbs: skipped {path}: {why}", err=True)
 
-    tiling = _tiling(tile, buffer, scheduler, jobs, resume, chunk_points)
     scans = scan_paths(clouds, on_skip=skipped)
+    many = len(scans) > 1 or any(Path(c).is_dir() for c in clouds)
+    scan_scheduler = None
+    if tile is None and scheduler is not None and many:  # the scans themselves as Dask tasks
+        _check_scheduler(scheduler)
+        scan_scheduler, scheduler = (scheduler, None if jobs == -1 else jobs), None
+    tiling = _tiling(tile, buffer, scheduler, jobs, resume, chunk_points)
     if to_stdout and len(scans) != 1:
         raise click.UsageError(f"--out - writes one scan to standard output; {len(scans)} scans given")
     if to_stdout and tiling is not None:
         raise click.UsageError("--tile writes a result folder: --out - is not supported with --tile")
-    split_jobs = 1 if tiling is not None and tiling.scheduler is not None else jobs  # Dask workers do the work
+    split_jobs = 1 if (tiling is not None and tiling.scheduler is not None) or scan_scheduler else jobs  # Dask does the work
     with Segmenter(rules, jobs=split_jobs, plugins=plugins) as segmenter:  # workers kept for all scans
         if not quiet:
             for w in segmenter.rule_base.warnings:  # `kbs rules check` quotes the line
@@ -557,7 +563,7 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
             check_writable_folder(out_dir, create=True)  # before any segmentation
         _run_scans(segmenter, scans, None if to_stdout else out_dir, t0, color_by=color_by, meshes=meshes,
                    report=report, quiet=quiet, inputs=InputFiles(scans), force=force, out_format=out_format,
-                   in_format=in_format, units=units, sensor=sensor, tiling=tiling)
+                   in_format=in_format, units=units, sensor=sensor, tiling=tiling, scheduler=scan_scheduler)
 
 
 def _tiling(tile: float | None, buffer: float | None, scheduler: str | None, jobs: int,
@@ -568,30 +574,39 @@ def _tiling(tile: float | None, buffer: float | None, scheduler: str | None, job
         for name, value in (("--buffer", buffer), ("--scheduler", scheduler), ("--resume", resume or None),
                             ("--chunk-points", chunk_points)):
             if value is not None:
-                raise click.UsageError(f"{name} only applies to a tiled run: give --tile SIZE too")
+                also = " (or several scans: a folder's scans run as Dask tasks)" if name == "--scheduler" else ""
+                raise click.UsageError(f"{name} only applies to a tiled run: give --tile SIZE too{also}")
         return None
     if scheduler is not None:
-        if not scheduler.strip():
-            raise click.BadParameter("give a Dask scheduler address (tcp://host:8786) or 'local'",
-                                     param_hint="--scheduler")
-        try:
-            import distributed  # noqa: F401
-        except ImportError as exc:
-            raise click.UsageError(f"--scheduler needs Dask ({exc}): pip install 'kbs[dask]', or leave "
-                                   f"--scheduler out to run the tiles in this process") from exc
+        _check_scheduler(scheduler)
     from kbs.tiles.stream import DEFAULT_CHUNK_POINTS
 
     return Tiling(size=tile, buffer=buffer, scheduler=scheduler, workers=None if jobs == -1 else jobs, resume=resume,
                   chunk_points=DEFAULT_CHUNK_POINTS if chunk_points is None else chunk_points)
 
 
-def _run_scans(segmenter, scans, out_dir: Path, t0: float, **options) -> None:
-    if len(scans) == 1:  # the clock starts with the command: its read time includes loading the rule base
+def _check_scheduler(scheduler: str) -> None:
+    """--scheduler: an address (or 'local'), and Dask installed (usage errors, exit 2)."""
+    if not scheduler.strip():
+        raise click.BadParameter("give a Dask scheduler address (tcp://host:8786) or 'local'",
+                                 param_hint="--scheduler")
+    try:
+        import distributed  # noqa: F401
+    except ImportError as exc:
+        raise click.UsageError(f"--scheduler needs Dask ({exc}): pip install 'kbs[dask]', or leave "
+                               f"--scheduler out to run in this process") from exc
+
+
+def _run_scans(segmenter, scans, out_dir: Path, t0: float, scheduler: tuple[str, int | None] | None = None,
+               **options) -> None:
+    if len(scans) == 1 and scheduler is None:  # the clock starts with the command: its read time includes loading the rule base
         run_scan(segmenter, scans[0], out_dir, t0=t0, **options)
         return
     t_load = time.perf_counter() - t0
     results: list[ScanResult | ScanFailure] = []
-    for scan in scans:
+    if scheduler is not None:
+        results = _scans_on_dask(segmenter, scans, out_dir, *scheduler, options)
+    for scan in scans if scheduler is None else ():
         try:
             results.append(run_scan(segmenter, scan, out_dir, **options))
         except KbsError as exc:  # as the command would report it alone; the other scans go on
@@ -602,6 +617,66 @@ def _run_scans(segmenter, scans, out_dir: Path, t0: float, **options) -> None:
     failures = [r.exit_code for r in results if isinstance(r, ScanFailure)]
     if failures:
         raise click.exceptions.Exit(failures[0])
+
+
+def _scan_task(rules: str, sensor: tuple[float, float, float], plugins: tuple[str, ...], scan: Path,
+               out_dir: Path, options: dict) -> tuple[ScanResult | None, int | None, str, str, str]:
+    """One scan of ``kbs run DIR/ --scheduler`` on a Dask worker: what :func:`run_scan` returns (or
+    the exit code and message of its KbsError) and what it printed on stdout and stderr."""
+    import contextlib
+    import io
+
+    from kbs.tiles.run import _worker_segmenter
+
+    out, err = io.StringIO(), io.StringIO()
+    result, code, message = None, None, ""
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            result = run_scan(_worker_segmenter(rules, sensor, plugins), scan, out_dir, **options)
+        except KbsError as exc:
+            code, message = int(exc.exit_code), str(exc)
+    return result, code, message, out.getvalue(), err.getvalue()
+
+
+def _scans_on_dask(segmenter: Segmenter, scans: list[Path], out_dir: Path, scheduler: str, workers: int | None,
+                   options: dict) -> list[ScanResult | ScanFailure]:
+    """The scans of ``kbs run DIR/ --scheduler`` as Dask tasks (one per scan, each on a worker's own
+    segmenter); what each printed is printed here in scan order, as one run after the other would."""
+    import logging
+    import os
+
+    from kbs.tiles.run import SchedulerError, dask_client
+
+    logging.getLogger("distributed").setLevel(logging.ERROR)
+    try:
+        client = dask_client(scheduler, workers)
+    except SchedulerError as exc:
+        raise click.BadParameter(str(exc), param_hint="--scheduler") from exc
+    results: list[ScanResult | ScanFailure] = []
+    try:
+        if not options.get("quiet"):
+            click.echo(f"kbs: Dask dashboard: {client.dashboard_link}", err=True)
+        spec = (segmenter.rule_base.path, tuple(segmenter.sensor), tuple(segmenter.plugins))
+        futures = [client.submit(_scan_task, *spec, scan, out_dir, options, retries=1, pure=False,
+                                 key=f"kbs-scan-{scan.stem}-{os.urandom(6).hex()}") for scan in scans]
+        for scan, future in zip(scans, futures):
+            try:
+                result, code, message, out, err = future.result()
+            except Exception as exc:  # noqa: BLE001 - the task died twice (a worker lost), or a bug in it
+                result, code, message, out, err = None, int(ExitCode.INTERNAL), f"{type(exc).__name__}: {exc}", "", ""
+            click.echo(out, nl=False)
+            click.echo(err, nl=False, err=True)
+            if result is None:
+                click.echo(f"kbs: error: {message}", err=True)
+                results.append(ScanFailure(scan, code if code is not None else int(ExitCode.INTERNAL)))
+            else:
+                results.append(result)
+    finally:
+        cluster = client.cluster if scheduler == "local" else None
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    return results
 
 
 def _depth(ctx, param, value):

@@ -129,3 +129,50 @@ def test_every_tile_takes_the_ground_plane_of_the_whole_cloud(tmp_path):
     r = kbs_cmd("run", "--rules", "outdoor", "-j", "1", str(path), "--tile", "6", "--buffer", "1.5",
                 "--out", str(tmp_path / "tiled2"))
     assert f"ground: whole cloud: {whole['source']}" in r.stdout
+
+
+# -- a folder of scans on Dask ------------------------------------------------------------------------
+
+
+def _normalised_folder(folder: Path) -> dict[str, object]:
+    out: dict[str, object] = {}
+    for path in sorted(folder.iterdir()):
+        if path.suffix == ".json":
+            doc = json.loads(path.read_text())
+            assert doc.pop("run_id") and doc["summary"].pop("seconds") >= 0
+            out[path.name] = doc
+        else:
+            out[path.name] = re.sub(rb"comment kbs_run_id [0-9a-f]+\n", b"", path.read_bytes())
+    return out
+
+
+def test_a_folder_of_scans_on_a_local_dask_cluster_gives_the_outputs_of_one_process(tmp_path):
+    pytest.importorskip("distributed", reason="Dask is not installed: pip install 'kbs[dask]' (it is in [test])")
+    from kbs.io import write_ply
+
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    for seed in (3, 4, 5):
+        X, _ = ground_and_rocks(seed)
+        write_ply(scans / f"rocks{seed}.ply", X[::2], {})
+    (scans / "broken.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\nend_header\n1 2\n")
+    args = ["run", "--rules", "outdoor", str(scans)]
+    here = kbs_cmd(*args, "-j", "1", "--out", str(tmp_path / "here"))
+    dask = kbs_cmd(*args, "-j", "2", "--scheduler", "local", "--out", str(tmp_path / "dask"))
+    assert here.returncode == dask.returncode == 3, (here.stderr, dask.stderr)  # the broken scan's code
+    assert _normalised_folder(tmp_path / "dask") == _normalised_folder(tmp_path / "here")
+    assert len(_normalised_folder(tmp_path / "here")) == 6
+    assert "kbs: Dask dashboard: http" in dask.stderr
+    error = [line for line in here.stderr.splitlines() if line.startswith("kbs: error:")]
+    assert len(error) == 1 and error[0] in dask.stderr.splitlines()
+    # the same lines per scan, in scan order, then the time table
+    assert [line.split(":")[0] for line in dask.stdout.splitlines() if line.startswith(str(scans))] == \
+        [line.split(":")[0] for line in here.stdout.splitlines() if line.startswith(str(scans))]
+    assert "4 scans (1 failed)" in dask.stdout
+
+
+def test_scheduler_for_one_untiled_scan_is_a_usage_error(rocks_las, tmp_path):
+    r = kbs_cmd("run", "--rules", "outdoor", "--scheduler", "local", str(rocks_las), "--out", str(tmp_path))
+    assert r.returncode == 2
+    assert "--scheduler only applies to a tiled run: give --tile SIZE too (or several scans: a folder's scans run " \
+           "as Dask tasks)" in r.stderr
