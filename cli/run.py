@@ -243,6 +243,8 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
     if _streams(tiling, cloud, in_format, fmt):
         from kbs.tiles.stream import spill_las, streamed_cloud
 
+        assert tiling is not None
+
         spill_folder = Path(tempfile.mkdtemp(prefix=f".{cloud.stem}.spill-", dir=out_dir))
         try:
             spilled = spill_las(cloud, spill_folder, tiling.size, _buffer(segmenter, tiling),

@@ -67,10 +67,6 @@ class SpilledCloud:
 
     def remove(self) -> None:
         """Delete the spill files (and the folder if nothing else is in it)."""
-        for name in ("xyz", "index"):
-            arr = getattr(self, name)
-            if isinstance(arr, np.memmap) and arr._mmap is not None:
-                arr._mmap.close()
         for path in self.folder.glob("*"):
             if path.suffix in (".idx", ".npy"):
                 path.unlink(missing_ok=True)
