@@ -31,6 +31,8 @@ from kbs.tiles.store import TileStore
 #: The ground plane of a tiled run is found once, on the whole cloud, or on every k-th point of it
 #: when it holds more than this many points (the same plane for every tile: no tile finds its own).
 GROUND_SAMPLE_POINTS = 2_000_000
+#: Tiles submitted to Dask at a time, per worker (more are submitted as these finish).
+IN_FLIGHT_PER_WORKER = 2
 #: The buffer, when none is given, is this fraction of the tile size ...
 BUFFER_FRACTION = 0.1
 #: ... and at least this many times the radius of the rule base's local ground surface.
@@ -262,14 +264,30 @@ def _segment_on_dask(segmenter: Segmenter, X: np.ndarray, tiles: Sequence[Tile],
         if progress is not None:
             progress(f"Dask dashboard: {client.dashboard_link}")
         spec = (segmenter.rule_base.path, segmenter.sensor, segmenter.plugins)
-        futures = {client.submit(_segment_task, *spec, X[tiles[k].index], given, key=f"kbs-tile-{tiles[k].name}-"
-                                 f"{os.urandom(6).hex()}", retries=1, pure=False): k for k in todo}
-        for done, future in enumerate(as_completed(futures), start=1):
+
+        def submit(k: int) -> Any:
+            future = client.submit(_segment_task, *spec, X[tiles[k].index], given, retries=1, pure=False,
+                                   key=f"kbs-tile-{tiles[k].name}-{os.urandom(6).hex()}")
+            futures[future] = k
+            return future
+
+        # a bounded number of tiles in flight (a tile's points are copied from X when it is
+        # submitted): the client holds the points of those tiles, not of the whole cloud
+        n_workers = max(len(client.scheduler_info().get("workers", {})), workers or 1 if scheduler == "local" else 1)
+        window = max(2, IN_FLIGHT_PER_WORKER * n_workers)
+        futures: dict[Any, int] = {}
+        queue = list(todo)
+        pending = as_completed([submit(k) for k in queue[:window]])
+        queue = queue[window:]
+        for done, future in enumerate(pending, start=1):
             try:
                 out = future.result()
             except Exception as exc:  # the task died twice (a worker lost), or a bug in it
                 out = exc
-            finished(futures[future], out, done)
+            k = futures.pop(future)
+            if queue:
+                pending.add(submit(queue.pop(0)))
+            finished(k, out, done)
     finally:
         cluster = client.cluster if scheduler == "local" else None
         client.close()
