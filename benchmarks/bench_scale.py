@@ -94,8 +94,7 @@ def run_measured(cmd: list[str]) -> tuple[float, float, float, int, str]:
     out, err = proc.communicate()
     done.set()
     thread.join()
-    return time.perf_counter() - t0, peak["client"] / 1e6, peak["worker"] / 1e6, proc.returncode, \
-        (out + err)[-2000:]
+    return time.perf_counter() - t0, peak["client"] / 1e6, peak["worker"] / 1e6, proc.returncode, out + err
 
 
 def main() -> None:
@@ -133,7 +132,7 @@ def main() -> None:
                     [kbs, "run", "--rules", "airborne", "--tile", f"{args.tile:g}", "--scheduler", "local",
                      "-j", str(w), str(cloud), "--out", str(out), "--force"])
                 if code != 0:
-                    print(f"| {n:,} | | {w} | failed (exit {code}): {tail.splitlines()[-1] if tail else ''} | | | |",
+                    print(f"| {n:,} | | {w} | failed (exit {code}): {tail.strip().splitlines()[-1] if tail.strip() else ''} | | | |",
                           flush=True)
                     continue
                 tiles = next((line.split("tiles: ")[1].split(" of ")[0] for line in tail.splitlines()
