@@ -12,13 +12,15 @@ count whose estimated time (from the largest size measured with as many workers)
 ``--budget`` minutes is printed as "not run: estimated N minutes".
 
 Usage: python benchmarks/bench_scale.py [--sizes 1e6 1e7 1e8] [--workers 1 2] [--tile 150] [--budget 30]
-                                        [--keep DIR]
+                                        [--timeout MINUTES] [--keep DIR]
 """
 from __future__ import annotations
 
 import argparse
 import math
 import os
+import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -65,13 +67,15 @@ def write_cloud(path: Path, n_points: int, seed: int = 0) -> int:
     return written
 
 
-def run_measured(cmd: list[str]) -> tuple[float, float, float, int, str]:
+def run_measured(cmd: list[str], timeout: float | None = None) -> tuple[float, float, float, int | None, str]:
     """Run ``cmd``; wall seconds, peak RSS (MB) of the process itself and of its largest
-    descendant (a Dask worker), the exit code and stderr's tail."""
+    descendant (a Dask worker), the exit code (None: stopped after ``timeout`` seconds) and what
+    it printed."""
     import psutil
 
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    env = {**os.environ, "KBS_PROGRESS_SECONDS": "10"}
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     peak = {"client": 0, "worker": 0}
     done = threading.Event()
 
@@ -91,10 +95,18 @@ def run_measured(cmd: list[str]) -> tuple[float, float, float, int, str]:
 
     thread = threading.Thread(target=sample, daemon=True)
     thread.start()
-    out, err = proc.communicate()
+    try:
+        out, err = proc.communicate(timeout=timeout)
+        code: int | None = proc.returncode
+    except subprocess.TimeoutExpired:
+        for child in psutil.Process(proc.pid).children(recursive=True):
+            child.kill()
+        proc.kill()
+        out, err = proc.communicate()
+        code = None
     done.set()
     thread.join()
-    return time.perf_counter() - t0, peak["client"] / 1e6, peak["worker"] / 1e6, proc.returncode, out + err
+    return time.perf_counter() - t0, peak["client"] / 1e6, peak["worker"] / 1e6, code, out + err
 
 
 def main() -> None:
@@ -104,6 +116,8 @@ def main() -> None:
     ap.add_argument("--tile", type=float, default=150.0, help="tile size in m (airborne: 100-250 m)")
     ap.add_argument("--budget", type=float, default=30.0, help="minutes: a size estimated longer is not run")
     ap.add_argument("--keep", type=Path, default=None, help="write the clouds here and keep them")
+    ap.add_argument("--timeout", type=float, default=None,
+                    help="minutes: stop a run after this long and print how far it got and its peak memory so far")
     args = ap.parse_args()
     kbs = str(Path(sys.executable).with_name("kbs"))
     print(f"kbs run --rules airborne --tile {args.tile:g} --scheduler local -j W, LAS read in chunks; "
@@ -130,7 +144,14 @@ def main() -> None:
                 out = folder / f"out-{n}-{w}"
                 wall, client, worker, code, tail = run_measured(
                     [kbs, "run", "--rules", "airborne", "--tile", f"{args.tile:g}", "--scheduler", "local",
-                     "-j", str(w), str(cloud), "--out", str(out), "--force"])
+                     "-j", str(w), str(cloud), "--out", str(out), "--force"],
+                    timeout=None if args.timeout is None else args.timeout * 60)
+                if code is None:  # stopped: how far it got, from its progress lines ('N tiles done')
+                    done = [int(m.replace(",", "")) for m in re.findall(r"([\d,]+) tiles? done", tail)]
+                    print(f"| {n:,} | | {w} | stopped after {wall:.0f} s, {max(done, default=0):,} tiles done | "
+                          f"{client:,.0f} | {worker:,.0f} | |", flush=True)
+                    shutil.rmtree(out, ignore_errors=True)
+                    continue
                 if code != 0:
                     print(f"| {n:,} | | {w} | failed (exit {code}): {tail.strip().splitlines()[-1] if tail.strip() else ''} | | | |",
                           flush=True)
@@ -140,9 +161,7 @@ def main() -> None:
                 rate[w] = n / wall
                 print(f"| {n:,} | {tiles} | {w} | {wall:.0f} | {client:,.0f} | {worker:,.0f} | {n / wall:,.0f} |",
                       flush=True)
-                for p in out.iterdir():
-                    p.unlink()
-                out.rmdir()
+                shutil.rmtree(out, ignore_errors=True)
             if args.keep is None:
                 cloud.unlink()
 
