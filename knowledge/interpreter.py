@@ -198,7 +198,7 @@ class Interpreter:
 
     def _ufp_kwargs(self, stop: str, min_k: int = 1) -> dict[str, Any]:
         e = self.rb.engine
-        return {"k_max": e["k_max"], "m": e["m"], "tol": e["tol"], "max_iter": e["max_iter"],
+        return {"k_max": e["k_max"], "m": e["m"], "tol": e["tol"], "fcm_tol": e["fcm_tol"], "max_iter": e["max_iter"],
                 "min_variance": e["min_variance"], "max_condition": e["max_condition"],
                 "new_prototype": e["new_prototype"], "stop": stop, "min_k": min_k, "max_fit_points": e["max_fit_points"]}
 
@@ -713,7 +713,7 @@ class Interpreter:
         owner = np.concatenate([np.full(leaves[i][0].idx.size, i) for i in mine]) if mine else np.zeros(0, dtype=np.int64)
         model = LocalGround.build(X, index, scene.ground.normal, scene.ground.point, neighbours=spec.neighbours,
                                   radius=spec.radius, owners=np.searchsorted(mine, owner) if mine else owner,
-                                  owner_ids=tuple(leaves[i][2].id for i in mine))
+                                  owner_ids=tuple(leaves[i][2].id for i in mine), workers=self.jobs)
         return model, owner
 
     def _post_ground(self, X, leaves, scene: Scene, ground_info: dict):
@@ -856,7 +856,7 @@ class Interpreter:
             n_move, size = int(move.sum()), node.idx.size
             if not n_move:
                 continue
-            _, j = tree.query(X[node.idx[move]])
+            _, j = tree.query(X[node.idx[move]], workers=self.jobs if n_move >= 4096 else 1)
             dest = self._give(node, move, t_owner[j], moved_in)
             rec.released = n_move
             total += n_move
