@@ -26,6 +26,7 @@ from kbs.io.readers import cloud_files_in, why_not_a_scan
 from kbs.io.result import RUN_ID_COMMENT, InputFiles, check_output, new_run_id, write_result_pair, write_result_stream
 from kbs.io.result import jsonable as _jsonable  # noqa: F401 -- benchmarks/profile_run.py times the JSON with it
 from kbs.knowledge import Explanation, PredicateRegistry, Segmenter, load_rule_base
+from kbs.knowledge.segmenter import coordinate_problem
 from kbs.knowledge.explain import TREE_LINES, limit_lines
 from kbs.knowledge.predicates import UNITS, did_you_mean
 from kbs.knowledge.rulebase import RuleFileError, resolve, shipped_rule_bases
@@ -242,6 +243,9 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
         check_classes_fit(pc.source, rb.asprs_classes, name)
     scan_units = _scan_units(pc, units, name, quiet)
     t_read = time.perf_counter() - t0
+    too_big = coordinate_problem(pc.xyz * segmenter.scale(scan_units))  # the file's fault (3), said before the work
+    if too_big is not None:
+        raise CloudFileError(name, too_big)
     if tiling is None:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", SpacingWarning)

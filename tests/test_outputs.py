@@ -587,3 +587,27 @@ def test_a_full_disk_while_writing_the_meshes_leaves_the_previous_folder(tmp_pat
     assert main(["-q", *RUN, str(scan), "--out", str(o), "--meshes"]) == 3
     assert "holds files kbs did not write (notes.txt)" in capsys.readouterr().err
     assert (folder / "notes.txt").read_text() == "mine"
+
+
+@pytest.mark.parametrize("scale", [1e80, 1e105])
+def test_coordinates_too_large_for_float64_products_are_refused_clearly(tmp_path, scale):
+    """Coordinates of 1e80 ran for a minute and printed numpy's 'overflow encountered in multiply'
+    (the covariances' norms reach the 4th power, their determinants the 6th); 1e105 crashed in the
+    voxel grid with a traceback. Now: refused before the work, the file named, exit 3; the library
+    says the same as a ParameterError."""
+    from kbs.errors import ParameterError
+    from kbs.knowledge import Segmenter
+
+    X = read_cloud(EXAMPLE).xyz[::10] * scale
+    scan = tmp_path / "huge.xyz"
+    np.savetxt(scan, X)
+    r = kbs("run", "--rules", "outdoor", str(scan), "--out", str(tmp_path / "o"))
+    assert r.returncode == 3, r.stderr
+    assert r.stderr.startswith(f"kbs: error: {scan}: ") and "beyond +-1e+50" in r.stderr and "--units" in r.stderr
+    assert "Traceback" not in r.stderr and "RuntimeWarning" not in r.stderr and "overflow encountered" not in r.stderr
+    assert not (tmp_path / "o" / "huge.json").exists()
+    with pytest.raises(ParameterError, match=r"points: .* beyond \+-1e\+50"):
+        Segmenter("outdoor").segment(X)
+    # a large but computable scale still runs (the bound is not a unit check)
+    with pytest.warns(UserWarning, match="median point spacing"):  # and no overflow (RuntimeWarnings fail the tests)
+        assert Segmenter("outdoor").segment(X / scale * 1e40).label.shape == (len(X),)
