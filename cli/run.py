@@ -682,10 +682,35 @@ def rules_schema(as_json: bool) -> None:
 
 @rules.command("list")
 def rules_list() -> None:
-    """List the shipped rule bases."""
+    """List the shipped rule bases, then the examples installed with kbs (examples/NAME: `kbs rules
+    show examples/NAME > NAME.yaml` copies one, `kbs run --rules examples/NAME` runs it)."""
     for name in shipped_rule_bases():
         rb = load_rule_base(name)
         click.echo(f"{name:16} {rb.description.splitlines()[0] if rb.description else ''}")
+    _list_examples()
+
+
+def _list_examples() -> None:
+    """The example rule files, with the plugin an example needs at its installed path."""
+    import yaml
+
+    from kbs.knowledge.rulebase import example_rule_bases, examples_folder
+
+    folder = examples_folder()
+    names = example_rule_bases()
+    if folder is None or not names:
+        return
+    width = max(16, *(len(n) + 1 for n in names))
+    for name in names:
+        text = resolve(name)[1]
+        doc = yaml.safe_load(text) or {}
+        line = " ".join(str(doc.get("description", "")).split())
+        plugin = re.search(r"--plugin examples/plugins/(\S+\.py)", text)  # the example's own header says which
+        if plugin:
+            line += f" (with --plugin {folder / 'plugins' / plugin.group(1)})"
+        click.echo(f"{name:{width}} {line}")
+    click.echo(f"examples installed in {folder} (rules/, plugins/, data/): `kbs rules show examples/NAME > NAME.yaml` "
+               "copies one, `kbs run --rules examples/NAME` runs it")
 
 
 @click.command()
