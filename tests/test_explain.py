@@ -244,8 +244,9 @@ def test_the_report_tells_unlabelled_clusters_from_noise(tmp_path):
     data = _data(page)
     import base64
 
-    label = np.frombuffer(base64.b64decode(data["label"]), dtype="<i4")
-    cluster = np.frombuffer(base64.b64decode(data["cluster"]), dtype="<i4")
+    width = "<i2" if data["int"] == 2 else "<i4"  # the report packs them in 16 bits when they fit
+    label = np.frombuffer(base64.b64decode(data["label"]), dtype=width)
+    cluster = np.frombuffer(base64.b64decode(data["cluster"]), dtype=width)
     assert data["unlabelled_key"] == -2 and data["unlabelled"] != data["noise"]
     assert (label == -2).any() and (cluster[label == -2] >= 0).all()  # in an output cluster, no label
     assert (cluster[label == -1] < 0).all()  # noise: in no output cluster
