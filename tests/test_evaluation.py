@@ -413,6 +413,7 @@ def test_kbs_eval_bad_inputs_exit_codes(rocks_result, tmp_path, capsys):
     assert r.returncode == 3 and r.stderr.startswith("kbs: error: ") and r.stderr.count("\n") == 1
 
 
+@pytest.mark.slow  # whole real scans / a browser: pytest --runslow (CI) runs it
 def test_kbs_eval_on_semantickitti(shared_data, tmp_path, capsys):
     scan = shared_data / "semantickitti" / "000001.points.npy"
     r = kbs("run", "--rules", "outdoor", str(scan), "--out", str(tmp_path))

@@ -97,6 +97,7 @@ def test_a_cluster_stopped_by_a_limit_says_which_rule_wanted_a_split_and_how_it_
 # -- 3. a large tree, grouped and folded ------------------------------------------------------------
 
 
+@pytest.mark.slow  # whole real scans / a browser: pytest --runslow (CI) runs it
 def test_explain_of_a_large_scan_is_short_and_unfolds_with_depth_and_cluster(shared_data, tmp_path, capsys):
     """SemanticKITTI: 616 clusters, 618 lines before. The summary and the tree to the depth that
     fits stay under 80 lines; --depth all prints every cluster; --cluster prints one branch."""

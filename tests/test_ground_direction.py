@@ -184,6 +184,7 @@ def level_f1(shared_data) -> dict[str, float]:
     return out
 
 
+@pytest.mark.slow  # whole real scans / a browser: pytest --runslow (CI) runs it
 @pytest.mark.parametrize("degrees", [10, 20])
 @pytest.mark.parametrize("name", VEHICLE)
 def test_a_tilted_vehicle_scan_finds_its_ground(shared_data, level_f1, name, degrees):
@@ -204,6 +205,7 @@ def test_a_tilted_vehicle_scan_finds_its_ground(shared_data, level_f1, name, deg
     assert f1 > level_f1[name] - 0.01, (f1, level_f1[name])
 
 
+@pytest.mark.slow  # whole real scans / a browser: pytest --runslow (CI) runs it
 def test_a_tilted_scan_through_kbs_run(shared_data, tmp_path):
     """SemanticKITTI 000001 pitched 20 deg (about the sensor's y axis), through kbs run: the summary
     and the JSON say which cluster, how it was found, its normal and its angle to the fallback."""

@@ -173,6 +173,7 @@ def _page_errors(page: Path, tmp: Path) -> tuple[bool, str]:
     return ready, errors
 
 
+@pytest.mark.slow  # whole real scans / a browser: pytest --runslow (CI) runs it
 @needs_chromium
 def test_error_hook_catches_a_page_error(outdoor, tmp_path):
     page = write_report(tmp_path / "r.html", **outdoor, title="t", max_points=2000)
@@ -182,6 +183,7 @@ def test_error_hook_catches_a_page_error(outdoor, tmp_path):
     assert "noSuchFunction" in errors
 
 
+@pytest.mark.slow  # whole real scans / a browser: pytest --runslow (CI) runs it
 @needs_chromium
 def test_bundled_example_report_renders_in_chromium(outdoor, tmp_path):
     page = write_report(tmp_path / "report.html", **outdoor, title="outdoor example")
@@ -203,6 +205,7 @@ def test_bundled_example_report_renders_in_chromium(outdoor, tmp_path):
     assert apd.std() > 0.02, "the APD chart is blank"
 
 
+@pytest.mark.slow  # whole real scans / a browser: pytest --runslow (CI) runs it
 @needs_chromium
 def test_semantickitti_report_renders_in_chromium(shared_data, tmp_path):
     scan = shared_data / "semantickitti" / "000001.points.npy"
@@ -223,6 +226,7 @@ def test_semantickitti_report_renders_in_chromium(shared_data, tmp_path):
     assert errors == "" and ready
 
 
+@pytest.mark.slow  # whole real scans / a browser: pytest --runslow (CI) runs it
 @needs_chromium
 def test_clicking_a_point_shows_why_its_cluster_ended_so(outdoor, tmp_path):
     """A plotly_click on the first point fills the why panel with the why-texts of its output
@@ -252,6 +256,7 @@ var t = setInterval(function () {
         assert re.search(rf'<span id="rec-{re.escape(rid)}" class="[^"]*\bsel\b', dom)
 
 
+@pytest.mark.slow  # whole real scans / a browser: pytest --runslow (CI) runs it
 @needs_chromium
 def test_kbs_run_report_of_the_bundled_example_opens_without_errors(tmp_path):
     r = kbs("run", "--rules", "outdoor", str(EXAMPLE), "--out", str(tmp_path),
