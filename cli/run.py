@@ -27,6 +27,7 @@ from kbs.io.readers import cloud_files_in, why_not_a_scan
 from kbs.io.result import RUN_ID_COMMENT, InputFiles, check_output, new_run_id, write_result_pair, write_result_stream
 from kbs.io.result import jsonable as _jsonable  # noqa: F401 -- benchmarks/profile_run.py times the JSON with it
 from kbs.knowledge import Explanation, PredicateRegistry, Segmenter, load_rule_base
+from kbs.knowledge.segmenter import coordinate_problem
 from kbs.knowledge.explain import TREE_LINES, limit_lines
 from kbs.knowledge.predicates import UNITS, did_you_mean
 from kbs.knowledge.rulebase import RuleFileError, resolve, shipped_rule_bases
@@ -288,6 +289,9 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
         check_classes_fit(pc.source, rb.asprs_classes, name)
     scan_units = _scan_units(pc, units, name, quiet)
     t_read = time.perf_counter() - t0
+    too_big = coordinate_problem(pc.xyz * segmenter.scale(scan_units))  # the file's fault (3), said before the work
+    if too_big is not None:
+        raise CloudFileError(name, too_big)
     if tiling is None:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", SpacingWarning)
@@ -814,10 +818,35 @@ def rules_schema(as_json: bool) -> None:
 
 @rules.command("list")
 def rules_list() -> None:
-    """List the shipped rule bases."""
+    """List the shipped rule bases, then the examples installed with kbs (examples/NAME: `kbs rules
+    show examples/NAME > NAME.yaml` copies one, `kbs run --rules examples/NAME` runs it)."""
     for name in shipped_rule_bases():
         rb = load_rule_base(name)
         click.echo(f"{name:16} {rb.description.splitlines()[0] if rb.description else ''}")
+    _list_examples()
+
+
+def _list_examples() -> None:
+    """The example rule files, with the plugin an example needs at its installed path."""
+    import yaml
+
+    from kbs.knowledge.rulebase import example_rule_bases, examples_folder
+
+    folder = examples_folder()
+    names = example_rule_bases()
+    if folder is None or not names:
+        return
+    width = max(16, *(len(n) + 1 for n in names))
+    for name in names:
+        text = resolve(name)[1]
+        doc = yaml.safe_load(text) or {}
+        line = " ".join(str(doc.get("description", "")).split())
+        plugin = re.search(r"--plugin examples/plugins/(\S+\.py)", text)  # the example's own header says which
+        if plugin:
+            line += f" (with --plugin {folder / 'plugins' / plugin.group(1)})"
+        click.echo(f"{name:{width}} {line}")
+    click.echo(f"examples installed in {folder} (rules/, plugins/, data/): `kbs rules show examples/NAME > NAME.yaml` "
+               "copies one, `kbs run --rules examples/NAME` runs it")
 
 
 @click.command()
