@@ -1,7 +1,8 @@
 """Benchmark: ground F1 of tiled runs (kbs run --tile) against the untiled run, on the real scans.
 
 Prints markdown: per scan and tile size, the number of tiles, the ground F1 untiled and tiled and
-their difference (the target is |difference| <= 0.002), stitched clusters and wall times.
+their difference (the target is |difference| <= 0.002), stitched clusters, how many labels changed
+and the F1 difference near the inner tile edges (within a buffer) and inside the tiles, and wall times.
 
 Usage: python benchmarks/bench_tiles.py [--sets kitti isprs] [--scans samp11] [--sizes 60 80] [--buffer B]
 Every run is in process with jobs=1 (the result does not depend on jobs).
@@ -25,9 +26,10 @@ from kbs.tiles import default_buffer, segment_tiled  # noqa: E402
 RULES = {"SemanticKITTI": "outdoor", "ISPRS": "airborne"}
 
 
-def f1(scan, seg) -> float:
+def f1(scan, seg, where=None) -> float:
     pred = seg.label == seg.label_names.index("ground")
-    return ground_metrics(pred[scan.valid], np.where(scan.truth, 1, 0)[scan.valid], ground_values=(1,)).f1
+    keep = scan.valid if where is None else scan.valid & where
+    return ground_metrics(pred[keep], np.where(scan.truth, 1, 0)[keep], ground_values=(1,)).f1
 
 
 def near_edge(seg, X, size, buffer) -> np.ndarray:
@@ -50,8 +52,8 @@ def main() -> None:
     ap.add_argument("--buffer", type=float, default=None)
     args = ap.parse_args()
     print("| data set | scan | points | tile m | buffer m | tiles | F1 untiled | F1 tiled | diff | stitched | "
-          "changed % near edges | changed % inside | s untiled | s tiled |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+          "changed % near edges | changed % inside | F1 diff near edges | F1 diff inside | s untiled | s tiled |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for scan in scans(args.sets):
         if args.scans and scan.name not in args.scans:
             continue
@@ -71,7 +73,8 @@ def main() -> None:
             near = near_edge(seg, scan.xyz, size, buf)
             changed = (tiled.label == tiled.label_names.index("ground")) != (base.label == base.label_names.index("ground"))
             print(f"| {scan.dataset} | {scan.name} | {len(scan.xyz):,} | {size:g} | {buf:g} | {n_tiles} | {f_base:.4f} | "
-                  f"{f_t:.4f} | {f_t - f_base:+.4f} | {stitched} | {100 * changed[near].mean():.2f} | {100 * changed[~near].mean():.2f} | {t_base:.1f} | {dt:.1f} |", flush=True)
+                  f"{f_t:.4f} | {f_t - f_base:+.4f} | {stitched} | {100 * changed[near].mean():.2f} | {100 * changed[~near].mean():.2f} | "
+                  f"{f1(scan, tiled, near) - f1(scan, base, near):+.4f} | {f1(scan, tiled, ~near) - f1(scan, base, ~near):+.4f} | {t_base:.1f} | {dt:.1f} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -28,7 +28,8 @@ from kbs.evaluation.hoover import check_tolerance
 from kbs.evaluation.segcomp import DEFAULT_TOLERANCES, segcomp_table
 from kbs.io import read_result_json
 from kbs.io.segcomp import FIRST_REGION_LABEL, NON_REGION_VALUES, read_gt_seg, read_ms_nor, read_range, read_sunraster
-from kbs.io.result import check_pair, read_result_cloud
+from kbs.io.atomic import replacing
+from kbs.io.result import InputFiles, check_output, check_pair, read_result_cloud
 
 
 def _int_list(ctx: click.Context, param: click.Parameter, value: str | None) -> tuple[int, ...] | None:
@@ -178,8 +179,10 @@ def format_ground(g: GroundMetrics) -> str:
               help="The result's label that means ground (from its <stem>.json label_names).")
 @click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), metavar="OUT.json",
               help="Also write every number to this JSON file.")
-@click.option("--hoover/--no-hoover", "do_hoover", default=True, show_default=True,
-              help="Compute the Hoover region classification (MS regions: the result's clusters).")
+@click.option("--hoover/--no-hoover", "do_hoover", default=None,
+              help="Compute the Hoover region classification (MS regions: the result's clusters). Default: yes, "
+                   "except for a ground evaluation (--ground-values, or a .label GT), which prints the ground "
+                   "metrics table alone.")
 @click.option("--tolerances", callback=_tolerances, metavar="T,T,...",
               help="Also print the paper's Table 1: one row of Hoover counts and angle error per T "
                    "[default for X.ms-seg: 0.51,0.6,0.7,0.8,0.9].")
@@ -187,7 +190,7 @@ def format_ground(g: GroundMetrics) -> str:
               help="SegComp only: the range image, for the angle error [default: GROUND_TRUTH's X.range beside it].")
 def eval_(result: Path, ground_truth: str, tolerance: float, ground_values: tuple[int, ...] | None,
           unlabelled_values: tuple[int, ...] | None, ground_label: str, json_out: Path | None,
-          do_hoover: bool, tolerances: tuple[float, ...] | None, image_path: Path | None) -> None:
+          do_hoover: bool | None, tolerances: tuple[float, ...] | None, image_path: Path | None) -> None:
     """Compare a `kbs run` RESULT (.ply) with GROUND_TRUTH: a label file (.npy, a SemanticKITTI
     .label, or text with one integer per line) or field:NAME, a field of RESULT (e.g.
     field:label_in, the input's own 'label').
@@ -199,19 +202,21 @@ def eval_(result: Path, ground_truth: str, tolerance: float, ground_values: tupl
     be a multiple of 4 bytes, match the KITTI .bin of the same name beside it, and hold one label
     per point of RESULT (exit code 3 otherwise).
 
-    Prints the Hoover et al. (1996) counts of the result's clusters against the GT regions,
-    the ground metrics (with --ground-values; the ground label is found in RESULT's sibling
-    <stem>.json) and the adjusted Rand index, on the points whose GT label is not unlabelled.
+    Prints the Hoover et al. (1996) counts of the result's clusters against the GT regions (not
+    for a ground evaluation unless --hoover), the ground metrics (with --ground-values; the ground
+    label is found in RESULT's sibling <stem>.json) and the adjusted Rand index, on the points
+    whose GT label is not unlabelled.
 
     SegComp (the planar contest): RESULT X.ms-seg (written by `kbs segcomp`) against GROUND_TRUTH
     X.gt-seg, pixel by pixel as SegComp's compare; prints the paper's Table 1 (one row per
     tolerance) and the regions at --tolerance. The angle error needs the range image (--image);
     the MS normals come from X.ms-nor beside X.ms-seg when it exists.
     """
+    _check_json_out(json_out, result, result.with_suffix(".json"), ground_truth)
     if _is_seg(str(result), ".ms-seg") or _is_seg(ground_truth, ".gt-seg"):
         given = [name for name, value in (("--ground-values", ground_values),
                                           ("--unlabelled-values", unlabelled_values)) if value is not None]
-        if not do_hoover:
+        if do_hoover is False:
             given.append("--no-hoover")
         if given:
             raise click.UsageError(f"{', '.join(given)}: not for a SegComp evaluation (X.ms-seg against X.gt-seg)")
@@ -225,6 +230,9 @@ def eval_(result: Path, ground_truth: str, tolerance: float, ground_values: tupl
     if kitti and unlabelled_values is None:
         unlabelled_values = SEMANTICKITTI_IGNORED
     unlabelled = unlabelled_values or ()
+    hoover_said = do_hoover is not None
+    if do_hoover is None:  # a ground evaluation asks for the ground table; the regions on request
+        do_hoover = ground_values is None
     cloud = read_result_cloud(result)
     if "cluster" not in cloud.fields:
         raise CloudFileError(str(result), "not a kbs result: no per-vertex 'cluster' field (write one with kbs run)")
@@ -271,6 +279,8 @@ def eval_(result: Path, ground_truth: str, tolerance: float, ground_values: tupl
                   if unlabelled else ""))
     if h is not None:
         click.echo(format_hoover(h))
+    elif not hoover_said:
+        click.echo("Hoover regions: not computed for a ground evaluation (--hoover computes them)")
     table = None
     if tolerances is not None:
         table = [hoover(clusters, gt, tolerance=t, ms_ignore=(-1,), gt_ignore=unlabelled, points=cloud.xyz)
@@ -295,12 +305,23 @@ def eval_(result: Path, ground_truth: str, tolerance: float, ground_values: tupl
 
 
 def _write_json(json_out: Path, doc: dict) -> None:
-    """Write ``doc`` to ``json_out`` and say so."""
+    """Write ``doc`` to ``json_out``, whole or not at all (a full disk leaves the previous file), and
+    say so."""
+    text = json.dumps(doc, indent=1)
     try:
-        json_out.write_text(json.dumps(doc, indent=1))
+        with replacing(json_out) as (tmp,):
+            with open(tmp, "w", encoding="utf-8") as stream:
+                stream.write(text)
     except OSError as exc:
         raise CloudFileError(str(json_out), f"cannot write: {exc.strerror or exc}") from exc
     click.echo(f"wrote {json_out}")
+
+
+def _check_json_out(json_out: Path | None, *inputs: str | Path) -> None:
+    """Before the work: --json is never one of the inputs (the result's own JSON included)."""
+    if json_out is not None:
+        files = [p for p in inputs if not str(p).startswith("field:")]
+        check_output(json_out, inputs=InputFiles(files), force=True)
 
 
 def _is_seg(name: str, suffix: str) -> bool:

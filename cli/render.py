@@ -54,16 +54,18 @@ def render(result: Path, out: Path | None, kind: str, max_points: int, dpi: int,
         raise click.BadParameter(f"no label {ground_label!r} in this result (labels: {', '.join(res.label_names) or 'none'}): "
                                  "the map draws that label against the others", param_hint="--ground-label")
     stem = result.stem
+    view = _view(res, outputs)
     for k, path in outputs.items():
         t = time.perf_counter()
         if k == "series":
-            fig = figures.series_figure(res.X, max_points=max_points, title=f"{stem}: UFP-ONC partitions, top view")
+            fig = figures.series_figure(res.X, max_points=max_points, title=f"{stem}: UFP-ONC partitions, top view",
+                                        view=view)
         elif k == "map":
             fig = figures.obstacle_map_figure(res.X, res.label, res.label_names, sensor=res.sensor,
-                                              ground_label=ground_label, title=f"{stem}: obstacle map")
+                                              ground_label=ground_label, title=f"{stem}: obstacle map", view=view)
         else:
             fig = figures.clusters_figure(res.X, res.cluster, res.doc["clusters"], membership=res.membership,
-                                          max_points=max_points, title=f"{stem}: output clusters")
+                                          max_points=max_points, title=f"{stem}: output clusters", view=view)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             with replacing(path) as (tmp,):  # whole or not at all; the temporary name keeps the suffix
@@ -72,3 +74,16 @@ def render(result: Path, out: Path | None, kind: str, max_points: int, dpi: int,
             raise CloudFileError(str(path), f"cannot write: {exc.strerror or exc}") from exc
         click.echo(f"wrote {path} ({time.perf_counter() - t:.2f} s)")
     click.echo(f"time: {time.perf_counter() - t0:.2f} s", err=True)
+
+
+def _view(res, outputs: dict[str, Path]):
+    """Which way is up (the ground normal the run recorded, else z), said on stderr when it is not
+    the scan's z: a camera's frame is drawn upright, its map on the plane perpendicular to up."""
+    from kbs.report.view import view_of
+
+    view = view_of(res.doc)
+    if not (view.level and view.up[2] > 0):
+        what = [f"{k}: up vertical, seen from behind the camera" if k == "clusters" and view.camera_frame else
+                f"{k}: up vertical" if k == "clusters" else f"{k}: the plane perpendicular to up" for k in outputs]
+        click.echo(f"view: {view.describe()}; {', '.join(what)}", err=True)
+    return view

@@ -5,6 +5,7 @@ import dataclasses
 import functools
 import re
 import shutil
+import tempfile
 import sys
 import time
 import warnings
@@ -26,6 +27,7 @@ from kbs.io.readers import cloud_files_in, why_not_a_scan
 from kbs.io.result import RUN_ID_COMMENT, InputFiles, check_output, new_run_id, write_result_pair, write_result_stream
 from kbs.io.result import jsonable as _jsonable  # noqa: F401 -- benchmarks/profile_run.py times the JSON with it
 from kbs.knowledge import Explanation, PredicateRegistry, Segmenter, load_rule_base
+from kbs.knowledge.segmenter import coordinate_problem
 from kbs.knowledge.explain import TREE_LINES, limit_lines
 from kbs.knowledge.predicates import UNITS, did_you_mean
 from kbs.knowledge.rulebase import RuleFileError, resolve, shipped_rule_bases
@@ -143,6 +145,9 @@ class Tiling:
     scheduler: str | None = None
     workers: int | None = None
     resume: bool = False
+    #: LAS/LAZ in and out: read (and write) this many points at a time, the tiles spilled to disk
+    #: (kbs.tiles.stream); 0: the whole file read into memory
+    chunk_points: int = 0
 
 
 def default_out_format(cloud: Path, in_format: str | None = None) -> str:
@@ -225,7 +230,6 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
     t0 = time.perf_counter() if t0 is None else t0
     to_stdout = out_dir is None
     say = (lambda *args, **kwargs: None) if quiet else functools.partial(click.echo, err=to_stdout)
-    rb = segmenter.rule_base
     stdin = str(cloud) == "-"
     stem = "stdin" if stdin else cloud.stem
     fmt = out_format or default_out_format(cloud, in_format)
@@ -236,12 +240,58 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
         sources = inputs if isinstance(inputs, InputFiles) else InputFiles((cloud, *inputs))
         for target in (points, js, *([html] if report else [])):
             check_output(target, inputs=sources, force=force)
-    pc = read_scan(cloud, in_format)
+    spilled = None
+    if _streams(tiling, cloud, in_format, fmt):
+        from kbs.tiles.stream import spill_las, streamed_cloud
+
+        assert tiling is not None
+
+        spill_folder = Path(tempfile.mkdtemp(prefix=f".{cloud.stem}.spill-", dir=out_dir))
+        try:
+            spilled = spill_las(cloud, spill_folder, tiling.size, _buffer(segmenter, tiling),
+                                segmenter.rule_base.ground.normal, tiling.chunk_points)
+        except BaseException:
+            shutil.rmtree(spill_folder, ignore_errors=True)
+            raise
+        pc = streamed_cloud(spilled, cloud)
+    else:
+        pc = read_scan(cloud, in_format)
+    try:
+        return _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, stdin=stdin, stem=stem, fmt=fmt,
+                                  points=points, js=js, html=html, to_stdout=to_stdout, color_by=color_by,
+                                  meshes=meshes, report=report, quiet=quiet, units=units, sensor=sensor,
+                                  tiling=tiling, say=say)
+    finally:
+        if spilled is not None:
+            spilled.remove()
+            shutil.rmtree(spilled.folder, ignore_errors=True)
+
+
+def _streams(tiling: Tiling | None, cloud: Path, in_format: str | None, fmt: str) -> bool:
+    """Whether a tiled run reads (and writes) the LAS/LAZ file in chunks: LAS/LAZ in and out, a
+    file (not standard input), --chunk-points not 0."""
+    ext = (in_format or cloud.suffix).lower().lstrip(".")
+    return (tiling is not None and tiling.chunk_points > 0 and str(cloud) != "-" and ext in ("las", "laz")
+            and fmt in ("las", "laz"))
+
+
+def _buffer(segmenter: Segmenter, tiling: Tiling) -> float:
+    from kbs.tiles import default_buffer
+
+    return default_buffer(segmenter, tiling.size) if tiling.buffer is None else tiling.buffer
+
+
+def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, stem, fmt, points, js, html, to_stdout,
+                       color_by, meshes, report, quiet, units, sensor, tiling, say) -> ScanResult:
+    rb = segmenter.rule_base
     name = "<stdin>" if stdin else str(cloud)
     if fmt != "ply":
         check_classes_fit(pc.source, rb.asprs_classes, name)
     scan_units = _scan_units(pc, units, name, quiet)
     t_read = time.perf_counter() - t0
+    too_big = coordinate_problem(pc.xyz * segmenter.scale(scan_units))  # the file's fault (3), said before the work
+    if too_big is not None:
+        raise CloudFileError(name, too_big)
     if tiling is None:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", SpacingWarning)
@@ -258,7 +308,8 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
         from kbs.tiles.store import TileStore
 
         store = TileStore(out_dir / f"{cloud.stem}.tiles", segmenter)
-        seg = _segment_tiled(segmenter, pc.xyz, cloud, tiling, quiet=quiet, t0=t0, store=store)
+        seg = _segment_tiled(segmenter, pc.xyz, cloud, tiling, quiet=quiet, t0=t0, store=store,
+                             plan=None if spilled is None else (spilled.grid, spilled.tiles))
         spacing = []
     t1 = time.perf_counter()
     if not to_stdout:
@@ -292,7 +343,12 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
     if fmt != "ply":
         classes = rb.asprs_classes
         codes = class_codes(seg.label, seg.cluster, seg.label_names, classes) if classes else None
-        las = functools.partial(_build_las, pc, results, codes)
+        if spilled is not None:
+            from kbs.tiles.stream import ChunkedLas
+
+            las = functools.partial(ChunkedLas, cloud, results, codes, chunk_points=tiling.chunk_points)
+        else:
+            las = functools.partial(_build_las, pc, results, codes)
     if to_stdout:
         run_id = write_result_stream(sys.stdout.buffer, f".{fmt}", pc.xyz, fields, run_id=new_run_id(), las=las,
                                      comments=comments)
@@ -347,7 +403,7 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
 
 
 def _segment_tiled(segmenter: Segmenter, xyz: np.ndarray, cloud: Path, tiling: Tiling, *, quiet: bool, t0: float,
-                   store=None):
+                   store=None, plan=None):
     from kbs.tiles import segment_tiled
     from kbs.tiles.run import SchedulerError
 
@@ -366,7 +422,8 @@ def _segment_tiled(segmenter: Segmenter, xyz: np.ndarray, cloud: Path, tiling: T
 
     try:
         return segment_tiled(segmenter, xyz, tiling.size, tiling.buffer, scheduler=tiling.scheduler,
-                             workers=tiling.workers, progress=progress, store=store, resume=tiling.resume)
+                             workers=tiling.workers, progress=progress, store=store, resume=tiling.resume,
+                             plan=plan)
     except SchedulerError as exc:
         raise click.BadParameter(str(exc), param_hint="--scheduler") from exc
 
@@ -443,17 +500,21 @@ def time_table(results: list[ScanResult | ScanFailure], t_load: float, t_total: 
               help="How far each tile reaches beyond its core (default: a tenth of --tile, at least twice the "
               "local ground surface's radius).")
 @click.option("--scheduler", "scheduler", metavar="ADDRESS|local",
-              help="Run the tiles as Dask tasks: on the scheduler at ADDRESS (tcp://host:8786), or on a "
-              "LocalCluster of -j workers ('local'; -1: one per core). Needs pip install 'kbs[dask]'. Without "
-              "it the tiles run one after the other in this process. The result is the same.")
+              help="Run the tiles (with --tile) or the scans (a folder, several scans) as Dask tasks: on the "
+              "scheduler at ADDRESS (tcp://host:8786), or on a LocalCluster of -j workers ('local'; -1: one per "
+              "core). Needs pip install 'kbs[dask]'. Without it they run one after the other in this process. The "
+              "result is the same.")
 @click.option("--resume", is_flag=True, help="With --tile: take the tiles an earlier run that failed kept in "
               "DIR/<stem>.tiles/ (same cloud, rule base and grid) and segment only the others.")
+@click.option("--chunk-points", "chunk_points", type=click.IntRange(min=0), metavar="N",
+              help="With --tile, a LAS/LAZ scan written as LAS/LAZ: read and write N points at a time, the tiles "
+              f"spilled to a temporary folder in DIR (default {1_000_000:,}); 0: read the whole file into memory.")
 @click.pass_context
 def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_dir: Path, plugins: tuple[Path, ...],
         color_by: str = "cluster", meshes: bool = False, report: bool = False, jobs: int = -1,
         force: bool = False, out_format: str | None = None, in_format: str | None = None,
         units: str | None = None, tile: float | None = None, buffer: float | None = None,
-        scheduler: str | None = None, resume: bool = False) -> None:
+        scheduler: str | None = None, resume: bool = False, chunk_points: int | None = None) -> None:
     """Segment each CLOUD with a rule base; write DIR/<stem>.ply (per-vertex scalar_cluster,
     scalar_label, scalar_membership) or, with --out-format las|laz (the default for LAS/LAZ input),
     DIR/<stem>.las|.laz (ASPRS classification, cluster, label, membership), and DIR/<stem>.json
@@ -488,13 +549,18 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
         if not quiet:
             click.echo(f"kbs: skipped {path}: {why}", err=True)
 
-    tiling = _tiling(tile, buffer, scheduler, jobs, resume)
     scans = scan_paths(clouds, on_skip=skipped)
+    many = len(scans) > 1 or any(Path(c).is_dir() for c in clouds)
+    scan_scheduler = None
+    if tile is None and scheduler is not None and many:  # the scans themselves as Dask tasks
+        _check_scheduler(scheduler)
+        scan_scheduler, scheduler = (scheduler, None if jobs == -1 else jobs), None
+    tiling = _tiling(tile, buffer, scheduler, jobs, resume, chunk_points)
     if to_stdout and len(scans) != 1:
         raise click.UsageError(f"--out - writes one scan to standard output; {len(scans)} scans given")
     if to_stdout and tiling is not None:
         raise click.UsageError("--tile writes a result folder: --out - is not supported with --tile")
-    split_jobs = 1 if tiling is not None and tiling.scheduler is not None else jobs  # Dask workers do the work
+    split_jobs = 1 if (tiling is not None and tiling.scheduler is not None) or scan_scheduler else jobs  # Dask does the work
     with Segmenter(rules, jobs=split_jobs, plugins=plugins) as segmenter:  # workers kept for all scans
         if not quiet:
             for w in segmenter.rule_base.warnings:  # `kbs rules check` quotes the line
@@ -503,36 +569,50 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
             check_writable_folder(out_dir, create=True)  # before any segmentation
         _run_scans(segmenter, scans, None if to_stdout else out_dir, t0, color_by=color_by, meshes=meshes,
                    report=report, quiet=quiet, inputs=InputFiles(scans), force=force, out_format=out_format,
-                   in_format=in_format, units=units, sensor=sensor, tiling=tiling)
+                   in_format=in_format, units=units, sensor=sensor, tiling=tiling, scheduler=scan_scheduler)
 
 
 def _tiling(tile: float | None, buffer: float | None, scheduler: str | None, jobs: int,
-            resume: bool = False) -> Tiling | None:
-    """The --tile/--buffer/--scheduler/--resume options, checked together (usage errors, exit 2)."""
+            resume: bool = False, chunk_points: int | None = None) -> Tiling | None:
+    """The --tile/--buffer/--scheduler/--resume/--chunk-points options, checked together (usage
+    errors, exit 2)."""
     if tile is None:
-        for name, value in (("--buffer", buffer), ("--scheduler", scheduler), ("--resume", resume or None)):
+        for name, value in (("--buffer", buffer), ("--scheduler", scheduler), ("--resume", resume or None),
+                            ("--chunk-points", chunk_points)):
             if value is not None:
-                raise click.UsageError(f"{name} only applies to a tiled run: give --tile SIZE too")
+                also = " (or several scans: a folder's scans run as Dask tasks)" if name == "--scheduler" else ""
+                raise click.UsageError(f"{name} only applies to a tiled run: give --tile SIZE too{also}")
         return None
     if scheduler is not None:
-        if not scheduler.strip():
-            raise click.BadParameter("give a Dask scheduler address (tcp://host:8786) or 'local'",
-                                     param_hint="--scheduler")
-        try:
-            import distributed  # noqa: F401
-        except ImportError as exc:
-            raise click.UsageError(f"--scheduler needs Dask ({exc}): pip install 'kbs[dask]', or leave "
-                                   f"--scheduler out to run the tiles in this process") from exc
-    return Tiling(size=tile, buffer=buffer, scheduler=scheduler, workers=None if jobs == -1 else jobs, resume=resume)
+        _check_scheduler(scheduler)
+    from kbs.tiles.stream import DEFAULT_CHUNK_POINTS
+
+    return Tiling(size=tile, buffer=buffer, scheduler=scheduler, workers=None if jobs == -1 else jobs, resume=resume,
+                  chunk_points=DEFAULT_CHUNK_POINTS if chunk_points is None else chunk_points)
 
 
-def _run_scans(segmenter, scans, out_dir: Path, t0: float, **options) -> None:
-    if len(scans) == 1:  # the clock starts with the command: its read time includes loading the rule base
+def _check_scheduler(scheduler: str) -> None:
+    """--scheduler: an address (or 'local'), and Dask installed (usage errors, exit 2)."""
+    if not scheduler.strip():
+        raise click.BadParameter("give a Dask scheduler address (tcp://host:8786) or 'local'",
+                                 param_hint="--scheduler")
+    try:
+        import distributed  # noqa: F401
+    except ImportError as exc:
+        raise click.UsageError(f"--scheduler needs Dask ({exc}): pip install 'kbs[dask]', or leave "
+                               f"--scheduler out to run in this process") from exc
+
+
+def _run_scans(segmenter, scans, out_dir: Path, t0: float, scheduler: tuple[str, int | None] | None = None,
+               **options) -> None:
+    if len(scans) == 1 and scheduler is None:  # the clock starts with the command: its read time includes loading the rule base
         run_scan(segmenter, scans[0], out_dir, t0=t0, **options)
         return
     t_load = time.perf_counter() - t0
     results: list[ScanResult | ScanFailure] = []
-    for scan in scans:
+    if scheduler is not None:
+        results = _scans_on_dask(segmenter, scans, out_dir, *scheduler, options)
+    for scan in scans if scheduler is None else ():
         try:
             results.append(run_scan(segmenter, scan, out_dir, **options))
         except KbsError as exc:  # as the command would report it alone; the other scans go on
@@ -543,6 +623,66 @@ def _run_scans(segmenter, scans, out_dir: Path, t0: float, **options) -> None:
     failures = [r.exit_code for r in results if isinstance(r, ScanFailure)]
     if failures:
         raise click.exceptions.Exit(failures[0])
+
+
+def _scan_task(rules: str, sensor: tuple[float, float, float], plugins: tuple[str, ...], scan: Path,
+               out_dir: Path, options: dict) -> tuple[ScanResult | None, int | None, str, str, str]:
+    """One scan of ``kbs run DIR/ --scheduler`` on a Dask worker: what :func:`run_scan` returns (or
+    the exit code and message of its KbsError) and what it printed on stdout and stderr."""
+    import contextlib
+    import io
+
+    from kbs.tiles.run import _worker_segmenter
+
+    out, err = io.StringIO(), io.StringIO()
+    result, code, message = None, None, ""
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            result = run_scan(_worker_segmenter(rules, sensor, plugins), scan, out_dir, **options)
+        except KbsError as exc:
+            code, message = int(exc.exit_code), str(exc)
+    return result, code, message, out.getvalue(), err.getvalue()
+
+
+def _scans_on_dask(segmenter: Segmenter, scans: list[Path], out_dir: Path, scheduler: str, workers: int | None,
+                   options: dict) -> list[ScanResult | ScanFailure]:
+    """The scans of ``kbs run DIR/ --scheduler`` as Dask tasks (one per scan, each on a worker's own
+    segmenter); what each printed is printed here in scan order, as one run after the other would."""
+    import logging
+    import os
+
+    from kbs.tiles.run import SchedulerError, dask_client
+
+    logging.getLogger("distributed").setLevel(logging.ERROR)
+    try:
+        client = dask_client(scheduler, workers)
+    except SchedulerError as exc:
+        raise click.BadParameter(str(exc), param_hint="--scheduler") from exc
+    results: list[ScanResult | ScanFailure] = []
+    try:
+        if not options.get("quiet"):
+            click.echo(f"kbs: Dask dashboard: {client.dashboard_link}", err=True)
+        spec = (segmenter.rule_base.path, tuple(segmenter.sensor), tuple(segmenter.plugins))
+        futures = [client.submit(_scan_task, *spec, scan, out_dir, options, retries=1, pure=False,
+                                 key=f"kbs-scan-{scan.stem}-{os.urandom(6).hex()}") for scan in scans]
+        for scan, future in zip(scans, futures):
+            try:
+                result, code, message, out, err = future.result()
+            except Exception as exc:  # noqa: BLE001 - the task died twice (a worker lost), or a bug in it
+                result, code, message, out, err = None, int(ExitCode.INTERNAL), f"{type(exc).__name__}: {exc}", "", ""
+            click.echo(out, nl=False)
+            click.echo(err, nl=False, err=True)
+            if result is None:
+                click.echo(f"kbs: error: {message}", err=True)
+                results.append(ScanFailure(scan, code if code is not None else int(ExitCode.INTERNAL)))
+            else:
+                results.append(result)
+    finally:
+        cluster = client.cluster if scheduler == "local" else None
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    return results
 
 
 def _depth(ctx, param, value):
@@ -678,10 +818,35 @@ def rules_schema(as_json: bool) -> None:
 
 @rules.command("list")
 def rules_list() -> None:
-    """List the shipped rule bases."""
+    """List the shipped rule bases, then the examples installed with kbs (examples/NAME: `kbs rules
+    show examples/NAME > NAME.yaml` copies one, `kbs run --rules examples/NAME` runs it)."""
     for name in shipped_rule_bases():
         rb = load_rule_base(name)
         click.echo(f"{name:16} {rb.description.splitlines()[0] if rb.description else ''}")
+    _list_examples()
+
+
+def _list_examples() -> None:
+    """The example rule files, with the plugin an example needs at its installed path."""
+    import yaml
+
+    from kbs.knowledge.rulebase import example_rule_bases, examples_folder
+
+    folder = examples_folder()
+    names = example_rule_bases()
+    if folder is None or not names:
+        return
+    width = max(16, *(len(n) + 1 for n in names))
+    for name in names:
+        text = resolve(name)[1]
+        doc = yaml.safe_load(text) or {}
+        line = " ".join(str(doc.get("description", "")).split())
+        plugin = re.search(r"--plugin examples/plugins/(\S+\.py)", text)  # the example's own header says which
+        if plugin:
+            line += f" (with --plugin {folder / 'plugins' / plugin.group(1)})"
+        click.echo(f"{name:{width}} {line}")
+    click.echo(f"examples installed in {folder} (rules/, plugins/, data/): `kbs rules show examples/NAME > NAME.yaml` "
+               "copies one, `kbs run --rules examples/NAME` runs it")
 
 
 @click.command()

@@ -24,6 +24,7 @@ from kbs.evaluation import (
 from kbs.evaluation.tune import METRICS, LabelledScan, format_report, tune, tuned_text
 from kbs.io import read_cloud
 from kbs.io.atomic import replacing
+from kbs.io.result import check_output, new_run_id
 from kbs.knowledge.rulebase import Problem, RuleFileError, SourcePos, load_rule_base, resolve
 from kbs.units import UNITS as LENGTH_UNITS, ScanUnits, scale_factors, unit
 
@@ -59,11 +60,13 @@ from kbs.units import UNITS as LENGTH_UNITS, ScanUnits, scale_factors, unit
               help="Also write the report as JSON.")
 @click.option("-j", "--jobs", type=click.IntRange(min=-1), default=-1, show_default=True, callback=_jobs,
               help="Processes computing the UFP-ONC splits (as kbs run).")
+@click.option("--force", is_flag=True,
+              help="Replace an existing --out / --report file that kbs did not write (never an input), as kbs run.")
 @plugin_option
 @click.pass_context
 def tune_(ctx: click.Context, rules: str, pairs: tuple[str, ...], out: Path, folds: int | None, metric: str,
           max_evals: int | None, time_limit: float | None, ground_values, unlabelled_values, ground_label: str,
-          sensor, units: str | None, report: Path | None, jobs: int, plugins: tuple[Path, ...]) -> None:
+          sensor, units: str | None, report: Path | None, jobs: int, force: bool, plugins: tuple[Path, ...]) -> None:
     """Fit the thresholds marked 'tune:' in a rule file to labelled scans, SCAN GT pairs (GT as
     in kbs eval: a label file .npy / .label / text, or field:NAME of the scan), and write NEW.yaml.
 
@@ -109,6 +112,9 @@ def tune_(ctx: click.Context, rules: str, pairs: tuple[str, ...], out: Path, fol
             raise click.BadParameter(f"{target} is an input: write the tuned rule file elsewhere", param_hint=what)
     if not out.parent.is_dir():
         raise click.BadParameter(f"no such folder: {out.parent}", param_hint="--out")
+    for target in (out, report):  # before the work, as kbs run: a file kbs did not write only with --force
+        if target is not None:
+            check_output(target, force=force)
     target_unit = None if rb.units == "scan" else unit(rb.units)
     scans = []
     for cloud, truth in zip(scans_in, pairs[1::2]):
@@ -126,11 +132,12 @@ def tune_(ctx: click.Context, rules: str, pairs: tuple[str, ...], out: Path, fol
                       max_evals=max_evals, time_limit=time_limit, progress=lines)
     except ParameterError as exc:
         raise click.UsageError(str(exc)) from None
-    text = tuned_text(rb, result, resolve(rules)[1])
+    run_id = new_run_id()
+    text = tuned_text(rb, result, resolve(rules)[1])  # its first line '# kbs tune: ...' marks it as kbs's
     with replacing(out) as (tmp,):
         tmp.write_text(text, encoding="utf-8")
     if report is not None:
-        doc = {"kbs_version": __version__, "rules": rb.path, "out": str(out), **result.to_dict()}
+        doc = {"kbs_version": __version__, "run_id": run_id, "rules": rb.path, "out": str(out), **result.to_dict()}
         with replacing(report) as (tmp,):
             tmp.write_text(json.dumps(doc, indent=1), encoding="utf-8")
     click.echo(format_report(result, rb.path, str(out)))

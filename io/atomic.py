@@ -55,7 +55,7 @@ def _fsync_dir(folder: Path) -> None:
 
 
 @contextlib.contextmanager
-def _sigint_held() -> Iterator[None]:
+def sigint_held() -> Iterator[None]:
     """Hold Ctrl-C back while the renames run (main thread only); re-raise it afterwards."""
     if threading.current_thread() is not threading.main_thread():
         yield
@@ -108,7 +108,7 @@ def replacing(*targets: str | os.PathLike[str]) -> Iterator[tuple[Path, ...]]:
                 raise RuntimeError(f"nothing was written for {target}") from exc
             except OSError as exc:
                 raise CloudFileError(str(target), f"cannot write: {exc.strerror or exc}") from exc
-        with _sigint_held():
+        with sigint_held():
             for target, temp in zip(paths, temps):
                 try:
                     os.replace(temp, target)

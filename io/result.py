@@ -62,6 +62,8 @@ LEGACY_VERSION_KEY = "result_format"
 #: The PLY header comment word before a result's run id (``comment kbs_run_id <hex>``); also the
 #: marker kbs appends to its HTML report.
 RUN_ID_COMMENT = "kbs_run_id"
+#: The first bytes of a rule file written by ``kbs tune`` (the header of evaluation.tune.tuned_text).
+TUNED_MARK = b"# kbs tune:"
 #: Bytes of a PLY header read at most when looking for the run id.
 _MAX_HEADER = 1 << 20
 #: The per-point fields of a result, and their PLY property names (see the module's docstring).
@@ -396,8 +398,9 @@ def read_result_pair(path: str | os.PathLike[str], *, require: Iterable[str] = (
 
 def is_kbs_output(path: str | os.PathLike[str]) -> bool:
     """True when ``path`` is a file kbs wrote with a run id: a PLY whose header has the
-    ``kbs_run_id`` comment, a LAS/LAZ file with the run id VLR, a JSON object with ``kbs_version`` and ``run_id``, any other file
-    (the HTML report) ending with the ``kbs_run_id`` marker."""
+    ``kbs_run_id`` comment, a LAS/LAZ file with the run id VLR, a JSON object with ``kbs_version`` and ``run_id``, a rule
+    file ``kbs tune`` wrote (its first line ``# kbs tune: ...``), any other file (the HTML report) ending with the
+    ``kbs_run_id`` marker."""
     path = Path(os.fspath(path))
     if not path.is_file():
         return False
@@ -410,6 +413,9 @@ def is_kbs_output(path: str | os.PathLike[str]) -> bool:
         if suffix == ".json":
             doc = json.loads(path.read_bytes())
             return isinstance(doc, dict) and "kbs_version" in doc and isinstance(doc.get("run_id"), str)
+        if suffix in (".yaml", ".yml"):
+            with open(path, "rb") as stream:
+                return stream.read(len(TUNED_MARK)) == TUNED_MARK
         with open(path, "rb") as stream:
             stream.seek(max(0, path.stat().st_size - 256))
             return RUN_ID_COMMENT.encode("ascii") in stream.read()

@@ -295,10 +295,13 @@ class LocalGround:
         when there would be more than :attr:`BOUND_CELLS_PER_POINT` cells per surface point."""
         T = self.tree.data  # the surface points' plane coordinates, as the tree holds them
         pad = reach + 1  # empty rings of cells around the surface
-        origin = T.min(axis=0) - pad * side
-        shape = np.floor((T.max(axis=0) - origin) / side).astype(np.int64) + pad + 1
-        if not side > 0.0 or float(shape[0]) * float(shape[1]) > self.BOUND_CELLS_PER_POINT * T.shape[0] + 4096:
+        if not side > 0.0:
             return None
+        origin = T.min(axis=0) - pad * side
+        cells = np.floor((T.max(axis=0) - origin) / side) + pad + 1  # as floats: a huge extent would not fit int64
+        if float(cells[0]) * float(cells[1]) > self.BOUND_CELLS_PER_POINT * T.shape[0] + 4096:
+            return None
+        shape = cells.astype(np.int64)
         ij = np.floor((T - origin) / side).astype(np.int64)
         cell = ij[:, 0] * shape[1] + ij[:, 1]
         size = int(shape[0] * shape[1])

@@ -20,6 +20,8 @@ order, so with it a point's result depends on the rest of the file.
 """
 from __future__ import annotations
 
+import copy
+
 import time
 from dataclasses import dataclass
 from collections.abc import Callable
@@ -144,6 +146,10 @@ class Interpreter:
         The splits of one level of the tree are independent, so they run side by side while this
         process judges the clusters; the result is identical whatever ``jobs`` is.
     """
+
+    #: A ground plane found beforehand, with its explanation (:meth:`find_ground`): when set, every
+    #: run takes it instead of finding its own (a tile takes the whole cloud's).
+    given_ground: tuple[Ground | None, dict[str, Any]] | None = None
 
     def __init__(self, rule_base: RuleBase, *, sensor: Any = None,
                  progress: Callable[[str], None] | None = None, jobs: int = 1) -> None:
@@ -276,6 +282,10 @@ class Interpreter:
         if not self.rb.needs_ground and spec.normal is None and spec.candidate is None and spec.plane is None \
                 and self.rb.ground_model is None:
             return None
+        if self.given_ground is not None:  # found once on the whole cloud this one is a tile of
+            ground, given = self.given_ground
+            info.update(copy.deepcopy(given))
+            return ground
         if spec.normal is not None:
             return self._plane_from_normal(X, np.asarray(spec.normal, float), "fixed", info)
         fallback = np.asarray(spec.fallback, float)
@@ -340,6 +350,26 @@ class Interpreter:
             if found["method"] == "robust plane":
                 info.update(inliers=found["inliers"], inlier_share=found["inlier_share"])
         return Ground(normal=n, point=np.asarray(point, float).copy(), source=f"cluster {cl.id}")
+
+    def find_ground(self, X: np.ndarray) -> tuple[Ground | None, dict[str, Any]]:
+        """The ground plane a run on ``X`` (n, 3) finds, and its explanation's ``ground``, without
+        the rest of the run: the root's UFP-ONC partition and the ground among its clusters (as
+        :meth:`run` does). A tiled run finds it once on the whole cloud and gives it to every tile
+        (:attr:`given_ground`)."""
+        X = np.ascontiguousarray(X, dtype=np.float64)
+        n = X.shape[0]
+        root = _Node("c", None, 0, np.arange(n), np.ones(n), np.ones(n))
+        info: dict[str, Any] = {}
+        try:
+            fixed_k = isinstance(self.rb.engine["initial_k"], int)
+            res = self._ufp_onc(X, "k_max" if self.rb.strategy == "global" or fixed_k else "first_max")
+        except FitError:
+            child = _Node("c0", "c", 1, root.idx, root.weight, root.path)
+            return self._ground(X, [self._record(child, X)], info), info
+        k0 = self._initial_k(res, [])
+        children = self._initial_children(X, root, res, k0)
+        del res
+        return self._ground(X, [self._record(c, X) for c in children], info), info
 
     def _candidate_plane(self, cl: Cluster, rec: ClusterRecord, provisional: Scene) -> dict[str, Any]:
         """How a ground candidate gives a plane: ``plane`` (normal, point, its points) or None,

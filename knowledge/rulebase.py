@@ -452,6 +452,26 @@ def shipped_text(name: str) -> str:
     return resources.files("kbs.rules").joinpath(f"{name}.yaml").read_text(encoding="utf-8")
 
 
+#: Example rule files are named ``examples/NAME`` (``kbs rules show examples/tabletop``).
+EXAMPLES_PREFIX = "examples/"
+
+
+def examples_folder() -> Path | None:
+    """Where the examples are installed (``kbs.examples``: rules/, plugins/, data/), or None."""
+    try:
+        return Path(str(resources.files("kbs.examples")))
+    except ModuleNotFoundError:
+        return None
+
+
+def example_rule_bases() -> list[str]:
+    """Names (``examples/tabletop``, ...) of the example rule files installed with kbs."""
+    folder = examples_folder()
+    if folder is None or not (folder / "rules").is_dir():
+        return []
+    return sorted(EXAMPLES_PREFIX + p.name[:-5] for p in (folder / "rules").iterdir() if p.name.endswith(".yaml"))
+
+
 def resolve(name_or_path: str) -> tuple[str, str]:
     """``(display path, text)`` of a rule base given as a path or a shipped name.
 
@@ -477,6 +497,9 @@ def resolve(name_or_path: str) -> tuple[str, str]:
     name = p.name[:-5] if p.name.endswith(".yaml") and p.parent == Path(".") else str(name_or_path)
     if name in shipped_rule_bases():
         return f"{name}.yaml", shipped_text(name)
+    folder = examples_folder()
+    if folder is not None and name in example_rule_bases():  # examples/NAME: an installed example (kbs rules list)
+        return f"{name}.yaml", (folder / "rules" / f"{name.removeprefix(EXAMPLES_PREFIX)}.yaml").read_text(encoding="utf-8")
     hint = did_you_mean(name, shipped_rule_bases())
     msg = f"no such file, nor a shipped rule base (shipped: {', '.join(shipped_rule_bases())})"
     if hint:

@@ -153,7 +153,8 @@ class Segmenter:
         Raises
         ------
         ParameterError
-            ``points`` is not a non-empty (n_points, 3) array of finite real numbers; an unknown unit.
+            ``points`` is not a non-empty (n_points, 3) array of finite real numbers, or has a
+            coordinate beyond :data:`MAX_COORDINATE` (once in the rule base's unit); an unknown unit.
         FitError
             The engine could not fit the data.
         """
@@ -162,6 +163,9 @@ class Segmenter:
         f = scale_factors(scan_units, self.length_unit)
         if not np.array_equal(f, np.ones(3)):
             X = X * f
+        problem = coordinate_problem(X)
+        if problem is not None:
+            raise ParameterError(f"points: {problem}")
         target = self.length_unit
         if target is not None:
             problem = check_spacing(X, scan=scan_units, target=target, declared=self.rule_base.spacing,
@@ -194,6 +198,26 @@ class Segmenter:
         plugins = f", plugins={list(self.plugins)}" if self.plugins else ""
         return (f"Segmenter(rule base '{rb.name}' from {rb.path}, {rb.strategy}, labels "
                 f"{'/'.join(rb.label_names)}; jobs={self.jobs}, sensor=({sensor}){plugins})")
+
+
+#: The largest coordinate magnitude (in the rule base's unit) the engine computes with. Its
+#: covariances square the coordinates, and the norms and determinants of those reach their 6th
+#: power: past about 1e51, float64 (at most 1.8e308) overflows there (a numpy overflow warning, then
+#: infinite or undefined validity values, at 1e105 a crash in the voxel grid). 1e50 keeps each of
+#: those products finite; no real scan comes near it (the Earth-centred frame is 6.4e6 m).
+MAX_COORDINATE = 1e50
+
+
+def coordinate_problem(X: np.ndarray) -> str | None:
+    """Why the engine cannot segment points ``X`` (n, 3) (already in the rule base's unit): a
+    coordinate beyond :data:`MAX_COORDINATE`; None when it can."""
+    big = np.abs(X) > MAX_COORDINATE
+    if not big.any():
+        return None
+    row = int(np.argmax(big.any(axis=1)))
+    return (f"{int(big.any(axis=1).sum()):,} points have a coordinate beyond +-{MAX_COORDINATE:g} (first: row {row}, "
+            f"{', '.join(f'{v:.3g}' for v in X[row])}): the engine's covariances square the coordinates and their "
+            "determinants reach the 6th power, which overflows past that; check the file's scale and units (--units)")
 
 
 def as_scan_units(units: Any) -> ScanUnits | None:

@@ -1,5 +1,6 @@
 """Deterministic qualitative colours for clusters and labels (no matplotlib import: ``kbs run``
-does not pay for it).
+does not pay for it). The one palette of the project: the result PLY's red/green/blue, the
+``kbs render`` figures and the HTML report all take their colours from here.
 
 The first 18 colours are matplotlib's ``tab20`` without its two greys, dark shades first then
 light ones (so neighbouring indices differ strongly); from index 18 on, hues step by the golden
@@ -79,6 +80,15 @@ def colors_for(index: np.ndarray) -> np.ndarray:
         pal = palette(int(index[ok].max()) + 1)
         out[ok] = pal[index[ok]]
     return out
+
+
+def hex_colors(n: int) -> list[str]:
+    """The first ``n`` colours of :func:`palette` as ``#rrggbb`` strings (the HTML report's)."""
+    return [f"#{r:02x}{g:02x}{b:02x}" for r, g, b in palette(n).tolist()]
+
+
+#: :data:`NOISE_RGB` as ``#rrggbb``.
+NOISE_HEX = "#{:02x}{:02x}{:02x}".format(*NOISE_RGB)
 
 
 def rgb_fields(index: np.ndarray) -> dict[str, np.ndarray]:

@@ -21,6 +21,7 @@ import numpy as np
 
 from kbs.errors import CloudFileError, require
 from kbs.report.colors import NOISE_RGB, colors_for
+from kbs.report.view import View
 
 #: The K of the seed paper's figure 2.
 SERIES_K = (2, 4, 5, 6, 8, 10)
@@ -87,13 +88,17 @@ def _rgb(index: np.ndarray) -> np.ndarray:
 
 
 def series_figure(X: np.ndarray, ks: tuple[int, ...] = SERIES_K, *, max_points: int = 30000,
-                  point_size: float = 0.5, title: str = "") -> Any:
+                  point_size: float = 0.5, title: str = "", view: View | None = None) -> Any:
     """UFP-ONC re-run on ``X`` (n, 3) (stride-decimated to ``max_points``) for K = 1 .. max(ks);
-    one top-down panel per K of ``ks`` the sweep reaches, points coloured by hard cluster, the
-    K chosen by APD marked."""
+    one top-view panel per K of ``ks`` the sweep reaches (the plane perpendicular to ``view.up``;
+    x-y when no view is given: a camera's frame is seen from above, not from its side), points
+    coloured by hard cluster, the K chosen by APD marked."""
     from kbs.inference import ufp_onc
 
+    view = view or View.from_up([0.0, 0.0, 1.0])
+    names = view.axis_names()
     Xd = np.asarray(X, dtype=np.float64)[decimate(len(X), max_points)]
+    P2 = view.plan(Xd)
     res = ufp_onc(Xd, k_max=max(ks), stop="k_max")
     parts = [p for p in res.partitions if p.k in ks]
     ncol = min(3, max(1, len(parts)))
@@ -102,13 +107,17 @@ def series_figure(X: np.ndarray, ks: tuple[int, ...] = SERIES_K, *, max_points: 
     for i, p in enumerate(parts):
         ax = fig.add_subplot(nrow, ncol, i + 1)
         hard = p.predict(Xd)
-        order = np.argsort(Xd[:, 2])  # higher points drawn last: obstacles stay visible from above
-        ax.scatter(Xd[order, 0], Xd[order, 1], c=_rgb(hard[order]), s=point_size, linewidths=0, rasterized=True)
-        ax.scatter(p.centers[:, 0], p.centers[:, 1], marker="x", c="k", s=25, linewidths=1.2)
+        order = np.argsort(view.height(Xd))  # higher points drawn last: obstacles stay visible from above
+        ax.scatter(P2[order, 0], P2[order, 1], c=_rgb(hard[order]), s=point_size, linewidths=0, rasterized=True)
+        C2 = view.plan(p.centers)
+        ax.scatter(C2[:, 0], C2[:, 1], marker="x", c="k", s=25, linewidths=1.2)
         ax.set_title(f"K = {p.k}" + ("  (chosen by APD)" if p.k == res.chosen_k else "") + f"   APD {p.apd:.3g}",
                      fontsize=9)
         ax.set_aspect("equal")
         ax.tick_params(labelsize=7)
+        if not (view.level and view.up[2] > 0):
+            ax.set_xlabel(names[0], fontsize=7)
+            ax.set_ylabel(names[1], fontsize=7)
     if len(parts) < len(ks):
         fig.text(0.01, 0.005, f"the sweep stopped at K = {res.partitions[-1].k} ({res.stop_reason})", fontsize=8)
     fig.suptitle(title or f"UFP-ONC partitions, top view ({len(Xd):,} points)", fontsize=11)
@@ -145,17 +154,22 @@ def obstacle_grid(X: np.ndarray, label: np.ndarray, obstacle: np.ndarray, *, cel
 
 def obstacle_map_figure(X: np.ndarray, label: np.ndarray, label_names: list[str], *,
                         sensor: np.ndarray | None = None, ground_label: str = "ground",
-                        cell: float | None = None, title: str = "") -> Any:
+                        cell: float | None = None, title: str = "", view: View | None = None) -> Any:
     """Top-down map of ground vs obstacle cells (a cell is an obstacle when any of its points has
     a label other than ``ground_label``; empty cells white, noise-only cells grey), the sensor
     marked with a star when it lies in or near the scan (an airborne or georeferenced scan's
-    default sensor, the origin, would shrink the scan to a sliver: it is named in a note instead)."""
+    default sensor, the origin, would shrink the scan to a sliver: it is named in a note instead).
+    The map is the plane perpendicular to ``view.up`` (x-y when no view is given): a camera's
+    frame, whose up is -y, gets its map in x-z instead of a sliver."""
     require("matplotlib", "render", "drawing figures")
     from matplotlib.colors import ListedColormap
     from matplotlib.patches import Patch
 
+    view = view or View.from_up([0.0, 0.0, 1.0])
     obstacle = np.array([name != ground_label for name in label_names], dtype=bool)
-    grid, (x0, y0, c) = obstacle_grid(X, label, obstacle, cell=cell)
+    grid, (x0, y0, c) = obstacle_grid(view.plan(X), label, obstacle, cell=cell)
+    if sensor is not None:
+        sensor = np.r_[view.plan(np.asarray(sensor, dtype=float)), 0.0]
     fig = _figure(6.4, 6.0)
     ax = fig.add_subplot(1, 1, 1)
     cmap = ListedColormap(["white", "#b8d8a8", "#c0392b", tuple(v / 255 for v in NOISE_RGB)])
@@ -176,8 +190,9 @@ def obstacle_map_figure(X: np.ndarray, label: np.ndarray, label_names: list[str]
                     transform=ax.transAxes, fontsize=7, color="0.3")
     ax.legend(handles=handles, loc="upper right", fontsize=8, framealpha=0.9)
     ax.set_aspect("equal")
-    ax.set_xlabel("x")
-    ax.set_ylabel("y")
+    names = view.axis_names()
+    ax.set_xlabel(names[0])
+    ax.set_ylabel(names[1])
     ax.set_title(title or f"obstacle map (cells {c:.3g})", fontsize=11)
     return fig
 
@@ -217,13 +232,27 @@ def cluster_axes(X: np.ndarray, weights: np.ndarray, normal: np.ndarray | None) 
 
 def clusters_figure(X: np.ndarray, cluster: np.ndarray, clusters: list[dict[str, Any]], *,
                     membership: np.ndarray | None = None, max_points: int = 30000, point_size: float = 0.6,
-                    elev: float = 35.0, azim: float = -60.0, title: str = "", max_boxes: int = 30) -> Any:
+                    elev: float | None = None, azim: float | None = None, title: str = "", max_boxes: int = 30,
+                    view: View | None = None) -> Any:
     """Oblique 3-D view: points (decimated) coloured by output cluster and, for the ``max_boxes``
     largest clusters (a scene of thousands stays readable, and fast), the fuzzy centre (a dot)
     and the box along the covariance eigenvectors with half-sides 2 sqrt(eigenvalue) (centre,
     eigenvalues and normal from the JSON descriptors; the in-plane directions from the cluster's
-    points weighted by membership)."""
+    points weighted by membership). The figure is drawn with ``view.up`` vertical (the
+    coordinates turned to right, forward, up; a level scan keeps its own x, y, z), seen from above
+    at ``elev`` 35 and ``azim`` -60 degrees by default, a camera's frame from behind the camera
+    (``elev`` 20, ``azim`` -90)."""
+    view = view or View.from_up([0.0, 0.0, 1.0])
+    turn = not (view.level and view.up[2] > 0)
+    if elev is None:
+        elev = 20.0 if view.camera_frame else 35.0
+    if azim is None:
+        azim = -90.0 if view.camera_frame else -60.0
     X = np.asarray(X, dtype=float)
+    if turn:  # up vertical: the points, centres, normals and axes in the (right, forward, up) frame
+        R = view.rotation
+        X = X @ R.T
+        clusters = [_turned(cl, R) for cl in clusters]
     cluster = np.asarray(cluster)
     fig = _figure(8.0, 6.4)
     ax = fig.add_subplot(1, 1, 1, projection="3d", computed_zorder=False)  # boxes over points
@@ -260,9 +289,10 @@ def clusters_figure(X: np.ndarray, cluster: np.ndarray, clusters: list[dict[str,
                depthshade=False, rasterized=True, zorder=1)
     ax.set_box_aspect(np.maximum(span, 0.25 * span.max()))  # flat scenes: heights stay readable
     ax.view_init(elev=elev, azim=azim)
-    ax.set_xlabel("x", fontsize=8)
-    ax.set_ylabel("y", fontsize=8)
-    ax.set_zlabel("z", fontsize=8)
+    names = view.axis_names()
+    ax.set_xlabel(names[0], fontsize=8)
+    ax.set_ylabel(names[1], fontsize=8)
+    ax.set_zlabel(names[2], fontsize=8)
     ax.tick_params(labelsize=6)
     boxes = "fuzzy centres and 2-sigma boxes" + (f" of the {len(boxed)} largest" if len(boxed) < len(clusters) else "")
     ax.set_title(title or f"{len(clusters)} output clusters: {boxes}", fontsize=11)
@@ -270,3 +300,13 @@ def clusters_figure(X: np.ndarray, cluster: np.ndarray, clusters: list[dict[str,
         ax.text2D(0.01, 0.01, f"boxes: the {len(boxed)} largest of {len(clusters)} clusters", transform=ax.transAxes,
                   fontsize=7, color="0.3")
     return fig
+
+
+def _turned(cl: dict[str, Any], R: np.ndarray) -> dict[str, Any]:
+    """A cluster's JSON descriptor with its centre and normal turned by the rotation ``R`` (3, 3)
+    (eigenvalues do not change under a rotation); the caller's dict is not changed."""
+    d = dict(cl.get("descriptors") or {})
+    for key in ("center", "normal"):
+        if d.get(key) is not None:
+            d[key] = (R @ np.asarray(d[key], dtype=float)).tolist()
+    return {**cl, "descriptors": d}

@@ -15,13 +15,23 @@
   line, or a point of the 3D plot, shows why its cluster was split or accepted
   (:meth:`Explanation.why`, computed here for every record and embedded as JSON).
 
-Nothing is fetched: plotly.js is inlined from the installed ``plotly`` package, the points travel
-as base64 float32/int32 arrays. Every embedded value goes through :func:`_json` (``<``, ``>``,
-``&`` and the JS line separators escaped), so a rule or cluster name cannot close the script.
+Nothing is fetched: plotly.js is inlined from the installed ``plotly`` package, gzip-compressed
+and base64-encoded (4.8 MB of script become 2 MB), as is the page's data (the points as
+float32/int16 arrays, the explanations); the page inflates both with the browser's
+``DecompressionStream`` (Chrome 80, Firefox 113, Safari 16.4 or later; an older browser gets a
+message saying so). Every embedded value goes through :func:`_json` (``<``, ``>``, ``&`` and the
+JS line separators escaped) before compression, so a rule or cluster name cannot close the script.
 
-Above ``max_points`` points a deterministic subset (``numpy.random.default_rng(seed)``, without
-replacement, in the input order) is drawn and the page says so ("showing 200,000 of 1,234,567
-points"); the boxes, centres and explanations are always those of the whole cloud.
+At most ``max_points`` points are drawn (:data:`MAX_POINTS`, 50,000, by default): above it a
+deterministic subset (``numpy.random.default_rng(seed)``, without replacement, in the input order)
+is drawn and the page says so ("showing 50,000 of 1,234,567 points"); the boxes, centres,
+explanations and each cluster's point count (in the hover text) are always those of the whole cloud.
+Eigen-boxes are drawn for the :data:`MAX_BOXES` largest clusters (an airborne tile has hundreds);
+clicking a point draws its cluster's box, whatever its size.
+
+The colours are :mod:`kbs.report.colors`' palette, the one of the result PLY and of ``kbs render``.
+The 3-D view has the run's up direction (:func:`kbs.report.view.view_of`: the ground normal)
+vertical: a camera's frame (up -y) is seen upright from behind the camera, not on its side.
 
 The page carries its own error hook (``window.onerror``, unhandled rejections, ``console.error``):
 an error is written into a visible ``#kbs-errors`` box and into ``document.title``, and the page
@@ -33,25 +43,28 @@ sets ``data-kbs-ready="1"`` on ``<body>`` once everything is drawn, so a headles
 from __future__ import annotations
 
 import base64
+import functools
+import gzip
 import html
 import json
 import re
 from pathlib import Path
-from collections.abc import Sequence
+from collections.abc import Callable, Collection, Sequence
 from typing import Any
 
 import numpy as np
 
 from kbs.errors import require
 from kbs.knowledge.explain import Explanation
+from kbs.report.colors import NOISE_HEX, hex_colors
+from kbs.report.view import view_of
 
 __all__ = ["write_report", "eigen_boxes"]
 
-#: Colours of the clusters (cycled) and of the labels; noise is NOISE.
-PALETTE = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#bcbd22",
-           "#17becf", "#393b79", "#637939", "#8c6d31", "#843c39", "#7b4173", "#3182bd", "#e6550d",
-           "#31a354", "#756bb1", "#636363", "#fd8d3c")
-NOISE = "#a0a0a0"
+#: Points drawn at most by default (a random subset above it; the page says so).
+MAX_POINTS = 50_000
+#: Eigen-boxes drawn by default: those of the largest clusters (the others on a click).
+MAX_BOXES = 30
 #: The colour of the points of an output cluster no label's condition held for (label -1 in a
 #: cluster): not noise, which they are not (and which a rule base may use as a label's name).
 UNLABELLED = "#ff00ff"
@@ -116,13 +129,13 @@ def eigen_boxes(xyz: np.ndarray, cluster: np.ndarray, n_clusters: int) -> list[d
 _EDGES = ((0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7), (0, 4), (1, 5), (2, 6), (3, 7))
 
 
-def _box_lines(boxes: Sequence[dict[str, Any] | None]) -> dict[str, list]:
+def _box_lines(boxes: Sequence[dict[str, Any] | None], only: Collection[int] | None = None) -> dict[str, list]:
     xs: list = []
     ys: list = []
     zs: list = []
     text: list = []
     for i, b in enumerate(boxes):
-        if b is None:
+        if b is None or (only is not None and i not in only):
             continue
         for a, e in _EDGES:
             for p in (b["corners"][a], b["corners"][e]):
@@ -135,6 +148,33 @@ def _box_lines(boxes: Sequence[dict[str, Any] | None]) -> dict[str, list]:
     return {"x": xs, "y": ys, "z": zs, "cluster": text}
 
 
+def _gz64(text: str) -> str:
+    """``text`` gzip-compressed (mtime 0: the same page for the same inputs) and base64-encoded."""
+    return base64.b64encode(gzip.compress(text.encode("utf-8"), compresslevel=9, mtime=0)).decode("ascii")
+
+
+@functools.lru_cache(maxsize=1)
+def _plotly_gz64(get_plotlyjs: Callable[[], str]) -> str:
+    """plotly.js compressed once a process (a second or so of gzip)."""
+    return _gz64(get_plotlyjs())
+
+
+def _largest(clusters: Sequence[dict[str, Any]], k: int) -> list[int]:
+    """Indices of the ``k`` clusters with the most points (ties: the lower index)."""
+    order = sorted(range(len(clusters)), key=lambda i: (-int(clusters[i].get("n_points", 0)), i))
+    return sorted(order[:max(k, 0)])
+
+
+def _camera(explanation_dict: dict[str, Any]) -> dict[str, Any]:
+    """The plotly scene camera: up is the run's up direction; a scan not z up is seen from behind
+    and above (a camera's frame from behind the camera); a z-up scan keeps plotly's default eye."""
+    v = view_of(explanation_dict)
+    cam: dict[str, Any] = {"up": dict(zip("xyz", np.round(v.up, 6).tolist()))}
+    if not (v.level and v.up[2] > 0):
+        cam["eye"] = dict(zip("xyz", np.round(-1.6 * v.forward + 0.9 * v.up, 6).tolist()))
+    return {"camera": cam, "describe": v.describe(), "level": bool(v.level and v.up[2] > 0)}
+
+
 def _decimate(n: int, max_points: int, seed: int) -> np.ndarray | None:
     if max_points <= 0 or n <= max_points:
         return None
@@ -143,7 +183,7 @@ def _decimate(n: int, max_points: int, seed: int) -> np.ndarray | None:
 
 def write_report(path: str | Path, xyz: np.ndarray, cluster: np.ndarray, label: np.ndarray,
                  label_names: Sequence[str], explanation_dict: dict[str, Any], clusters: Sequence[dict[str, Any]],
-                 *, title: str, max_points: int = 200_000, seed: int = 0) -> Path:
+                 *, title: str, max_points: int = MAX_POINTS, seed: int = 0, max_boxes: int = MAX_BOXES) -> Path:
     """Write the self-contained HTML report of one segmentation.
 
     Parameters
@@ -168,6 +208,9 @@ def write_report(path: str | Path, xyz: np.ndarray, cluster: np.ndarray, label: 
         ``<= 0`` shows them all.
     seed : int
         Seed of that subset (the same inputs give the same page).
+    max_boxes : int
+        Eigen-boxes drawn when the page opens: those of the largest clusters (the page says how
+        many of how many); a click on a point draws its cluster's box.
 
     Returns
     -------
@@ -202,23 +245,29 @@ def write_report(path: str | Path, xyz: np.ndarray, cluster: np.ndarray, label: 
     root = expl.records[expl.root]
     apd = None if root.apd is None else {"ks": list(root.apd.ks), "apd": list(root.apd.apd), "chosen": root.apd.chosen}
     centres = [c.get("descriptors", {}).get("center") for c in clusters]
+    boxed = _largest(clusters, max_boxes)
+    small = np.int16 if max(n_out, len(label_names)) < 32000 else np.int32  # the page reads the width
     data = {
         "n": int(n), "shown": int(len(shown)), "notice": notice,
         "origin": origin.tolist(),
         "xyz": _b64((xyz[shown] - origin).astype(np.float32), "f4"),
-        "cluster": _b64(cluster[shown], "i4"),
-        "label": _b64(np.where((label < 0) & (cluster >= 0), _UNLABELLED_KEY, label)[shown].astype(np.int32), "i4"),
+        "int": np.dtype(small).itemsize,
+        "cluster": _b64(cluster[shown], np.dtype(small).str[1:]),
+        "label": _b64(np.where((label < 0) & (cluster >= 0), _UNLABELLED_KEY, label)[shown].astype(small),
+                      np.dtype(small).str[1:]),
         "label_names": list(label_names),
         "clusters": [{"index": int(c.get("index", i)), "ids": list(c.get("ids", [])), "label": c.get("label"),
                       "n_points": int(c.get("n_points", 0)), "center": centres[i]} for i, c in enumerate(clusters)],
-        "boxes": _box_lines(boxes),
+        "boxes": _box_lines(boxes, set(boxed)), "boxed": len(boxed),
+        "corners": [None if b is None else np.round(b["corners"], 5).tolist() for b in boxes],
         "records": records, "root": expl.root, "apd": apd,
-        "palette": list(PALETTE), "noise": NOISE, "unlabelled": UNLABELLED, "unlabelled_key": _UNLABELLED_KEY,
+        "palette": hex_colors(max(n_out, len(label_names), 1)), "noise": NOISE_HEX, "unlabelled": UNLABELLED,
+        "unlabelled_key": _UNLABELLED_KEY, "view": _camera(explanation_dict),
         "head": {"rule_base": expl.rule_base, "rule_file": expl.rule_file, "strategy": expl.strategy,
                  "ground": expl.ground_line() if expl.ground else "", "notes": list(expl.notes)},
     }
     fill = {"TITLE": html.escape(title), "NOTICE": html.escape(notice),
-            "PLOTLYJS": get_plotlyjs().replace("</script", "<\\/script"), "DATA": _json(data)}
+            "PLOTLYJS": _plotly_gz64(get_plotlyjs), "DATA": _gz64(_json(data))}
     page = re.sub(r"%%([A-Z]+)%%", lambda mo: fill[mo.group(1)], _TEMPLATE)
     path = Path(path)
     path.write_text(page, encoding="utf-8")
@@ -301,26 +350,42 @@ _TEMPLATE = r"""<!DOCTYPE html>
     <div id="why">Click a cluster in the 3D view or a line of the tree.</div>
   </div>
 </main>
-<script>%%PLOTLYJS%%</script>
-<script id="kbs-data" type="application/json">%%DATA%%</script>
+<script id="kbs-plotly" type="application/gzip">%%PLOTLYJS%%</script>
+<script id="kbs-data" type="application/gzip">%%DATA%%</script>
 <script>
 (function () {
   "use strict";
-  var D = JSON.parse(document.getElementById("kbs-data").textContent);
   function bytes(b64) {
     var s = atob(b64), u = new Uint8Array(s.length);
     for (var i = 0; i < s.length; i++) u[i] = s.charCodeAt(i);
     return u.buffer;
   }
-  var xyz = new Float32Array(bytes(D.xyz)), cl = new Int32Array(bytes(D.cluster)), lb = new Int32Array(bytes(D.label));
+  // plotly.js and the data are gzip-compressed and base64-encoded (a quarter of their size)
+  function inflate(id) {
+    if (typeof DecompressionStream === "undefined")
+      return Promise.reject(new Error("this browser cannot inflate the report's compressed data (DecompressionStream: " +
+                                      "Chrome 80, Firefox 113, Safari 16.4 or later)"));
+    var blob = new Blob([bytes(document.getElementById(id).textContent)]);
+    return new Response(blob.stream().pipeThrough(new DecompressionStream("gzip"))).text();
+  }
+  inflate("kbs-plotly").then(function (code) {
+    var s = document.createElement("script");
+    s.textContent = code;  // runs now: defines window.Plotly
+    document.head.appendChild(s);
+    return inflate("kbs-data");
+  }).then(function (text) { start(JSON.parse(text)); });
+
+function start(D) {
+  var Int = D.int === 2 ? Int16Array : Int32Array;
+  var xyz = new Float32Array(bytes(D.xyz)), cl = new Int(bytes(D.cluster)), lb = new Int(bytes(D.label));
   var o = D.origin, m = D.shown;
   var recById = {};
   D.records.forEach(function (r) { recById[r.id] = r; });
-  function colour(i) { return i === D.unlabelled_key ? D.unlabelled : i < 0 ? D.noise : D.palette[i % D.palette.length]; }
+  function colour(i) { return i === D.unlabelled_key ? D.unlabelled : i < 0 ? D.noise : D.palette[i]; }
 
   document.getElementById("meta").textContent = "rule base '" + D.head.rule_base + "' (" + D.head.rule_file +
     "), strategy " + D.head.strategy + (D.head.ground ? "; ground: " + D.head.ground : "") +
-    "; " + D.clusters.length + " clusters";
+    "; " + D.clusters.length + " clusters" + (D.view.level ? "" : "; view: " + D.view.describe);
 
   // One trace per colouring holding every shown point, coloured point by point (hundreds of traces,
   // one per cluster, make plotly several times slower to draw); the legend is made of empty traces.
@@ -339,7 +404,8 @@ _TEMPLATE = r"""<!DOCTYPE html>
   }
   function clusterName(k) {
     var c = D.clusters[k];
-    return k < 0 ? "noise" : "cluster " + k + (c && c.label ? " (" + c.label + ")" : " (unlabelled: no label matched)");
+    return k < 0 ? "noise" : "cluster " + k + (c && c.label ? " (" + c.label + ")" : " (unlabelled: no label matched)") +
+      (c ? ", " + c.n_points.toLocaleString("en") + " points" : "");
   }
   function labelName(k) {
     return k === D.unlabelled_key ? "unlabelled (no label matched)" : k < 0 ? "noise" : (D.label_names[k] || "label " + k);
@@ -371,15 +437,29 @@ _TEMPLATE = r"""<!DOCTYPE html>
                 hoverinfo: "text",
                 marker: { size: 5, symbol: "diamond", color: "#000", line: { color: "#fff", width: 1 } } });
   var boxTrace = traces.length;
-  traces.push({ type: "scatter3d", mode: "lines", name: "eigen-boxes (2 sqrt(eigenvalue))",
+  var nBoxes = D.corners.filter(function (c) { return c; }).length;
+  traces.push({ type: "scatter3d", mode: "lines", name: "eigen-boxes (2 sqrt(eigenvalue))" +
+                  (D.boxed < nBoxes ? " of the " + D.boxed + " largest of " + D.clusters.length + " clusters" : ""),
                 x: D.boxes.x, y: D.boxes.y, z: D.boxes.z, hoverinfo: "skip", connectgaps: false,
                 line: { color: "#222", width: 2 } });
+  // the box of the cluster clicked last, whatever its size
+  var EDGES = [[0, 1], [2, 3], [4, 5], [6, 7], [0, 2], [1, 3], [4, 6], [5, 7], [0, 4], [1, 5], [2, 6], [3, 7]];
+  var pickTrace = traces.length;
+  traces.push({ type: "scatter3d", mode: "lines", name: "the clicked cluster's box", x: [], y: [], z: [],
+                hoverinfo: "skip", connectgaps: false, showlegend: false, line: { color: "#d62728", width: 4 } });
+  function showBox(i) {
+    var c = i >= 0 ? D.corners[i] : null, x = [], y = [], z = [];
+    if (c) EDGES.forEach(function (e) {
+      x.push(c[e[0]][0], c[e[1]][0], null); y.push(c[e[0]][1], c[e[1]][1], null); z.push(c[e[0]][2], c[e[1]][2], null);
+    });
+    Plotly.restyle(gd, { x: [x], y: [y], z: [z] }, [pickTrace]);
+  }
 
   var gd = document.getElementById("scatter");
   var layout = { margin: { l: 0, r: 0, t: 0, b: 0 }, height: Math.max(300, gd.clientHeight), legend: { itemsizing: "constant", font: { size: 11 }, x: 0, y: 1, itemclick: false, itemdoubleclick: false,
                            bgcolor: "rgba(255,255,255,0.7)" },
                  scene: { aspectmode: "data", xaxis: { title: { text: "x" } }, yaxis: { title: { text: "y" } },
-                          zaxis: { title: { text: "z" } } },
+                          zaxis: { title: { text: "z" } }, camera: D.view.camera },
                  uirevision: "keep" };
   var config = { responsive: true, displaylogo: false };
 
@@ -397,6 +477,7 @@ _TEMPLATE = r"""<!DOCTYPE html>
       (parts.length ? parts.join("\n\n----\n\n") : "no record");
   }
   function showCluster(i) {
+    showBox(i);
     if (i < 0) {
       var rej = D.records.filter(function (r) { return r.action === "reject"; }).map(function (r) { return r.id; });
       showWhy(rej, "noise: points in no output cluster" + (rej.length ? "; rejected records:" : ""));
@@ -461,6 +542,7 @@ _TEMPLATE = r"""<!DOCTYPE html>
   var want = decodeURIComponent(location.hash.slice(1));
   if (recById[want]) showWhy([want]);
   Promise.all(done).then(function () { document.body.setAttribute("data-kbs-ready", "1"); });
+}
 })();
 </script>
 </body>

@@ -15,6 +15,9 @@ longest edge: slivers along collinear points). Ground points that lie on a line 
 """
 from __future__ import annotations
 
+import os
+import re
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,6 +25,7 @@ import numpy as np
 import plyfile
 
 from kbs.errors import CloudFileError
+from kbs.io.atomic import sigint_held, temporary_path
 from kbs.inference import ClusterGeometry, cluster_geometry
 from kbs.inference.geometry import RANK_TOLERANCE
 
@@ -153,6 +157,11 @@ def write_meshes(directory: Path, X: np.ndarray, cluster: np.ndarray, label: np.
     ``ground_label`` (noise excluded) and ``directory/ground.ply`` for the points labelled
     ``ground_label``.
 
+    The folder appears whole or not at all: the meshes are written into a hidden temporary folder
+    beside it, which then takes its place (an earlier run's folder, stale meshes included, goes
+    only once the new one is complete; a full disk or Ctrl-C leaves it as it was). An existing
+    folder holding other files than kbs's meshes is refused, not replaced.
+
     Parameters
     ----------
     X : ndarray (n, 3)
@@ -161,10 +170,57 @@ def write_meshes(directory: Path, X: np.ndarray, cluster: np.ndarray, label: np.
     label_names : list of str
     """
     directory = Path(directory)
+    if directory.exists() or directory.is_symlink():
+        if not directory.is_dir() or directory.is_symlink():
+            raise CloudFileError(str(directory), "exists and is not a folder of meshes kbs wrote; choose another --out")
+        foreign = sorted(p.name for p in directory.iterdir() if not _MESH_NAME.fullmatch(p.name))
+        if foreign:
+            raise CloudFileError(str(directory), f"holds files kbs did not write ({', '.join(foreign[:3])}"
+                                                 f"{', ...' if len(foreign) > 3 else ''}): move them, or choose another --out")
+    staging = temporary_path(directory)
     try:
-        directory.mkdir(parents=True, exist_ok=True)
+        staging.mkdir(parents=True)
     except OSError as exc:
         raise CloudFileError(str(directory), f"cannot create the mesh directory: {exc.strerror or exc}") from exc
+    try:
+        out = _write_meshes(staging, directory, X, cluster, label, label_names, ground_label=ground_label)
+        _swap_in(staging, directory)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return out
+
+
+#: The files write_meshes writes; an existing folder holding anything else is not replaced.
+_MESH_NAME = re.compile(r"obstacle-\d+\.ply|ground\.ply")
+
+
+def _swap_in(staging: Path, directory: Path) -> None:
+    """Put the complete ``staging`` folder in the place of ``directory`` (whose earlier content
+    goes only then), Ctrl-C held back between the two renames."""
+    old = temporary_path(directory.with_name(directory.name + "-old")) if directory.exists() else None
+    try:
+        with sigint_held():
+            if old is not None:
+                os.replace(directory, old)
+            os.replace(staging, directory)
+    except OSError as exc:
+        raise CloudFileError(str(directory), f"cannot write: {exc.strerror or exc}") from exc
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _put(staging: Path, directory: Path, name: str, V: np.ndarray, F: np.ndarray) -> None:
+    """write_mesh_ply into the staging folder; an error names the file where the user looks for it."""
+    try:
+        write_mesh_ply(staging / name, V, F)
+    except CloudFileError as exc:
+        raise CloudFileError(str(directory / name), exc.problem) from exc
+
+
+def _write_meshes(staging: Path, directory: Path, X: np.ndarray, cluster: np.ndarray, label: np.ndarray,
+                  label_names: list[str], *, ground_label: str) -> MeshSummary:
+    """The meshes written into ``staging``, described as they will be in ``directory``."""
     X = np.asarray(X, dtype=np.float64)
     gi = label_names.index(ground_label) if ground_label in label_names else None
     out = MeshSummary(directory)
@@ -181,9 +237,9 @@ def write_meshes(directory: Path, X: np.ndarray, cluster: np.ndarray, label: np.
         except ValueError as exc:
             out.skipped.append((int(idx), str(exc)))
             continue
-        path = directory / f"obstacle-{int(idx)}.ply"
-        write_mesh_ply(path, V, F)
-        out.obstacles.append(path)
+        name = f"obstacle-{int(idx)}.ply"
+        _put(staging, directory, name, V, F)
+        out.obstacles.append(directory / name)
     if gi is None:
         out.ground_note = f"none (no label named {ground_label!r})"
     else:
@@ -193,6 +249,6 @@ def write_meshes(directory: Path, X: np.ndarray, cluster: np.ndarray, label: np.
             out.ground_note = f"not written: {exc}"
         else:
             out.ground = directory / "ground.ply"
-            write_mesh_ply(out.ground, V, F)
+            _put(staging, directory, "ground.ply", V, F)
             out.ground_note = f"{out.ground.name} ({F.shape[0]:,} triangles, edges <= {max_edge:.3g})"
     return out

@@ -21,3 +21,23 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real scans not available: {SHARED_DATA} is absent (it is present in CI)")
     return SHARED_DATA
+
+
+# -- slow end-to-end tests -------------------------------------------------------------------------
+# `pytest` alone skips the tests marked slow (a minute or more each under load: whole real scans,
+# a headless browser, a pip install), saying so; `pytest --runslow` runs every test, and it is what
+# .ci/run and the README's test command run.
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--runslow", action="store_true", default=False,
+                     help="also run the tests marked slow (CI runs them all: .ci/run)")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    if config.getoption("--runslow"):
+        return
+    skip = pytest.mark.skip(reason="slow end-to-end test: pytest --runslow runs it (as .ci/run does)")
+    for item in items:
+        if "slow" in item.keywords:
+            item.add_marker(skip)

@@ -47,6 +47,7 @@ def test_cluster_bundled_example_writes_cluster_and_membership(tmp_path):
     assert ((v["scalar_membership"] >= 1.0 / chosen - 1e-6) & (v["scalar_membership"] <= 1.0)).all()
 
 
+@pytest.mark.slow  # whole real scans / a browser: pytest --runslow (CI) runs it
 @pytest.mark.parametrize("scan", ["semantickitti/000001.points.npy", "isprs/samp11.txt"])
 def test_cluster_runs_on_real_scans(shared_data, scan):
     r = kbs("cluster", str(shared_data / scan))

@@ -237,6 +237,7 @@ def test_las_units_come_from_the_crs_with_or_without_pyproj(shared_data, pyproj)
             assert out == expected
 
 
+@pytest.mark.slow  # whole real scans / a browser: pytest --runslow (CI) runs it
 def test_autzen_in_feet_is_segmented_in_metres(shared_data, tmp_path):
     """autzen_trim.las is in international feet (its WKT): the same points written in metres
     (declared so) give the same labels."""

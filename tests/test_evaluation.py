@@ -342,7 +342,7 @@ def rocks_result(tmp_path_factory):
 def test_kbs_eval_end_to_end(rocks_result, capsys):
     tmp, ply, truth = rocks_result
     out = tmp / "eval.json"
-    r = kbs("eval", str(ply), "field:truth", "--ground-values", "0", "--json", str(out))
+    r = kbs("eval", str(ply), "field:truth", "--ground-values", "0", "--hoover", "--json", str(out))
     assert r.returncode == 0, r.stderr
     assert "correct" in r.stdout and "precision" in r.stdout and "adjusted Rand index" in r.stdout
     doc = json.loads(out.read_text())
@@ -357,6 +357,19 @@ def test_kbs_eval_end_to_end(rocks_result, capsys):
     assert main(["eval", str(ply), str(tmp / "truth.npy"), "--ground-values", "0", "--no-hoover"]) == 0
     stdout = capsys.readouterr().out
     assert "Hoover" not in stdout and f"{g.f1:.4f}" in stdout
+
+
+def test_a_ground_evaluation_prints_the_ground_table_not_hoover_by_default(rocks_result):
+    """--ground-values asks for the ground metrics: their table alone (Hoover's regions table came
+    first and took the screen); without --ground-values Hoover is still the default."""
+    tmp, ply, truth = rocks_result
+    r = kbs("eval", str(ply), "field:truth", "--ground-values", "0", "--json", str(tmp / "g.json"))
+    assert r.returncode == 0, r.stderr
+    assert "precision" in r.stdout and "F1" in r.stdout and "Hoover et al." not in r.stdout
+    assert "Hoover regions: not computed for a ground evaluation (--hoover computes them)" in r.stdout
+    assert json.loads((tmp / "g.json").read_text())["hoover"] is None
+    r = kbs("eval", str(ply), "field:truth")
+    assert r.returncode == 0 and "Hoover et al." in r.stdout and "ground: not computed" in r.stdout
 
 
 def test_kbs_eval_tolerances_print_the_table_1_rows_of_a_result(rocks_result, capsys):
@@ -400,6 +413,7 @@ def test_kbs_eval_bad_inputs_exit_codes(rocks_result, tmp_path, capsys):
     assert r.returncode == 3 and r.stderr.startswith("kbs: error: ") and r.stderr.count("\n") == 1
 
 
+@pytest.mark.slow  # whole real scans / a browser: pytest --runslow (CI) runs it
 def test_kbs_eval_on_semantickitti(shared_data, tmp_path, capsys):
     scan = shared_data / "semantickitti" / "000001.points.npy"
     r = kbs("run", "--rules", "outdoor", str(scan), "--out", str(tmp_path))

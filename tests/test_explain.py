@@ -97,6 +97,7 @@ def test_a_cluster_stopped_by_a_limit_says_which_rule_wanted_a_split_and_how_it_
 # -- 3. a large tree, grouped and folded ------------------------------------------------------------
 
 
+@pytest.mark.slow  # whole real scans / a browser: pytest --runslow (CI) runs it
 def test_explain_of_a_large_scan_is_short_and_unfolds_with_depth_and_cluster(shared_data, tmp_path, capsys):
     """SemanticKITTI: 616 clusters, 618 lines before. The summary and the tree to the depth that
     fits stay under 80 lines; --depth all prints every cluster; --cluster prints one branch."""
@@ -244,8 +245,9 @@ def test_the_report_tells_unlabelled_clusters_from_noise(tmp_path):
     data = _data(page)
     import base64
 
-    label = np.frombuffer(base64.b64decode(data["label"]), dtype="<i4")
-    cluster = np.frombuffer(base64.b64decode(data["cluster"]), dtype="<i4")
+    width = "<i2" if data["int"] == 2 else "<i4"  # the report packs them in 16 bits when they fit
+    label = np.frombuffer(base64.b64decode(data["label"]), dtype=width)
+    cluster = np.frombuffer(base64.b64decode(data["cluster"]), dtype=width)
     assert data["unlabelled_key"] == -2 and data["unlabelled"] != data["noise"]
     assert (label == -2).any() and (cluster[label == -2] >= 0).all()  # in an output cluster, no label
     assert (cluster[label == -1] < 0).all()  # noise: in no output cluster

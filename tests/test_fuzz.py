@@ -81,8 +81,9 @@ def _nest(value: Any, levels: int, form: str) -> Any:
 extreme_numbers = st.sampled_from([0, -1, 1, 2, 0.5, -0.0, 1e-300, 5e-324, 1e300, -1e300, 1.7976931348623157e308,
                                    2**31, 2**63, -(2**63), 10**30, math.nan, math.inf, -math.inf])
 wrong_types = st.one_of(st.none(), st.booleans(), st.text(max_size=12), st.lists(st.integers(-3, 3), max_size=4),
-                        st.dictionaries(st.text(max_size=6), st.integers(), max_size=3), st.builds(dict),
-                        st.builds(list), st.just("not planar"), st.just("auto"))  # fresh {} and []: a later mutation may add to them
+                        st.dictionaries(st.text(max_size=6), st.integers(), max_size=3),
+                        st.builds(dict), st.builds(list),  # fresh each draw: st.just({}) is one object, and a
+                        st.just("not planar"), st.just("auto"))  # later 'add' mutation into it leaked into the next case
 names = st.sampled_from(["planar", "level", "sheet", "connected", "tiny", "low", "ground", "obstacle", "noise",
                          "thickness", "thicknes", "no_such_check", "not planar", "all", "any", "_x", "9lives"])
 predicates = st.sampled_from(["thickness", "flatness", "ground_angle", "connexity", "point_count", "extent",

@@ -272,6 +272,7 @@ def test_ground_contact_moves_only_points_on_the_surface_and_says_so():
     assert seg.explanation.ground["local_model"]["points"] == (seg.label == 0).sum() - moved
 
 
+@pytest.mark.slow  # whole real scans / a browser: pytest --runslow (CI) runs it
 def test_relabel_and_contact_on_semantickitti_through_the_command(shared_data, tmp_path):
     scan = shared_data / "semantickitti" / "000001.points.npy"
     r = kbs("run", "--rules", "outdoor", str(scan), "--out", str(tmp_path))
@@ -360,6 +361,7 @@ def test_a_worker_that_dies_does_not_lose_the_split(monkeypatch):
     assert res.n_samples == 3000 and res.chosen_k >= 1
 
 
+@pytest.mark.slow  # whole real scans / a browser: pytest --runslow (CI) runs it
 def test_airborne_rules_tell_roofs_from_the_ground_on_isprs(shared_data, tmp_path):
     """The shipped airborne rule base on ISPRS sample 21 (absolute UTM coordinates), through the
     command: total error against the reference, and the roofs relabelled with their reason."""

@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 from plyfile import PlyData
 
 from kbs.evaluation import adjusted_rand, ground_metrics
@@ -21,6 +22,7 @@ def _result(out: Path, stem: str) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(v["scalar_cluster"]), np.asarray(v["scalar_label"])
 
 
+@pytest.mark.slow  # whole real scans / a browser: pytest --runslow (CI) runs it
 def test_kbs_run_segments_a_scan_turned_about_the_sensor_vertical_as_the_scan(shared_data, tmp_path):
     """SemanticKITTI 000001 (sensor frame, sensor at the origin, z up) turned about z by a quarter
     turn (exact, as a scan saved with other axes) and by 45 degrees, saved as float32 as any tool

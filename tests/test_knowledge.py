@@ -505,6 +505,7 @@ def test_parallel_splits_give_the_same_segmentation_and_explanation():
     assert one.clusters == two.clusters
 
 
+@pytest.mark.slow  # whole real scans / a browser: pytest --runslow (CI) runs it
 def test_parallel_splits_on_semantickitti_stop_at_the_same_limits(shared_data):
     """With a rule file that sets max_clusters (the shipped ones do not), the real scan reaches it:
     the same clusters are stopped whatever jobs is."""

@@ -406,6 +406,7 @@ def _brute_force_forward_motion(X0: np.ndarray, X1: np.ndarray) -> float:
     return float(shifts[int(np.argmin(cost))])
 
 
+@pytest.mark.slow  # whole real scans / a browser: pytest --runslow (CI) runs it
 def test_kbs_map_estimates_the_poses_of_three_semantickitti_frames(shared_data, tmp_path, capsys):
     pytest.importorskip("kiss_icp", reason="estimating poses needs KISS-ICP: pip install 'kbs[map]'")
     from kbs.io import read_cloud

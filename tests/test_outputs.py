@@ -476,3 +476,138 @@ def test_quiet_run_prints_nothing(tmp_path, capsys):
     assert r.out == "" and r.err == ""
     assert sorted(p.name for p in tmp_path.iterdir()) == ["outdoor.json", "outdoor.ply", "polyhedral.json",
                                                           "polyhedral.ply"]
+
+
+# -- eval --json and the meshes folder: whole or not at all too -----------------------------------------
+
+
+def _full_disk_on(folder: Path, suffix: str):
+    """An ``open`` (for builtins.open and io.open, which pathlib uses) whose files written in
+    ``folder`` (its hidden temporaries too) with ``suffix`` take half of what is written, then say the
+    disk is full."""
+    import io
+
+    real_open = io.open
+
+    class Full:
+        def __init__(self, f):
+            self.f = f
+
+        def write(self, data):
+            self.f.write(data[: len(data) // 2])
+            self.f.flush()
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.f.close()
+
+        def __getattr__(self, name):
+            return getattr(self.f, name)
+
+    def opener(file, mode="r", *args, **kwargs):
+        f = real_open(file, mode, *args, **kwargs)
+        path = Path(os.fspath(file)) if isinstance(file, (str, os.PathLike)) else None
+        if path is not None and "w" in mode and path.suffix == suffix and path.parent == folder:
+            return Full(f)
+        return f
+
+    return opener
+
+
+def test_a_full_disk_while_eval_writes_its_json_leaves_the_previous_file(out, monkeypatch, capsys):
+    import builtins
+    import io
+
+    truth = out / "truth.npy"
+    np.save(truth, np.zeros(len(read_cloud(out / "outdoor.ply").xyz), dtype=np.int32))
+    report = out / "eval.json"
+    assert main(["eval", str(out / "outdoor.ply"), str(truth), "--ground-values", "0", "--json", str(report)]) == 0
+    before = _snapshot(out)
+    capsys.readouterr()
+    full = _full_disk_on(out, ".json")
+    monkeypatch.setattr(builtins, "open", full)
+    monkeypatch.setattr(io, "open", full)
+    code = main(["eval", str(out / "outdoor.ply"), str(truth), "--ground-values", "0", "--hoover", "--json",
+                 str(report)])
+    monkeypatch.undo()
+    assert code == 3 and f"{report}: cannot write: No space left on device" in capsys.readouterr().err
+    assert _snapshot(out) == before  # the previous eval.json whole, no temporary file left
+
+
+def test_eval_json_is_never_the_results_own_json(out, capsys):
+    truth = out / "truth.npy"
+    np.save(truth, np.zeros(len(read_cloud(out / "outdoor.ply").xyz), dtype=np.int32))
+    before = _snapshot(out)
+    code = main(["eval", str(out / "outdoor.ply"), str(truth), "--ground-values", "0", "--json", str(out / "outdoor.json")])
+    assert code == 3 and "is the input" in capsys.readouterr().err
+    assert _snapshot(out) == before
+
+
+def test_a_full_disk_while_writing_the_meshes_leaves_the_previous_folder(tmp_path, monkeypatch, capsys):
+    """The meshes folder of a scan run again on other points: a failure half-way through leaves the
+    earlier folder as it was (it was left half new, half old); a complete run replaces it whole,
+    stale meshes of clusters that are gone included; a folder with other files is not replaced."""
+    import kbs.report.meshes as meshes
+
+    scan = tmp_path / "scene.ply"
+    X = read_cloud(EXAMPLE).xyz
+    write_ply(scan, X, {})
+    o = tmp_path / "o"
+    assert main(["-q", *RUN, str(scan), "--out", str(o), "--meshes"]) == 0
+    folder = o / "scene-meshes"
+    before = _snapshot(folder)
+    assert len(before) >= 3
+    write_ply(scan, X * [1.0, 1.0, 1.5], {})  # taller obstacles: other hulls
+    real = meshes.write_mesh_ply
+    calls = []
+
+    def second_fails(path, V, F):
+        calls.append(path)
+        if len(calls) == 2:
+            raise CloudFileError(str(path), "cannot write: No space left on device")
+        real(path, V, F)
+
+    from kbs.errors import CloudFileError
+
+    monkeypatch.setattr(meshes, "write_mesh_ply", second_fails)
+    assert main(["-q", *RUN, str(scan), "--out", str(o), "--meshes", "--force"]) == 3
+    err = capsys.readouterr().err
+    assert "No space left on device" in err and ".kbs-tmp-" not in err  # named where the user looks
+    monkeypatch.undo()
+    assert _snapshot(folder) == before
+    assert sorted(p.name for p in o.iterdir()) == ["scene-meshes", "scene.json", "scene.ply"]  # no temporary left
+    (folder / "obstacle-999.ply").write_bytes(before[next(iter(before))])  # a stale mesh
+    assert main(["-q", *RUN, str(scan), "--out", str(o), "--meshes"]) == 0
+    after = _snapshot(folder)
+    assert "obstacle-999.ply" not in after and after != before
+    (folder / "notes.txt").write_text("mine")
+    assert main(["-q", *RUN, str(scan), "--out", str(o), "--meshes"]) == 3
+    assert "holds files kbs did not write (notes.txt)" in capsys.readouterr().err
+    assert (folder / "notes.txt").read_text() == "mine"
+
+
+@pytest.mark.parametrize("scale", [1e80, 1e105])
+def test_coordinates_too_large_for_float64_products_are_refused_clearly(tmp_path, scale):
+    """Coordinates of 1e80 ran for a minute and printed numpy's 'overflow encountered in multiply'
+    (the covariances' norms reach the 4th power, their determinants the 6th); 1e105 crashed in the
+    voxel grid with a traceback. Now: refused before the work, the file named, exit 3; the library
+    says the same as a ParameterError."""
+    from kbs.errors import ParameterError
+    from kbs.knowledge import Segmenter
+
+    X = read_cloud(EXAMPLE).xyz[::10] * scale
+    scan = tmp_path / "huge.xyz"
+    np.savetxt(scan, X)
+    r = kbs("run", "--rules", "outdoor", str(scan), "--out", str(tmp_path / "o"))
+    assert r.returncode == 3, r.stderr
+    assert r.stderr.startswith(f"kbs: error: {scan}: ") and "beyond +-1e+50" in r.stderr and "--units" in r.stderr
+    assert "Traceback" not in r.stderr and "RuntimeWarning" not in r.stderr and "overflow encountered" not in r.stderr
+    assert not (tmp_path / "o" / "huge.json").exists()
+    with pytest.raises(ParameterError, match=r"points: .* beyond \+-1e\+50"):
+        Segmenter("outdoor").segment(X)
+    # a large but computable scale still runs (the bound is not a unit check)
+    with pytest.warns(UserWarning, match="median point spacing"):  # and no overflow (RuntimeWarnings fail the tests)
+        assert Segmenter("outdoor").segment(X / scale * 1e40).label.shape == (len(X),)

@@ -163,6 +163,7 @@ REAL = [("outdoor", "semantickitti/000001.points.npy"), ("outdoor", "isprs/samp1
         ("outdoor", "mosd/learn0.pcd"), ("planar_contest", "mosd/learn0.pcd")]
 
 
+@pytest.mark.slow  # whole real scans / a browser: pytest --runslow (CI) runs it
 @pytest.mark.parametrize("rules, scan", REAL)
 def test_runs_on_real_scans(shared_data, tmp_path, rules, scan):
     r = kbs("run", "--rules", rules, str(shared_data / scan), "--out", str(tmp_path))
@@ -181,6 +182,7 @@ def test_runs_on_real_scans(shared_data, tmp_path, rules, scan):
         assert f1 > 0.85, f1
 
 
+@pytest.mark.slow  # whole real scans / a browser: pytest --runslow (CI) runs it
 def test_worked_example_tabletop_rule_base_on_mosd(shared_data, tmp_path):
     r = kbs("rules", "check", str(ROOT / "examples" / "rules" / "tabletop.yaml"))
     assert r.returncode == 0, r.stderr

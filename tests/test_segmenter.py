@@ -190,6 +190,7 @@ def test_segmenter_equals_kbs_run_on_the_bundled_examples(two_bundled):
         _equals_written(seg.segment(read_cloud(scan).xyz), out / f"{scan.stem}.ply")
 
 
+@pytest.mark.slow  # whole real scans / a browser: pytest --runslow (CI) runs it
 def test_segmenter_equals_kbs_run_on_semantickitti(shared_data, tmp_path):
     scan = shared_data / "semantickitti" / "000001.points.npy"
     r = kbs_command("run", "--rules", "outdoor", str(scan), "--out", str(tmp_path))

@@ -189,6 +189,7 @@ def _normalised(folder: Path, stem: str) -> tuple[bytes, dict]:
     return ply, doc
 
 
+@pytest.mark.slow  # whole real scans / a browser: pytest --runslow (CI) runs it
 def test_tiles_on_a_local_dask_cluster_of_2_workers_give_the_in_process_bytes(shared_data, tmp_path):
     pytest.importorskip("distributed", reason="Dask is not installed: pip install 'kbs[dask]' (it is in [test])")
     scan = shared_data / "isprs" / "samp21-utm.pcd"  # airborne, 124 m x 115 m: 9 tiles of 50 m

@@ -234,6 +234,26 @@ def test_kbs_tune_keeps_the_files_values_when_they_made_the_truth(tmp_path, caps
     assert out.read_text().splitlines()[1:] == rules.read_text().splitlines()
 
 
+def test_kbs_tune_does_not_replace_a_file_it_did_not_write(tmp_path, capsys, scenes):
+    """--out and --report as kbs run's outputs: an existing file kbs did not write is refused before
+    the work (exit 3, as kbs run), replaced with --force; kbs tune's own output is replaced."""
+    truths = truth_from_known_values(tmp_path, scenes[:2], "0.05", "0.05")
+    rules = marked(tmp_path, b=(CONTACT, CONTACT + "    tune: [0.02, 0.14]\n"))
+    pairs = [str(p) for pair in zip(scenes[:2], truths) for p in pair]
+    out, report = tmp_path / "notes.yaml", tmp_path / "notes.json"
+    out.write_text("my notes\n")
+    args = ["tune", "--rules", str(rules), *pairs, "--ground-values", "1", "--out", str(out), "-j", "1"]
+    code, stdout, err = run_kbs(capsys, *args)
+    assert code == 3 and f"{out}: exists and was not written by kbs" in err and "give --force" in err, err
+    assert "marked threshold" not in err and out.read_text() == "my notes\n"  # refused before any work
+    report.write_text("{}")
+    code, _, err = run_kbs(capsys, *args, "--force", "--report", str(report))
+    assert code == 0, err
+    assert out.read_text().startswith("# kbs tune:") and json.loads(report.read_text())["run_id"]
+    code, _, err = run_kbs(capsys, *args, "--report", str(report))  # its own files: replaced
+    assert code == 0, err
+
+
 def test_kbs_tune_bounds_the_evaluations(tmp_path, capsys, scenes):
     truths = truth_from_known_values(tmp_path, scenes[:2], "0.05", "0.05")
     rules = marked(tmp_path, a=(PLANAR, PLANAR + "    tune: [0.03, 0.05, 0.1]\n"))

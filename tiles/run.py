@@ -28,6 +28,11 @@ from kbs.tiles.grid import Tile, TileGrid
 from kbs.tiles.stitch import TiledSegmentation, stitch
 from kbs.tiles.store import TileStore
 
+#: The ground plane of a tiled run is found once, on the whole cloud, or on every k-th point of it
+#: when it holds more than this many points (the same plane for every tile: no tile finds its own).
+GROUND_SAMPLE_POINTS = 2_000_000
+#: Tiles submitted to Dask at a time, per worker (more are submitted as these finish).
+IN_FLIGHT_PER_WORKER = 2
 #: The buffer, when none is given, is this fraction of the tile size ...
 BUFFER_FRACTION = 0.1
 #: ... and at least this many times the radius of the rule base's local ground surface.
@@ -89,10 +94,25 @@ def plan_tiles(segmenter: Segmenter, X: np.ndarray, size: float,
     return grid, grid.tiles(X)
 
 
+def scene_ground(segmenter: Segmenter, X: np.ndarray) -> tuple[Any, dict[str, Any]]:
+    """The ground plane of the whole cloud ``X`` and its explanation (``ground`` of a result), as an
+    untiled run finds it (:meth:`~kbs.knowledge.interpreter.Interpreter.find_ground`); on every k-th
+    point when ``X`` holds more than :data:`GROUND_SAMPLE_POINTS`. Every tile takes it."""
+    n = X.shape[0]
+    step = max(1, -(-n // GROUND_SAMPLE_POINTS))
+    ground, info = segmenter._interpreter.find_ground(X[::step] if step > 1 else X)
+    if "source" in info:
+        info["source"] = f"whole cloud: {info['source']}"
+    info["scope"] = (f"found once on the whole cloud ({n:,} points)" if step == 1 else
+                     f"found once on every {step}th point of the whole cloud ({-(-n // step):,} of {n:,})") + \
+        ", the same for every tile"
+    return ground, info
+
+
 def segment_tiled(segmenter: Segmenter, points: Any, size: float, buffer: float | None = None, *,
                   scheduler: str | None = None, workers: int | None = None,
                   progress: Callable[[str], None] | None = None, store: TileStore | None = None,
-                  resume: bool = False) -> TiledSegmentation:
+                  resume: bool = False, plan: tuple[TileGrid, list[Tile]] | None = None) -> TiledSegmentation:
     """Segment a cloud tile by tile and stitch the tiles' results into one.
 
     Parameters
@@ -119,6 +139,9 @@ def segment_tiled(segmenter: Segmenter, points: Any, size: float, buffer: float 
     resume : bool, default False
         Take the tiles ``store`` holds for these points, rule base and sensor instead of
         segmenting them again; segment only the others.
+    plan : (TileGrid, list of Tile), optional
+        The grid and tiles of ``points`` when they are known already (a streamed LAS/LAZ file:
+        :func:`kbs.tiles.stream.spill_las`); default :func:`plan_tiles`.
 
     Returns
     -------
@@ -134,9 +157,10 @@ def segment_tiled(segmenter: Segmenter, points: Any, size: float, buffer: float 
         other tile was segmented (and saved in ``store``).
     """
     t0 = time.perf_counter()
-    X = as_points(points)
-    grid, tiles = plan_tiles(segmenter, X, size, buffer)
-    keys = [store.key(t, X) for t in tiles] if store is not None else [None] * len(tiles)
+    X = points if plan is not None else as_points(points)
+    grid, tiles = plan if plan is not None else plan_tiles(segmenter, X, size, buffer)
+    given = scene_ground(segmenter, X)
+    keys = [store.key(t, X, given) for t in tiles] if store is not None else [None] * len(tiles)
     results: list[Segmentation | None] = [None] * len(tiles)
     if resume and store is not None:
         for k, t in enumerate(tiles):
@@ -159,18 +183,18 @@ def segment_tiled(segmenter: Segmenter, points: Any, size: float, buffer: float 
     if scheduler is None:
         for done, k in enumerate(todo, start=1):
             try:
-                out: Segmentation | BaseException = segmenter.segment(X[tiles[k].index])
+                out: Segmentation | BaseException = _segment_tile(segmenter, X[tiles[k].index], given)
             except KbsError as exc:
                 out = exc
             finished(k, out, done)
     elif todo:
-        _segment_on_dask(segmenter, X, tiles, todo, scheduler, workers, progress, finished)
+        _segment_on_dask(segmenter, X, tiles, todo, scheduler, workers, progress, finished, given)
     if failures:
         first = min(failures)
         raise TileError(tiles[first], tiles[first].index.size, failures[first],
                         failed=[tiles[k] for k in sorted(failures)], total=len(tiles),
                         kept=store.folder if store is not None and len(failures) < len(tiles) else None)
-    return stitch(X, grid, tiles, results, seconds=time.perf_counter() - t0)
+    return stitch(X, grid, tiles, results, seconds=time.perf_counter() - t0, ground=given[1])
 
 
 @functools.lru_cache(maxsize=4)
@@ -179,12 +203,22 @@ def _worker_segmenter(rules: str, sensor: tuple[float, float, float], plugins: t
     return Segmenter(rules, jobs=1, sensor=sensor, plugins=plugins)
 
 
+def _segment_tile(segmenter: Segmenter, points: np.ndarray, given: tuple[Any, dict[str, Any]]) -> Segmentation:
+    """One tile, with the whole cloud's ground plane ``given`` (:func:`scene_ground`)."""
+    interpreter = segmenter._interpreter
+    interpreter.given_ground = given
+    try:
+        return segmenter.segment(points)
+    finally:
+        interpreter.given_ground = None
+
+
 def _segment_task(rules: str, sensor: tuple[float, float, float], plugins: tuple[str, ...],
-                  points: np.ndarray) -> Segmentation | KbsError:
+                  points: np.ndarray, given: tuple[Any, dict[str, Any]]) -> Segmentation | KbsError:
     """One tile on a Dask worker. A KbsError is returned, not raised: Dask retries what raises
     (a worker lost), and a bad tile would fail the same way again."""
     try:
-        return _worker_segmenter(rules, sensor, plugins).segment(points)
+        return _segment_tile(_worker_segmenter(rules, sensor, plugins), points, given)
     except KbsError as exc:
         return exc
 
@@ -222,7 +256,7 @@ def dask_client(scheduler: str, workers: int | None = None):
 
 def _segment_on_dask(segmenter: Segmenter, X: np.ndarray, tiles: Sequence[Tile], todo: Sequence[int],
                      scheduler: str, workers: int | None, progress: Callable[[str], None] | None,
-                     finished: Callable[[int, Any, int], None]) -> None:
+                     finished: Callable[[int, Any, int], None], given: tuple[Any, dict[str, Any]]) -> None:
     from distributed import as_completed
 
     client = dask_client(scheduler, workers)
@@ -230,14 +264,30 @@ def _segment_on_dask(segmenter: Segmenter, X: np.ndarray, tiles: Sequence[Tile],
         if progress is not None:
             progress(f"Dask dashboard: {client.dashboard_link}")
         spec = (segmenter.rule_base.path, segmenter.sensor, segmenter.plugins)
-        futures = {client.submit(_segment_task, *spec, X[tiles[k].index], key=f"kbs-tile-{tiles[k].name}-"
-                                 f"{os.urandom(6).hex()}", retries=1, pure=False): k for k in todo}
-        for done, future in enumerate(as_completed(futures), start=1):
+
+        def submit(k: int) -> Any:
+            future = client.submit(_segment_task, *spec, X[tiles[k].index], given, retries=1, pure=False,
+                                   key=f"kbs-tile-{tiles[k].name}-{os.urandom(6).hex()}")
+            futures[future] = k
+            return future
+
+        # a bounded number of tiles in flight (a tile's points are copied from X when it is
+        # submitted): the client holds the points of those tiles, not of the whole cloud
+        n_workers = max(len(client.scheduler_info().get("workers", {})), workers or 1 if scheduler == "local" else 1)
+        window = max(2, IN_FLIGHT_PER_WORKER * n_workers)
+        futures: dict[Any, int] = {}
+        queue = list(todo)
+        pending = as_completed([submit(k) for k in queue[:window]])
+        queue = queue[window:]
+        for done, future in enumerate(pending, start=1):
             try:
                 out = future.result()
             except Exception as exc:  # the task died twice (a worker lost), or a bug in it
                 out = exc
-            finished(futures[future], out, done)
+            k = futures.pop(future)
+            if queue:
+                pending.add(submit(queue.pop(0)))
+            finished(k, out, done)
     finally:
         cluster = client.cluster if scheduler == "local" else None
         client.close()

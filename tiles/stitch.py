@@ -87,7 +87,7 @@ def _links(a: Tile, ra: Segmentation, b: Tile, rb: Segmentation) -> list[tuple[i
 
 
 def stitch(X: np.ndarray, grid: TileGrid, tiles: Sequence[Tile], results: Sequence[Segmentation], *,
-           seconds: float, notes: Sequence[str] = ()) -> TiledSegmentation:
+           seconds: float, notes: Sequence[str] = (), ground: dict[str, Any] | None = None) -> TiledSegmentation:
     """One result for the cloud ``X`` from the results of its tiles.
 
     Parameters
@@ -104,6 +104,10 @@ def stitch(X: np.ndarray, grid: TileGrid, tiles: Sequence[Tile], results: Sequen
         The wall time of the whole run (the result's ``seconds``).
     notes : sequence of str
         Added to the explanation's notes.
+    ground : dict, optional
+        The whole cloud's ground plane every tile was given (its explanation, as
+        :func:`kbs.tiles.run.scene_ground` returns it): the explanation's ``ground``, with each
+        tile's own (its local ground surface) under ``tiles``. None: the tiles found their own.
 
     Returns
     -------
@@ -183,7 +187,7 @@ def stitch(X: np.ndarray, grid: TileGrid, tiles: Sequence[Tile], results: Sequen
 
     n_stitched = sum("stitched" in c for c in out_clusters)
     stitched = {c["index"] for c in out_clusters if "stitched" in c}
-    expl = _explanation(tiles, results, offsets, roots, out_of_root, shared, stitched, n, notes)
+    expl = _explanation(tiles, results, offsets, roots, out_of_root, shared, stitched, n, notes, ground)
     tiling = {"size": grid.size, "buffer": grid.buffer, "axes": grid.axes.tolist(), "origin": list(grid.origin),
               "shape": list(grid.shape), "stitched": n_stitched,
               "tiles": [{"name": t.name, "core": list(t.core), "points": int(t.index.size),
@@ -193,7 +197,7 @@ def stitch(X: np.ndarray, grid: TileGrid, tiles: Sequence[Tile], results: Sequen
                              seconds=seconds, tiling=tiling)
 
 
-def _explanation(tiles, results, offsets, roots, out_of_root, shared, stitched, n, notes) -> Explanation:
+def _explanation(tiles, results, offsets, roots, out_of_root, shared, stitched, n, notes, given) -> Explanation:
     first = results[0].explanation
     records: dict[str, ClusterRecord] = {}
     children = []
@@ -223,7 +227,10 @@ def _explanation(tiles, results, offsets, roots, out_of_root, shared, stitched, 
     records[ROOT] = ClusterRecord(id=ROOT, parent=None, depth=0, n_points=n, action="partition", children=children,
                                   notes=[f"{len(tiles)} tiles: " + ", ".join(t.bounds_text() for t in tiles)])
     sources = sorted({str(g.get("source", "not used")) for g in grounds.values()})
-    ground = {"source": f"per tile ({', '.join(sources)})", "tiles": grounds}
+    if given is not None and given:
+        ground = {**given, "tiles": grounds}
+    else:
+        ground = {"source": f"per tile ({', '.join(sources)})", "tiles": grounds}
     tile_notes = [f"{t.name}: {note}" for t, r in zip(tiles, results) for note in r.explanation.notes]
     k = len(stitched)
     summary = f"{len(tiles)} tiles; {k} output cluster{'s' if k != 1 else ''} stitched across tile edges"

@@ -14,6 +14,7 @@ import hashlib
 import json
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -54,9 +55,15 @@ class TileStore:
             h.update(b"\0")
         self._base = h.digest()
 
-    def key(self, tile: Tile, X: np.ndarray) -> str:
-        """The digest of what ``tile``'s result depends on."""
+    def key(self, tile: Tile, X: np.ndarray, given: Any = None) -> str:
+        """The digest of what ``tile``'s result depends on (``given``: the whole cloud's ground plane
+        and its explanation, as :func:`kbs.tiles.run.scene_ground` returns them)."""
         h = hashlib.sha256(self._base)
+        if given is not None:
+            ground, info = given
+            if ground is not None:
+                h.update(np.concatenate([ground.normal, ground.point]).astype(np.float64).tobytes())
+            h.update(json.dumps(info, sort_keys=True, default=str).encode("utf-8"))
         h.update(np.ascontiguousarray(tile.index, dtype=np.int64).tobytes())
         h.update(np.ascontiguousarray(X[tile.index], dtype=np.float64).tobytes())
         return h.hexdigest()

@@ -1,0 +1,178 @@
+"""Tiled runs beyond one cloud in memory: the whole cloud's ground plane given to every tile, LAS/LAZ
+read and written in chunks (kbs run --tile --chunk-points), folders of scans on Dask."""
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pytest
+
+from kbs.tiles import TileGrid
+from kbs.tiles.stream import spill_las
+from scenes import ground_and_rocks
+from test_cli import kbs as kbs_cmd
+
+
+def _write_las(path: Path, X: np.ndarray, *, extra: dict[str, np.ndarray] | None = None) -> None:
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.offsets, header.scales = np.floor(X.min(axis=0)), np.array([1e-4, 1e-4, 1e-4])
+    for name, values in (extra or {}).items():
+        header.add_extra_dim(laspy.ExtraBytesParams(name, values.dtype, description=f"input {name}"))
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = X[:, 0], X[:, 1], X[:, 2]
+    las.intensity = np.arange(len(X), dtype=np.uint16)
+    las.classification = np.ones(len(X), dtype=np.uint8)
+    for name, values in (extra or {}).items():
+        las[name] = values
+    las.write(str(path))
+
+
+def _without_run_id(path: Path) -> bytes:
+    """The file's bytes with the run id (32 hex digits in the kbs VLR) blanked."""
+    data = path.read_bytes()
+    return re.sub(rb"[0-9a-f]{32}", b"0" * 32, data, count=1)
+
+
+# -- the tiles of a file read in chunks are the tiles of the cloud in memory ------------------------
+
+
+@pytest.mark.parametrize("size, buffer, chunk", [(3.0, 0.5, 700), (2.5, 3.0, 1000), (100.0, 1.0, 333), (4.0, 0.0, 5000)])
+def test_the_tiles_of_a_las_spilled_in_chunks_are_the_tiles_of_the_cloud_in_memory(tmp_path, size, buffer, chunk):
+    rng = np.random.default_rng(5)
+    X = rng.uniform([-7, 2, 0], [6, 11, 3], (4000, 3)).round(4)
+    _write_las(tmp_path / "a.las", X)
+    X = laspy.read(tmp_path / "a.las").xyz.astype(np.float64)
+    spilled = spill_las(tmp_path / "a.las", tmp_path / "spill", size, buffer, chunk_points=chunk)
+    grid = TileGrid.fit(X, size, buffer)
+    expected = grid.tiles(X)
+    assert (spilled.grid.origin, spilled.grid.shape) == (grid.origin, grid.shape)
+    assert [t.name for t in spilled.tiles] == [t.name for t in expected]
+    for got, want in zip(spilled.tiles, expected):
+        np.testing.assert_array_equal(got.index, want.index)
+        np.testing.assert_array_equal(got.in_core, want.in_core)
+        assert got.core == want.core
+    np.testing.assert_array_equal(spilled.xyz, X)
+    spilled.remove()
+    assert not (tmp_path / "spill").exists()
+
+
+# -- through the command ------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def rocks_las(tmp_path_factory) -> Path:
+    """The rocks scene as LAS 1.4 with an intensity, and an extra dimension named like a result
+    ('cluster': kept as cluster_in), 16,500 points."""
+    X, labels = ground_and_rocks()
+    path = tmp_path_factory.mktemp("las") / "rocks.las"
+    _write_las(path, X, extra={"cluster": labels.astype(np.int32)})
+    return path
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_a_las_read_and_written_in_chunks_gives_the_bytes_of_the_in_memory_run(rocks_las, tmp_path, suffix):
+    scan = rocks_las
+    if suffix == ".laz":
+        scan = tmp_path / "rocks.laz"
+        laspy.read(rocks_las).write(str(scan))
+    args = ["-q", "run", "--rules", "outdoor", "-j", "1", "--tile", "6", "--buffer", "1.5", str(scan)]
+    streamed = kbs_cmd(*args, "--chunk-points", "4000", "--out", str(tmp_path / "streamed"))  # 5 chunks
+    assert streamed.returncode == 0, streamed.stderr
+    whole = kbs_cmd(*args, "--chunk-points", "0", "--out", str(tmp_path / "whole"))
+    assert whole.returncode == 0, whole.stderr
+    a, b = tmp_path / "streamed" / f"rocks{suffix}", tmp_path / "whole" / f"rocks{suffix}"
+    if suffix == ".las":
+        assert _without_run_id(a) == _without_run_id(b)
+    las_a, las_b = laspy.read(a), laspy.read(b)
+    assert las_a.points.array.tobytes() == las_b.points.array.tobytes()
+    assert "cluster_in" in las_a.point_format.extra_dimension_names
+    np.testing.assert_array_equal(las_a["cluster_in"], laspy.read(rocks_las)["cluster"])
+    doc_a = json.loads((tmp_path / "streamed" / "rocks.json").read_text())
+    doc_b = json.loads((tmp_path / "whole" / "rocks.json").read_text())
+    for doc in (doc_a, doc_b):
+        doc.pop("run_id")
+        doc["summary"].pop("seconds")
+    assert doc_a == doc_b
+    assert sorted(p.name for p in (tmp_path / "streamed").iterdir()) == ["rocks.json", f"rocks{suffix}"]  # spill gone
+
+
+def test_chunk_points_needs_tile(rocks_las, tmp_path):
+    r = kbs_cmd("run", "--rules", "outdoor", "--chunk-points", "1000", str(rocks_las), "--out", str(tmp_path))
+    assert r.returncode == 2 and "--chunk-points only applies to a tiled run: give --tile SIZE too" in r.stderr
+
+
+def test_every_tile_takes_the_ground_plane_of_the_whole_cloud(tmp_path):
+    """The rocks scene tilted 3 degrees: the untiled run's ground plane is the one every tile of
+    the tiled run is given (none finds its own), and the explanation says so."""
+    from kbs.io import write_ply
+
+    X, _ = ground_and_rocks()
+    t = np.radians(3.0)
+    R = np.array([[1, 0, 0], [0, np.cos(t), -np.sin(t)], [0, np.sin(t), np.cos(t)]])
+    path = tmp_path / "tilted.ply"
+    write_ply(path, X @ R.T, {})
+    base = ["-q", "run", "--rules", "outdoor", "-j", "1", str(path)]
+    assert kbs_cmd(*base, "--out", str(tmp_path / "whole")).returncode == 0
+    r = kbs_cmd(*base, "--tile", "6", "--buffer", "1.5", "--out", str(tmp_path / "tiled"))
+    assert r.returncode == 0, r.stderr
+    whole = json.loads((tmp_path / "whole" / "tilted.json").read_text())["explanation"]["ground"]
+    tiled = json.loads((tmp_path / "tiled" / "tilted.json").read_text())["explanation"]["ground"]
+    assert tiled["normal"] == whole["normal"] and tiled["point"] == whole["point"]
+    assert tiled["source"] == f"whole cloud: {whole['source']}"
+    assert tiled["scope"] == "found once on the whole cloud (16,500 points), the same for every tile"
+    assert len(tiled["tiles"]) == 4
+    for ground in tiled["tiles"].values():
+        assert ground["normal"] == whole["normal"] and ground["source"] == tiled["source"]
+    r = kbs_cmd("run", "--rules", "outdoor", "-j", "1", str(path), "--tile", "6", "--buffer", "1.5",
+                "--out", str(tmp_path / "tiled2"))
+    assert f"ground: whole cloud: {whole['source']}" in r.stdout
+
+
+# -- a folder of scans on Dask ------------------------------------------------------------------------
+
+
+def _normalised_folder(folder: Path) -> dict[str, object]:
+    out: dict[str, object] = {}
+    for path in sorted(folder.iterdir()):
+        if path.suffix == ".json":
+            doc = json.loads(path.read_text())
+            assert doc.pop("run_id") and doc["summary"].pop("seconds") >= 0
+            out[path.name] = doc
+        else:
+            out[path.name] = re.sub(rb"comment kbs_run_id [0-9a-f]+\n", b"", path.read_bytes())
+    return out
+
+
+def test_a_folder_of_scans_on_a_local_dask_cluster_gives_the_outputs_of_one_process(tmp_path):
+    pytest.importorskip("distributed", reason="Dask is not installed: pip install 'kbs[dask]' (it is in [test])")
+    from kbs.io import write_ply
+
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    for seed in (3, 4, 5):
+        X, _ = ground_and_rocks(seed)
+        write_ply(scans / f"rocks{seed}.ply", X[::2], {})
+    (scans / "broken.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\nend_header\n1 2\n")
+    args = ["run", "--rules", "outdoor", str(scans)]
+    here = kbs_cmd(*args, "-j", "1", "--out", str(tmp_path / "here"))
+    dask = kbs_cmd(*args, "-j", "2", "--scheduler", "local", "--out", str(tmp_path / "dask"))
+    assert here.returncode == dask.returncode == 3, (here.stderr, dask.stderr)  # the broken scan's code
+    assert _normalised_folder(tmp_path / "dask") == _normalised_folder(tmp_path / "here")
+    assert len(_normalised_folder(tmp_path / "here")) == 6
+    assert "kbs: Dask dashboard: http" in dask.stderr
+    error = [line for line in here.stderr.splitlines() if line.startswith("kbs: error:")]
+    assert len(error) == 1 and error[0] in dask.stderr.splitlines()
+    # the same lines per scan, in scan order, then the time table
+    assert [line.split(":")[0] for line in dask.stdout.splitlines() if line.startswith(str(scans))] == \
+        [line.split(":")[0] for line in here.stdout.splitlines() if line.startswith(str(scans))]
+    assert "4 scans (1 failed)" in dask.stdout
+
+
+def test_scheduler_for_one_untiled_scan_is_a_usage_error(rocks_las, tmp_path):
+    r = kbs_cmd("run", "--rules", "outdoor", "--scheduler", "local", str(rocks_las), "--out", str(tmp_path))
+    assert r.returncode == 2
+    assert "--scheduler only applies to a tiled run: give --tile SIZE too (or several scans: a folder's scans run " \
+           "as Dask tasks)" in r.stderr

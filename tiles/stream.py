@@ -1,0 +1,272 @@
+"""Streamed tiling of a LAS/LAZ file: read in chunks, every point routed to the tiles that hold it.
+
+``kbs run --tile SIZE BIG.laz`` does not read the file into memory as one ``laspy.LasData``. It
+reads it in chunks of ``chunk_points`` (laspy's ``chunk_iterator``) twice:
+
+1. the extent of the cloud in the ground plane (the grid's corner and shape, exactly as
+   :meth:`~kbs.tiles.grid.TileGrid.fit` finds them from the whole cloud);
+2. every point's coordinates into ``xyz.npy`` (a memory-mapped file in the spill folder: pages the
+   operating system can drop, not the process's own memory) and its index into the file of every
+   tile (core or buffer) that holds it, ``<tile>.idx``.
+
+The tiles are then what :meth:`TileGrid.tiles` gives for the whole cloud, in the same order, with
+the same indices, so the tiled result is the in-memory one, byte for byte. The result is written
+in chunks too (:func:`write_las_chunked`): the input's records read again chunk by chunk, the
+result's dimensions added.
+
+What stays proportional to the cloud in the process that stitches: the per-point result arrays
+(cluster, label, membership: 12 bytes a point) and the tiles' index arrays while stitching (8
+bytes a point and buffer point). The points themselves stay in the memory-mapped file.
+"""
+from __future__ import annotations
+
+import copy
+import datetime
+import math
+import os
+import types
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kbs.errors import CloudFileError
+from kbs.tiles.grid import Tile, TileGrid, ground_axes
+
+#: Points read at a time from a LAS/LAZ file (``kbs run --chunk-points``).
+DEFAULT_CHUNK_POINTS = 1_000_000
+
+
+@dataclass
+class SpilledCloud:
+    """A LAS/LAZ file cut into tiles on disk (:func:`spill_las`).
+
+    Attributes
+    ----------
+    xyz : ndarray (n, 3) float64
+        The coordinates, memory-mapped from ``folder/xyz.npy``.
+    index : ndarray (n,) int64
+        0 .. n-1, memory-mapped (``PointCloud.index``).
+    grid : TileGrid
+    tiles : list of Tile
+        As ``grid.tiles(xyz)``.
+    header : laspy.LasHeader
+        The input's header (point format, VLRs, CRS).
+    folder : Path
+        The spill folder (removed by :meth:`remove`).
+    """
+
+    xyz: np.ndarray
+    index: np.ndarray
+    grid: TileGrid
+    tiles: list[Tile]
+    header: Any
+    folder: Path
+
+    def remove(self) -> None:
+        """Delete the spill files (and the folder if nothing else is in it)."""
+        for path in self.folder.glob("*"):
+            if path.suffix in (".idx", ".npy"):
+                path.unlink(missing_ok=True)
+        try:
+            self.folder.rmdir()
+        except OSError:
+            pass
+
+
+def _chunks(path: Path, chunk_points: int):
+    import laspy
+
+    try:
+        with laspy.open(os.fspath(path)) as reader:
+            for chunk in reader.chunk_iterator(chunk_points):
+                yield np.column_stack([np.asarray(chunk.x, dtype=np.float64), np.asarray(chunk.y, dtype=np.float64),
+                                       np.asarray(chunk.z, dtype=np.float64)])
+    except (OSError, ValueError, laspy.errors.LaspyException) as exc:
+        raise CloudFileError(str(path), f"cannot read in chunks: {exc}") from exc
+
+
+def las_header(path: Path) -> Any:
+    """The header of a LAS/LAZ file (nothing else read)."""
+    import laspy
+
+    try:
+        with laspy.open(os.fspath(path)) as reader:
+            return copy.deepcopy(reader.header)
+    except (OSError, ValueError, laspy.errors.LaspyException) as exc:
+        raise CloudFileError(str(path), f"cannot read the header: {exc}") from exc
+
+
+def spill_las(path: str | os.PathLike[str], folder: str | os.PathLike[str], size: float, buffer: float,
+              normal: Any = None, chunk_points: int = DEFAULT_CHUNK_POINTS) -> SpilledCloud:
+    """Cut the LAS/LAZ file ``path`` into tiles of ``size`` with ``buffer`` in the ground plane
+    (across ``normal``; None: x-y), reading ``chunk_points`` points at a time; the spill files go
+    to ``folder``.
+
+    Raises
+    ------
+    CloudFileError
+        The file cannot be read, or holds no point.
+    ParameterError
+        Bad size or buffer (as :meth:`TileGrid.fit`).
+    """
+    path, folder = Path(os.fspath(path)), Path(os.fspath(folder))
+    header = las_header(path)
+    n = int(header.point_count)
+    if n == 0:
+        raise CloudFileError(str(path), "holds no point")
+    axes = ground_axes(normal)
+    lo = np.full(2, np.inf)
+    hi = np.full(2, -np.inf)
+    for X in _chunks(path, chunk_points):  # 1: the extent
+        uv = X @ axes.T
+        lo = np.minimum(lo, uv.min(axis=0))
+        hi = np.maximum(hi, uv.max(axis=0))
+    grid = _grid(size, buffer, axes, lo, hi)
+    folder.mkdir(parents=True, exist_ok=True)
+    xyz = np.lib.format.open_memmap(folder / "xyz.npy", mode="w+", dtype=np.float64, shape=(n, 3))
+    index = np.lib.format.open_memmap(folder / "index.npy", mode="w+", dtype=np.int64, shape=(n,))
+    files: dict[tuple[int, int], Path] = {}
+    core_count = np.zeros(grid.shape, dtype=np.int64)
+    start = 0
+    for X in _chunks(path, chunk_points):  # 2: the points, and each to its tiles
+        m = len(X)
+        if start + m > n:
+            raise CloudFileError(str(path), f"holds more points than its header's {n:,}")
+        xyz[start:start + m] = X
+        gi = np.arange(start, start + m, dtype=np.int64)
+        index[start:start + m] = gi
+        uv = X @ grid.axes.T
+        ij = grid.cells(uv)
+        np.add.at(core_count, (ij[:, 0], ij[:, 1]), 1)
+        for (i, j), rows in _tile_rows(grid, uv).items():
+            target = files.setdefault((i, j), folder / f"t{i}_{j}.idx")
+            with open(target, "ab") as stream:
+                gi[rows].tofile(stream)
+        start += m
+    if start != n:
+        raise CloudFileError(str(path), f"holds {start:,} points, its header says {n:,}")
+    xyz.flush()
+    index.flush()
+    tiles = []
+    for i in range(grid.shape[0]):
+        for j in range(grid.shape[1]):
+            if not core_count[i, j]:
+                continue
+            idx = np.fromfile(files[(i, j)], dtype=np.int64)
+            in_core = np.all(grid.cells(xyz[idx] @ grid.axes.T) == (i, j), axis=1)
+            u0, v0 = grid.origin[0] + i * grid.size, grid.origin[1] + j * grid.size
+            tiles.append(Tile(f"t{i}_{j}", i, j, (u0, v0, u0 + grid.size, v0 + grid.size), idx, in_core))
+    return SpilledCloud(xyz=xyz, index=index, grid=grid, tiles=tiles, header=header, folder=folder)
+
+
+def _grid(size: float, buffer: float, axes: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> TileGrid:
+    """The grid :meth:`TileGrid.fit` gives for a cloud of ground extent ``lo`` .. ``hi``."""
+    TileGrid.fit(np.zeros((1, 3)), size, buffer)  # its checks of size and buffer
+    shape = tuple(max(1, math.ceil((hi[k] - lo[k]) / size)) for k in range(2))
+    return TileGrid(float(size), float(buffer), axes, (float(lo[0]), float(lo[1])), (int(shape[0]), int(shape[1])))
+
+
+def _tile_rows(grid: TileGrid, uv: np.ndarray) -> dict[tuple[int, int], np.ndarray]:
+    """For the points ``uv`` of a chunk: the rows each tile (core widened by the buffer, the grid's
+    outer edges reaching everything) holds, by the comparisons of :meth:`TileGrid.tiles`."""
+    core = grid.cells(uv)
+    reach = int(math.ceil(grid.buffer / grid.size)) + 1  # a point lies in tiles this many cells from its core at most
+    rows_all, ids_all = [], []
+    for axis_pairs in [(di, dj) for di in range(-reach, reach + 1) for dj in range(-reach, reach + 1)]:
+        keep = np.ones(len(uv), dtype=bool)
+        for axis, d in enumerate(axis_pairs):
+            c = core[:, axis] + d
+            ok = (c >= 0) & (c < grid.shape[axis])
+            c0 = np.where(ok, c, 0)
+            start = grid.origin[axis] + c0 * grid.size
+            lo = np.where(c0 == 0, -np.inf, start - grid.buffer)
+            hi = np.where(c0 == grid.shape[axis] - 1, np.inf, start + grid.size + grid.buffer)
+            keep &= ok & (uv[:, axis] >= lo) & (uv[:, axis] <= hi)
+        rows = np.flatnonzero(keep)
+        rows_all.append(rows)
+        ids_all.append((core[rows, 0] + axis_pairs[0]) * grid.shape[1] + core[rows, 1] + axis_pairs[1])
+    rows = np.concatenate(rows_all)
+    ids = np.concatenate(ids_all)
+    order = np.lexsort((rows, ids))
+    rows, ids = rows[order], ids[order]
+    cut = np.flatnonzero(np.diff(ids)) + 1
+    out = {}
+    for r, t in zip(np.split(rows, cut), ids[np.concatenate([[0], cut])] if ids.size else []):
+        out[(int(t) // grid.shape[1], int(t) % grid.shape[1])] = r
+    return out
+
+
+class ChunkedLas:
+    """A LAS/LAZ result written chunk by chunk: the input's records read again ``chunk_points`` at a
+    time, with the result's dimensions (and ASPRS classification) added, as
+    :func:`kbs.io.las.build_las` adds them to the whole input. ``write(path)`` as ``LasData``'s."""
+
+    def __init__(self, source: Path, results: Mapping[str, np.ndarray], classification: np.ndarray | None,
+                 run_id: str, chunk_points: int) -> None:
+        self.source, self.results, self.classification = source, results, classification
+        self.run_id, self.chunk_points = run_id, chunk_points
+
+    def header(self) -> Any:
+        import laspy
+
+        from kbs.io.las import KBS_DIMENSIONS, _run_id_vlr, _software, _without_run_id
+
+        header = las_header(self.source)
+        kept = set(header.point_format.extra_dimension_names)
+        self.renamed = {name: f"{name}_in"[:32] for name in KBS_DIMENSIONS if name in kept}
+        if self.renamed:  # an earlier result's field: kept as <name>_in (build_las's order: removed, added last)
+            descs = {d.name: d.description for d in header.point_format.extra_dimensions}
+            dtypes = {d.name: d.dtype for d in header.point_format.extra_dimensions}
+            for name, new in self.renamed.items():
+                header.remove_extra_dim(name)
+                header.add_extra_dim(laspy.ExtraBytesParams(new, dtypes[name], description=descs[name][:32]))
+        header.vlrs = _without_run_id(list(header.vlrs))
+        header.add_extra_dims([laspy.ExtraBytesParams(name, dtype, description=desc)
+                               for name, (dtype, desc) in KBS_DIMENSIONS.items()])
+        header.vlrs.append(_run_id_vlr(self.run_id))
+        header.generating_software = _software()
+        header.creation_date = datetime.date.today()
+        return header
+
+    def write(self, path: str) -> None:
+        import laspy
+
+        from kbs.io.las import KBS_DIMENSIONS
+
+        header = self.header()
+        start, first = 0, None
+        with laspy.open(os.fspath(self.source)) as reader, \
+                laspy.open(path, mode="w", header=header, do_compress=path.lower().endswith(".laz")) as writer:
+            for chunk in reader.chunk_iterator(self.chunk_points):
+                m = len(chunk)
+                out = laspy.ScaleAwarePointRecord.zeros(m, header=header)
+                for name in chunk.point_format.dimension_names:
+                    out[self.renamed.get(name, name)] = chunk[name]
+                for name, (dtype, _) in KBS_DIMENSIONS.items():
+                    out[name] = np.asarray(self.results[name][start:start + m]).astype(dtype)
+                if self.classification is not None:
+                    out.classification = self.classification[start:start + m]
+                writer.write_points(out)
+                first = out if first is None else first
+                start += m
+            extra = writer.header.vlrs.get("ExtraBytesVlr")
+            if extra and first is not None:
+                # the extra-bytes statistics as LasData.write leaves them for the whole record (laspy
+                # 2.x grows them from each record's first point only, so chunks would differ)
+                extra[0].partial_reset()
+                extra[0].grow(first)
+
+
+def streamed_cloud(spilled: SpilledCloud, path: Path) -> Any:
+    """A :class:`kbs.io.PointCloud` over the spilled coordinates (no copy; no per-point field), its
+    ``source`` the header alone (what the LAS checks read)."""
+    from kbs.io import PointCloud
+    from kbs.io.readers import las_crs
+
+    units, crs = las_crs(spilled.header)
+    return PointCloud(xyz=spilled.xyz, fields={}, shape=None, index=spilled.index, n_read=len(spilled.xyz),
+                      n_dropped=0, path=str(path), units=units, crs=crs,
+                      source=types.SimpleNamespace(header=spilled.header))
