@@ -210,6 +210,39 @@ class LocalGround:
         key = ij[:, 0] * (ij[:, 1].max() + 1.0) + ij[:, 1]
         return np.argsort(key, kind="stable")
 
+    def height_above_slope(self, P: np.ndarray, slope: float, radius: float, exclude: str | None = None) -> np.ndarray:
+        """Heights (q,) of points ``P`` above the lowest terrain that the surface's points within
+        ``radius`` (plane distance) allow when the terrain is no steeper than ``slope`` degrees:
+        ``h(p) - min_j (h(j) + tan(slope) d(p, j))`` (a slope-based filter: a point on terrain no
+        steeper than ``slope`` is at most 0; a roof stands its height less the slope's rise over
+        the distance to the ground beside the building). NaN where no surface point lies within
+        ``radius``; ``exclude``: a cluster whose own points do not count."""
+        P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
+        out = np.full(P.shape[0], np.nan)
+        if P.shape[0] == 0 or self.n_points == 0:
+            return out
+        own = -1
+        if exclude is not None and self.owners is not None and exclude in self.owner_ids:
+            own = self.owner_ids.index(exclude)
+        G = P - self.point
+        Q, hp = G @ self.basis.T, G @ self.normal
+        rise = float(np.tan(np.radians(slope)))
+        found = self.tree.query_ball_point(Q, r=radius)  # type: ignore[attr-defined]
+        sizes = np.fromiter((len(f) for f in found), dtype=np.int64, count=len(found))
+        if not sizes.sum():
+            return out
+        j = np.concatenate([np.asarray(f, dtype=np.int64) for f in found])
+        k = np.repeat(np.arange(P.shape[0]), sizes)
+        if own >= 0:
+            keep = self.owners[j] != own
+            j, k = j[keep], k[keep]
+        d = np.sqrt(((self.tree.data[j] - Q[k]) ** 2).sum(axis=1))  # type: ignore[attr-defined]
+        lowest = np.full(P.shape[0], np.inf)
+        np.minimum.at(lowest, k, self.heights[j] + rise * d)
+        reached = np.isfinite(lowest)
+        out[reached] = hp[reached] - lowest[reached]
+        return out
+
     #: the block grid of :meth:`height_bounds` is skipped when it would have more cells than this
     #: many per surface point (an extent absurd for the radius)
     BOUND_CELLS_PER_POINT = 4

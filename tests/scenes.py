@@ -111,3 +111,37 @@ def rz(degrees: float) -> np.ndarray:
     """The rotation matrix of a turn by ``degrees`` about the z axis."""
     t = np.radians(degrees)
     return np.array([[np.cos(t), -np.sin(t), 0.0], [np.sin(t), np.cos(t), 0.0], [0.0, 0.0, 1.0]])
+
+
+
+def ground_and_parked_cars(seed: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """Flat ground (20 m x 20 m) and a row of parked cars seen from a vehicle 5 m away: three cars
+    bumper to bumper (12.6 m x 1.8 m) whose roofs, 1.45 m up, make one level sheet as thin as the
+    road, and their near sides (sparse: the beams graze them). The sensor is 1.73 m above the
+    ground. Labels: 0 ground, 1 the roofs, 2 the sides."""
+    rng = np.random.default_rng(seed)
+    g = _ground(rng, 20000, 10.0, 0.005)
+    g = g[~((np.abs(g[:, 0]) < 6.3) & (np.abs(g[:, 1] - 6.0) < 0.9))]  # under the cars: hidden
+    roof = np.column_stack([rng.uniform(-6.3, 6.3, 4000), rng.uniform(5.1, 6.9, 4000), rng.normal(1.45, 0.005, 4000)])
+    side = np.column_stack([rng.uniform(-6.3, 6.3, 300), np.full(300, 5.1) + rng.normal(0, 0.005, 300),
+                            rng.uniform(0.15, 1.45, 300)])
+    X = np.vstack([g, roof, side]) - [0.0, 0.0, 1.73]
+    return X, np.concatenate([np.zeros(len(g), int), np.ones(len(roof), int), np.full(len(side), 2)])
+
+
+def airborne_large_building(seed: int = 7) -> tuple[np.ndarray, np.ndarray]:
+    """An airborne scan (z up, about 1 point per square metre, absolute-looking coordinates) of
+    gently sloping ground, 160 m x 160 m rising 5 m across, and a large flat-roofed building,
+    70 m x 50 m, its roof 18-19.2 m above the ground (six storeys) in sections of three levels, with a few
+    points on its walls. Labels: 0 bare earth, 1 the building."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-80, 80, (25600, 2))
+    inside = (np.abs(xy[:, 0]) < 35) & (np.abs(xy[:, 1]) < 25)
+    z = 0.03125 * xy[:, 0] + rng.normal(0, 0.05, len(xy))
+    # the roof in 5 x 5 sections (14 m x 10 m) at 18, 18.6 or 19.2 m: parapets, skylights, levels
+    section = (np.floor((xy[inside, 0] + 35) / 14) * 5 + np.floor((xy[inside, 1] + 25) / 10)).astype(int)
+    z[inside] += 18.0 + rng.choice([0.0, 0.6, 1.2], 25)[section]
+    wall = np.column_stack([rng.uniform(-35, 35, 200), np.full(200, -25.0), rng.uniform(0.5, 17.5, 200)])
+    wall[:, 2] += 0.03125 * wall[:, 0]
+    X = np.vstack([np.column_stack([xy, z]), wall]) + [512000.0, 5400000.0, 250.0]
+    return X, np.r_[inside.astype(int), np.ones(len(wall), int)]
