@@ -372,7 +372,7 @@ def partition_series_figure(X: np.ndarray, panels: list[PartitionPanel], *, max_
         ax.scatter(Xd[order, 0], Xd[order, 1], c=_rgb(hard[order]), s=point_size, linewidths=0, rasterized=True)
         for j in range(len(p.centers)):
             bad = p.failing is not None and bool(p.failing[j])
-            col = (0.85, 0.1, 0.1) if bad else tuple(_rgb(np.array([j]))[0] * 0.55)
+            col = (1.0, 0.0, 0.0) if bad else tuple(_rgb(np.array([j]))[0] * 0.55)
             half = 2.0 * np.sqrt(np.maximum(p.eigenvalues[j], 0.0))
             for e in _box_edges(p.centers[j], p.eigenvectors[j], half):
                 ax.plot(e[:, 0], e[:, 1], color=col, linewidth=1.3 if bad else 0.9, linestyle="--" if bad else "-")
