@@ -400,40 +400,37 @@ def _fill_polygons(ax, polygons, colors, alpha: float = 0.45, edge: str = "k") -
 def cah_figure(X: np.ndarray, normal: np.ndarray, center: np.ndarray, *, plane: str, alpha_factor: float = 3.0,
                opening_factor: float = 1.0, min_fraction: float = 0.05, max_points: int = 30000,
                title: str = "") -> Any:
-    """A cluster's connexity (CAh) view: its points ``X`` (n, 3) projected on the plane through
-    ``center`` with ``normal`` (``plane`` names it: 'the ground plane', 'its best approximating
-    plane'); their alpha-shape (the union of the Delaunay triangles of circumradius <= alpha, alpha
-    = ``alpha_factor`` times the median spacing of the projected points); and its alpha-opening
-    (erosion then dilation by a disc of radius ``opening_factor`` alpha), the components coloured,
-    the significant ones (at least ``min_fraction`` of the points) named. The computations are
-    kbs.knowledge.connexity's (the ``alpha_opening`` method of the connexity predicate)."""
-    from kbs.knowledge.connexity import alpha_opening, alpha_shape, connexity, project_on_plane
+    """A cluster's connexity (CAh) view (:func:`kbs.report.cah.cah_view`): its points ``X`` (n, 3)
+    (stride-decimated to ``max_points``) projected on the plane through ``center`` with ``normal``
+    (``plane`` names it: 'the ground plane', 'its best approximating plane'); their alpha-shape
+    (the union of the Delaunay triangles of circumradius <= alpha, alpha = ``alpha_factor`` times
+    the median spacing of the projected points); and its alpha-opening (erosion then dilation by a
+    disc of radius ``opening_factor`` alpha), the components coloured, the significant ones (at
+    least ``min_fraction`` of the points) numbered, what the opening removed in grey."""
+    from kbs.report.cah import cah_view
 
     X = np.asarray(X, dtype=np.float64)[decimate(len(X), max_points)]
-    conn = connexity(X, center, normal, method="alpha_opening", alpha_factor=alpha_factor,
-                     opening_factor=opening_factor, min_fraction=min_fraction)
-    P = project_on_plane(X, center, normal)
-    U = np.unique(P, axis=0)
-    shape = alpha_shape(U, conn.alpha)
-    parts = sorted(alpha_opening(shape, conn.opening_radius or 0.0), key=lambda g: -g.area)
+    v = cah_view(X, normal, center, alpha_factor=alpha_factor, opening_factor=opening_factor,
+                 min_fraction=min_fraction)
+    P = v.points
     fig = _figure(13.5, 4.6)
     axes = [fig.add_subplot(1, 3, i + 1) for i in range(3)]
     ps = max(0.3, min(4.0, 3000.0 / max(len(P), 1)))
     axes[0].scatter(P[:, 0], P[:, 1], s=ps, c="0.25", linewidths=0, rasterized=True)
     axes[0].set_title(f"{len(X):,} points projected on {plane}", fontsize=9)
-    shapes = [g for g in getattr(shape, "geoms", [shape]) if not g.is_empty]
-    _fill_polygons(axes[1], shapes, ["#6baed6"] * len(shapes))
+    _fill_polygons(axes[1], v.shape, ["#6baed6"] * len(v.shape))
     axes[1].scatter(P[:, 0], P[:, 1], s=ps * 0.5, c="0.35", linewidths=0, rasterized=True)
-    axes[1].set_title(f"alpha-shape, alpha = {conn.alpha:.3g} ({alpha_factor:g} x spacing {conn.spacing:.3g}): "
-                      f"{len(shapes)} piece{'s' if len(shapes) != 1 else ''}", fontsize=9)
-    if shapes:
-        _fill_polygons(axes[2], shapes, ["#dddddd"] * len(shapes), alpha=0.6, edge="0.7")
-    _fill_polygons(axes[2], parts, [tuple(c) for c in _rgb(np.arange(len(parts)))], alpha=0.65)
-    for i, g in enumerate(parts[:conn.n_significant]):
+    axes[1].set_title(f"alpha-shape, alpha = {v.alpha:.3g} ({alpha_factor:g} x spacing {v.spacing:.3g}): "
+                      f"{len(v.shape)} piece{'s' if len(v.shape) != 1 else ''}", fontsize=9)
+    if v.shape:
+        _fill_polygons(axes[2], v.shape, ["#dddddd"] * len(v.shape), alpha=0.6, edge="0.7")
+    _fill_polygons(axes[2], v.opening, [tuple(c) for c in _rgb(np.arange(len(v.opening)))], alpha=0.65)
+    for i, g in enumerate(v.opening[:v.n_significant]):
         c = g.representative_point()
         axes[2].text(c.x, c.y, str(i), fontsize=9, ha="center", va="center", weight="bold")
-    axes[2].set_title(f"alpha-opening, disc radius {conn.opening_radius or 0:.3g}: {len(parts)} component"
-                      f"{'s' if len(parts) != 1 else ''}, {conn.n_significant} significant", fontsize=9)
+    n = len(v.opening)
+    axes[2].set_title(f"alpha-opening, disc radius {v.radius:.3g}: {n} component{'s' if n != 1 else ''}, "
+                      f"{v.n_significant} significant", fontsize=9)
     lo, hi = P.min(axis=0), P.max(axis=0)
     pad = 0.04 * float((hi - lo).max() or 1.0)
     for ax in axes:
