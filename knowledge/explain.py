@@ -642,9 +642,10 @@ class Explanation:
         return out
 
     def ground_line(self) -> str:
-        """The ground plane in one line: where it came from and how it was found, e.g. 'cluster c0,
-        its robust plane (77 % of its 44,197 points within 0.1), normal [-0.019, 0.038, 0.999],
-        2.4 deg from the fallback normal'."""
+        """The ground plane in one line: where it came from, how it was found and how far from the
+        sensor (the nearest point of its plane: the nearest candidate wins), e.g. 'cluster c0, its
+        robust plane (77 % of its 44,197 points within 0.1), 4.09 m from the sensor, normal
+        [-0.019, 0.038, 0.999], 2.4 deg from the fallback normal'."""
         g = self.ground
         if not g or "source" not in g:
             return "not used"
@@ -654,6 +655,9 @@ class Explanation:
             parts.append(f"its robust plane ({g['inlier_share']:.0%} of its points, {g['inliers']:,}, on it)")
         elif method:
             parts.append(f"it passes {method.removeprefix('check ')}")
+        if g.get("distance_to_sensor") is not None:  # the nearest point of its plane: why this cluster won
+            unit = f" {g['unit']}" if g.get("unit") else ""
+            parts.append(f"{g['distance_to_sensor']:.2f}{unit} from the sensor")
         if g.get("normal") is not None:
             parts.append("normal [" + ", ".join(f"{x:.3f}".replace("-0.000", "0.000") for x in g["normal"]) + "]")
         if g.get("angle_to_fallback") is not None:

@@ -157,3 +157,26 @@ def test_a_failing_cluster_under_min_points_does_not_make_k_grow():
         if not grows:
             assert sweep[-1]["kept"] and kinds == {"min_points"}
             assert all(r.limit["kind"] == "min_points" for r in seg.explanation.records.values() if r.action == "limit")
+
+
+# -- the ground direction: which cluster, at what distance (issue 13, last item) ---------------------
+
+
+@pytest.mark.parametrize("plane_spec", [True, False])
+def test_kbs_run_and_explain_say_which_cluster_gave_the_ground_and_how_far(tmp_path, plane_spec):
+    """With a robust-plane spec or a candidate check alone, the ground line names the cluster and
+    the distance of its plane's nearest point from the sensor, in the rule base's unit."""
+    text = kbs("rules", "show", "outdoor").stdout
+    if not plane_spec:
+        text = re.sub(r"\n    plane: .*?\n    min_points", "\n    min_points", text, flags=re.S)
+        assert "inlier_distance" not in text
+    rules = tmp_path / "o.yaml"
+    rules.write_text(text)
+    r = kbs("run", "--rules", str(rules), str(ROOT / "examples" / "data" / "outdoor.ply"), "--out", str(tmp_path))
+    assert r.returncode == 0, r.stderr
+    g = json.loads((tmp_path / "outdoor.json").read_text())["explanation"]["ground"]
+    assert g["cluster"] == "c0" and g["unit"] == "m" and 1.0 < g["distance_to_sensor"] < 5.0
+    said = f"ground: cluster c0, it passes 'planar', {g['distance_to_sensor']:.2f} m from the sensor, normal ["
+    assert f"  {said}" in r.stdout
+    e = kbs("explain", str(tmp_path / "outdoor.json"))
+    assert e.returncode == 0 and e.stdout.splitlines()[1].startswith(said), e.stdout[:400]
