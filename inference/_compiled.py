@@ -509,6 +509,7 @@ def gg_run(XT, w, R, u0, m, power, tol, max_iter, min_variance, max_condition, m
 _EMPTY = np.int64(-1)  # keys are non-negative
 _START_SIZE = 1024
 _START_SHIFT = 64 - 10  # 64 - log2(_START_SIZE); one less each time the table doubles
+_PRESIZE = 1 << 17  # a table starts large enough for this many distinct keys (4 MB), then grows
 
 
 @njit(nogil=True)
@@ -556,9 +557,13 @@ def _first_appearance(keys, want_inverse):
     """The distinct keys (non-negative int64) in order of first appearance, by a hash table, and
     (when ``want_inverse``, else an empty array) each key's group: its distinct key's position."""
     n = keys.shape[0]
-    table = np.full(_START_SIZE, _EMPTY)
-    group = np.empty(_START_SIZE, dtype=np.int64)
+    size = _START_SIZE
     shift = _START_SHIFT
+    while size < 2 * min(n, _PRESIZE):  # most keys are distinct in the fine grids: few regrowths
+        size *= 2
+        shift -= 1
+    table = np.full(size, _EMPTY)
+    group = np.empty(size, dtype=np.int64)
     first_keys = np.empty(n, dtype=np.int64)
     inv = np.empty(n if want_inverse else 0, dtype=np.int64)
     m = 0
@@ -642,13 +647,18 @@ def voxel_sums(X, origin, size, inv, w, M):
 
 
 @njit(cache=True, nogil=True)
-def count_coarse_cells(cells, factor):
+def count_coarse_cells(cells, factor, expect):
     """Number of distinct rows of ``floor(cells / factor)`` (cells (n, D <= 3) non-negative
-    int64), the 20-bit-per-axis keys of :mod:`kbs.inference.voxel`."""
+    int64), the 20-bit-per-axis keys of :mod:`kbs.inference.voxel`. ``expect``: about how many
+    there will be (the table starts at least twice that, so it rarely grows)."""
     n, D = cells.shape
-    table = np.full(_START_SIZE, _EMPTY)
-    group = np.empty(_START_SIZE, dtype=np.int64)
+    size = _START_SIZE
     shift = _START_SHIFT
+    while size < 2 * expect:
+        size *= 2
+        shift -= 1
+    table = np.full(size, _EMPTY)
+    group = np.empty(size, dtype=np.int64)
     m = 0
     for j in range(n):
         key = np.int64(0)
@@ -952,3 +962,29 @@ def connexity_components(U, kept, r, dilate, max_cells):
             n_comp += 1
         comp[i] = label[ri]
     return out, comp, n_comp
+
+
+# -- robust planes ----------------------------------------------------------------------------
+
+
+@njit(cache=True, nogil=True)
+def plane_inlier_counts(S, a, nrm, dist):
+    """For each hypothesis ``h`` (a plane through ``a[h]`` with unit normal ``nrm[h]``), the
+    number of points of ``S`` (n, 3) with ``|(s - a[h]) . nrm[h]| <= dist``: the operations of
+    ``np.einsum("kij,kj->ki", S - a, nrm)`` in the same order (no fused multiply-add), without
+    its (k, n, 3) temporary."""
+    k = a.shape[0]
+    n = S.shape[0]
+    counts = np.zeros(k, dtype=np.int64)
+    for h in range(k):
+        a0, a1, a2 = a[h, 0], a[h, 1], a[h, 2]
+        n0, n1, n2 = nrm[h, 0], nrm[h, 1], nrm[h, 2]
+        c = 0
+        for j in range(n):
+            v = (S[j, 0] - a0) * n0
+            v = v + (S[j, 1] - a1) * n1
+            v = v + (S[j, 2] - a2) * n2
+            if abs(v) <= dist:
+                c += 1
+        counts[h] = c
+    return counts

@@ -58,6 +58,8 @@ class LocalGround:
     tree: object  # scipy.spatial.cKDTree over the ground points' plane coordinates
     owners: np.ndarray | None = None
     owner_ids: tuple[str, ...] = ()
+    #: threads of the k-d tree queries (scipy's ``workers``): the answers do not depend on it
+    workers: int = 1
 
     #: how many more neighbours are fetched when a cluster's own points are left out
     EXCLUDE_FACTOR = 8
@@ -68,9 +70,10 @@ class LocalGround:
     @classmethod
     def build(cls, X: np.ndarray, index: np.ndarray, normal: np.ndarray, point: np.ndarray, *,
               neighbours: int = 8, radius: float = 3.0, owners: np.ndarray | None = None,
-              owner_ids: tuple[str, ...] = ()) -> LocalGround:
+              owner_ids: tuple[str, ...] = (), workers: int = 1) -> LocalGround:
         """A model from the points ``X[index]`` (the scene ``X`` (n, 3)) over the plane (normal,
-        point); ``owners``/``owner_ids`` say which cluster each point came from."""
+        point); ``owners``/``owner_ids`` say which cluster each point came from; ``workers``
+        threads answer large queries (the same answers)."""
         from scipy.spatial import cKDTree
 
         normal = np.asarray(normal, dtype=np.float64)
@@ -80,7 +83,8 @@ class LocalGround:
         return cls(normal=normal, point=point, index=np.asarray(index), heights=G @ normal,
                    neighbours=int(neighbours), radius=float(radius), basis=basis,
                    tree=cKDTree(G @ basis.T, balanced_tree=False, compact_nodes=False),
-                   owners=None if owners is None else np.asarray(owners), owner_ids=tuple(owner_ids))
+                   owners=None if owners is None else np.asarray(owners), owner_ids=tuple(owner_ids),
+                   workers=max(1, int(workers)))
 
     @property
     def n_points(self) -> int:
@@ -113,7 +117,8 @@ class LocalGround:
         step = max(1, self.QUERY_BUDGET // k)
         for s in range(0, q, step):
             sel = order[s:s + step]
-            d, i = self.tree.query(Q[sel], k=k, distance_upper_bound=self.radius)
+            d, i = self.tree.query(Q[sel], k=k, distance_upper_bound=self.radius,
+                                   workers=self.workers if sel.size >= 4096 else 1)
             ground[sel], nearest[sel] = self._medians(d.reshape(sel.size, k), i.reshape(sel.size, k), own)
         return ground, nearest
 

@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kbs.inference import _compiled, _flags
+
 #: Probability that RANSAC misses a plane holding the required share of the points.
 MISS_PROBABILITY = 1e-9
 #: Points the hypotheses are scored on (all of them when fewer).
@@ -67,6 +69,16 @@ def hypotheses_needed(min_share: float) -> int:
     return int(min(2000, max(20, math.ceil(math.log(MISS_PROBABILITY) / math.log1p(-w3)))))
 
 
+def _inlier_counts(S: np.ndarray, a: np.ndarray, nrm: np.ndarray, inlier_distance: float) -> np.ndarray:
+    """Points of ``S`` (n, 3) within ``inlier_distance`` of each hypothesis plane (through ``a``
+    (k, 3), unit normals ``nrm`` (k, 3)): compiled, one pass per hypothesis without a (k, n, 3)
+    temporary, the same counts as the numpy expression."""
+    if _flags.JIT:
+        return _compiled.plane_inlier_counts(np.ascontiguousarray(S), np.ascontiguousarray(a),
+                                             np.ascontiguousarray(nrm), float(inlier_distance))
+    return (np.abs(np.einsum("kij,kj->ki", S[None, :, :] - a[:, None, :], nrm)) <= inlier_distance).sum(axis=1)
+
+
 def _principal_plane(Q: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     c = Q.mean(axis=0)
     w, v = np.linalg.eigh(np.cov((Q - c).T))
@@ -110,7 +122,7 @@ def robust_plane(X: np.ndarray, inlier_distance: float, min_share: float, *,
     if not ok.any():
         return None
     nrm, a = nrm[ok] / length[ok, None], a[ok]
-    counts = (np.abs(np.einsum("kij,kj->ki", S[None, :, :] - a[:, None, :], nrm)) <= inlier_distance).sum(axis=1)
+    counts = _inlier_counts(S, a, nrm, inlier_distance)
     best = int(np.argmax(counts))  # the first of equals: deterministic
     normal, point = nrm[best], a[best]
     inl = np.abs((P - point) @ normal) <= inlier_distance

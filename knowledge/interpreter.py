@@ -777,7 +777,7 @@ class Interpreter:
         owner = np.concatenate([np.full(leaves[i][0].idx.size, i) for i in mine]) if mine else np.zeros(0, dtype=np.int64)
         model = LocalGround.build(X, index, scene.ground.normal, scene.ground.point, neighbours=spec.neighbours,
                                   radius=spec.radius, owners=np.searchsorted(mine, owner) if mine else owner,
-                                  owner_ids=tuple(leaves[i][2].id for i in mine))
+                                  owner_ids=tuple(leaves[i][2].id for i in mine), workers=self.jobs)
         return model, owner
 
     def _post_ground(self, X, leaves, scene: Scene, ground_info: dict):
@@ -920,7 +920,7 @@ class Interpreter:
             n_move, size = int(move.sum()), node.idx.size
             if not n_move:
                 continue
-            _, j = tree.query(X[node.idx[move]])
+            _, j = tree.query(X[node.idx[move]], workers=self.jobs if n_move >= 4096 else 1)
             dest = self._give(node, move, t_owner[j], moved_in)
             rec.released = n_move
             total += n_move

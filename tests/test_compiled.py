@@ -241,3 +241,23 @@ def test_connexity_grid_refuses_an_absurd_extent():
     U = np.array([[0.0, 0.0], [1e6, 0.0], [0.0, 1e6]])
     assert C.connexity_degrees(U, np.ones(3, dtype=np.int64), 1.0, 4096.0).size == 0
     assert C.connexity_components(U, np.ones(3, dtype=bool), 1.0, False, 4096.0)[2] == -1
+
+
+def test_compiled_plane_inlier_counts_are_the_numpy_counts():
+    """The RANSAC scoring of the ground-plane search: the compiled counts equal numpy's einsum
+    counts exactly, on points whose distances to the hypotheses straddle the threshold."""
+    from kbs.knowledge.groundplane import _inlier_counts
+
+    rng = np.random.default_rng(3)
+    S = rng.normal(size=(3000, 3)) * [20.0, 20.0, 0.05] + [5.0, -3.0, -1.7]
+    tri = np.array([rng.choice(S.shape[0], 3, replace=False) for _ in range(200)])
+    a = S[tri[:, 0]]
+    nrm = np.cross(S[tri[:, 1]] - a, S[tri[:, 2]] - a)
+    nrm /= np.linalg.norm(nrm, axis=1)[:, None]
+    ref = (np.abs(np.einsum("kij,kj->ki", S[None, :, :] - a[:, None, :], nrm)) <= 0.1).sum(axis=1)
+    got = C.plane_inlier_counts(S, a, nrm, 0.1)
+    assert ref.min() < got.max() and np.array_equal(got, ref)
+    # exactly on the threshold: a point at distance 0.1 along an axis-aligned normal counts
+    P = np.array([[0.0, 0.0, 0.1], [0.0, 0.0, -0.1], [0.0, 0.0, 0.1000001]])
+    assert C.plane_inlier_counts(P, np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), 0.1).tolist() == [2]
+    assert np.array_equal(_inlier_counts(S, a, nrm, 0.1), ref)

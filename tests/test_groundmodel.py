@@ -164,6 +164,13 @@ def test_queries_in_chunks_give_the_answers_of_one_query(monkeypatch, jit, exclu
     np.testing.assert_array_equal(g1, g0)
     np.testing.assert_array_equal(n1, n0)
     assert np.isfinite(g1).mean() > (0.99 if exclude is None else 0.8)  # c2's interior: its own points only
+    # two query threads (kbs run -j 2 gives the surface its jobs): the same answers
+    threaded = LocalGround.build(X, np.arange(0, 9000, 2), np.array([0.0, 0.0, 1.0]), np.zeros(3), neighbours=8,
+                                 radius=2.5, owners=owners[::2], owner_ids=("c0", "c1", "c2", "c3"), workers=2)
+    monkeypatch.setattr(LocalGround, "QUERY_BUDGET", 1 << 20)
+    g2, n2 = threaded.query(P, exclude)
+    np.testing.assert_array_equal(g1, g2)
+    np.testing.assert_array_equal(n1, n2)
 
 
 def test_post_steps_parse_with_defaults():
