@@ -26,7 +26,7 @@ def _outputs(result: Path, out: Path | None, kind: str, cluster: str | None = No
     if kind == "all" and cluster is not None:
         kinds = (*kinds, "cah")
     base = (out.with_suffix("") if out is not None else result.with_suffix(""))
-    return {k: base.with_name(f"{base.name}-{k}{'-' + cluster if k == 'cah' else ''}.png") for k in kinds}
+    return {k: base.with_name(f"{base.name}-{k}{'-' + str(cluster) if k == 'cah' else ''}.png") for k in kinds}
 
 
 @click.command()
@@ -68,7 +68,7 @@ def render(result: Path, out: Path | None, kind: str, cluster_id: str | None, ma
         raise click.BadParameter(f"no label {ground_label!r} in this result (labels: {', '.join(res.label_names) or 'none'}): "
                                  "the map draws that label against the others", param_hint="--ground-label")
     stem = result.stem
-    cah = _cah_points(res, cluster_id, result) if "cah" in outputs else None
+    cah = _cah_points(res, cluster_id, result) if "cah" in outputs and cluster_id is not None else None
     for k, path in outputs.items():
         t = time.perf_counter()
         if k == "series":

@@ -24,6 +24,7 @@ kept: ``grow`` returns None and the sweep stays at K (the caller may try another
 from __future__ import annotations
 
 import time
+from typing import Any
 
 import numpy as np
 
@@ -70,7 +71,7 @@ class IncrementalSweep:
             raise FitError(f"the cloud's total weight {total:g} is below the minimum cluster size {self.min_mass:g}")
         self.m, self.fcm_tol, self.fcm_max_iter, self.max_iter, self.tol = m, fcm_tol, fcm_max_iter, max_iter, tol
         self.chunk_size = chunk_size
-        self._gg_kw = dict(m=m, center_power=m if center_power is None else float(center_power), tol=tol,
+        self._gg_kw: dict[str, Any] = dict(m=m, center_power=m if center_power is None else float(center_power), tol=tol,
                            max_iter=max_iter, min_variance=min_variance, max_condition=max_condition,
                            min_mass=self.min_mass)
         self.notes: list[str] = []
