@@ -655,9 +655,9 @@ class Explanation:
             parts.append(f"its robust plane ({g['inlier_share']:.0%} of its points, {g['inliers']:,}, on it)")
         elif method:
             parts.append(f"it passes {method.removeprefix('check ')}")
-        if g.get("distance_to_sensor") is not None:  # the nearest point of its plane: why this cluster won
+        if g.get("distance") is not None:  # of the nearest point of its plane: why this cluster won
             unit = f" {g['unit']}" if g.get("unit") else ""
-            parts.append(f"{g['distance_to_sensor']:.2f}{unit} from the sensor")
+            parts.append(f"{g['distance']:.2f}{unit} from the sensor")
         if g.get("normal") is not None:
             parts.append("normal [" + ", ".join(f"{x:.3f}".replace("-0.000", "0.000") for x in g["normal"]) + "]")
         if g.get("angle_to_fallback") is not None:

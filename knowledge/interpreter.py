@@ -335,7 +335,7 @@ class Interpreter:
         dist, cl, n, point, tilt, found = best
         info.update(source=f"cluster {cl.id}", cluster=cl.id, normal=n.tolist(), point=point.tolist(),
                     distance_to_sensor=dist, thickness=found.get("plane_thickness", found["thickness"]),
-                    unit=self.rb.length_unit, method=found["method"])
+                    distance=dist, unit=self.rb.length_unit, method=found["method"])
         if spec.plane is not None:
             info.update(method=found["method"], angle_to_fallback=round(tilt, 3), candidates=verdicts,
                         unit=self.rb.length_unit)
