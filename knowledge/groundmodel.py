@@ -12,6 +12,7 @@ global plane, the ground-contact step leaves such points alone).
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,6 +27,45 @@ def plane_basis(normal: np.ndarray) -> np.ndarray:
     e1 = np.cross(n, a)
     e1 /= np.linalg.norm(e1)
     return np.stack([e1, np.cross(n, e1)])
+
+
+def _slide(A: np.ndarray, reach: int, op) -> np.ndarray:
+    """``op`` (minimum, maximum or add) of ``A`` (2D) over the (2 reach + 1)^2 block around each
+    cell, one axis after the other (cells beyond the edges do not count)."""
+    out = A
+    for axis in (0, 1):
+        src_all, res = out, out.copy()
+        n = out.shape[axis]
+        for d in range(1, reach + 1):
+            for lo_src, lo_dst in ((d, 0), (0, d)):  # the cell d after, then the cell d before
+                src = [slice(None)] * 2
+                dst = [slice(None)] * 2
+                src[axis] = slice(lo_src, n - lo_dst)
+                dst[axis] = slice(lo_dst, n - lo_src)
+                op(res[tuple(dst)], src_all[tuple(src)], out=res[tuple(dst)])
+        out = res
+    return out
+
+
+@dataclass(frozen=True)
+class _BlockGrid:
+    """Square cells of ``side`` over the plane from ``origin``: ``blocks`` = (lowest height,
+    highest height, surface points of the 3 x 3 block) per cell, arrays of ``shape``."""
+
+    origin: np.ndarray
+    side: float
+    shape: tuple[int, int]
+    blocks: tuple[np.ndarray, np.ndarray, np.ndarray]
+
+    def cells_of(self, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(rows of ``Q`` (q, 2) inside the grid, their cell rows, their cell columns)."""
+        with np.errstate(invalid="ignore"):
+            ij = np.floor((Q - self.origin) / self.side)
+        inside = np.isfinite(ij).all(axis=1) & (ij >= 0).all(axis=1) & (ij[:, 0] < self.shape[0]) & \
+            (ij[:, 1] < self.shape[1])
+        k = np.flatnonzero(inside)
+        c = ij[k].astype(np.int64)
+        return k, c[:, 0], c[:, 1]
 
 
 @dataclass(frozen=True)
@@ -169,6 +209,77 @@ class LocalGround:
             return None
         key = ij[:, 0] * (ij[:, 1].max() + 1.0) + ij[:, 1]
         return np.argsort(key, kind="stable")
+
+    #: the block grid of :meth:`height_bounds` is skipped when it would have more cells than this
+    #: many per surface point (an extent absurd for the radius)
+    BOUND_CELLS_PER_POINT = 4
+
+    def height_bounds(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """For points ``P`` (q, 3): bounds ``(lo, hi)`` of the local ground height :meth:`query`
+        can give under each, without a k-d tree query. Two grids of square cells in the plane:
+
+        - cells of side just above ``radius``: the 3 x 3 block around a point's cell holds every
+          surface point within ``radius`` of it, so the lowest and highest of them bound any
+          median of the heights found; where that block is empty, ``lo`` is +inf and ``hi`` -inf
+          (the query finds nothing there);
+        - cells of side ``radius / 6``: where the 3 x 3 block around a point's cell holds at least
+          ``neighbours`` surface points, its nearest ``neighbours`` are within ``2 sqrt(2)`` cells,
+          inside the 7 x 7 block, whose lowest and highest points bound their median more tightly.
+
+        Exact in floating point: a median of heights between ``lo`` and ``hi`` is between them, so
+        ``fl(h_p - hi) <= fl(h_p - ground) <= fl(h_p - lo)``: a caller may skip the query of a
+        point whose bounds already decide its outcome. None when the coarse grid would be absurdly
+        large for the surface (the fine grid is then skipped alone)."""
+        P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
+        if self.n_points == 0 or not self.radius > 0.0:
+            return None
+        coarse, fine = self._bound_grids
+        if coarse is None:
+            return None
+        q = P.shape[0]
+        lo, hi = np.full(q, np.inf), np.full(q, -np.inf)
+        for s in range(0, q, 1 << 16):  # plane coordinates as query() computes them
+            Q = (P[s:s + (1 << 16)] - self.point) @ self.basis.T
+            at, (lo_b, hi_b, _) = coarse.cells_of(Q), coarse.blocks
+            lo[s + at[0]], hi[s + at[0]] = lo_b[at[1], at[2]], hi_b[at[1], at[2]]
+            if fine is not None:
+                at, (lo_b, hi_b, n3) = fine.cells_of(Q), fine.blocks
+                ok = n3[at[1], at[2]] >= min(self.neighbours, self.n_points)
+                j, a, b = at[0][ok], at[1][ok], at[2][ok]
+                lo[s + j] = np.maximum(lo[s + j], lo_b[a, b])
+                hi[s + j] = np.minimum(hi[s + j], hi_b[a, b])
+        return lo, hi
+
+    @functools.cached_property
+    def _bound_grids(self) -> tuple[_BlockGrid | None, _BlockGrid | None]:
+        """The two grids of :meth:`height_bounds` (built once per surface: the post steps ask twice)."""
+        coarse = self._block_grid(self.radius * 1.001, reach=1)
+        return coarse, None if coarse is None else self._block_grid(self.radius / 6.0, reach=3)
+
+    def _block_grid(self, side: float, reach: int) -> _BlockGrid | None:
+        """The surface on cells of ``side``: per cell, the lowest and highest height over the
+        (2 reach + 1)^2 block around it and the number of surface points of the 3 x 3 block; None
+        when there would be more than :attr:`BOUND_CELLS_PER_POINT` cells per surface point."""
+        T = self.tree.data  # the surface points' plane coordinates, as the tree holds them
+        pad = reach + 1  # empty rings of cells around the surface
+        origin = T.min(axis=0) - pad * side
+        shape = np.floor((T.max(axis=0) - origin) / side).astype(np.int64) + pad + 1
+        if not side > 0.0 or float(shape[0]) * float(shape[1]) > self.BOUND_CELLS_PER_POINT * T.shape[0] + 4096:
+            return None
+        ij = np.floor((T - origin) / side).astype(np.int64)
+        cell = ij[:, 0] * shape[1] + ij[:, 1]
+        size = int(shape[0] * shape[1])
+        lo_c, hi_c = np.full(size, np.inf), np.full(size, -np.inf)
+        order = np.argsort(cell, kind="stable")  # per occupied cell: a run of the sorted cells
+        cs, hs = cell[order], self.heights[order]
+        starts = np.flatnonzero(np.r_[True, cs[1:] != cs[:-1]])
+        lo_c[cs[starts]] = np.minimum.reduceat(hs, starts)
+        hi_c[cs[starts]] = np.maximum.reduceat(hs, starts)
+        n_c = np.bincount(cell, minlength=size).astype(np.float64)
+        shape2 = (int(shape[0]), int(shape[1]))
+        blocks = (_slide(lo_c.reshape(shape2), reach, np.minimum), _slide(hi_c.reshape(shape2), reach, np.maximum),
+                  _slide(n_c.reshape(shape2), 1, np.add))
+        return _BlockGrid(origin, side, shape2, blocks)
 
     def height(self, P: np.ndarray, exclude: str | None = None) -> np.ndarray:
         """Heights (q,) of points ``P`` above the local ground surface (NaN where it is unknown);

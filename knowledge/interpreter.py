@@ -193,7 +193,7 @@ class Interpreter:
 
     def _ufp_kwargs(self, stop: str, min_k: int = 1) -> dict[str, Any]:
         e = self.rb.engine
-        return {"k_max": e["k_max"], "m": e["m"], "tol": e["tol"], "max_iter": e["max_iter"],
+        return {"k_max": e["k_max"], "m": e["m"], "tol": e["tol"], "fcm_tol": e["fcm_tol"], "max_iter": e["max_iter"],
                 "min_variance": e["min_variance"], "max_condition": e["max_condition"],
                 "new_prototype": e["new_prototype"], "stop": stop, "min_k": min_k, "max_fit_points": e["max_fit_points"]}
 
@@ -851,10 +851,15 @@ class Interpreter:
     SURFACE_BATCH = 1 << 18
 
     @classmethod
-    def _surface_batches(cls, X, todo, model):
+    def _surface_batches(cls, X, todo, model, may_matter=None):
         """For each leaf of ``todo`` in order: (heights above the local surface, positions of the
         nearest surface points) of its points, asked for batches of leaves of about
-        ``SURFACE_BATCH`` points together (few small queries, bounded temporaries)."""
+        ``SURFACE_BATCH`` points together (few small queries, bounded temporaries).
+
+        ``may_matter(hp, lo, hi)``: which points the caller needs, from their heights above the
+        ground plane and the bounds of the surface under them (:meth:`LocalGround.height_bounds`);
+        the others are not asked for and come back as NaN (height) and -1 (nearest). The caller
+        promises that their outcome is the same either way (the bounds decide it)."""
         batch: list = []
         size = 0
         for i, lf in enumerate(todo):
@@ -863,8 +868,17 @@ class Interpreter:
             if size < cls.SURFACE_BATCH and i + 1 < len(todo):
                 continue
             P = X[np.concatenate([b[0].idx for b in batch])]
-            ground, nearest = model.query(P)
-            h = (P - model.point) @ model.normal - ground
+            hp = (P - model.point) @ model.normal
+            bounds = model.height_bounds(P) if may_matter is not None else None
+            if bounds is None:
+                ground, nearest = model.query(P)
+                h = hp - ground
+            else:
+                ask = np.flatnonzero(may_matter(hp, *bounds))
+                h = np.full(P.shape[0], np.nan)
+                nearest = np.full(P.shape[0], -1, dtype=np.int64)
+                ground, nearest[ask] = model.query(P[ask])
+                h[ask] = hp[ask] - ground
             stop = 0
             for b in batch:
                 start, stop = stop, stop + b[0].idx.size
@@ -882,7 +896,11 @@ class Interpreter:
                 and (spec.condition is None or spec.condition.evaluate(self._facts(lf[1], scene, lf[2])))]
         # queries for batches of clusters (the surface does not change while points move: they
         # are received after the loop)
-        for (node, _cl, rec), (h, nearest) in zip(todo, self._surface_batches(X, todo, model)):
+        tol = spec.tolerance
+        # a point whose surface bounds put it farther than the tolerance from any height the
+        # surface can have under it does not move: it is not asked for
+        near = lambda hp, lo, hi: (hp - hi <= tol) & (hp - lo >= -tol)  # noqa: E731
+        for (node, _cl, rec), (h, nearest) in zip(todo, self._surface_batches(X, todo, model, near)):
             move = np.abs(np.nan_to_num(h, nan=np.inf)) <= spec.tolerance
             n_move, size = int(move.sum()), node.idx.size
             if not n_move:
@@ -915,7 +933,9 @@ class Interpreter:
         total = 0
         todo = [lf for lf in leaves if lf[2].label == gl and lf[0].idx.size]
         # queries for batches of clusters (points move only after the loop)
-        for (node, _cl, rec), (h, _) in zip(todo, self._surface_batches(X, todo, model)):
+        tol = spec.tolerance
+        above = lambda hp, lo, hi: hp - lo > tol  # noqa: E731 (no surface height under it is low enough: stays)
+        for (node, _cl, rec), (h, _) in zip(todo, self._surface_batches(X, todo, model, above)):
             move = np.nan_to_num(h, nan=-np.inf) > spec.tolerance
             n_move, size = int(move.sum()), node.idx.size
             if not n_move:

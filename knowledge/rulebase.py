@@ -39,7 +39,7 @@ ACTIONS = ("split", "split_components", "reject")
 
 ENGINE_DEFAULTS: dict[str, Any] = {
     "m": 2.0, "k_max": 10, "initial_k": "first_apd_max", "max_fit_points": 6000, "min_variance": 1e-6,
-    "max_condition": 1e4, "tol": 1e-3, "max_iter": 100, "new_prototype": "distance", "split_min_k": 1,
+    "max_condition": 1e4, "tol": 1e-3, "fcm_tol": 1e-3, "max_iter": 100, "new_prototype": "distance", "split_min_k": 1,
 }
 #: Limits are per cluster. max_clusters (None: absent) is an optional cap on the whole split tree,
 #: which makes a point's result depend on the rest of the file; no shipped rule base sets it.

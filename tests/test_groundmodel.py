@@ -88,6 +88,37 @@ def test_a_cluster_can_be_compared_with_the_ground_around_it():
     assert np.allclose(model.height(ground[:50], exclude="nobody"), model.height(ground[:50]))
 
 
+def test_max_points_bounds_the_points_a_cluster_asks_the_surface_for(monkeypatch):
+    """height_above_local_ground's max_points: a large roof asks the surface for that many of its
+    points, evenly spread, and measures about the same height as with all of them; 0 asks for all."""
+    from kbs.knowledge import Cluster, Scene
+    from kbs.knowledge.groundmodel import LocalGround as LG
+    from kbs.knowledge.predicates import Ground, height_above_local_ground
+
+    rng = np.random.default_rng(5)
+    ground = np.column_stack([rng.uniform(0, 30, (6000, 2)), rng.normal(0, 0.02, 6000)])
+    ground = ground[~((np.abs(ground[:, 0] - 15) < 4) & (np.abs(ground[:, 1] - 15) < 4))]
+    roof = np.column_stack([rng.uniform(11, 19, (5000, 2)), 3 + rng.normal(0, 0.02, 5000)])
+    X = np.vstack([ground, roof])
+    owners = np.r_[np.zeros(len(ground), int), np.ones(len(roof), int)]
+    model = LG.build(X, np.arange(len(X)), np.array([0, 0, 1.0]), np.zeros(3), neighbours=8, radius=5.0,
+                     owners=owners, owner_ids=("c0", "c1"))
+    scene = Scene(np.zeros(3), Ground(np.array([0, 0, 1.0]), np.zeros(3), "fixed"), "m", ground_model=model)
+    asked = []
+    real = LG.height
+    monkeypatch.setattr(LG, "height", lambda self, P, exclude=None: asked.append(len(P)) or real(self, P, exclude))
+    cl = Cluster("c1", roof, np.ones(len(roof)))
+    full = height_above_local_ground.func(cl, scene, stat="median", exclude_self=True)
+    some = height_above_local_ground.func(cl, scene, stat="median", exclude_self=True, max_points=500)
+    assert asked == [5000, 500]
+    assert full == pytest.approx(3.0, abs=0.1) and some == pytest.approx(full, abs=0.05)
+    assert height_above_local_ground.func(cl, scene, stat="median", exclude_self=True, max_points=0) == full
+    _parse(post=POST_OK)  # the base is valid; a negative bound is not
+    with pytest.raises(RuleFileError, match="max_points"):
+        parse_rule_base(BASE.format(rule_if="not planar", label_if="planar", post=POST_OK).replace(
+            "max: 0.2}", "max: 0.2, params: {max_points: -1}}"), "t.yaml", PredicateRegistry.default(entry_points_too=False))
+
+
 # --- rule files ------------------------------------------------------------------------------------
 
 BASE = textwrap.dedent("""\
@@ -409,3 +440,69 @@ def test_ground_release_moves_raised_ground_points_to_the_nearest_obstacle(share
     assert f1(seg.label) > f1(seg_off.label)
     for c in seg.clusters:
         assert c["n_points"] == (seg.cluster == c["index"]).sum()
+
+
+def test_height_bounds_hold_every_answer_of_the_query():
+    """LocalGround.height_bounds: the surface height a query gives under a point lies within the
+    bounds of its cell block; where no surface point lies within the radius, both say so."""
+    rng = np.random.default_rng(8)
+    X = np.column_stack([rng.uniform(0, 60, 8000), rng.uniform(0, 60, 8000), rng.normal(0, 0.3, 8000)])
+    X[:, 2] += 0.05 * X[:, 0]  # a slope: the bounds must follow it
+    model = LocalGround.build(X, np.arange(0, 8000, 2), np.array([0.0, 0.0, 1.0]), np.zeros(3), neighbours=16,
+                              radius=3.0)
+    P = np.vstack([X[1::2], [[200.0, 200.0, 0.0], [-3.5, 30.0, 0.0], [63.2, 10.0, 1.0]]])  # far, near the edges
+    lo, hi = model.height_bounds(P)
+    ground, _ = model.query(P)
+    known = ~np.isnan(ground)
+    assert known.sum() > 3900 and np.all(lo[known] <= ground[known]) and np.all(ground[known] <= hi[known])
+    assert lo[-3] == np.inf and hi[-3] == -np.inf and np.isnan(ground[-3])
+    assert (hi - lo)[known].max() < 0.05 * 12 + 3.0  # a block, not the whole surface
+    # a dense surface: the fine cells (radius / 6) hold the neighbours, and bound more tightly
+    D = np.column_stack([rng.uniform(0, 20, 20000), rng.uniform(0, 20, 20000), rng.normal(0, 0.05, 20000)])
+    D[:, 2] += 0.2 * D[:, 0]
+    dense = LocalGround.build(D, np.arange(0, 20000, 2), np.array([0.0, 0.0, 1.0]), np.zeros(3), neighbours=16,
+                              radius=3.0)
+    lo, hi = dense.height_bounds(D[1::2])
+    ground, _ = dense.query(D[1::2])
+    assert np.all(lo <= ground) and np.all(ground <= hi)
+    assert np.median(hi - lo) < 1.2  # a 7 x 7 block of 0.5 m cells (3.5 m of slope: 0.7 m), not 9 m (1.8 m)
+    # an extent absurd for the radius: no grid, the callers ask the surface for every point
+    far = LocalGround.build(np.array([[0.0, 0, 0], [1e7, 0, 0], [0, 1e7, 0]]), np.arange(3), np.array([0.0, 0, 1]),
+                            np.zeros(3), radius=1.0)
+    assert far.height_bounds(P) is None
+
+
+@pytest.mark.parametrize("reach", [1, 3])
+def test_block_reductions_are_those_of_every_block(reach):
+    """The separable block minimum, maximum and sum of the bounds' grids equal a direct loop over
+    each cell's (2 reach + 1)^2 block (cells beyond the edges left out)."""
+    from kbs.knowledge.groundmodel import _slide
+
+    rng = np.random.default_rng(reach)
+    A = rng.normal(size=(9, 13))
+    A[rng.random(A.shape) < 0.3] = np.inf
+    for op, red in ((np.minimum, np.min), (np.maximum, np.max), (np.add, np.sum)):
+        B = np.where(np.isinf(A), 0.0, A) if op is np.add else A
+        want = np.array([[red(B[max(i - reach, 0):i + reach + 1, max(j - reach, 0):j + reach + 1])
+                          for j in range(A.shape[1])] for i in range(A.shape[0])])
+        np.testing.assert_allclose(_slide(B, reach, op), want)
+
+
+def test_post_steps_ask_only_for_the_points_the_bounds_leave_open(monkeypatch, shared_data):
+    """ground_contact and ground_release skip the surface query of points whose bounds decide
+    their outcome: the result is the same as asking for every point (SemanticKITTI, outdoor)."""
+    X = np.load(shared_data / "semantickitti" / "000001.points.npy")[:, :3].astype(np.float64)
+    rb = load_rule_base("outdoor")
+    asked = []
+    real = LocalGround.query
+    monkeypatch.setattr(LocalGround, "query", lambda self, P, exclude=None: asked.append(len(P)) or real(self, P, exclude))
+    fast = Interpreter(rb).run(X)
+    n_fast = sum(asked)
+    asked.clear()
+    monkeypatch.setattr(LocalGround, "height_bounds", lambda self, P: None)
+    full = Interpreter(rb).run(X)
+    assert n_fast < 0.9 * sum(asked)
+    np.testing.assert_array_equal(fast.cluster, full.cluster)
+    np.testing.assert_array_equal(fast.label, full.label)
+    assert sum(r.contact for r in full.explanation.records.values()) > 0
+    assert [r.released for r in fast.explanation.records.values()] == [r.released for r in full.explanation.records.values()]

@@ -525,3 +525,25 @@ def test_parallel_splits_on_semantickitti_stop_at_the_same_limits(shared_data):
 def test_jobs_must_be_a_count(jobs):
     with pytest.raises(ValueError, match="jobs must be"):
         Interpreter(load_rule_base("outdoor"), jobs=jobs)
+
+
+def test_fcm_tol_is_an_engine_setting_the_splits_use(monkeypatch):
+    """engine.fcm_tol (fuzzy c-means' stopping threshold, the start of each K's Gath-Geva fit)
+    is validated with its position and reaches every UFP-ONC call of a run."""
+    import kbs.knowledge.interpreter as interp_mod
+
+    assert _rb(MINIMAL).engine["fcm_tol"] == 1e-3
+    with pytest.raises(RuleFileError) as info:
+        _rb(MINIMAL + "engine:\n  fcm_tol: 0\n")
+    assert "t.yaml:12:12:" in str(info.value) and "fcm_tol" in str(info.value)
+    seen = []
+    real = interp_mod.ufp_onc
+
+    def spy(X, **kw):
+        seen.append(kw["fcm_tol"])
+        return real(X, **kw)
+
+    monkeypatch.setattr(interp_mod, "ufp_onc", spy)
+    X, _ = ground_and_rocks(seed=0)
+    Interpreter(_rb(MINIMAL + "engine:\n  fcm_tol: 0.02\n")).run(X)
+    assert len(seen) > 1 and set(seen) == {0.02}
