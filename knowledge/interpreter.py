@@ -608,7 +608,8 @@ class Interpreter:
         for a small thick cluster must not kill the small planar clusters beside it (on the
         generated polyhedral scenes, the engine's 0.1 % stopped the sweep before every face was found)."""
         e = self.rb.engine
-        return IncrementalSweep(X, m=e["m"], tol=e["tol"], max_iter=e["max_iter"], min_variance=e["min_variance"],
+        return IncrementalSweep(X, m=e["m"], tol=e["tol"], fcm_tol=e["fcm_tol"], max_iter=e["max_iter"],
+                                min_variance=e["min_variance"],
                                 max_condition=e["max_condition"], max_fit_points=e["max_fit_points"],
                                 min_cluster_size=min(float(self.rb.limits["min_points"]), max(4.0, 1e-3 * len(X))))
 

@@ -180,3 +180,22 @@ def test_kbs_run_and_explain_say_which_cluster_gave_the_ground_and_how_far(tmp_p
     assert f"  {said}" in r.stdout
     e = kbs("explain", str(tmp_path / "outdoor.json"))
     assert e.returncode == 0 and e.stdout.splitlines()[1].startswith(said), e.stdout[:400]
+
+
+def test_the_engine_settings_reach_the_global_sweep(monkeypatch):
+    """engine.fcm_tol (and the others) reach the global strategy's sweep as they reach UFP-ONC."""
+    import kbs.knowledge.interpreter as interp_mod
+
+    seen = []
+    real = interp_mod.IncrementalSweep
+
+    def spy(X, **kw):
+        seen.append(kw)
+        return real(X, **kw)
+
+    monkeypatch.setattr(interp_mod, "IncrementalSweep", spy)
+    text = load_rule_base("planar_global").text.replace("max_fit_points: 6000", "max_fit_points: 3000\n  fcm_tol: 0.02")
+    X, _ = _l_shape(500)
+    Interpreter(parse_rule_base(text, "g.yaml", PredicateRegistry.default())).run(X)
+    (kw,) = seen
+    assert kw["fcm_tol"] == 0.02 and kw["max_fit_points"] == 3000 and kw["m"] == 2.0
