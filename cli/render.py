@@ -10,18 +10,23 @@ from kbs.errors import CloudFileError, require
 from kbs.io.atomic import replacing
 from kbs.io.result import InputFiles, check_output
 
-KINDS = ("series", "map", "clusters")
+KINDS = ("series", "map", "clusters", "cah")
+#: What ``--kind all`` draws (``cah`` too when ``--cluster`` is given).
+ALL = ("series", "map", "clusters")
 
 
-def _outputs(result: Path, out: Path | None, kind: str) -> dict[str, Path]:
+def _outputs(result: Path, out: Path | None, kind: str, cluster: str | None = None) -> dict[str, Path]:
     """kind -> PNG path. One kind: ``--out`` as given (default ``<stem>-<kind>.png`` next to the
-    result). ``all``: three files, ``<out stem>-series.png``, ``-map.png``, ``-clusters.png``
-    (default ``<result stem>-...`` next to the result)."""
-    kinds = KINDS if kind == "all" else (kind,)
+    result, ``<stem>-cah-<ID>.png`` for the CAh view). ``all``: three files, ``<out stem>-series.png``,
+    ``-map.png``, ``-clusters.png`` (default ``<result stem>-...`` next to the result), and
+    ``-cah-<ID>.png`` with ``--cluster``."""
+    kinds = ALL if kind == "all" else (kind,)
     if out is not None and kind != "all":  # no suffix: a PNG, as matplotlib's savefig names it
         return {kind: out if out.suffix else out.with_name(out.name + ".png")}
+    if kind == "all" and cluster is not None:
+        kinds = (*kinds, "cah")
     base = (out.with_suffix("") if out is not None else result.with_suffix(""))
-    return {k: base.with_name(f"{base.name}-{k}.png") for k in kinds}
+    return {k: base.with_name(f"{base.name}-{k}{'-' + str(cluster) if k == 'cah' else ''}.png") for k in kinds}
 
 
 @click.command()
@@ -30,22 +35,31 @@ def _outputs(result: Path, out: Path | None, kind: str) -> dict[str, Path]:
               help="PNG to write (default: <stem>-<kind>.png next to RESULT). With --kind all, three "
                    "files: <out stem>-series.png, -map.png, -clusters.png.")
 @click.option("--kind", type=click.Choice([*KINDS, "all"]), default="all", show_default=True,
-              help="series: UFP-ONC partitions for K = 2,4,5,6,8,10 (seed paper's figure 2); map: top-down "
-                   "obstacle map; clusters: points, fuzzy centres and covariance boxes.")
+              help="series: the K-partitions with each cluster's eigen-box (seed paper's figure 2): those the "
+                   "global strategy judged, or for the divisive strategy UFP-ONC's sweep re-run for K = 2,4,5,6,8,10; "
+                   "map: top-down obstacle map; clusters: points, fuzzy centres and covariance boxes; cah: one "
+                   "cluster's projection on the ground plane, its alpha-shape and alpha-opening (figures 5-7; "
+                   "needs --cluster).")
+@click.option("--cluster", "cluster_id", metavar="ID", default=None,
+              help="The cluster of --kind cah: a record of the explanation (e.g. c1.0, as kbs explain names them; "
+                   "a cluster that was split shows all its points) or an output cluster's number.")
 @click.option("--max-points", type=click.IntRange(100, None), default=30000, show_default=True,
               help="Points drawn (and clustered for the series), a deterministic stride sample.")
 @click.option("--dpi", type=click.IntRange(30, 600), default=100, show_default=True)
 @click.option("--ground-label", default="ground", show_default=True, metavar="NAME",
               help="The map's ground: cells whose points all have this label (from RESULT's label_names).")
-def render(result: Path, out: Path | None, kind: str, max_points: int, dpi: int, ground_label: str) -> None:
+def render(result: Path, out: Path | None, kind: str, cluster_id: str | None, max_points: int, dpi: int,
+           ground_label: str) -> None:
     """Draw figures of a `kbs run` RESULT.json (its points are read from the sibling RESULT.ply;
     the two must be the same run's)."""
+    if kind == "cah" and cluster_id is None:
+        raise click.UsageError("--kind cah draws one cluster: give it with --cluster ID (kbs explain RESULT lists them)")
     matplotlib = require("matplotlib", "render", "kbs render")
     matplotlib.use("Agg")  # headless whatever MPLBACKEND says
     from kbs.report import figures
 
     t0 = time.perf_counter()
-    outputs = _outputs(result, out, kind)
+    outputs = _outputs(result, out, kind, cluster_id)
     sources = InputFiles((result, result.with_suffix(".ply")))
     for path in outputs.values():  # a figure never replaces the result it is drawn from
         check_output(path, inputs=sources, force=True)
@@ -55,11 +69,16 @@ def render(result: Path, out: Path | None, kind: str, max_points: int, dpi: int,
                                  "the map draws that label against the others", param_hint="--ground-label")
     stem = result.stem
     view = _view(res, outputs)
+    cah = _cah_points(res, cluster_id, result) if "cah" in outputs and cluster_id is not None else None
     for k, path in outputs.items():
         t = time.perf_counter()
         if k == "series":
-            fig = figures.series_figure(res.X, max_points=max_points, title=f"{stem}: UFP-ONC partitions, top view",
-                                        view=view)
+            fig = _series(res, stem, max_points, view)
+        elif k == "cah":
+            assert cah is not None
+            sel, normal, center, plane, what = cah
+            fig = figures.cah_figure(res.X[sel], normal, center, plane=plane, max_points=max_points,
+                                     title=f"{stem}: {what}, CAh view")
         elif k == "map":
             fig = figures.obstacle_map_figure(res.X, res.label, res.label_names, sensor=res.sensor,
                                               ground_label=ground_label, title=f"{stem}: obstacle map", view=view)
@@ -87,3 +106,75 @@ def _view(res, outputs: dict[str, Path]):
                 f"{k}: up vertical" if k == "clusters" else f"{k}: the plane perpendicular to up" for k in outputs]
         click.echo(f"view: {view.describe()}; {', '.join(what)}", err=True)
     return view
+
+
+def _series(res, stem: str, max_points: int, view):
+    """The K-partition series: the global strategy's visited partitions from the explanation, or
+    (divisive) UFP-ONC re-run on the points; drawn on the plane perpendicular to ``view``'s up
+    (points, centres and eigen-axes turned so that up is the third axis when it is not z)."""
+    import dataclasses
+
+    from kbs.report import figures
+
+    turn = None if (view.level and view.up[2] > 0) else view.rotation
+    X = res.X if turn is None else res.X @ turn.T
+    sweep = (res.doc.get("explanation") or {}).get("sweep") or []
+    if sweep:
+        panels = figures.panels_from_sweep(sweep)
+        if turn is not None:
+            panels = [dataclasses.replace(p, centers=p.centers @ turn.T, eigenvectors=turn @ p.eigenvectors)
+                      for p in panels]
+        shown = "" if len(panels) == len(sweep) else f" ({len(panels)} of {len(sweep)} shown)"
+        note = ("points coloured by the most likely cluster of each K (its centre and covariance); red dashed "
+                "boxes: clusters a rule wanted split")
+        return figures.partition_series_figure(X, panels, max_points=max_points, note=note,
+                                               title=f"{stem}: the global strategy's K-partitions{shown}, top view")
+    Xd = X[figures.decimate(len(X), max_points)]
+    panels, ufp = figures.panels_from_ufp_onc(Xd)
+    note = "" if panels and panels[-1].k == max(figures.SERIES_K) else \
+        f"the sweep stopped at K = {ufp.partitions[-1].k} ({ufp.stop_reason})"
+    return figures.partition_series_figure(Xd, panels, max_points=max_points, note=note,
+                                           title=f"{stem}: UFP-ONC's initial sweep re-run on {len(Xd):,} points, "
+                                                 "with eigen-boxes, top view")
+
+
+def _cah_points(res, cluster_id: str, result: Path):
+    """(point indices, normal, centre, plane name, what) of ``--cluster``: a record of the
+    explanation (the points of the output clusters of the leaves below it) or an output cluster's
+    number; the plane is the run's ground plane when it has one, else the cluster's best
+    approximating plane."""
+    import numpy as np
+
+    from kbs.knowledge.predicates import did_you_mean
+
+    records = {r["id"]: r for r in (res.doc.get("explanation") or {}).get("clusters", [])}
+    n_out = len(res.doc["clusters"])
+    if cluster_id in records:
+        below, stack = [], [cluster_id]
+        while stack:
+            r = records[stack.pop()]
+            stack.extend(r.get("children") or [])
+            if not r.get("children") and r.get("output_index") is not None:
+                below.append(int(r["output_index"]))
+        what = f"cluster {cluster_id}"
+        if not below:
+            raise click.BadParameter(f"cluster {cluster_id!r} of {result} has no points in an output cluster "
+                                     f"(action {records[cluster_id].get('action')}: rejected as noise)",
+                                     param_hint="--cluster")
+    elif cluster_id.isdigit() and int(cluster_id) < n_out:
+        below, what = [int(cluster_id)], f"output cluster {cluster_id}"
+    else:
+        hint = did_you_mean(cluster_id, list(records))
+        raise click.BadParameter(f"no cluster {cluster_id!r} in {result} (a record id such as c0.1, or an output "
+                                 f"cluster 0 .. {n_out - 1})" + (f"; did you mean {hint!r}?" if hint else ""),
+                                 param_hint="--cluster")
+    sel = np.flatnonzero(np.isin(res.cluster, below))
+    if sel.size < 3:
+        raise click.BadParameter(f"{what} of {result} has {sel.size} points: too few to project", param_hint="--cluster")
+    P = res.X[sel]
+    center = P.mean(axis=0)
+    ground = (res.doc.get("explanation") or {}).get("ground") or {}
+    if ground.get("normal") is not None:
+        return sel, np.asarray(ground["normal"], float), center, "the ground plane", what
+    _, v = np.linalg.eigh(np.cov(P.T))
+    return sel, v[:, 0], center, "its best approximating plane (no ground plane in this run)", what

@@ -729,6 +729,10 @@ def explain(result: Path, cluster_id: str | None, depth: int | str | None) -> No
             click.echo(expl.ground_text())
         for line in expl.summary():
             click.echo(line)
+        if expl.sweep:
+            click.echo("global strategy, the K-partitions of the scene judged in turn:")
+            for line in expl.sweep_lines():
+                click.echo(f"  {line}")
         lines = expl.tree_lines(depth=levels)
     else:
         click.echo(expl.why(cluster_id))

@@ -29,7 +29,7 @@ if TYPE_CHECKING:
 
 #: The ``format`` of an explanation's dictionary form, and the version this kbs writes.
 EXPLANATION_FORMAT = "kbs-explanation"
-EXPLANATION_VERSION = Version(1, 1)
+EXPLANATION_VERSION = Version(1, 2)
 
 
 def _known(cls: type, d: Mapping[str, Any]) -> dict[str, Any]:
@@ -307,6 +307,13 @@ class Explanation:
     notes: list[str] = field(default_factory=list)
     #: the rule base's checks, rules and labels (None: an explanation read from a version 1.0 file)
     catalogue: Catalogue | None = None
+    #: strategy global: every K-partition of the scene judged, in order (version 1.2): ``k``,
+    #: ``apd``, ``seeded_in`` (the cluster of the K-1 partition the new prototype was seeded in),
+    #: ``next`` (that of the next K), ``kept``, and ``clusters``: each with ``id``, ``points``,
+    #: ``center``, ``eigenvalues``, ``eigenvectors`` (columns), ``action``, ``rule``,
+    #: ``rule_source``, ``decisive`` (the checks of the rule's condition: check, predicate, value,
+    #: unit, min, max, passed, source) and ``limit``
+    sweep: list[dict[str, Any]] = field(default_factory=list)
 
     # -- access ----------------------------------------------------------------------------
 
@@ -336,6 +343,8 @@ class Explanation:
         if self.catalogue is not None:
             d["catalogue"] = self.catalogue.to_dict()
         d["clusters"] = [_record_dict(r) for r in self.walk()]
+        if self.sweep:
+            d["sweep"] = self.sweep
         return d
 
     @classmethod
@@ -361,7 +370,8 @@ class Explanation:
         cat = d.get("catalogue")
         return cls(rule_base=d["rule_base"], rule_file=d["rule_file"], strategy=d["strategy"],
                    label_names=list(d["label_names"]), records=records, root=d["root"], ground=d.get("ground", {}),
-                   notes=list(d.get("notes", [])), catalogue=None if cat is None else Catalogue.from_dict(cat))
+                   notes=list(d.get("notes", [])), catalogue=None if cat is None else Catalogue.from_dict(cat),
+                   sweep=list(d.get("sweep", [])))
 
     def to_networkx(self):
         """A ``networkx.DiGraph`` parent -> child with each record's fields as node attributes."""
@@ -443,6 +453,11 @@ class Explanation:
         head = f"{rec.id} ({rec.n_points:,} pts)"
         if rec.action == "partition":
             k = len(rec.children)
+            if self.sweep:
+                first = self.sweep[0]["k"]
+                how = (f" by the global strategy: K = {first} (APD's first local maximum) to K = {self.sweep[-1]['k']}, "
+                       f"{len(self.sweep)} partition{'s' if len(self.sweep) != 1 else ''} judged, K = {k} kept")
+                return f"{head} partitioned in {k}{how}" + (f" (APD: {rec.apd.text()})" if rec.apd else "")
             chosen = f" (APD first local maximum: {rec.apd.text()})" if rec.apd else ""
             return f"{head} partitioned in {k}{chosen}"
         if rec.action in ("split", "split_components"):
@@ -597,10 +612,40 @@ class Explanation:
                 out.append(f"  {c.name:<{w}}  {c.bounds_text()} [{c.source}]" + (f": {c.doc}" if c.doc else ""))
         return out
 
+    def sweep_lines(self) -> list[str]:
+        """The global strategy's K steps, one line each: the K, which rule wanted which clusters
+        split and why (the checks of its condition), where the next K's prototype was seeded; the
+        K kept marked. Empty for the divisive strategy."""
+        out = []
+        for st in self.sweep:
+            n = len(st["clusters"])
+            head = f"K={st['k']}{' (kept)' if st.get('kept') else ''}: {n} cluster{'s' if n != 1 else ''}"
+            if st.get("seeded_in"):
+                head += f", its new prototype seeded in {st['seeded_in']} of K={st['k'] - 1}"
+            wanted = [c for c in st["clusters"] if c["action"] in ("split", "split_components")
+                      or (c["action"] == "limit" and c.get("rule"))]
+            rejected = [c for c in st["clusters"] if c["action"] == "reject"]
+            if not wanted:
+                head += "; no rule wants a cluster split" + (f" ({len(rejected)} rejected as noise)" if rejected else "")
+                out.append(head)
+                continue
+            by_rule: dict[str, list[str]] = {}
+            for c in wanted:
+                why = ", ".join(_step_check_text(d) for d in c.get("decisive", []))
+                rule = f"{c['rule']} [{c['rule_source']}]" if c.get("rule_source") else str(c.get("rule"))
+                kept = " (kept: min_points)" if (c.get("limit") or {}).get("kind") == "min_points" else ""
+                by_rule.setdefault(rule, []).append(f"{c['id']} ({c['points']:,} pts{': ' + why if why else ''}){kept}")
+            head += "; " + "; ".join(f"{rule} fails on {len(ids)}: {', '.join(ids)}" for rule, ids in by_rule.items())
+            if st.get("next"):
+                head += f"; next K seeded in {st['next']}"
+            out.append(head)
+        return out
+
     def ground_line(self) -> str:
-        """The ground plane in one line: where it came from and how it was found, e.g. 'cluster c0,
-        its robust plane (77 % of its 44,197 points within 0.1), normal [-0.019, 0.038, 0.999],
-        2.4 deg from the fallback normal'."""
+        """The ground plane in one line: where it came from, how it was found and how far from the
+        sensor (the nearest point of its plane: the nearest candidate wins), e.g. 'cluster c0, its
+        robust plane (77 % of its 44,197 points within 0.1), 4.09 m from the sensor, normal
+        [-0.019, 0.038, 0.999], 2.4 deg from the fallback normal'."""
         g = self.ground
         if not g or "source" not in g:
             return "not used"
@@ -610,6 +655,9 @@ class Explanation:
             parts.append(f"its robust plane ({g['inlier_share']:.0%} of its points, {g['inliers']:,}, on it)")
         elif method:
             parts.append(f"it passes {method.removeprefix('check ')}")
+        if g.get("distance") is not None:  # of the nearest point of its plane: why this cluster won
+            unit = f" {g['unit']}" if g.get("unit") else ""
+            parts.append(f"{g['distance']:.2f}{unit} from the sensor")
         if g.get("normal") is not None:
             parts.append("normal [" + ", ".join(f"{x:.3f}".replace("-0.000", "0.000") for x in g["normal"]) + "]")
         if g.get("angle_to_fallback") is not None:
@@ -741,6 +789,13 @@ def _stop_text(rec: ClusterRecord) -> str:
     if lim.get("setting"):
         return f"limit reached: {lim['setting']} = {lim['value']}"
     return _NOT_SPLIT_TEXT.get(lim.get("kind", ""), str(lim.get("kind")))
+
+
+def _step_check_text(d: Mapping[str, Any]) -> str:
+    """A check of a global-strategy step (:attr:`Explanation.sweep`) in words: 'not planar
+    (thickness = 0.08 m > 0.01 m)'."""
+    c = CheckRecord(**_known(CheckRecord, {"note": "", **d}))
+    return f"{'' if c.passed else 'not '}{c.check} ({c.sentence()})"
 
 
 def _is_leaf(rec: ClusterRecord) -> bool:

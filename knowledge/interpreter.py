@@ -30,7 +30,8 @@ from typing import Any, Self
 import numpy as np
 
 from kbs.errors import FitError, KbsError
-from kbs.inference import UFPONCResult, ufp_onc
+from kbs.inference import UFPONCResult, first_local_max, ufp_onc
+from kbs.inference.incremental import IncrementalSweep
 from kbs.knowledge.connexity import Connexity, assign_to_nearest, project_on_plane
 from kbs.knowledge.explain import NO_LABEL, APDCurve, Catalogue, CheckRecord, ClusterRecord, Explanation
 from kbs.knowledge.groundplane import robust_plane
@@ -343,7 +344,8 @@ class Interpreter:
             return self._plane_from_normal(X, np.asarray(spec.fallback, float), "fallback", info)
         dist, cl, n, point, tilt, found = best
         info.update(source=f"cluster {cl.id}", cluster=cl.id, normal=n.tolist(), point=point.tolist(),
-                    distance_to_sensor=dist, thickness=found.get("plane_thickness", found["thickness"]))
+                    distance_to_sensor=dist, thickness=found.get("plane_thickness", found["thickness"]),
+                    distance=dist, unit=self.rb.length_unit, method=found["method"])
         if spec.plane is not None:
             info.update(method=found["method"], angle_to_fallback=round(tilt, 3), candidates=verdicts,
                         unit=self.rb.length_unit)
@@ -452,8 +454,11 @@ class Interpreter:
         global_mode = self.rb.strategy == "global"
         ground_info: dict[str, Any] = {}
         try:
-            fixed_k = isinstance(self.rb.engine["initial_k"], int)
-            res = self._ufp_onc(X, "k_max" if global_mode or fixed_k else "first_max")
+            if global_mode:
+                sweep = self._sweep(X)
+            else:
+                fixed_k = isinstance(self.rb.engine["initial_k"], int)
+                res = self._ufp_onc(X, "k_max" if fixed_k else "first_max")
         except FitError as exc:  # too few or degenerate points: the scene is one cluster
             root_rec.notes.append(f"the scene was not partitioned: {exc}")
             child = _Node("c0", "c", 1, root.idx, root.weight, root.path)
@@ -464,15 +469,17 @@ class Interpreter:
             self._judge_leaf(child, c_cl, c_rec, scene)
             leaves = [] if c_rec.action == "reject" else [(child, c_cl, c_rec)]
             return self._finish(X, leaves, scene, records, ground_info, [], t0)
-        notes: list[str] = list(res.notes)
+        if global_mode:
+            notes: list[str] = []
+            steps: list[dict[str, Any]] = []
+            leaves, scene = self._run_global(X, root, sweep, records, ground_info, notes, steps)
+            return self._finish(X, leaves, scene, records, ground_info, notes, t0, sweep=steps)
+        notes = list(res.notes)
         k0 = self._initial_k(res, notes)
         root_rec.apd = self._apd(res, k0)
-        if global_mode:
-            leaves, scene = self._run_global(X, root, res, k0, records, ground_info, notes)
-        else:
-            children = self._initial_children(X, root, res, k0)
-            del res, root  # the (n, K) memberships and the root's arrays: the children hold copies of their part
-            leaves, scene = self._run_divisive(X, children, records, ground_info, notes)
+        children = self._initial_children(X, root, res, k0)
+        del res, root  # the (n, K) memberships and the root's arrays: the children hold copies of their part
+        leaves, scene = self._run_divisive(X, children, records, ground_info, notes)
         seg = self._finish(X, leaves, scene, records, ground_info, notes, t0)
         return seg
 
@@ -623,50 +630,137 @@ class Interpreter:
                                   np.ones(sel.size), node.path[sel]))
         return kids
 
-    def _run_global(self, X, root, res, k0, records, ground_info, notes):
+    # -- the global strategy (the seed paper's) ----------------------------------------------------
+
+    def _sweep(self, X: np.ndarray) -> IncrementalSweep:
+        """The whole scene's incremental sweep, at K = 1. A cluster dies under the engine's own
+        minimum size (0.1 % of the points) or limits.min_points, whichever is smaller: a K + 1 sought
+        for a small thick cluster must not kill the small planar clusters beside it (on the
+        generated polyhedral scenes, the engine's 0.1 % stopped the sweep before every face was found)."""
+        e = self.rb.engine
+        return IncrementalSweep(X, m=e["m"], tol=e["tol"], fcm_tol=e["fcm_tol"], max_iter=e["max_iter"],
+                                min_variance=e["min_variance"],
+                                max_condition=e["max_condition"], max_fit_points=e["max_fit_points"],
+                                min_cluster_size=min(float(self.rb.limits["min_points"]), max(4.0, 1e-3 * len(X))))
+
+    def _global_first_k(self, sweep: IncrementalSweep, notes: list[str]) -> tuple[int, list[tuple[int, float]]]:
+        """Grow the sweep with UFP-ONC's own incremental init (way V) up to APD's first local
+        maximum (or the rule file's fixed initial_k), then go back to that K."""
+        e = self.rb.engine
+        ik = e["initial_k"]
+        while sweep.k < e["k_max"]:
+            parts = sweep.partitions
+            if isinstance(ik, int) and sweep.k >= ik:
+                break
+            if not isinstance(ik, int) and len(parts) >= 3 and parts[-1].apd <= parts[-2].apd:
+                break  # the first local maximum (among K >= 2) is confirmed
+            if sweep.grow() is None:
+                break
+        eligible = [p for p in sweep.partitions if p.k >= 2] or sweep.partitions
+        if isinstance(ik, int):
+            k0 = min(ik, sweep.k)
+            if k0 < ik:
+                notes.append(f"initial_k = {ik} could not be reached (the sweep stopped at K = {k0}); K = {k0} is used")
+        else:
+            k0 = eligible[first_local_max([p.apd for p in eligible])].k
+        first = [(p.k, p.apd) for p in sweep.partitions]
+        sweep.back_to(k0)
+        return k0, first
+
+    @staticmethod
+    def _partition_children(X, root: _Node, sweep: IncrementalSweep) -> list[tuple[_Node, int]]:
+        """The clusters of the sweep's last partition (ids c0, c1, ... by decreasing size), each with
+        its column in the partition."""
+        u = sweep.memberships(X)
+        hard = u.argmax(axis=1)
+        parts = [np.flatnonzero(hard == j) for j in range(u.shape[1])]
+        order = sorted((j for j in range(len(parts)) if parts[j].size), key=lambda j: -parts[j].size)
+        return [(_Node(f"c{i}", root.id, 1, root.idx[parts[j]], u[parts[j], j], u[parts[j], j]), j)
+                for i, j in enumerate(order)]
+
+    def _run_global(self, X, root, sweep: IncrementalSweep, records, ground_info, notes, steps):
+        """The seed paper's strategy: the whole scene's K-partition, K from APD's first local
+        maximum; while a rule wants some cluster split (a heuristic fails on it), the (K+1)-partition
+        of the whole scene, seeded from the K-partition with the new prototype in the largest failing
+        cluster (its prototype split in two along its largest axis; when that cluster's new
+        prototype dies, the next failing cluster, then UFP-ONC's own way V), until no rule wants a
+        split or K = k_max. Every K visited is recorded in ``steps`` (the explanation's ``sweep``):
+        its clusters with centre, axes and outcome, the cluster its new prototype was seeded in."""
         rb = self.rb
-        ks = [p.k for p in res.partitions]
-        k = k0
+        k_max = rb.engine["k_max"]
+        min_points = rb.limits["min_points"]
+        k0, first = self._global_first_k(sweep, notes)
         scene = None
-        history = []
+        seeded: str | None = None
         while True:
-            children = self._initial_children(X, root, res, k)
-            judged = [(c, *self._record(c, X)) for c in children]
-            if scene is None:
-                scene = Scene(self.sensor, self._ground(X, [(cl, rec) for _, cl, rec in judged], ground_info), rb.units)
+            kids = self._partition_children(X, root, sweep)
+            judged = [(node, j, *self._record(node, X)) for node, j in kids]
+            if scene is None:  # the ground plane from the first partition judged, as the divisive strategy does
+                scene = Scene(self.sensor, self._ground(X, [(cl, rec) for _, _, cl, rec in judged], ground_info),
+                              rb.units)
             failing = []
-            for node, cl, rec in judged:
+            for node, j, cl, rec in judged:
                 action, rule = self._judge(cl, scene, rec)
                 rec.action = action
                 if action in ("split", "split_components"):
-                    failing.append(f"{node.id} ({rule.name})")
-            later = [kk for kk in ks if kk > k]
-            if failing and later:
-                history.append(f"K={k}: {', '.join(failing)} failed; next K")
-                k = later[0]
-                continue
-            break
-        records["c"].children = [c.id for c, _, _ in judged]
-        records["c"].notes.extend(history)
-        records["c"].notes.append(f"final K = {k}")
+                    if node.idx.size < min_points:
+                        self._stop(rec, "min_points", f"limit reached: {node.idx.size} points < min_points = {min_points}")
+                    else:
+                        failing.append((node, j))
+            steps.append(self._step_record(sweep, judged, seeded))
+            if not failing or sweep.k >= k_max:
+                break
+            grown = None
+            for node, j in failing:  # the largest first (ids are by decreasing size)
+                if sweep.grow(target=j, name=f"{node.id} of K={sweep.k}") is not None:
+                    grown = node.id
+                    break
+            if grown is None and sweep.grow() is None:
+                break
+            seeded = grown or "anywhere (way V)"
+            steps[-1]["next"] = seeded
+        k = sweep.k
+        for st in steps:
+            st["kept"] = st["k"] == k
+        records["c"].children = [node.id for node, _, _, _ in judged]
+        curve = sorted(dict(first + [(p.k, p.apd) for p in sweep.partitions]).items())  # every K computed
+        records["c"].apd = APDCurve(tuple(kk for kk, _ in curve), tuple(a for _, a in curve), chosen=k)
+        records["c"].notes.append(f"global strategy: K = {k0} (APD's first local maximum) to K = {k} "
+                                  f"({len(steps)} partitions judged); K = {k} kept")
+        notes.extend(sweep.notes)
         leaves = []
-        for node, cl, rec in judged:
+        for node, _, cl, rec in judged:
             records[node.id] = rec
             if rec.action in ("split", "split_components"):
-                if k >= rb.engine["k_max"]:
+                if k >= k_max:
                     self._stop(rec, "k_max", f"limit reached: no partition of the scene beyond K = {k} "
-                                             f"(k_max = {rb.engine['k_max']})")
+                                             f"(k_max = {k_max})")
                 else:
                     self._stop(rec, "unpartitioned", f"it cannot be split: no partition of the scene beyond K = {k} "
-                                                     f"(the sweep stopped before k_max = {rb.engine['k_max']}: "
-                                                     f"{res.stop_reason})")
+                                                     "(every new prototype died)")
             if rec.action != "reject":
                 leaves.append((node, cl, rec))
         return leaves, scene
 
+    def _step_record(self, sweep: IncrementalSweep, judged, seeded: str | None) -> dict[str, Any]:
+        """One K of the global strategy, as data: its clusters (id, points, centre, covariance axes,
+        what the rules decided and the checks that failed)."""
+        part = sweep.partitions[-1]
+        clusters = []
+        for node, j, cl, rec in judged:
+            geo = cl.geometry
+            decisive = [{"check": c.check, "predicate": c.predicate, "value": c.value, "unit": c.unit, "min": c.min,
+                         "max": c.max, "passed": c.passed, "source": c.source} for c in rec.decisive_checks()]
+            clusters.append({"id": node.id, "column": int(j), "points": int(node.idx.size),
+                             "center": geo.center.tolist(), "eigenvalues": geo.eigenvalues.tolist(),
+                             "eigenvectors": geo.eigenvectors.tolist(), "action": rec.action,
+                             "rule": rec.rule, "rule_source": rec.rule_source, "decisive": decisive,
+                             "limit": rec.limit})
+        return {"k": part.k, "apd": part.apd, "seeded_in": seeded, "clusters": clusters}
+
     # -- labels, merge, output -------------------------------------------------------------------
 
-    def _finish(self, X, leaves, scene, records, ground_info, notes, t0) -> Segmentation:
+    def _finish(self, X, leaves, scene, records, ground_info, notes, t0, sweep=None) -> Segmentation:
         rb = self.rb
         for _node, cl, rec in leaves:
             self._label(cl, scene, rec)
@@ -698,7 +792,8 @@ class Interpreter:
                                  "descriptors": leaves[members[0]][2].descriptors if len(members) == 1 else
                                  self._group_descriptors(X, [leaves[i][0] for i in members])})
         expl = Explanation(rule_base=rb.name, rule_file=rb.path, strategy=rb.strategy, label_names=rb.label_names,
-                           records=records, root="c", ground=ground_info, notes=notes, catalogue=Catalogue.of(rb))
+                           records=records, root="c", ground=ground_info, notes=notes, catalogue=Catalogue.of(rb),
+                           sweep=sweep or [])
         return Segmentation(cluster=cluster, label=label, membership=membership, label_names=rb.label_names,
                             explanation=expl, clusters=out_clusters, seconds=time.perf_counter() - t0)
 

@@ -131,10 +131,10 @@ class _Recorder(Interpreter):
 
     state: tuple | None = None
 
-    def _finish(self, X, leaves, scene, records, ground_info, notes, t0) -> Segmentation:
+    def _finish(self, X, leaves, scene, records, ground_info, notes, t0, sweep=None) -> Segmentation:
         self.state = (X, [(dataclasses.replace(node), cl, _fresh(rec)) for node, cl, rec in leaves], scene,
                       {k: _fresh(r) for k, r in records.items()}, copy.deepcopy(ground_info), list(notes))
-        return super()._finish(X, leaves, scene, records, ground_info, notes, t0)
+        return super()._finish(X, leaves, scene, records, ground_info, notes, t0, sweep=sweep)
 
 
 @dataclass

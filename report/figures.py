@@ -310,3 +310,173 @@ def _turned(cl: dict[str, Any], R: np.ndarray) -> dict[str, Any]:
         if d.get(key) is not None:
             d[key] = (R @ np.asarray(d[key], dtype=float)).tolist()
     return {**cl, "descriptors": d}
+
+
+# -- the K-partition series with eigen-boxes (the seed paper's figure 2) ----------------------------
+
+
+@dataclass(frozen=True)
+class PartitionPanel:
+    """One K-partition to draw: its clusters' centres (K, 3), covariance eigenvalues (K, 3) and
+    eigenvectors (K, 3, 3) (columns), the hard cluster of each drawn point (or None: the most
+    likely cluster of each point under those Gaussians), which clusters a rule wanted split, and
+    a title."""
+
+    k: int
+    centers: np.ndarray
+    eigenvalues: np.ndarray
+    eigenvectors: np.ndarray
+    title: str
+    hard: np.ndarray | None = None
+    failing: np.ndarray | None = None  # (K,) bool
+
+
+def panels_from_sweep(sweep: list[dict[str, Any]], *, max_panels: int = 12) -> list[PartitionPanel]:
+    """The panels of the global strategy's visited partitions (``explanation['sweep']`` of a
+    result): every K when there are at most ``max_panels``, else the first, the last and K's
+    evenly between."""
+    steps = list(sweep)
+    if len(steps) > max_panels:
+        pick = np.unique(np.round(np.linspace(0, len(steps) - 1, max_panels)).astype(int))
+        steps = [steps[i] for i in pick]
+    out = []
+    for st in steps:
+        cl = st["clusters"]
+        failing = np.array([c["action"] in ("split", "split_components") or
+                            (c["action"] == "limit" and bool(c.get("rule"))) for c in cl], dtype=bool)
+        what = ("APD's first local maximum" if st is sweep[0] else f"seeded in {st['seeded_in']} of K = {st['k'] - 1}"
+                if st.get("seeded_in") else "")
+        fails = f"{int(failing.sum())} fail{'s' if failing.sum() == 1 else ''}" if failing.any() else "all pass"
+        title = f"K = {st['k']}{' (kept)' if st.get('kept') else ''}: {fails}" + (f"\n{what}" if what else "")
+        out.append(PartitionPanel(
+            k=int(st["k"]), centers=np.array([c["center"] for c in cl], dtype=float).reshape(-1, 3),
+            eigenvalues=np.array([c["eigenvalues"] for c in cl], dtype=float).reshape(-1, 3),
+            eigenvectors=np.array([c["eigenvectors"] for c in cl], dtype=float).reshape(-1, 3, 3),
+            title=title, failing=failing))
+    return out
+
+
+def panels_from_ufp_onc(X: np.ndarray, ks: tuple[int, ...] = SERIES_K) -> tuple[list[PartitionPanel], Any]:
+    """UFP-ONC re-run on ``X`` for K = 1 .. max(ks) (the divisive strategy's initial sweep): one
+    panel per K of ``ks`` the sweep reaches, with its exact hard partition and the eigen-boxes of
+    its (floored) fuzzy covariances. Returns the panels and the sweep's result."""
+    from kbs.inference import ufp_onc
+
+    res = ufp_onc(X, k_max=max(ks), stop="k_max")
+    out = []
+    for p in res.partitions:
+        if p.k not in ks:
+            continue
+        lam, vec = np.linalg.eigh(p.covariances)
+        out.append(PartitionPanel(k=p.k, centers=np.asarray(p.centers), eigenvalues=lam, eigenvectors=vec,
+                                  title=f"K = {p.k}" + ("  (chosen by APD)" if p.k == res.chosen_k else "")
+                                  + f"   APD {p.apd:.3g}", hard=p.predict(X)))
+    return out, res
+
+
+def most_likely(X: np.ndarray, centers: np.ndarray, eigenvalues: np.ndarray, eigenvectors: np.ndarray,
+                floor: float = 1e-3) -> np.ndarray:
+    """The cluster of highest Gaussian likelihood (equal priors) of each point (n,), the Gaussians
+    given by centres and eigen-decompositions; eigenvalues floored at ``floor`` times the largest
+    (a planar cluster's Gaussian is otherwise a sheet no point off it belongs to)."""
+    best = np.full(len(X), -np.inf)
+    out = np.zeros(len(X), dtype=np.int64)
+    for j in range(len(centers)):
+        lam = np.maximum(eigenvalues[j], floor * max(float(eigenvalues[j].max()), 1e-300))
+        Y = (X - centers[j]) @ eigenvectors[j]
+        ll = -0.5 * ((Y * Y) / lam).sum(axis=1) - 0.5 * float(np.log(lam).sum())
+        better = ll > best
+        best[better], out[better] = ll[better], j
+    return out
+
+
+def partition_series_figure(X: np.ndarray, panels: list[PartitionPanel], *, max_points: int = 30000,
+                            point_size: float = 0.5, title: str = "", note: str = "") -> Any:
+    """Top-down small multiples of K-partitions: the points (stride-decimated to ``max_points``)
+    coloured by cluster, each cluster's fuzzy centre (a cross) and eigen-box (its covariance's three
+    axes, half-sides ``2 sqrt(eigenvalue)``, drawn from above) in the cluster's colour; the boxes of
+    clusters a rule wanted split dashed in red."""
+    X = np.asarray(X, dtype=np.float64)
+    idx = decimate(len(X), max_points)
+    Xd = X[idx]
+    ncol = min(4, max(1, len(panels)))
+    nrow = int(np.ceil(len(panels) / ncol)) or 1
+    fig = _figure(3.6 * ncol, 3.5 * nrow)
+    order = np.argsort(Xd[:, 2])  # higher points drawn last: objects stay visible from above
+    lo, hi = np.percentile(Xd[:, :2], [0.5, 99.5], axis=0)
+    pad = 0.05 * float((hi - lo).max() or 1.0)
+    for i, p in enumerate(panels):
+        ax = fig.add_subplot(nrow, ncol, i + 1)
+        hard = p.hard[idx] if p.hard is not None and len(p.hard) == len(X) else \
+            p.hard if p.hard is not None else most_likely(Xd, p.centers, p.eigenvalues, p.eigenvectors)
+        ax.scatter(Xd[order, 0], Xd[order, 1], c=_rgb(hard[order]), s=point_size, linewidths=0, rasterized=True)
+        for j in range(len(p.centers)):
+            bad = p.failing is not None and bool(p.failing[j])
+            col = (1.0, 0.0, 0.0) if bad else tuple(_rgb(np.array([j]))[0] * 0.55)
+            half = 2.0 * np.sqrt(np.maximum(p.eigenvalues[j], 0.0))
+            for e in _box_edges(p.centers[j], p.eigenvectors[j], half):
+                ax.plot(e[:, 0], e[:, 1], color=col, linewidth=1.3 if bad else 0.9, linestyle="--" if bad else "-")
+        ax.scatter(p.centers[:, 0], p.centers[:, 1], marker="x", c="k", s=18, linewidths=1.0, zorder=3)
+        ax.set_xlim(lo[0] - pad, hi[0] + pad)
+        ax.set_ylim(lo[1] - pad, hi[1] + pad)
+        ax.set_title(p.title, fontsize=8)
+        ax.set_aspect("equal")
+        ax.tick_params(labelsize=6)
+    fig.suptitle((title or f"K-partitions with eigen-boxes, top view ({len(Xd):,} points)")
+                 + (f"\n{note}" if note else ""), fontsize=10)
+    return fig
+
+
+# -- a cluster's CAh view (the seed paper's figures 5-7) ------------------------------------------
+
+
+def _fill_polygons(ax, polygons, colors, alpha: float = 0.45, edge: str = "k") -> None:
+    for poly, col in zip(polygons, colors):
+        ax.fill(*poly.exterior.xy, facecolor=col, alpha=alpha, edgecolor=edge, linewidth=0.6)
+        for hole in poly.interiors:
+            ax.fill(*hole.xy, facecolor="white", edgecolor=edge, linewidth=0.4)
+
+
+def cah_figure(X: np.ndarray, normal: np.ndarray, center: np.ndarray, *, plane: str, alpha_factor: float = 3.0,
+               opening_factor: float = 1.0, min_fraction: float = 0.05, max_points: int = 30000,
+               title: str = "") -> Any:
+    """A cluster's connexity (CAh) view (:func:`kbs.report.cah.cah_view`): its points ``X`` (n, 3)
+    (stride-decimated to ``max_points``) projected on the plane through ``center`` with ``normal``
+    (``plane`` names it: 'the ground plane', 'its best approximating plane'); their alpha-shape
+    (the union of the Delaunay triangles of circumradius <= alpha, alpha = ``alpha_factor`` times
+    the median spacing of the projected points); and its alpha-opening (erosion then dilation by a
+    disc of radius ``opening_factor`` alpha), the components coloured, the significant ones (at
+    least ``min_fraction`` of the points) numbered, what the opening removed in grey."""
+    from kbs.report.cah import cah_view
+
+    X = np.asarray(X, dtype=np.float64)[decimate(len(X), max_points)]
+    v = cah_view(X, normal, center, alpha_factor=alpha_factor, opening_factor=opening_factor,
+                 min_fraction=min_fraction)
+    P = v.points
+    fig = _figure(13.5, 4.6)
+    axes = [fig.add_subplot(1, 3, i + 1) for i in range(3)]
+    ps = max(0.3, min(4.0, 3000.0 / max(len(P), 1)))
+    axes[0].scatter(P[:, 0], P[:, 1], s=ps, c="0.25", linewidths=0, rasterized=True)
+    axes[0].set_title(f"{len(X):,} points projected on {plane}", fontsize=9)
+    _fill_polygons(axes[1], v.shape, ["#6baed6"] * len(v.shape))
+    axes[1].scatter(P[:, 0], P[:, 1], s=ps * 0.5, c="0.35", linewidths=0, rasterized=True)
+    axes[1].set_title(f"alpha-shape, alpha = {v.alpha:.3g} ({alpha_factor:g} x spacing {v.spacing:.3g}): "
+                      f"{len(v.shape)} piece{'s' if len(v.shape) != 1 else ''}", fontsize=9)
+    if v.shape:
+        _fill_polygons(axes[2], v.shape, ["#dddddd"] * len(v.shape), alpha=0.6, edge="0.7")
+    _fill_polygons(axes[2], v.opening, [tuple(c) for c in _rgb(np.arange(len(v.opening)))], alpha=0.65)
+    for i, g in enumerate(v.opening[:v.n_significant]):
+        c = g.representative_point()
+        axes[2].text(c.x, c.y, str(i), fontsize=9, ha="center", va="center", weight="bold")
+    n = len(v.opening)
+    axes[2].set_title(f"alpha-opening, disc radius {v.radius:.3g}: {n} component{'s' if n != 1 else ''}, "
+                      f"{v.n_significant} significant", fontsize=9)
+    lo, hi = P.min(axis=0), P.max(axis=0)
+    pad = 0.04 * float((hi - lo).max() or 1.0)
+    for ax in axes:
+        ax.set_xlim(lo[0] - pad, hi[0] + pad)
+        ax.set_ylim(lo[1] - pad, hi[1] + pad)
+        ax.set_aspect("equal")
+        ax.tick_params(labelsize=6)
+    fig.suptitle(title or "CAh: projection, alpha-shape, alpha-opening", fontsize=10)
+    return fig

@@ -13,7 +13,15 @@
 - the APD-per-K curve of the root record (the scene's initial partition), the chosen K marked;
 - the explanation tree (one line per record, the sentences of :meth:`Explanation.line`); clicking a
   line, or a point of the 3D plot, shows why its cluster was split or accepted
-  (:meth:`Explanation.why`, computed here for every record and embedded as JSON).
+  (:meth:`Explanation.why`, computed here for every record and embedded as JSON);
+- the CAh view of the clicked output cluster (the seed paper's figures 5-7,
+  :func:`kbs.report.cah.cah_view`): its points projected on the ground plane (on their best
+  approximating plane when the run has none), their alpha-shape and its alpha-opening, computed
+  here for the ``cah_clusters`` largest output clusters (each on at most ``cah_points`` of its
+  points, a stride sample) and embedded as data; the page says so for the others;
+- for the global strategy, the K-partitions it judged (the explanation's ``sweep``): a K slider
+  shows each partition's clusters from above, their centres and eigen-box footprints, those a
+  rule wanted split in red.
 
 Nothing is fetched: plotly.js is inlined from the installed ``plotly`` package, gzip-compressed
 and base64-encoded (4.8 MB of script become 2 MB), as is the page's data (the points as
@@ -183,7 +191,8 @@ def _decimate(n: int, max_points: int, seed: int) -> np.ndarray | None:
 
 def write_report(path: str | Path, xyz: np.ndarray, cluster: np.ndarray, label: np.ndarray,
                  label_names: Sequence[str], explanation_dict: dict[str, Any], clusters: Sequence[dict[str, Any]],
-                 *, title: str, max_points: int = MAX_POINTS, seed: int = 0, max_boxes: int = MAX_BOXES) -> Path:
+                 *, title: str, max_points: int = MAX_POINTS, seed: int = 0, max_boxes: int = MAX_BOXES,
+                 cah_clusters: int = 30, cah_points: int = 2000) -> Path:
     """Write the self-contained HTML report of one segmentation.
 
     Parameters
@@ -211,6 +220,9 @@ def write_report(path: str | Path, xyz: np.ndarray, cluster: np.ndarray, label: 
     max_boxes : int
         Eigen-boxes drawn when the page opens: those of the largest clusters (the page says how
         many of how many); a click on a point draws its cluster's box.
+    cah_clusters, cah_points : int
+        The CAh view is computed for this many of the largest output clusters, each on at most
+        ``cah_points`` of its points.
 
     Returns
     -------
@@ -263,6 +275,9 @@ def write_report(path: str | Path, xyz: np.ndarray, cluster: np.ndarray, label: 
         "records": records, "root": expl.root, "apd": apd,
         "palette": hex_colors(max(n_out, len(label_names), 1)), "noise": NOISE_HEX, "unlabelled": UNLABELLED,
         "unlabelled_key": _UNLABELLED_KEY, "view": _camera(explanation_dict),
+        "cah": _cah_views(xyz, cluster, clusters, expl.ground, cah_clusters, cah_points),
+        "cah_limit": int(cah_clusters),
+        "sweep": _sweep_data(expl.sweep),
         "head": {"rule_base": expl.rule_base, "rule_file": expl.rule_file, "strategy": expl.strategy,
                  "ground": expl.ground_line() if expl.ground else "", "notes": list(expl.notes)},
     }
@@ -272,6 +287,88 @@ def write_report(path: str | Path, xyz: np.ndarray, cluster: np.ndarray, label: 
     path = Path(path)
     path.write_text(page, encoding="utf-8")
     return path
+
+
+def _cah_views(xyz: np.ndarray, cluster: np.ndarray, clusters: Sequence[dict[str, Any]], ground: dict[str, Any],
+               n_views: int, max_points: int) -> dict[str, Any]:
+    """Output cluster index (as a string) -> its CAh view as page data, for the ``n_views``
+    largest clusters (see :func:`write_report`)."""
+    from kbs.report.cah import cah_view, rings
+
+    if n_views <= 0 or not len(clusters):
+        return {}
+    largest = sorted(range(len(clusters)), key=lambda i: (-int(clusters[i].get("n_points", 0)), i))[:n_views]
+    order = np.argsort(cluster, kind="stable")
+    ids = cluster[order]
+    normal = ground.get("normal") if ground else None
+    out: dict[str, Any] = {}
+    for i in largest:
+        a, b = np.searchsorted(ids, [i, i + 1])
+        sel = order[a:b]
+        if sel.size < 3:
+            continue
+        P = xyz[sel[::max(1, int(np.ceil(sel.size / max_points)))]]
+        center = P.mean(axis=0)
+        if normal is not None:
+            n, plane = np.asarray(normal, dtype=float), "the ground plane"
+        else:
+            n, plane = np.linalg.eigh(np.cov(P.T))[1][:, 0], "its best approximating plane"
+        try:
+            v = cah_view(P, n, center)
+        except (ValueError, ArithmeticError) as exc:  # e.g. every point on one position: no shape
+            out[str(i)] = {"note": f"no CAh view: {exc}"}
+            continue
+        tol = 0.25 * v.alpha
+        out[str(i)] = {"plane": plane, "n": int(sel.size), "shown": int(len(P)), "alpha": v.alpha,
+                       "radius": v.radius, "spacing": v.spacing, "significant": v.n_significant,
+                       "components": len(v.opening), "points": _b64(v.points, "f4"),
+                       "shape": rings(v.shape, tol), "opening": rings(v.opening, tol)}
+    return out
+
+
+def _sweep_data(sweep: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The global strategy's partitions for the page: per K, each cluster's centre and the
+    footprint (seen from above) of its eigen-box, whether a rule wanted it split."""
+    out = []
+    for st in sweep:
+        cl = []
+        for c in st["clusters"]:
+            centre = np.asarray(c["center"], dtype=float)
+            axes = np.asarray(c["eigenvectors"], dtype=float)
+            half = 2.0 * np.sqrt(np.maximum(np.asarray(c["eigenvalues"], dtype=float), 0.0))
+            signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
+            corners = (centre + (signs * half) @ axes.T)[:, :2]
+            hull = _hull2d(corners)
+            cl.append({"id": c["id"], "points": int(c["points"]), "center": centre[:2].round(5).tolist(),
+                       "box": [hull[:, 0].round(5).tolist(), hull[:, 1].round(5).tolist()],
+                       "failing": c["action"] in ("split", "split_components") or
+                       (c["action"] == "limit" and bool(c.get("rule")))})
+        out.append({"k": int(st["k"]), "kept": bool(st.get("kept")), "seeded_in": st.get("seeded_in"),
+                    "clusters": cl})
+    return out
+
+
+def _hull2d(P: np.ndarray) -> np.ndarray:
+    """The convex hull of 2D points, closed (the first vertex repeated), by the monotone chain."""
+    pts = sorted(map(tuple, np.round(P, 12)))
+    if len(pts) < 3:
+        return np.array(pts + pts[:1])
+
+    def cross(o, a, b):
+        return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+    lower: list = []
+    upper: list = []
+    for p in pts:
+        while len(lower) >= 2 and cross(lower[-2], lower[-1], p) <= 0:
+            lower.pop()
+        lower.append(p)
+    for p in reversed(pts):
+        while len(upper) >= 2 and cross(upper[-2], upper[-1], p) <= 0:
+            upper.pop()
+        upper.append(p)
+    hull = lower[:-1] + upper[:-1]
+    return np.array(hull + hull[:1])
 
 
 # The page. Placeholders are filled in one pass (so nothing filled in is re-read as a placeholder). The error hook comes first, before plotly.js, so that its own errors are caught too.
@@ -323,6 +420,8 @@ _TEMPLATE = r"""<!DOCTYPE html>
   #tree li > span:hover { background: #eef; }
   #tree li > span.sel { background: #ffe9a8; }
   #tree .accept { color: #1a6b1a; } #tree .reject { color: #888; } #tree .limit { color: #a15c00; }
+  #cah { height: 260px; flex: none; border: 1px solid #ddd; font: 12px monospace; color: #666; }
+  #sweep { height: 300px; flex: none; border: 1px solid #ddd; }
   #why { flex: 1 1 40%; overflow: auto; font: 12px/1.35 monospace; white-space: pre-wrap; border: 1px solid #ddd; padding: 4px; background: #fafafa; }
   h2 { font-size: 13px; margin: 2px 0; }
 </style>
@@ -341,6 +440,7 @@ _TEMPLATE = r"""<!DOCTYPE html>
       <span style="color:#666">&middot; click a point or a tree line to see why</span>
     </div>
     <div id="scatter"></div>
+    <div id="sweep-box" style="display:none"><h2>The global strategy's K-partitions (top view; red: a rule wanted it split)</h2><div id="sweep"></div></div>
   </div>
   <div id="right">
     <div id="apd"></div>
@@ -348,6 +448,8 @@ _TEMPLATE = r"""<!DOCTYPE html>
     <div id="tree"></div>
     <h2>Why</h2>
     <div id="why">Click a cluster in the 3D view or a line of the tree.</div>
+    <h2>CAh view: projection, alpha-shape, alpha-opening</h2>
+    <div id="cah">Click a cluster to see its projection, alpha-shape and alpha-opening.</div>
   </div>
 </main>
 <script id="kbs-plotly" type="application/gzip">%%PLOTLYJS%%</script>
@@ -476,8 +578,40 @@ function start(D) {
     document.getElementById("why").textContent = (heading ? heading + "\n\n" : "") +
       (parts.length ? parts.join("\n\n----\n\n") : "no record");
   }
+  function drawCah(i) {
+    var el = document.getElementById("cah");
+    var v = D.cah[String(i)];
+    Plotly.purge(el);
+    if (!v || v.note) {
+      el.textContent = i < 0 ? "noise: no CAh view" : v ? "cluster " + i + ": " + v.note :
+        "cluster " + i + ": the CAh view is computed for the " + D.cah_limit + " largest clusters only";
+      return;
+    }
+    el.textContent = "";
+    var p = new Float32Array(bytes(v.points)), px = [], py = [];
+    for (var j = 0; j < p.length; j += 2) { px.push(p[j]); py.push(p[j + 1]); }
+    var tr = [];
+    v.shape.forEach(function (r) {
+      tr.push({ type: "scatter", mode: "lines", x: r.x, y: r.y, fill: "toself", hoverinfo: "skip", showlegend: false,
+                fillcolor: r.hole ? "#ffffff" : "rgba(107,174,214,0.30)", line: { color: "#6baed6", width: 1 } });
+    });
+    v.opening.forEach(function (r) {
+      var c = D.palette[r.part % D.palette.length];
+      tr.push({ type: "scatter", mode: "lines", x: r.x, y: r.y, fill: "toself", hoverinfo: "skip", showlegend: false,
+                fillcolor: r.hole ? "#ffffff" : c, opacity: 0.55, line: { color: "#222", width: 1 } });
+    });
+    tr.push({ type: "scatter", mode: "markers", x: px, y: py, hoverinfo: "skip", showlegend: false,
+              marker: { size: 2, color: "#333" } });
+    var head = "cluster " + i + " on " + v.plane + (v.shown < v.n ? " (" + v.shown + " of " + v.n + " points)" : "") +
+      "<br>alpha " + v.alpha.toPrecision(3) + " (blue: alpha-shape), opening disc " + v.radius.toPrecision(3) +
+      ": " + v.components + " component" + (v.components === 1 ? "" : "s") + ", " + v.significant + " significant";
+    Plotly.newPlot(el, tr, { margin: { l: 40, r: 8, t: 36, b: 24 }, title: { text: head, font: { size: 11 } },
+                             xaxis: { zeroline: false }, yaxis: { zeroline: false, scaleanchor: "x" } },
+                   { responsive: true, displayModeBar: false });
+  }
   function showCluster(i) {
     showBox(i);
+    drawCah(i);
     if (i < 0) {
       var rej = D.records.filter(function (r) { return r.action === "reject"; }).map(function (r) { return r.id; });
       showWhy(rej, "noise: points in no output cluster" + (rej.length ? "; rejected records:" : ""));
@@ -495,7 +629,10 @@ function start(D) {
     var parentList = r.parent && lists[r.parent] ? lists[r.parent] : top;
     var li = document.createElement("li"), sp = document.createElement("span");
     sp.id = "rec-" + r.id; sp.textContent = r.line; sp.className = r.action; sp.title = "click: why";
-    sp.addEventListener("click", function () { showWhy([r.id]); });
+    sp.addEventListener("click", function () {
+      showWhy([r.id]);
+      if (r.output_index !== null && r.output_index !== undefined) drawCah(r.output_index);
+    });
     li.appendChild(sp); parentList.appendChild(li);
     var ul = document.createElement("ul"); li.appendChild(ul); lists[r.id] = ul;
   });
@@ -537,6 +674,34 @@ function start(D) {
       { responsive: true, displayModeBar: false }));
   } else {
     document.getElementById("apd").textContent = "no APD curve for the root record";
+  }
+  if (D.sweep.length) {
+    document.getElementById("sweep-box").style.display = "block";
+    var sw = [], steps = [], visible0 = D.sweep.length - 1;
+    D.sweep.forEach(function (st, s) {
+      var idx = [];
+      st.clusters.forEach(function (c, j) {
+        idx.push(sw.length);
+        sw.push({ type: "scatter", mode: "lines", x: c.box[0], y: c.box[1], visible: s === visible0, showlegend: false,
+                  line: { color: c.failing ? "#ff0000" : D.palette[j % D.palette.length], width: c.failing ? 2 : 1,
+                          dash: c.failing ? "dash" : "solid" },
+                  hoverinfo: "text", text: c.id + " (" + c.points + " pts)" + (c.failing ? ": a rule wanted it split" : "") });
+      });
+      idx.push(sw.length);
+      sw.push({ type: "scatter", mode: "markers", visible: s === visible0, showlegend: false, hoverinfo: "text",
+                x: st.clusters.map(function (c) { return c.center[0]; }),
+                y: st.clusters.map(function (c) { return c.center[1]; }),
+                text: st.clusters.map(function (c) { return c.id; }), marker: { size: 6, color: "#000", symbol: "x" } });
+      steps.push(idx);
+    });
+    var sliderSteps = D.sweep.map(function (st, s) {
+      var vis = sw.map(function (t, n) { return steps[s].indexOf(n) >= 0; });
+      return { label: "K=" + st.k + (st.kept ? " (kept)" : ""), method: "restyle", args: ["visible", vis] };
+    });
+    done.push(Plotly.newPlot("sweep", sw, {
+      margin: { l: 40, r: 10, t: 10, b: 70 }, xaxis: { zeroline: false }, yaxis: { zeroline: false, scaleanchor: "x" },
+      sliders: [{ active: visible0, steps: sliderSteps, currentvalue: { prefix: "" }, pad: { t: 30 } }] },
+      { responsive: true, displayModeBar: false }));
   }
   // report.html#c1.0 opens with that record's explanation shown
   var want = decodeURIComponent(location.hash.slice(1));

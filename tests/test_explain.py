@@ -150,7 +150,7 @@ def test_the_result_and_its_explanation_carry_format_and_version(example):
     doc = json.loads(example.read_text())
     assert list(doc)[:2] == ["format", "version"] and (doc["format"], doc["version"]) == ("kbs-result", "1.1")
     e = doc["explanation"]
-    assert (e["format"], e["version"]) == ("kbs-explanation", "1.1")
+    assert (e["format"], e["version"]) == ("kbs-explanation", "1.2")  # 1.2: the global strategy's sweep
     assert {c["name"] for c in e["catalogue"]["checks"]} == {"planar", "level", "sheet", "connected", "tiny", "low", "raised"}
     assert [r["name"] for r in e["catalogue"]["rules"]] == ["noise", "SAh", "CAh"]
 

@@ -322,17 +322,19 @@ def test_contest_rules_split_a_box_on_a_table_into_its_faces():
         assert c["descriptors"]["thickness"] <= 0.01
 
 
-def test_global_strategy_goes_on_with_k_until_the_rules_hold():
+def test_the_global_strategy_stops_at_the_first_k_whose_clusters_all_pass():
+    """The box on a table: at APD's first local maximum every face is already planar, so the global
+    strategy judges that one K and keeps it (tests/test_global.py has a scene where it must go on)."""
     X, faces = box_on_table()
     rb = load_rule_base("planar_contest")
     rbg = parse_rule_base(rb.text.replace("strategy: divisive", "strategy: global"), "g.yaml",
                           PredicateRegistry.default())
     seg = Interpreter(rbg).run(X)
     root = seg.explanation["c"]
-    assert root.action == "partition" and any(n.startswith("final K = ") for n in root.notes)
-    k = int([n for n in root.notes if n.startswith("final K")][0].split()[-1])
-    assert k >= root.apd.chosen and len(root.children) == k
-    assert all(seg.explanation[c].action in ("accept", "limit", "reject") for c in root.children)
+    (step,) = seg.explanation.sweep
+    assert root.action == "partition" and step["kept"] and step["k"] == root.apd.chosen == len(root.children)
+    assert all(seg.explanation[c].action == "accept" for c in root.children)
+    assert max(root.apd.ks) == step["k"] + 1  # the sweep went one K further, to see APD's maximum, and came back
 
 
 def test_the_global_strategy_says_k_max_stopped_it():

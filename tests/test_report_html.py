@@ -264,3 +264,53 @@ def test_kbs_run_report_of_the_bundled_example_opens_without_errors(tmp_path):
     assert r.returncode == 0, r.stderr
     ready, errors = _page_errors(tmp_path / "outdoor.html", tmp_path)
     assert errors == "" and ready
+
+
+@needs_chromium
+def test_clicking_a_cluster_draws_its_cah_view(outdoor, tmp_path):
+    """The seed paper's figures 5-7 in the report: a click on a point draws its cluster's projection,
+    alpha-shape and alpha-opening (plotly traces in #cah, titled with its alpha and components);
+    a cluster beyond the largest ``cah_clusters`` says it has no view."""
+    page = write_report(tmp_path / "r.html", **outdoor, title="t", cah_clusters=1)
+    data = json.loads(re.search(r'<script id="kbs-data" type="application/json">(.*?)</script>',
+                                page.read_text(encoding="utf-8"), re.S).group(1))
+    biggest = max(range(len(outdoor["clusters"])), key=lambda i: outdoor["clusters"][i]["n_points"])
+    assert list(data["cah"]) == [str(biggest)]
+    view = data["cah"][str(biggest)]
+    assert view["plane"] == "the ground plane" and view["shape"] and view["opening"] and view["alpha"] > 0
+    first = int(np.flatnonzero(outdoor["cluster"] == biggest)[0])
+    other = int(np.flatnonzero((outdoor["cluster"] >= 0) & (outdoor["cluster"] != biggest))[0])
+    click = f"""<script>
+var t = setInterval(function () {{
+  if (document.body.getAttribute("data-kbs-ready") !== "1") return;
+  clearInterval(t);
+  var gd = document.getElementById("scatter");
+  gd.emit("plotly_click", {{points: [{{curveNumber: 0, pointNumber: {other}}}]}});
+  document.body.setAttribute("data-other", document.getElementById("cah").textContent);
+  gd.emit("plotly_click", {{points: [{{curveNumber: 0, pointNumber: {first}}}]}});
+  document.body.setAttribute("data-traces", String(document.getElementById("cah").data.length));
+}}, 50);
+</script>
+</body>"""
+    page.write_text(page.read_text(encoding="utf-8").replace("</body>", click), encoding="utf-8")
+    dom = _chromium(page, tmp_path, "--dump-dom").stdout
+    assert re.search(r'<div id="kbs-errors"[^>]*></div>', dom) and 'data-kbs-ready="1"' in dom
+    assert "the CAh view is computed for the 1 largest clusters only" in re.search(r'data-other="([^"]*)"', dom).group(1)
+    n_traces = int(re.search(r'data-traces="(\d+)"', dom).group(1))
+    assert n_traces == len(view["shape"]) + len(view["opening"]) + 1
+    assert f"cluster {biggest} on the ground plane" in dom and f"{view['components']} component" in dom
+
+
+@needs_chromium
+def test_the_report_of_a_global_run_shows_its_k_partitions(tmp_path):
+    poly = EXAMPLE.with_name("polyhedral.ply")
+    r = kbs("run", "--rules", "planar_global", str(poly), "--out", str(tmp_path), "--report")
+    assert r.returncode == 0, r.stderr
+    page = tmp_path / "polyhedral.html"
+    data = json.loads(re.search(r'<script id="kbs-data" type="application/json">(.*?)</script>',
+                                page.read_text(encoding="utf-8"), re.S).group(1))
+    assert [s["k"] for s in data["sweep"]] == list(range(2, 11)) and data["sweep"][-1]["kept"]
+    assert [any(c["failing"] for c in s["clusters"]) for s in data["sweep"]] == [True] * 8 + [False]
+    dom = _chromium(page, tmp_path, "--dump-dom").stdout
+    assert re.search(r'<div id="kbs-errors"[^>]*></div>', dom) and 'data-kbs-ready="1"' in dom
+    assert '<div id="sweep-box" style="display: block;">' in dom and "K=10 (kept)" in dom

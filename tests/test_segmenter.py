@@ -292,7 +292,8 @@ def test_one_scan_prints_as_before_without_a_table(tmp_path):
     assert lines[0] == "examples/data/outdoor.ply: 26,233 points, rule base 'outdoor' (divisive)"
     assert re.fullmatch(r"  \d+ clusters, \d+ splits, \d+ limits reached; points: ground [\d,]+, obstacle [\d,]+, "
                         r"noise [\d,]+", lines[1])
-    assert lines[2] == "  ground: cluster c0, it passes 'planar', normal [0.011, -0.021, 1.000], 1.3 deg from the fallback normal"
+    assert lines[2] == ("  ground: cluster c0, it passes 'planar', 2.25 m from the sensor, normal [0.011, -0.021, 1.000], "
+                        "1.3 deg from the fallback normal")
     assert re.fullmatch(r"  time: \d+\.\d\d s \(read \d+\.\d\d, segment \d+\.\d\d, write \d+\.\d\d\)", lines[3])
     assert lines[4] == f"wrote {tmp_path}/outdoor.ply and {tmp_path}/outdoor.json"
 
