@@ -446,19 +446,23 @@ def test_ground_release_moves_raised_ground_points_to_the_nearest_obstacle(share
         assert c["n_points"] == (seg.cluster == c["index"]).sum()
 
 
+def _ground_of_run(tmp_path, X, rules: str, name: str):
+    """``kbs run --rules RULES`` on the points ``X`` written as NAME.ply: (label 0 per point, the result JSON)."""
+    path = tmp_path / f"{name}.ply"
+    write_ply(path, X)
+    r = kbs("run", "--rules", rules, str(path), "--out", str(tmp_path / "o"))
+    assert r.returncode == 0, r.stderr
+    v = PlyData.read(str(tmp_path / "o" / f"{name}.ply"))["vertex"]
+    return np.asarray(v["scalar_label"]) == 0, json.loads((tmp_path / "o" / f"{name}.json").read_text())
+
+
 def test_outdoor_rules_take_a_row_of_parked_cars_roofs_for_obstacles_not_ground(tmp_path):
     """Issue 12: parked cars became ground. Their roofs are as planar and as level as the road, so
     PAh and the ground angle pass them; what tells them from the ground is where they stand: 1.45 m
     above the ground around them, more than any kerb (outdoor.yaml's 'raised' relabel rule)."""
     X, labels = ground_and_parked_cars()
-    path = tmp_path / "cars.ply"
-    write_ply(path, X)
-    r = kbs("run", "--rules", "outdoor", str(path), "--out", str(tmp_path / "o"))
-    assert r.returncode == 0, r.stderr
-    v = PlyData.read(str(tmp_path / "o" / "cars.ply"))["vertex"]
-    ground = np.asarray(v["scalar_label"]) == 0
+    ground, doc = _ground_of_run(tmp_path, X, "outdoor", "cars")
     assert ground[labels == 0].mean() > 0.99 and not ground[labels > 0].any()  # 1.0 of the roofs before
-    doc = json.loads((tmp_path / "o" / "cars.json").read_text())
     raised = [c for c in doc["explanation"]["clusters"] if c["relabel"] and c["relabel"]["rule"] == "raised"]
     assert raised and all(c["label"] == "obstacle" for c in raised)
     r = kbs("explain", str(tmp_path / "o" / "cars.json"), "--cluster", raised[0]["id"])
@@ -472,15 +476,9 @@ def test_airborne_rules_take_a_large_buildings_inner_roof_for_an_object(tmp_path
     sections of three levels, had 21 % of its points taken for ground (the inner sections); now
     those within the slope's reach of the ground beside it are objects."""
     X, labels = airborne_large_building()
-    path = tmp_path / "block.ply"
-    write_ply(path, X)
-    r = kbs("run", "--rules", "airborne", str(path), "--out", str(tmp_path / "o"))
-    assert r.returncode == 0, r.stderr
-    v = PlyData.read(str(tmp_path / "o" / "block.ply"))["vertex"]
-    ground = np.asarray(v["scalar_label"]) == 0
+    ground, doc = _ground_of_run(tmp_path, X, "airborne", "block")
     assert ground[labels == 0].mean() > 0.99
     assert ground[labels == 1].mean() < 0.1, ground[labels == 1].mean()  # 0.207 before, 0.062 measured
-    doc = json.loads((tmp_path / "o" / "block.json").read_text())
     roofs = [c for c in doc["explanation"]["clusters"] if c["relabel"] and c["relabel"]["rule"] == "roofs"
              and not next(k for k in c["checks"] if k["check"] == "raised")["passed"]]
     assert roofs, "inner roof patches: not raised above their neighbours, above the terrain the slope allows"
