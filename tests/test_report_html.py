@@ -272,8 +272,7 @@ def test_clicking_a_cluster_draws_its_cah_view(outdoor, tmp_path):
     alpha-shape and alpha-opening (plotly traces in #cah, titled with its alpha and components);
     a cluster beyond the largest ``cah_clusters`` says it has no view."""
     page = write_report(tmp_path / "r.html", **outdoor, title="t", cah_clusters=1)
-    data = json.loads(re.search(r'<script id="kbs-data" type="application/json">(.*?)</script>',
-                                page.read_text(encoding="utf-8"), re.S).group(1))
+    data = _data(page.read_text(encoding="utf-8"))
     biggest = max(range(len(outdoor["clusters"])), key=lambda i: outdoor["clusters"][i]["n_points"])
     assert list(data["cah"]) == [str(biggest)]
     view = data["cah"][str(biggest)]
@@ -307,8 +306,7 @@ def test_the_report_of_a_global_run_shows_its_k_partitions(tmp_path):
     r = kbs("run", "--rules", "planar_global", str(poly), "--out", str(tmp_path), "--report")
     assert r.returncode == 0, r.stderr
     page = tmp_path / "polyhedral.html"
-    data = json.loads(re.search(r'<script id="kbs-data" type="application/json">(.*?)</script>',
-                                page.read_text(encoding="utf-8"), re.S).group(1))
+    data = _data(page.read_text(encoding="utf-8"))
     assert [s["k"] for s in data["sweep"]] == list(range(2, 11)) and data["sweep"][-1]["kept"]
     assert [any(c["failing"] for c in s["clusters"]) for s in data["sweep"]] == [True] * 8 + [False]
     dom = _chromium(page, tmp_path, "--dump-dom").stdout
