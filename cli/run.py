@@ -388,7 +388,8 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
         try:
             with replacing(html) as (tmp,):
                 write_report(tmp, pc.xyz, seg.cluster, seg.label, seg.label_names, doc["explanation"], clusters,
-                             title=f"{Path(name).name} — rule base '{rb.name}'")
+                             title=f"{Path(name).name} — rule base '{rb.name}'",
+                             grid=None if pc.shape is None else (pc.shape, pc.index))
                 with open(tmp, "a", encoding="utf-8") as stream:  # marks the page as kbs's own (--force)
                     stream.write(f"<!-- {RUN_ID_COMMENT} {run_id} -->\n")
         except OSError as exc:

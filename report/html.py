@@ -95,6 +95,17 @@ def _plain(o: Any) -> Any:
     raise TypeError(type(o).__name__)
 
 
+def _grid_image(grid: tuple[tuple[int, int], np.ndarray] | None, cluster: np.ndarray) -> dict[str, Any] | None:
+    """The output cluster of every pixel of an organised input (-2 where the image has no point,
+    -1 noise), row by row, as int32; None without a grid."""
+    if grid is None:
+        return None
+    (rows, cols), index = grid
+    image = np.full(int(rows) * int(cols), -2, dtype=np.int32)
+    image[np.asarray(index, dtype=np.int64)] = cluster
+    return {"rows": int(rows), "cols": int(cols), "cluster": _b64(image, "i4")}
+
+
 def _b64(a: np.ndarray, dtype: str) -> str:
     return base64.b64encode(np.ascontiguousarray(a, dtype=np.dtype(dtype).newbyteorder("<")).tobytes()).decode("ascii")
 
@@ -192,7 +203,8 @@ def _decimate(n: int, max_points: int, seed: int) -> np.ndarray | None:
 def write_report(path: str | Path, xyz: np.ndarray, cluster: np.ndarray, label: np.ndarray,
                  label_names: Sequence[str], explanation_dict: dict[str, Any], clusters: Sequence[dict[str, Any]],
                  *, title: str, max_points: int = MAX_POINTS, seed: int = 0, max_boxes: int = MAX_BOXES,
-                 cah_clusters: int = 30, cah_points: int = 2000) -> Path:
+                 cah_clusters: int = 30, cah_points: int = 2000,
+                 grid: tuple[tuple[int, int], np.ndarray] | None = None) -> Path:
     """Write the self-contained HTML report of one segmentation.
 
     Parameters
@@ -223,6 +235,10 @@ def write_report(path: str | Path, xyz: np.ndarray, cluster: np.ndarray, label: 
     cah_clusters, cah_points : int
         The CAh view is computed for this many of the largest output clusters, each on at most
         ``cah_points`` of its points.
+    grid : ((rows, cols), index), optional
+        For an organised input (a range image): its grid and each point's pixel (flat index, as
+        ``PointCloud.shape`` / ``.index``); the page then shows the segmentation as an image, one
+        colour per output cluster on the pixel grid, beside the 3D view.
 
     Returns
     -------
@@ -278,6 +294,7 @@ def write_report(path: str | Path, xyz: np.ndarray, cluster: np.ndarray, label: 
         "cah": _cah_views(xyz, cluster, clusters, expl.ground, cah_clusters, cah_points),
         "cah_limit": int(cah_clusters),
         "sweep": _sweep_data(expl.sweep),
+        "grid": _grid_image(grid, cluster),
         "head": {"rule_base": expl.rule_base, "rule_file": expl.rule_file, "strategy": expl.strategy,
                  "ground": expl.ground_line() if expl.ground else "", "notes": list(expl.notes)},
     }
@@ -440,6 +457,7 @@ _TEMPLATE = r"""<!DOCTYPE html>
       <span style="color:#666">&middot; click a point or a tree line to see why</span>
     </div>
     <div id="scatter"></div>
+    <div id="grid-box" style="display:none"><h2>On the range image's pixel grid (one colour per output cluster; white: no data)</h2><div id="grid"></div></div>
     <div id="sweep-box" style="display:none"><h2>The global strategy's K-partitions (top view; red: a rule wanted it split)</h2><div id="sweep"></div></div>
   </div>
   <div id="right">
@@ -674,6 +692,29 @@ function start(D) {
       { responsive: true, displayModeBar: false }));
   } else {
     document.getElementById("apd").textContent = "no APD curve for the root record";
+  }
+  if (D.grid) {  // an organised input: the segmentation as an image, clusters in the 3D view's colours
+    document.getElementById("grid-box").style.display = "block";
+    var gi = new Int32Array(bytes(D.grid.cluster)), z = [], used = {};
+    for (var r = 0; r < D.grid.rows; r++) {
+      var row = [];
+      for (var c = 0; c < D.grid.cols; c++) {
+        var v = gi[r * D.grid.cols + c];
+        row.push(v === -2 ? null : v);
+        if (v !== -2) used[v] = true;
+      }
+      z.push(row);
+    }
+    var keys = Object.keys(used).map(Number).sort(function (a, b) { return a - b; });
+    var lo = keys.length ? keys[0] : 0, hi = keys.length ? keys[keys.length - 1] : 0, span = Math.max(hi - lo, 1);
+    var scale = keys.map(function (k) { return [(k - lo) / span, colour(k)]; });
+    if (scale.length < 2) scale = [[0, scale.length ? scale[0][1] : D.noise], [1, scale.length ? scale[0][1] : D.noise]];
+    done.push(Plotly.newPlot("grid", [{ type: "heatmap", z: z, zmin: lo, zmax: lo + span, colorscale: scale,
+                                        showscale: false, hovertemplate: "row %{y}, column %{x}: cluster %{z}<extra></extra>" }],
+      { margin: { l: 40, r: 10, t: 10, b: 30 }, yaxis: { autorange: "reversed", scaleanchor: "x" } },
+      { responsive: true, displayModeBar: false }).then(function (gd) {
+        gd.on("plotly_click", function (ev) { var k = ev.points[0].z; if (k !== null && k !== undefined) showCluster(k); });
+      }));
   }
   if (D.sweep.length) {
     document.getElementById("sweep-box").style.display = "block";

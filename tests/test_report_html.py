@@ -312,3 +312,38 @@ def test_the_report_of_a_global_run_shows_its_k_partitions(tmp_path):
     dom = _chromium(page, tmp_path, "--dump-dom").stdout
     assert re.search(r'<div id="kbs-errors"[^>]*></div>', dom) and 'data-kbs-ready="1"' in dom
     assert '<div id="sweep-box" style="display: block;">' in dom and "K=10 (kept)" in dom
+
+
+@pytest.mark.slow
+def test_a_range_image_report_shows_the_segmentation_on_its_pixel_grid(tmp_path):
+    """Issue 13, organised inputs: for a range image the report carries each pixel's output cluster
+    on the image's grid (no data: -2), the same clusters as the PLY, and draws it as an image beside
+    the 3D view (a heatmap in #grid, in a headless browser when there is one)."""
+    from kbs.io.segcomp import read_range
+
+    scan = tmp_path / "abw.synth.3"
+    assert kbs("synth", "abw", "--seed", "3", "--out", str(scan)).returncode == 0
+    rng = tmp_path / "abw.synth.3.range"
+    r = kbs("run", "--rules", "abw", str(rng), "--out", str(tmp_path / "o"), "--report")
+    assert r.returncode == 0, r.stderr
+    page = tmp_path / "o" / "abw.synth.3.html"
+    grid = _data(page.read_text(encoding="utf-8"))["grid"]
+    assert (grid["rows"], grid["cols"]) == (512, 512)
+    image = np.frombuffer(base64.b64decode(grid["cluster"]), dtype="<i4")
+    cloud = read_range(rng)
+    cluster = np.asarray(PlyData.read(str(tmp_path / "o" / "abw.synth.3.ply"))["vertex"]["scalar_cluster"])
+    np.testing.assert_array_equal(image[cloud.index], cluster)
+    no_data = np.ones(image.size, dtype=bool)
+    no_data[cloud.index] = False
+    assert (image[no_data] == -2).all() and len(np.unique(cluster)) > 5
+    from kbs.report.html import _grid_image  # a pixel without a point (v = 0 in a range image): -2
+
+    small = _grid_image(((2, 3), np.array([0, 4])), np.array([5, 7]))
+    assert np.frombuffer(base64.b64decode(small["cluster"]), dtype="<i4").tolist() == [5, -2, -2, -2, 7, -2]
+    # an unorganised cloud has no grid
+    r = kbs("run", "--rules", "outdoor", str(EXAMPLE), "--out", str(tmp_path / "u"), "--report")
+    assert r.returncode == 0 and _data((tmp_path / "u" / "outdoor.html").read_text(encoding="utf-8"))["grid"] is None
+    if CHROMIUM.exists():
+        dom = _chromium(page, tmp_path, "--dump-dom").stdout
+        assert re.search(r'<div id="kbs-errors"[^>]*></div>', dom) and 'data-kbs-ready="1"' in dom
+        assert re.search(r'<div id="grid-box" style="display: block;?">', dom) and "heatmaplayer" in dom
