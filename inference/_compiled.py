@@ -519,6 +519,18 @@ def _slot(key, shift):
 
 
 @njit(nogil=True)
+def _new_table(expect):
+    """An empty table (keys, groups) of at least twice ``expect`` slots (at least the start size),
+    and its shift."""
+    size = _START_SIZE
+    shift = _START_SHIFT
+    while size < 2 * expect:
+        size *= 2
+        shift -= 1
+    return np.full(size, _EMPTY), np.empty(size, dtype=np.int64), shift
+
+
+@njit(nogil=True)
 def _grow(table, group, shift):
     """The table twice as large (its shift is ``shift - 1``), every key moved."""
     size = table.shape[0] * 2
@@ -557,13 +569,8 @@ def _first_appearance(keys, want_inverse):
     """The distinct keys (non-negative int64) in order of first appearance, by a hash table, and
     (when ``want_inverse``, else an empty array) each key's group: its distinct key's position."""
     n = keys.shape[0]
-    size = _START_SIZE
-    shift = _START_SHIFT
-    while size < 2 * min(n, _PRESIZE):  # most keys are distinct in the fine grids: few regrowths
-        size *= 2
-        shift -= 1
-    table = np.full(size, _EMPTY)
-    group = np.empty(size, dtype=np.int64)
+    # most keys are distinct in the fine grids: sized for them, the table seldom grows
+    table, group, shift = _new_table(min(n, _PRESIZE))
     first_keys = np.empty(n, dtype=np.int64)
     inv = np.empty(n if want_inverse else 0, dtype=np.int64)
     m = 0
@@ -652,13 +659,7 @@ def count_coarse_cells(cells, factor, expect):
     int64), the 20-bit-per-axis keys of :mod:`kbs.inference.voxel`. ``expect``: about how many
     there will be (the table starts at least twice that, so it rarely grows)."""
     n, D = cells.shape
-    size = _START_SIZE
-    shift = _START_SHIFT
-    while size < 2 * expect:
-        size *= 2
-        shift -= 1
-    table = np.full(size, _EMPTY)
-    group = np.empty(size, dtype=np.int64)
+    table, group, shift = _new_table(expect)
     m = 0
     for j in range(n):
         key = np.int64(0)

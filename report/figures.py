@@ -3,8 +3,10 @@
 Every function returns a :class:`matplotlib.figure.Figure` built without pyplot (no global
 state, no display needed; ``fig.savefig`` renders with Agg):
 
-- :func:`series_figure`: the K-partition series of the seed paper's figure 2, UFP-ONC re-run on
-  the points and the hard partition shown for K = 2, 4, 5, 6, 8, 10 (those the sweep reaches);
+- :func:`partition_series_figure`: the K-partition series of the seed paper's figure 2 with each
+  cluster's eigen-box, from a global run's visited partitions (:func:`panels_from_sweep`) or
+  UFP-ONC re-run on the points (:func:`panels_from_ufp_onc`);
+- :func:`cah_figure`: a cluster's CAh view (projection, alpha-shape, alpha-opening);
 - :func:`obstacle_map_figure`: a top-down grid of ground / obstacle cells, the sensor marked;
 - :func:`clusters_figure`: the points coloured by output cluster, each fuzzy centre marked and a
   box along the eigenvectors of the cluster's covariance (half-sides 2 sqrt(eigenvalue)).
@@ -85,43 +87,6 @@ def _figure(width: float, height: float):
 
 def _rgb(index: np.ndarray) -> np.ndarray:
     return colors_for(index).astype(float) / 255.0
-
-
-def series_figure(X: np.ndarray, ks: tuple[int, ...] = SERIES_K, *, max_points: int = 30000,
-                  point_size: float = 0.5, title: str = "", view: View | None = None) -> Any:
-    """UFP-ONC re-run on ``X`` (n, 3) (stride-decimated to ``max_points``) for K = 1 .. max(ks);
-    one top-view panel per K of ``ks`` the sweep reaches (the plane perpendicular to ``view.up``;
-    x-y when no view is given: a camera's frame is seen from above, not from its side), points
-    coloured by hard cluster, the K chosen by APD marked."""
-    from kbs.inference import ufp_onc
-
-    view = view or View.from_up([0.0, 0.0, 1.0])
-    names = view.axis_names()
-    Xd = np.asarray(X, dtype=np.float64)[decimate(len(X), max_points)]
-    P2 = view.plan(Xd)
-    res = ufp_onc(Xd, k_max=max(ks), stop="k_max")
-    parts = [p for p in res.partitions if p.k in ks]
-    ncol = min(3, max(1, len(parts)))
-    nrow = int(np.ceil(len(parts) / ncol)) or 1
-    fig = _figure(4.0 * ncol, 3.6 * nrow)
-    for i, p in enumerate(parts):
-        ax = fig.add_subplot(nrow, ncol, i + 1)
-        hard = p.predict(Xd)
-        order = np.argsort(view.height(Xd))  # higher points drawn last: obstacles stay visible from above
-        ax.scatter(P2[order, 0], P2[order, 1], c=_rgb(hard[order]), s=point_size, linewidths=0, rasterized=True)
-        C2 = view.plan(p.centers)
-        ax.scatter(C2[:, 0], C2[:, 1], marker="x", c="k", s=25, linewidths=1.2)
-        ax.set_title(f"K = {p.k}" + ("  (chosen by APD)" if p.k == res.chosen_k else "") + f"   APD {p.apd:.3g}",
-                     fontsize=9)
-        ax.set_aspect("equal")
-        ax.tick_params(labelsize=7)
-        if not (view.level and view.up[2] > 0):
-            ax.set_xlabel(names[0], fontsize=7)
-            ax.set_ylabel(names[1], fontsize=7)
-    if len(parts) < len(ks):
-        fig.text(0.01, 0.005, f"the sweep stopped at K = {res.partitions[-1].k} ({res.stop_reason})", fontsize=8)
-    fig.suptitle(title or f"UFP-ONC partitions, top view ({len(Xd):,} points)", fontsize=11)
-    return fig
 
 
 def obstacle_grid(X: np.ndarray, label: np.ndarray, obstacle: np.ndarray, *, cell: float | None = None,
