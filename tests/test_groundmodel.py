@@ -491,6 +491,7 @@ def test_airborne_rules_take_a_large_buildings_inner_roof_for_an_object(tmp_path
     assert "relabelled object by roofs [airborne.yaml:" in r.stdout and "above_terrain (height_above_slope_surface = " in r.stdout
 
 
+@pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="issue 12: a terrace on a terrain step is taken for a roof ('raised'); "
                    "the continuity rules tried in session 7 lost more on the tuning part than they won "
                    "(docs/BENCHMARKS.md, 'Terrain steps')")
