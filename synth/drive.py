@@ -217,6 +217,26 @@ class DriveTruth:
         h = self.exposed_height(X, Y) > min_height
         return h.reshape(nx, subsamples, ny, subsamples).mean(axis=(1, 3))
 
+    def overhang_fraction(self, origin: tuple[float, float], cell_size: float, shape: tuple[int, int], *,
+                          subsamples: int = 4) -> np.ndarray:
+        """Fraction of each cell (as :meth:`obstacle_fraction`) under a tree's crown and under no
+        trunk nor other solid: free at the ground, an obstacle from above; a map is right either
+        way there (:func:`kbs.maps.score.score_grid` leaves these cells out)."""
+        nx, ny = shape
+        off = (np.arange(subsamples) + 0.5) / subsamples
+        xs = origin[0] + (np.arange(nx)[:, None] + off[None, :]).ravel() * cell_size
+        ys = origin[1] + (np.arange(ny)[:, None] + off[None, :]).ravel() * cell_size
+        X, Y = np.meshgrid(xs, ys, indexing="ij")
+        crown = np.zeros(X.shape, dtype=bool)
+        standing = np.zeros(X.shape, dtype=bool)
+        for s in self.solids:
+            if isinstance(s, Tree):
+                crown |= np.isfinite(_rock_top(s.crown, X, Y))
+                standing |= np.isfinite(s.trunk.top_at(X, Y))
+            else:
+                standing |= DriveTruth(self.terrain, (s,), self.object_names, self.poses).exposed_height(X, Y) > 0
+        return (crown & ~standing).reshape(nx, subsamples, ny, subsamples).mean(axis=(1, 3))
+
     def to_dict(self) -> dict[str, Any]:
         t = self.terrain
         objs = []
