@@ -246,6 +246,38 @@ def test_a_street_drive_has_buildings_trees_and_poles_with_their_truth(tmp_path,
     assert code == 2 and "--street is for a drive" in err
 
 
+def test_cells_under_a_crown_only_are_not_scored():
+    """A tree's crown overhangs ground the sensor sees from below: free at the ground, an obstacle
+    from above, so score_grid leaves those cells out (as an obstacle's rim), and scores the trunk's."""
+    from kbs.maps.grid import GridMap
+    from kbs.maps.score import score_grid
+    from kbs.synth.drive import DriveTruth, Prism, Tree, _octagon
+    from kbs.synth.outdoor import Rock
+    from kbs.synth.raycast import HeightField
+
+    flat = HeightField(-1.5, np.zeros(1), np.zeros((1, 2)), np.zeros(1))
+    tree = Tree(Prism(_octagon(np.array([5.0, 0.0]), 0.3), -1.8, 1.5),
+                Rock(np.array([[5.0, 0.0, 2.5]]), np.eye(3)[None], np.array([[2.0, 2.0, 1.2]])))
+    truth = DriveTruth(flat, (tree,), ("ground", "tree 1"), np.eye(4)[None])
+    over = truth.overhang_fraction((3.0, -2.0), 0.2, (20, 20))  # cells of 0.2 m over x 3..7, y -2..2
+    assert over[0:5, 10].min() > 0.9 and over[10, 10] == 0.0  # under the crown; the trunk
+    frac = truth.obstacle_fraction((3.0, -2.0), 0.2, (20, 20))
+    assert frac[10, 10] == 1.0 and frac[2, 10] == 1.0  # the crown stands above the terrain there too
+    # a map that sees only ground under the crown and the trunk as an obstacle is right everywhere
+    layers = {"log_odds": np.full((20, 20), -1.0), "frames_seen": np.ones((20, 20), dtype=np.int32),
+              "frames_obstacle": np.zeros((20, 20), dtype=np.int32), "frames_ground": np.ones((20, 20), dtype=np.int32),
+              "n_ground": np.ones((20, 20), dtype=np.int64), "n_obstacle": np.zeros((20, 20), dtype=np.int64),
+              "ground_zsum": np.full((20, 20), -1.5), "obstacle_zmax": np.full((20, 20), -np.inf)}
+    trunk = frac * (over == 0) >= 0.5
+    layers["log_odds"][trunk] = 1.0
+    layers["n_obstacle"][trunk] = 5
+    layers["frames_obstacle"][trunk] = 1
+    layers["obstacle_zmax"][trunk] = 1.0
+    g = GridMap.from_layers(layers, FusionParams(cell_size=0.2), 15, -10)
+    s = score_grid(g, truth)
+    assert s.accuracy == 1.0 and s.obstacle_recall == 1.0 and s.cells < 400 - (over > 0).sum() + 1
+
+
 def test_kbs_map_of_a_generated_drive_matches_the_true_layout(drive_map):
     """Cell accuracy against the true layout, and the objects against the true obstacles.
 
