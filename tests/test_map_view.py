@@ -27,6 +27,7 @@ def mapped(tmp_path_factory) -> Path:
     return root
 
 
+@pytest.mark.slow  # a drive mapped through kbs map: pytest --runslow (CI) runs it
 def test_kbs_map_report_holds_the_grid_every_object_and_the_trajectory(mapped):
     page_path = mapped / "map" / "map.html"
     doc = json.loads((mapped / "map" / "map.json").read_text())
@@ -74,6 +75,7 @@ def test_a_large_grid_is_drawn_in_blocks_and_the_page_says_so():
     assert f1 == 1 and same is cls
 
 
+@pytest.mark.slow  # a drive mapped through kbs map: pytest --runslow (CI) runs it
 def test_kbs_map_report_without_plotly_stops_before_any_frame(mapped, tmp_path):
     code = ("import sys; sys.modules['plotly'] = None; from kbs.cli.main import main; sys.exit(main())")
     out = tmp_path / "m"
@@ -84,6 +86,7 @@ def test_kbs_map_report_without_plotly_stops_before_any_frame(mapped, tmp_path):
     assert "kbs[report]" in r.stderr and "frame 1/" not in r.stdout + r.stderr and not out.exists()
 
 
+@pytest.mark.slow  # a drive mapped through kbs map: pytest --runslow (CI) runs it
 def test_map_files_are_written_through_the_atomic_writer(mapped, monkeypatch, tmp_path):
     """Every file of the map goes through kbs.io.atomic.replacing (temporary name, then rename)."""
     import kbs.io.atomic as atomic
