@@ -230,8 +230,10 @@ class LocalGround:
         grid = self._slope_grid(radius) if _flags.JIT else None
         if grid is not None:  # compiled: the same minimum over the same points, without the lists
             owners = self.owners if own >= 0 else np.zeros(0, dtype=np.int64)
-            lowest = _compiled.slope_lowest(np.ascontiguousarray(Q), self.tree.data, self.heights,  # type: ignore[attr-defined]
-                                            np.asarray(owners, dtype=np.int64), own, *grid, rise, float(radius) ** 2)
+            ny, start, order, lo, side = grid
+            T = self.tree.data  # type: ignore[attr-defined]
+            lowest = _compiled.slope_lowest(np.ascontiguousarray(Q), T, self.heights, np.asarray(owners, dtype=np.int64),
+                                            own, ny, start, order, lo, side, rise, float(radius) ** 2)
             reached = np.isfinite(lowest)
             out[reached] = hp[reached] - lowest[reached]
             return out
