@@ -103,6 +103,7 @@ def test_unwritable_output_is_a_clean_error(tmp_path):
     assert r.returncode == 3 and "cannot write" in r.stderr and "Traceback" not in r.stderr
 
 
+@pytest.mark.slow  # kbs subprocesses: pytest --runslow (CI) runs it
 def test_commands_that_do_not_segment_load_neither_numba_nor_scipy(tmp_path):
     """`kbs explain`, `kbs rules show` and `kbs predicates` read and print: they do not pay for
     the compiled kernels (numba) or the k-d trees (scipy), which only a segmentation loads (issue
