@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kbs.inference import _compiled, _flags
+from kbs.inference import _flags
 
 #: Probability that RANSAC misses a plane holding the required share of the points.
 MISS_PROBABILITY = 1e-9
@@ -74,6 +74,8 @@ def _inlier_counts(S: np.ndarray, a: np.ndarray, nrm: np.ndarray, inlier_distanc
     (k, 3), unit normals ``nrm`` (k, 3)): compiled, one pass per hypothesis without a (k, n, 3)
     temporary, the same counts as the numpy expression."""
     if _flags.JIT:
+        from kbs.inference import _compiled  # numba, loaded when a plane is first searched
+
         return _compiled.plane_inlier_counts(np.ascontiguousarray(S), np.ascontiguousarray(a),
                                              np.ascontiguousarray(nrm), float(inlier_distance))
     return (np.abs(np.einsum("kij,kj->ki", S[None, :, :] - a[:, None, :], nrm)) <= inlier_distance).sum(axis=1)

@@ -526,6 +526,40 @@ def test_height_above_slope_is_at_most_zero_on_terrain_no_steeper_than_the_slope
     assert h[0] == pytest.approx(5.0 - np.tan(np.radians(40)) * 10.0)
 
 
+@pytest.mark.parametrize("exclude", [None, "c1"])
+def test_compiled_slope_surface_equals_the_k_d_tree_reference(monkeypatch, exclude):
+    """LocalGround.height_above_slope, compiled (a grid of cells of side just over the radius)
+    against the k-d tree reference (query_ball_point): equal values, bit for bit, on a lattice
+    where many surface points lie exactly at the radius (3-4-5 triangles) and duplicates of one
+    position carry other heights, with queries far outside the surface and on its edges."""
+    from kbs.inference import _flags
+
+    monkeypatch.setattr(_flags, "JIT", True)
+    rng = np.random.default_rng(21)
+    g = np.arange(0.0, 40.0, 1.0)
+    xy = np.array([(a, b) for a in g for b in g])
+    xy = np.vstack([xy, xy[::7]])  # duplicated positions, other heights
+    X = np.column_stack([xy, rng.normal(0, 1.0, len(xy))])
+    owners = (X[:, 0] // 10).astype(int)
+    model = LocalGround.build(X, np.arange(len(X)), np.array([0.0, 0.0, 1.0]), np.zeros(3), neighbours=8,
+                              radius=2.5, owners=owners, owner_ids=("c0", "c1", "c2", "c3"))
+    P = np.vstack([X[::3] + [0.0, 0.0, 3.0], [[200.0, 200.0, 0.0], [-5.0, 20.0, 1.0], [44.0, 39.0, 0.0],
+                                                [np.nextafter(-5.0, 0.0), 0.0, 0.0]]])
+    for radius in (5.0, 2.5, 30.0):
+        got = model.height_above_slope(P, 40.0, radius, exclude)
+        assert model._slope_grid(radius) is not None  # the compiled path ran
+        monkeypatch.setattr(_flags, "JIT", False)
+        want = model.height_above_slope(P, 40.0, radius, exclude)
+        monkeypatch.setattr(_flags, "JIT", True)
+        np.testing.assert_array_equal(got, want)
+        assert np.isnan(got[-4]) and np.isfinite(got[:-4]).mean() > 0.5
+    # an extent absurd for the radius: no grid, the k-d tree answers
+    far = LocalGround.build(np.array([[0.0, 0, 0], [1e7, 0, 0], [0, 1e7, 0]]), np.arange(3), np.array([0.0, 0, 1]),
+                            np.zeros(3), radius=1.0)
+    assert far._slope_grid(1.0) is None
+    assert far.height_above_slope(np.array([[0.5, 0.0, 2.0]]), 40.0, 1.0)[0] == pytest.approx(2.0 - np.tan(np.radians(40)) * 0.5)
+
+
 def test_height_bounds_hold_every_answer_of_the_query():
     """LocalGround.height_bounds: the surface height a query gives under a point lies within the
     bounds of its cell block; where no surface point lies within the radius, both say so."""
