@@ -430,8 +430,9 @@ INFLATE_JS = r"""  function bytes(b64) {
   }
 """
 
-# The page. Placeholders are filled in one pass (so nothing filled in is re-read as a placeholder). The error hook comes first, before plotly.js, so that its own errors are caught too.
-_TEMPLATE = r"""<!DOCTYPE html>
+# The head and the top of the body that the scan report and the map view share (title, error hook,
+# header, error box); each page adds its own styles between them (PAGE_HEAD + styles + PAGE_TOP + body).
+PAGE_HEAD = r"""<!DOCTYPE html>
 <html lang="en">
 <head>
 <meta charset="utf-8">
@@ -445,7 +446,21 @@ _TEMPLATE = r"""<!DOCTYPE html>
   header .meta { font-size: 12px; color: #555; }
   #kbs-errors { display: none; background: #fdd; color: #900; padding: 6px 12px; white-space: pre-wrap; font: 12px monospace; }
   main { display: flex; gap: 8px; padding: 6px; height: calc(100vh - 56px); box-sizing: border-box; }
-  #left { flex: 3 1 0; min-width: 0; display: flex; flex-direction: column; }
+"""
+PAGE_TOP = r"""  h2 { font-size: 13px; margin: 2px 0; }
+</style>
+</head>
+<body data-kbs-ready="0">
+<header>
+  <h1>%%TITLE%%</h1>
+  <div class="meta"><span id="meta"></span> &middot; <span id="notice">%%NOTICE%%</span></div>
+</header>
+<div id="kbs-errors"></div>
+<main>
+"""
+
+# The page. Placeholders are filled in one pass (so nothing filled in is re-read as a placeholder). The error hook comes first, before plotly.js, so that its own errors are caught too.
+_TEMPLATE = PAGE_HEAD + r"""  #left { flex: 3 1 0; min-width: 0; display: flex; flex-direction: column; }
   #right { flex: 2 1 0; min-width: 280px; display: flex; flex-direction: column; gap: 6px; }
   #scatter { flex: 1 1 auto; min-height: 300px; height: calc(100vh - 100px); }
   #controls { font-size: 13px; padding: 2px 0; }
@@ -462,17 +477,7 @@ _TEMPLATE = r"""<!DOCTYPE html>
   #cah { height: 260px; flex: none; border: 1px solid #ddd; font: 12px monospace; color: #666; }
   #sweep { height: 300px; flex: none; border: 1px solid #ddd; }
   #why { flex: 1 1 40%; overflow: auto; font: 12px/1.35 monospace; white-space: pre-wrap; border: 1px solid #ddd; padding: 4px; background: #fafafa; }
-  h2 { font-size: 13px; margin: 2px 0; }
-</style>
-</head>
-<body data-kbs-ready="0">
-<header>
-  <h1>%%TITLE%%</h1>
-  <div class="meta"><span id="meta"></span> &middot; <span id="notice">%%NOTICE%%</span></div>
-</header>
-<div id="kbs-errors"></div>
-<main>
-  <div id="left">
+""" + PAGE_TOP + r"""  <div id="left">
     <div id="controls">colour by:
       <button id="by-cluster" class="on" type="button">cluster</button><button id="by-label" type="button">label</button>
       <label><input id="show-boxes" type="checkbox" checked> eigen-boxes</label>

@@ -30,7 +30,7 @@ import numpy as np
 
 from kbs.errors import require
 from kbs.report.colors import hex_colors
-from kbs.report.html import ERROR_HOOK, INFLATE_JS, _b64, _gz64, _hull2d, _json, _plotly_gz64
+from kbs.report.html import ERROR_HOOK, INFLATE_JS, PAGE_HEAD, PAGE_TOP, _b64, _gz64, _hull2d, _json, _plotly_gz64
 
 __all__ = ["write_map_report", "map_report_data", "MAX_CELLS"]
 
@@ -123,21 +123,7 @@ def write_map_report(m: Any, path: str | Path, *, title: str | None = None, max_
     return path
 
 
-_TEMPLATE = r"""<!DOCTYPE html>
-<html lang="en">
-<head>
-<meta charset="utf-8">
-<meta name="viewport" content="width=device-width, initial-scale=1">
-<title>%%TITLE%%</title>
-@@ERROR_HOOK@@
-<style>
-  body { font-family: system-ui, -apple-system, "Segoe UI", sans-serif; margin: 0; color: #222; }
-  header { padding: 6px 12px; border-bottom: 1px solid #ddd; }
-  header h1 { font-size: 17px; margin: 0 0 2px 0; }
-  header .meta { font-size: 12px; color: #555; }
-  #kbs-errors { display: none; background: #fdd; color: #900; padding: 6px 12px; white-space: pre-wrap; font: 12px monospace; }
-  main { display: flex; gap: 8px; padding: 6px; height: calc(100vh - 56px); box-sizing: border-box; }
-  #left { flex: 3 1 0; min-width: 0; }
+_TEMPLATE = PAGE_HEAD + r"""  #left { flex: 3 1 0; min-width: 0; }
   #right { flex: 2 1 0; min-width: 300px; display: flex; flex-direction: column; gap: 6px; }
   #map { height: calc(100vh - 80px); min-height: 300px; }
   #objects { flex: 0 1 28%; overflow: auto; font: 12px/1.4 monospace; border: 1px solid #ddd; padding: 4px; }
@@ -148,17 +134,7 @@ _TEMPLATE = r"""<!DOCTYPE html>
   #object-head { font-size: 13px; font-weight: bold; }
   #object-frames { flex: 0 1 18%; overflow: auto; font: 12px/1.4 monospace; border: 1px solid #ddd; padding: 4px; }
   #why { flex: 1 1 50%; overflow: auto; font: 12px/1.35 monospace; white-space: pre-wrap; border: 1px solid #ddd; padding: 4px; background: #fafafa; }
-  h2 { font-size: 13px; margin: 2px 0; }
-</style>
-</head>
-<body data-kbs-ready="0">
-<header>
-  <h1>%%TITLE%%</h1>
-  <div class="meta"><span id="meta"></span> &middot; <span id="notice">%%NOTICE%%</span></div>
-</header>
-<div id="kbs-errors"></div>
-<main>
-  <div id="left"><div id="map"></div></div>
+""" + PAGE_TOP + r"""  <div id="left"><div id="map"></div></div>
   <div id="right">
     <h2>Objects (click one, here or on the map)</h2>
     <div id="objects"></div>
