@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import re
 import shutil
 import tempfile
@@ -289,8 +290,8 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
         check_classes_fit(pc.source, rb.asprs_classes, name)
     scan_units = _scan_units(pc, units, name, quiet)
     t_read = time.perf_counter() - t0
-    too_big = coordinate_problem(pc.xyz * segmenter.scale(scan_units))  # the file's fault (3), said before the work
-    if too_big is not None:
+    too_big = _coordinate_problem(pc.xyz, segmenter.scale(scan_units), chunked=spilled is not None)
+    if too_big is not None:  # the file's fault (3), said before the work
         raise CloudFileError(name, too_big)
     if tiling is None:
         with warnings.catch_warnings(record=True) as caught:
@@ -308,8 +309,7 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
         from kbs.tiles.store import TileStore
 
         store = TileStore(out_dir / f"{cloud.stem}.tiles", segmenter)
-        seg = _segment_tiled(segmenter, pc.xyz, cloud, tiling, quiet=quiet, t0=t0, store=store,
-                             plan=None if spilled is None else (spilled.grid, spilled.tiles))
+        seg = _segment_tiled(segmenter, pc.xyz, cloud, tiling, quiet=quiet, t0=t0, store=store, spilled=spilled)
         spacing = []
     t1 = time.perf_counter()
     if not to_stdout:
@@ -317,15 +317,17 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
     from kbs.report.colors import rgb_fields
 
     f = segmenter.scale(scan_units)
-    clusters, frame_note = _scan_frame(seg.clusters, f)
+    clusters, frame_note = _scan_frame(seg.clusters if spilled is None else [], f)  # streamed: written by pieces
     used_sensor = (np.asarray(segmenter.sensor, dtype=float) / f).tolist() if sensor is None else list(sensor)
     results = {"cluster": seg.cluster, "label": seg.label, "membership": seg.membership}
-    fields = result_fields(pc, {**results, **rgb_fields(seg.cluster if color_by == "cluster" else seg.label)})
+    # streamed (a spilled LAS/LAZ written as LAS/LAZ): the result's columns are files, read a chunk at a time
+    fields = {} if spilled is not None else \
+        result_fields(pc, {**results, **rgb_fields(seg.cluster if color_by == "cluster" else seg.label)})
     doc = {
         "kbs_version": __version__, "input": name, "n_points": len(pc), "n_dropped": pc.n_dropped,
         "rule_base": rb.name, "rule_file": rb.path, "units": rb.units, "sensor": used_sensor,
         "label_names": seg.label_names, "summary": seg.summary(), "clusters": clusters,
-        "explanation": seg.explanation.to_dict(),
+        "explanation": seg.explanation.to_dict() if spilled is None else None,
     }
     if tiling is not None:
         doc["tiling"] = seg.tiling
@@ -342,7 +344,12 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
     las = None
     if fmt != "ply":
         classes = rb.asprs_classes
-        codes = class_codes(seg.label, seg.cluster, seg.label_names, classes) if classes else None
+        if spilled is not None:
+            from kbs.tiles.streamed import CodesColumn
+
+            codes = CodesColumn(seg.label, seg.cluster, seg.label_names, dict(classes)) if classes else None
+        else:
+            codes = class_codes(seg.label, seg.cluster, seg.label_names, classes) if classes else None
         if spilled is not None:
             from kbs.tiles.stream import ChunkedLas
 
@@ -353,7 +360,12 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
         run_id = write_result_stream(sys.stdout.buffer, f".{fmt}", pc.xyz, fields, run_id=new_run_id(), las=las,
                                      comments=comments)
     else:
-        run_id = write_result_pair(points, js, pc.xyz, fields, doc, run_id=new_run_id(), las=las, comments=comments)
+        run_id = write_result_pair(points, js, pc.xyz, fields, doc, run_id=new_run_id(), las=las, comments=comments,
+                                   pieces=seg.pieces() if spilled is not None else None)
+        if spilled is not None and (meshes or report):  # the whole result, read back, for the meshes and the page
+            written = json.loads(js.read_text(encoding="utf-8"))
+            clusters, doc["explanation"] = written["clusters"], written["explanation"]
+            seg = dataclasses.replace(seg, columns={k: np.asarray(v) for k, v in seg.columns.items()})
     if tiling is not None:
         store.remove()  # the result is written: the finished tiles are no longer needed
     t_write = time.perf_counter() - t1
@@ -403,8 +415,27 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
     return ScanResult(cloud, len(pc), s["clusters"], t_read, seg.seconds, t_write)
 
 
+def _coordinate_problem(xyz: np.ndarray, f: np.ndarray, *, chunked: bool) -> str | None:
+    """:func:`coordinate_problem` of the scan's points in the rule base's unit; a spilled cloud's a
+    chunk at a time (never all of it in memory)."""
+    if not chunked:
+        return coordinate_problem(xyz * f)
+    from kbs.tiles.streamed import CHUNK_POINTS, FileColumn
+
+    column = FileColumn(Path(xyz.filename), xyz.dtype, xyz.shape)
+    first, count = None, 0
+    for start, X in column.chunks(CHUNK_POINTS):
+        problem = coordinate_problem(X * f)
+        if problem is not None:
+            count += int(problem.split(" points have", 1)[0].replace(",", ""))
+            if first is None:  # its row counts from the chunk's start: from the cloud's
+                first = re.sub(r"\(first: row (\d+)", lambda m, at=start: f"(first: row {int(m.group(1)) + at}", problem,
+                               count=1)
+    return None if first is None else f"{count:,}" + first[first.index(" points have"):]
+
+
 def _segment_tiled(segmenter: Segmenter, xyz: np.ndarray, cloud: Path, tiling: Tiling, *, quiet: bool, t0: float,
-                   store=None, plan=None):
+                   store=None, spilled=None):
     from kbs.tiles import segment_tiled
     from kbs.tiles.run import SchedulerError
 
@@ -422,9 +453,13 @@ def _segment_tiled(segmenter: Segmenter, xyz: np.ndarray, cloud: Path, tiling: T
             lines()
 
     try:
+        if spilled is not None:
+            from kbs.tiles.streamed import segment_streamed
+
+            return segment_streamed(segmenter, spilled, store, scheduler=tiling.scheduler, workers=tiling.workers,
+                                    progress=progress, resume=tiling.resume)
         return segment_tiled(segmenter, xyz, tiling.size, tiling.buffer, scheduler=tiling.scheduler,
-                             workers=tiling.workers, progress=progress, store=store, resume=tiling.resume,
-                             plan=plan)
+                             workers=tiling.workers, progress=progress, store=store, resume=tiling.resume)
     except SchedulerError as exc:
         raise click.BadParameter(str(exc), param_hint="--scheduler") from exc
 

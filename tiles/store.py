@@ -58,15 +58,28 @@ class TileStore:
     def key(self, tile: Tile, X: np.ndarray, given: Any = None) -> str:
         """The digest of what ``tile``'s result depends on (``given``: the whole cloud's ground plane
         and its explanation, as :func:`kbs.tiles.run.scene_ground` returns them)."""
+        index = tile.index
+        return self.key_of(index, X[index], given)
+
+    def key_of(self, index: np.ndarray, points: np.ndarray, given: Any = None) -> str:
+        """:meth:`key` of a tile of the points ``points`` (n_tile, 3) at ``index`` in the cloud."""
         h = hashlib.sha256(self._base)
         if given is not None:
             ground, info = given
             if ground is not None:
                 h.update(np.concatenate([ground.normal, ground.point]).astype(np.float64).tobytes())
             h.update(json.dumps(info, sort_keys=True, default=str).encode("utf-8"))
-        h.update(np.ascontiguousarray(tile.index, dtype=np.int64).tobytes())
-        h.update(np.ascontiguousarray(X[tile.index], dtype=np.float64).tobytes())
+        h.update(np.ascontiguousarray(index, dtype=np.int64).tobytes())
+        h.update(np.ascontiguousarray(points, dtype=np.float64).tobytes())
         return h.hexdigest()
+
+    @classmethod
+    def at(cls, folder: str | os.PathLike[str], base: bytes) -> TileStore:
+        """The store of ``folder`` with the digest of an existing store's segmenter (``store._base``):
+        what a Dask worker saves its tiles with."""
+        store = cls.__new__(cls)
+        store.folder, store._base = Path(os.fspath(folder)), base
+        return store
 
     def path(self, tile: Tile) -> Path:
         return self.folder / f"{tile.name}.npz"
