@@ -410,6 +410,10 @@ def _descriptors(xyz_path: Path, cluster: FileColumn, membership: FileColumn, k:
     from the files in chunks: the sums of :func:`kbs.inference._compiled.geometry3`, in its order
     (each cluster's points by increasing index), so the same numbers as ``cluster_geometry`` on
     the cluster's points and memberships."""
+    from kbs.inference import _flags
+
+    if not _flags.JIT:  # the numpy reference sums in another order: its numbers need each cluster whole
+        return _descriptors_reference(xyz_path, cluster, membership, k)
     from kbs.tiles._sums import centre_sums, covariance_sums, eigen
 
     den, mass, c = np.zeros(k), np.zeros(k), np.zeros((k, 3))
@@ -426,6 +430,30 @@ def _descriptors(xyz_path: Path, cluster: FileColumn, membership: FileColumn, k:
         covariance_sums(xyz[start:stop], cl, membership[start:stop].astype(np.float64), centre, s)
     cov, lam, vec = eigen(s, mass, ok)
     return {"center": centre, "covariance": cov, "eigenvalues": lam, "eigenvectors": vec, "mass": mass}
+
+
+def _descriptors_reference(xyz_path: Path, cluster: FileColumn, membership: FileColumn,
+                           k: int) -> dict[str, np.ndarray]:
+    """:func:`_descriptors` without the compiled kernels (``KBS_JIT=0``, or before they are
+    compiled): ``cluster_geometry`` on each cluster's points, as :func:`stitch` computes them (the
+    per-point arrays in memory then)."""
+    from kbs.inference import cluster_geometry
+
+    cl = np.asarray(cluster)
+    weights = np.asarray(membership).astype(np.float64)
+    X = np.load(xyz_path, mmap_mode="r")
+    point_order = np.argsort(cl, kind="stable")
+    starts = np.searchsorted(cl[point_order], np.arange(k + 1))
+    out = {"center": np.zeros((k, 3)), "covariance": np.zeros((k, 3, 3)), "eigenvalues": np.zeros((k, 3)),
+           "eigenvectors": np.zeros((k, 3, 3)), "mass": np.zeros(k)}
+    for gi in range(k):
+        idx = point_order[starts[gi]:starts[gi + 1]]
+        geo = cluster_geometry(X[idx], weights[idx])
+        for name, value in (("center", geo.center), ("covariance", geo.covariance), ("eigenvalues", geo.eigenvalues),
+                            ("eigenvectors", geo.eigenvectors), ("mass", geo.mass)):
+            out[name][gi] = value
+    del X
+    return out
 
 
 # -- the result ---------------------------------------------------------------------------------------
