@@ -290,8 +290,9 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
         check_classes_fit(pc.source, rb.asprs_classes, name)
     scan_units = _scan_units(pc, units, name, quiet)
     t_read = time.perf_counter() - t0
-    too_big = _coordinate_problem(pc.xyz, segmenter.scale(scan_units), chunked=spilled is not None)
-    if too_big is not None:  # the file's fault (3), said before the work
+    # the file's fault (3), said before the work (a spilled file's points were checked as they were read)
+    too_big = coordinate_problem(pc.xyz * segmenter.scale(scan_units)) if spilled is None else None
+    if too_big is not None:
         raise CloudFileError(name, too_big)
     if tiling is None:
         with warnings.catch_warnings(record=True) as caught:
@@ -413,25 +414,6 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
         for note in seg.explanation.notes + ([seg.explanation.ground["note"]] if "note" in seg.explanation.ground else []):
             click.echo(f"note: {note}", err=True)
     return ScanResult(cloud, len(pc), s["clusters"], t_read, seg.seconds, t_write)
-
-
-def _coordinate_problem(xyz: np.ndarray, f: np.ndarray, *, chunked: bool) -> str | None:
-    """:func:`coordinate_problem` of the scan's points in the rule base's unit; a spilled cloud's a
-    chunk at a time (never all of it in memory)."""
-    if not chunked:
-        return coordinate_problem(xyz * f)
-    from kbs.tiles.streamed import CHUNK_POINTS, FileColumn
-
-    column = FileColumn(Path(xyz.filename), xyz.dtype, xyz.shape)
-    first, count = None, 0
-    for start, X in column.chunks(CHUNK_POINTS):
-        problem = coordinate_problem(X * f)
-        if problem is not None:
-            count += int(problem.split(" points have", 1)[0].replace(",", ""))
-            if first is None:  # its row counts from the chunk's start: from the cloud's
-                first = re.sub(r"\(first: row (\d+)", lambda m, at=start: f"(first: row {int(m.group(1)) + at}", problem,
-                               count=1)
-    return None if first is None else f"{count:,}" + first[first.index(" points have"):]
 
 
 def _segment_tiled(segmenter: Segmenter, xyz: np.ndarray, cloud: Path, tiling: Tiling, *, quiet: bool, t0: float,

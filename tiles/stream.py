@@ -24,6 +24,7 @@ import copy
 import datetime
 import math
 import os
+import re
 import types
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -33,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from kbs.errors import CloudFileError
+from kbs.knowledge.segmenter import coordinate_problem
 from kbs.tiles.grid import Tile, TileGrid, ground_axes
 
 #: Points read at a time from a LAS/LAZ file (``kbs run --chunk-points``).
@@ -108,7 +110,8 @@ def spill_las(path: str | os.PathLike[str], folder: str | os.PathLike[str], size
     Raises
     ------
     CloudFileError
-        The file cannot be read, or holds no point.
+        The file cannot be read, holds no point, or a coordinate the engine cannot take
+        (:func:`kbs.knowledge.segmenter.coordinate_problem`, the error of an untiled run).
     ParameterError
         Bad size or buffer (as :meth:`TileGrid.fit`).
     """
@@ -120,10 +123,20 @@ def spill_las(path: str | os.PathLike[str], folder: str | os.PathLike[str], size
     axes = ground_axes(normal)
     lo = np.full(2, np.inf)
     hi = np.full(2, -np.inf)
-    for X in _chunks(path, chunk_points):  # 1: the extent
+    first, count, start = None, 0, 0
+    for X in _chunks(path, chunk_points):  # 1: the extent, and coordinates the engine cannot take
+        problem = coordinate_problem(X)
+        if problem is not None:
+            count += int(problem.split(" points have", 1)[0].replace(",", ""))
+            if first is None:  # its row counts from the chunk's start: from the file's
+                first = re.sub(r"\(first: row (\d+)", lambda m, at=start: f"(first: row {int(m.group(1)) + at}",
+                               problem, count=1)
+        start += len(X)
         uv = X @ axes.T
         lo = np.minimum(lo, uv.min(axis=0))
         hi = np.maximum(hi, uv.max(axis=0))
+    if first is not None:
+        raise CloudFileError(str(path), f"{count:,}" + first[first.index(" points have"):])
     grid = _grid(size, buffer, axes, lo, hi)
     folder.mkdir(parents=True, exist_ok=True)
     files: dict[tuple[int, int], Path] = {}
