@@ -135,3 +135,68 @@ def test_a_streamed_run_on_a_scan_with_too_large_coordinates_names_the_row_and_c
     assert streamed.returncode == whole.returncode == 3, (streamed.stderr, whole.stderr)
     assert "2 points have a coordinate beyond" in whole.stderr and "first: row 2500" in whole.stderr
     assert streamed.stderr == whole.stderr and "Traceback" not in streamed.stderr
+
+
+# -- faults: a tile that fails, a worker that dies ------------------------------------------------------
+
+
+def _east_rules(tmp_path: Path, plugin_text: str) -> list[str]:
+    """The outdoor rules with a check measured by a plugin (test_tiles' failing or killing one)."""
+    plugin = tmp_path / "east.py"
+    plugin.write_text(plugin_text)
+    rules = tmp_path / "east.yaml"
+    text = kbs_cmd("rules", "show", "outdoor").stdout
+    text = text.replace("checks:\n", "checks:\n  west: {predicate: east, max: 100.0}\n", 1)
+    rules.write_text(re.sub(r"if: \[planar, level\]", "if: [planar, level, west]", text))
+    return ["--rules", str(rules), "--plugin", str(plugin)]
+
+
+@pytest.fixture(scope="module")
+def rocks_las(tmp_path_factory) -> Path:
+    X, _ = ground_and_rocks()
+    path = tmp_path_factory.mktemp("las") / "rocks.las"
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.offsets, header.scales = np.floor(X.min(axis=0)), np.array([1e-4, 1e-4, 1e-4])
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = X[:, 0], X[:, 1], X[:, 2]
+    las.write(str(path))
+    return path
+
+
+def test_a_streamed_run_keeps_its_finished_tiles_and_resume_segments_only_the_failed_one(rocks_las, tmp_path,
+                                                                                          monkeypatch):
+    from test_tiles import FLAKY_PLUGIN
+
+    args = ["run", *_east_rules(tmp_path, FLAKY_PLUGIN), "-j", "1", "--tile", "6", "--buffer", "1.5",
+            "--chunk-points", "4000", str(rocks_las)]
+    out, kept = tmp_path / "out", tmp_path / "out" / "rocks.tiles"
+    monkeypatch.setenv("KBS_TEST_FAIL_EAST", "1")  # tile t1_1 fails, the three others are done and kept
+    r = kbs_cmd(*args, "--out", str(out))
+    assert r.returncode == 7, r.stderr
+    assert "tile t1_1 [" in r.stderr and f"the finished tiles are kept in {kept}: run again with --resume" in r.stderr
+    assert sorted(p.name for p in kept.iterdir()) == ["t0_0.npz", "t0_1.npz", "t1_0.npz"]
+    assert sorted(p.name for p in out.iterdir()) == ["rocks.tiles"]  # no result, no spill folder left
+    monkeypatch.delenv("KBS_TEST_FAIL_EAST")
+    r = kbs_cmd(*args, "--resume", "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    assert f"kbs: resumed 3 of 4 tiles from {kept}" in r.stderr
+    assert not kept.exists()
+    fresh = kbs_cmd(*args, "--out", str(tmp_path / "fresh"))
+    assert fresh.returncode == 0, fresh.stderr
+    for name in ("rocks.las", "rocks.json"):
+        assert _normalised(out / name) == _normalised(tmp_path / "fresh" / name)
+
+
+def test_a_dask_worker_killed_in_a_streamed_run_gives_the_same_bytes(rocks_las, tmp_path, monkeypatch):
+    pytest.importorskip("distributed", reason="Dask is not installed: pip install 'kbs[dask]' (it is in [test])")
+    from test_tiles import KILLING_PLUGIN
+
+    args = ["-q", "run", *_east_rules(tmp_path, KILLING_PLUGIN), "--tile", "6", "--buffer", "1.5", str(rocks_las)]
+    assert kbs_cmd(*args, "-j", "1", "--out", str(tmp_path / "here")).returncode == 0
+    marker = tmp_path / "killed"
+    monkeypatch.setenv("KBS_TEST_KILL_MARKER", str(marker))
+    r = kbs_cmd(*args, "-j", "2", "--scheduler", "local", "--out", str(tmp_path / "dask"))
+    assert r.returncode == 0, r.stderr
+    assert marker.read_text() == "killed"  # a worker died in a tile; Dask ran the tile again on another
+    for name in ("rocks.las", "rocks.json"):
+        assert _normalised(tmp_path / "dask" / name) == _normalised(tmp_path / "here" / name)
