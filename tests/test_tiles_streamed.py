@@ -96,6 +96,19 @@ def test_a_tile_task_carries_paths_not_points(tmp_path):
     spilled.remove()
 
 
+def test_a_worker_that_cannot_read_the_spill_folder_says_it_needs_a_shared_file_system(tmp_path):
+    from kbs.errors import ParameterError
+    from kbs.tiles.stream import SpilledTile
+    from kbs.tiles.streamed import run_job
+
+    tile = SpilledTile("t0_0", 0, 0, (0.0, 0.0, 10.0, 10.0), tmp_path / "elsewhere", 10, 10)
+    job = TileJob(str(tmp_path / "elsewhere" / "xyz.npy"), tile, TileGrid.fit(np.zeros((1, 3)), 10.0, 1.0),
+                  str(tmp_path / "store"), b"x" * 32, False)
+    with pytest.raises(ParameterError, match=r"this worker cannot read the tile's points \(No such file or directory: "
+                                             r".*elsewhere/t0_0.idx\): the workers of a Dask scheduler read the tiles"):
+        run_job(lambda X: None, job, (None, {}))
+
+
 # -- through the command: the bytes of the in-memory path ---------------------------------------------
 
 

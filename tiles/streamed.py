@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from kbs.errors import KbsError
+from kbs.errors import KbsError, ParameterError
 from kbs.knowledge.explain import ClusterRecord, Explanation
 from kbs.knowledge.interpreter import NO_LABEL, Segmentation
 from kbs.tiles.grid import Tile, TileGrid
@@ -157,8 +157,14 @@ def run_job(segment: Callable[[np.ndarray], Segmentation], job: TileJob,
             given: tuple[Any, dict[str, Any]]) -> tuple[TileSummary, bool]:
     """Segment ``job``'s tile with ``segment`` (points -> result), or take its file when resuming
     and the file is this tile's; save it, return its summary and whether it was resumed."""
-    index, in_core = job.tile.index, job.tile.in_core
-    points = read_rows(job.xyz, index)
+    try:
+        index, in_core = job.tile.index, job.tile.in_core
+        points = read_rows(job.xyz, index)
+    except OSError as exc:
+        raise ParameterError(f"this worker cannot read the tile's points ({exc.strerror or exc}: {exc.filename}): "
+                             f"the workers of a Dask scheduler read the tiles from, and write their results to, "
+                             f"the output folder: give them a shared file system that holds it at the same path, "
+                             f"or run with 'local' or in process") from exc
     store = TileStore.at(job.store, job.base)
     key = store.key_of(index, points, given)
     seg = store.load(job.tile, key) if job.resume else None
