@@ -244,19 +244,27 @@ def tile_records(name: str, e: Explanation, offset: int, roots: np.ndarray, out_
     stitched ones and on those only in the buffer (``offset``: the tile's first node number)."""
     for rec in e.walk():
         d = dict(vars(rec))
-        d["id"] = f"{name}/{rec.id}"
-        d["parent"] = f"{name}/{rec.parent}" if rec.parent else ROOT
-        d["depth"] = rec.depth + 1
-        d["children"] = [f"{name}/{c}" for c in rec.children]
         d["notes"] = list(rec.notes)
-        if rec.output_index is not None:
-            g = offset + rec.output_index
-            out = int(out_of_root[roots[g]])
-            d["output_index"] = out if out >= 0 else None
-            if out < 0:
-                d["notes"].append(f"only in the buffer of tile {name}: its points are in the cores of "
-                                  f"other tiles, which took them")
-            elif out in stitched:
-                links = f": shares buffer points with {'; '.join(shared[g])}" if g in shared else ""
-                d["notes"].append(f"stitched across tile edges into output cluster {out}{links}")
-        yield ClusterRecord(**d)
+        yield ClusterRecord(**stitched_record(d, name, offset, roots, out_of_root, shared, stitched))
+
+
+def stitched_record(d: dict[str, Any], name: str, offset: int, roots: np.ndarray, out_of_root: np.ndarray,
+                    shared: dict[int, list[str]], stitched: set[int]) -> dict[str, Any]:
+    """One record of a tile (its fields ``d``, changed in place and returned) as the stitched
+    explanation holds it (:func:`tile_records`)."""
+    rid, parent, output_index = d["id"], d["parent"], d["output_index"]
+    d["id"] = f"{name}/{rid}"
+    d["parent"] = f"{name}/{parent}" if parent else ROOT
+    d["depth"] = d["depth"] + 1
+    d["children"] = [f"{name}/{c}" for c in d["children"]]
+    if output_index is not None:
+        g = offset + output_index
+        out = int(out_of_root[roots[g]])
+        d["output_index"] = out if out >= 0 else None
+        if out < 0:
+            d["notes"].append(f"only in the buffer of tile {name}: its points are in the cores of "
+                              f"other tiles, which took them")
+        elif out in stitched:
+            links = f": shares buffer points with {'; '.join(shared[g])}" if g in shared else ""
+            d["notes"].append(f"stitched across tile edges into output cluster {out}{links}")
+    return d

@@ -40,7 +40,7 @@ from kbs.errors import KbsError, ParameterError
 from kbs.knowledge.explain import ClusterRecord, Explanation
 from kbs.knowledge.interpreter import NO_LABEL, Segmentation
 from kbs.tiles.grid import Tile, TileGrid
-from kbs.tiles.stitch import NEIGHBOURS, ROOT, _Union, pair_links, tile_records
+from kbs.tiles.stitch import NEIGHBOURS, ROOT, _Union, pair_links, stitched_record
 from kbs.tiles.store import TileStore
 
 #: Points summed (and written) at a time when the output is computed from the files.
@@ -544,22 +544,23 @@ class StreamedResult:
                 item["stitched"] = parts
             yield item
 
-    def records(self) -> Iterator[ClusterRecord]:
-        """The explanation's records in its order (the root, then each tile's, read from its file)."""
-        yield self.explanation.records[ROOT]
+    def records(self) -> Iterator[dict[str, Any]]:
+        """The explanation's records in its order, as plain data (``to_dict``'s): the root, then
+        each tile's, read from its file (:func:`kbs.tiles.stitch.stitched_record`)."""
+        from kbs.knowledge.explain import _record_dict
+
+        yield _record_dict(self.explanation.records[ROOT])
         for k, t in enumerate(self._tiles):
             with np.load(self._store.path(t), allow_pickle=False) as f:
                 doc = json.loads(bytes(f["doc"]).decode("utf-8"))
-            e = Explanation.from_dict(doc["explanation"])
-            del doc
-            yield from tile_records(t.name, e, int(self._offsets[k]), self._roots, self._out_of_root, self._shared,
-                                    self._stitched)
+            for d in doc["explanation"]["clusters"]:  # to_dict's records: depth-first from the root
+                yield stitched_record(d, t.name, int(self._offsets[k]), self._roots, self._out_of_root, self._shared,
+                                      self._stitched)
 
     def pieces(self) -> dict[str, Callable[[], Iterator[str]]]:
         """The JSON text of ``clusters`` and ``explanation``, piece by piece (for
         :func:`kbs.io.result.write_result_pair`'s ``pieces``)."""
         from kbs.io.result import strict_json
-        from kbs.knowledge.explain import _record_dict
 
         def clusters() -> Iterator[str]:
             yield "["
@@ -575,7 +576,7 @@ class StreamedResult:
             before, after = strict_json(d).split(json.dumps(marker), 1)
             yield before + "["
             for k, rec in enumerate(self.records()):
-                yield ("," if k else "") + strict_json(_record_dict(rec))
+                yield ("," if k else "") + strict_json(rec)
             yield "]" + after
 
         return {"clusters": clusters, "explanation": explanation}
