@@ -7,11 +7,11 @@ results:
 
 1. each tile is segmented (in this process or as a Dask task) from its points read from the spill
    folder (the task gets file paths, not arrays); its whole result goes to its tile file
-   (:class:`~kbs.tiles.store.TileStore`) and what stitching needs comes back, small
-   (:class:`TileSummary`): the cluster and label of the points near the tile's edges (the only
-   ones a neighbour may hold), each cluster's size, label and ids, the counts of the summary;
-2. the clusters crossing tile edges are merged from those edge points alone
-   (:func:`kbs.tiles.stitch.pair_links`);
+   (:class:`~kbs.tiles.store.TileStore`), the cluster and label of the points near the tile's
+   edges (the only ones a neighbour may hold) to a file in the spill folder, and what comes back
+   is small (:class:`TileSummary`): each cluster's size, label and ids, the counts of the summary;
+2. the clusters crossing tile edges are merged from those edge points alone, two rows of tiles
+   read at a time (:func:`kbs.tiles.stitch.pair_links`);
 3. the per-point result (cluster, label, membership) is written to files in the spill folder,
    reading the tile files in turn; the output clusters' descriptors are summed over those files
    in chunks (the sums of :func:`kbs.inference.cluster_geometry`, in its order: the same numbers);
@@ -56,9 +56,6 @@ class TileSummary:
     name : str
     sizes, core_sizes : ndarray (K,) int64
         The points of each of the tile's K clusters, in the whole tile and in its core.
-    edge_index, edge_cluster, edge_label : ndarray (m,)
-        The tile's points that a neighbouring tile may hold (indices into the cloud, increasing),
-        and their cluster and label in this tile.
     clusters : list of (label, ids)
         Each tile cluster's label and explanation record ids.
     label_counts : ndarray (L + 2,) int64
@@ -77,9 +74,6 @@ class TileSummary:
     name: str
     sizes: np.ndarray
     core_sizes: np.ndarray
-    edge_index: np.ndarray
-    edge_cluster: np.ndarray
-    edge_label: np.ndarray
     clusters: list[tuple[Any, list[str]]]
     label_counts: np.ndarray
     n_splits: int
@@ -91,8 +85,10 @@ class TileSummary:
 
 
 def summarize(tile: Tile, grid: TileGrid, index: np.ndarray, in_core: np.ndarray, points: np.ndarray,
-              seg: Segmentation) -> TileSummary:
-    """The :class:`TileSummary` of ``tile``'s result ``seg`` (its ``points`` (n, 3) at ``index``)."""
+              seg: Segmentation, edges: Path | None = None) -> TileSummary:
+    """The :class:`TileSummary` of ``tile``'s result ``seg`` (its ``points`` (n, 3) at ``index``);
+    the tile's edge points (those a neighbouring tile may hold: their indices into the cloud,
+    increasing, and their cluster and label here) go to the file ``edges``."""
     cl = np.asarray(seg.cluster)
     k = len(seg.clusters)
     sizes = np.bincount(cl[cl >= 0], minlength=k).astype(np.int64)
@@ -101,12 +97,14 @@ def summarize(tile: Tile, grid: TileGrid, index: np.ndarray, in_core: np.ndarray
     lab = np.asarray(seg.label)[in_core]
     counts = [np.count_nonzero(lab == i) for i in range(len(seg.label_names))]
     counts += [np.count_nonzero(cc < 0), np.count_nonzero((lab < 0) & (cc >= 0))]
-    edge = _edge_mask(grid, tile, points @ grid.axes.T)
+    if edges is not None:
+        edge = _edge_mask(grid, tile, points @ grid.axes.T)
+        with open(edges, "wb") as stream:
+            np.savez(stream, index=np.asarray(index)[edge], cluster=cl[edge], label=np.asarray(seg.label)[edge])
     e = seg.explanation
     records = e.records.values()
     return TileSummary(
-        name=tile.name, sizes=sizes, core_sizes=core_sizes, edge_index=np.asarray(index)[edge],
-        edge_cluster=cl[edge], edge_label=np.asarray(seg.label)[edge],
+        name=tile.name, sizes=sizes, core_sizes=core_sizes,
         clusters=[(c["label"], list(c["ids"])) for c in seg.clusters],
         label_counts=np.array(counts, dtype=np.int64),
         n_splits=sum(r.action in ("split", "split_components") for r in records),
@@ -172,7 +170,29 @@ def run_job(segment: Callable[[np.ndarray], Segmentation], job: TileJob,
     if seg is None:
         seg = segment(points)
         store.save(job.tile, key, seg)
-    return summarize(job.tile, job.grid, index, in_core, points, seg), resumed
+    return summarize(job.tile, job.grid, index, in_core, points, seg, edges_path(job)), resumed
+
+
+def edges_path(job: TileJob) -> Path:
+    """The file of the tile's edge points: in the spill folder, beside the coordinates."""
+    return Path(job.xyz).with_name(f"{job.tile.name}.edges.npz")
+
+
+class _Edges:
+    """The tiles' edge points read from their files, two rows of the grid at a time (the links of
+    row i are with rows i and i + 1): what stitching holds is bounded by two rows of tiles."""
+
+    def __init__(self, jobs: Sequence[TileJob]) -> None:
+        self.jobs, self.cache = jobs, {}
+
+    def get(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if k not in self.cache:
+            row = self.jobs[k].tile.i
+            for old in [c for c in self.cache if self.jobs[c].tile.i < row - 1]:
+                del self.cache[old]
+            with np.load(edges_path(self.jobs[k])) as f:
+                self.cache[k] = (f["index"], f["cluster"], f["label"])
+        return self.cache[k]
 
 
 def _task(rules: str, sensor: tuple[float, float, float], plugins: tuple[str, ...], job: TileJob,
@@ -237,7 +257,7 @@ def segment_streamed(segmenter: Any, spilled: Any, store: TileStore, *, schedule
                         failed=[tiles[k] for k in sorted(failures)], total=len(tiles),
                         kept=store.folder if len(failures) < len(tiles) else None)
     done_summaries = [s for s in summaries if s is not None]
-    return _stitch(spilled, grid, tiles, done_summaries, store, given[1], t0)
+    return _stitch(spilled, grid, tiles, done_summaries, _Edges(jobs), store, given[1], t0)
 
 
 def _n_points(tile: Tile) -> int:
@@ -260,7 +280,7 @@ def _ground(segmenter: Any, xyz_path: str, n: int) -> tuple[Any, dict[str, Any]]
 # -- stitching from the summaries ---------------------------------------------------------------------
 
 
-def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], summaries: Sequence[TileSummary],
+def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], summaries: Sequence[TileSummary], edges: _Edges,
             store: TileStore, given: dict[str, Any], t0: float) -> StreamedResult:
     offsets = np.concatenate([[0], np.cumsum([len(s.sizes) for s in summaries])]).astype(np.int64)
     total = int(offsets[-1])
@@ -273,9 +293,9 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], summaries: Sequ
             kb = by_cell.get((a.i + di, a.j + dj))
             if kb is None:
                 continue
-            b, sb = tiles[kb], summaries[kb]
-            for x, y, k in pair_links(sa.edge_index, sa.edge_cluster, sa.edge_label, sa.sizes,
-                                      sb.edge_index, sb.edge_cluster, sb.edge_label, sb.sizes):
+            b = tiles[kb]
+            (ia, ca, la), (ib, cb, lb) = edges.get(ka), edges.get(kb)
+            for x, y, k in pair_links(ia, ca, la, sa.sizes, ib, cb, lb, summaries[kb].sizes):
                 uf.union(int(offsets[ka] + x), int(offsets[kb] + y))
                 shared.setdefault(int(offsets[ka] + x), []).append(f"{b.name} cluster {y} ({k:,} shared points)")
                 shared.setdefault(int(offsets[kb] + y), []).append(f"{a.name} cluster {x} ({k:,} shared points)")
