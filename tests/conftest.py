@@ -24,8 +24,9 @@ def shared_data() -> Path:
 
 
 # -- slow end-to-end tests -------------------------------------------------------------------------
-# `pytest` alone skips the tests marked slow (a minute or more each under load: whole real scans,
-# a headless browser, a pip install), saying so; `pytest --runslow` runs every test, and it is what
+# `pytest` alone skips the tests marked slow (3 s or more each on a loaded 2-core machine: whole
+# real scans, `kbs` subprocesses on more than a toy cloud, Dask clusters, a headless browser, a pip
+# install; mark a new test slow when `pytest --durations=20` shows it there), saying so; `pytest --runslow` runs every test, and it is what
 # .ci/run and the README's test command run.
 
 

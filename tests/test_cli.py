@@ -29,6 +29,7 @@ def test_version_and_help():
     assert r.returncode == 0 and "--k-max" in r.stdout
 
 
+@pytest.mark.slow
 def test_cluster_bundled_example_writes_cluster_and_membership(tmp_path):
     out = tmp_path / "clustered.ply"
     r = kbs("cluster", str(EXAMPLE), "--k-max", "6", "--out", str(out))

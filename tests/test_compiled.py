@@ -34,6 +34,7 @@ def _start(mom: Moments, k: int, m: float) -> np.ndarray:
     return new_prototype_memberships(mom.XT, centers, d0, m)
 
 
+@pytest.mark.slow
 def test_exp_row_matches_numpy():
     x = np.concatenate([-np.geomspace(1e-12, 707.0, 5000), [0.0, -0.5, -1e-300]])
     out = np.empty_like(x)
@@ -171,6 +172,7 @@ def test_stop_at_drop_names_the_same_first_drop_with_and_without_compiled_kernel
     assert a.dropped and [str(d) for d in a.dropped] == [str(d) for d in b.dropped]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("power", [2.0, 1.0, 1.5])
 def test_compiled_cluster_geometry_and_criteria_match_numpy(monkeypatch, power):
     from kbs.inference import cluster_geometry
@@ -217,6 +219,7 @@ def _scan_piece():
     return X[np.argsort(np.linalg.norm(X - X[1234], axis=1))[:6000]]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ["blobs", "bridged", "lattice", "strip", "far", "scan"])
 @pytest.mark.parametrize("kw", [{}, {"opening": False}, {"erosion_fraction": 0.6}, {"alpha": 0.5}])
 def test_compiled_connexity_equals_the_kd_tree_version(monkeypatch, case, kw):

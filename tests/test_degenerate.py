@@ -73,6 +73,7 @@ CLOUDS = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(CLOUDS))
 def test_a_cloud_with_no_plane_is_not_ground_and_says_why(tmp_path, name):
     X, what = CLOUDS[name]
@@ -102,6 +103,7 @@ def test_a_cloud_with_no_plane_is_not_ground_and_says_why(tmp_path, name):
             f"no plane))") in e.stdout
 
 
+@pytest.mark.slow
 def test_meshes_write_no_surface_for_ground_points_on_a_line(tmp_path):
     rules = tmp_path / "allground.yaml"
     rules.write_text(ALL_GROUND)
@@ -114,6 +116,7 @@ def test_meshes_write_no_surface_for_ground_points_on_a_line(tmp_path):
     assert not (tmp_path / "out" / "line-meshes" / "ground.ply").exists()
 
 
+@pytest.mark.slow
 def test_the_ground_mesh_has_no_zero_area_triangle(tmp_path):
     """Two parallel rails of points, 5 cm apart, stored in float32: the triangles along each rail
     are slivers of float32 rounding."""
@@ -147,6 +150,7 @@ def _pole() -> np.ndarray:
     return np.column_stack([np.full(300, -2.0), np.full(300, -3.0), np.linspace(0.0, 3.0, 300) - 1.5])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("make_line", [_cable, _pole], ids=["cable", "pole"])
 def test_a_line_in_a_scene_is_explained_and_the_other_labels_do_not_move(tmp_path, monkeypatch, make_line):
     line = make_line()
@@ -288,6 +292,7 @@ def test_ground_mesh_refuses_points_on_a_line():
         ground_mesh(_line(dtype=np.float32).astype(np.float64))
 
 
+@pytest.mark.slow
 def test_predicates_lists_which_need_a_plane():
     r = kbs("predicates")
     assert r.returncode == 0

@@ -52,6 +52,7 @@ def _las_scene(path: Path, X: np.ndarray, truth: np.ndarray, *, point_format: in
 # -- 1. LAS/LAZ out ------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_las_in_las_out_keeps_the_records_and_sets_the_asprs_classes(tmp_path, rocks):
     X, truth = rocks
     scan = _las_scene(tmp_path / "scan.las", X, truth)
@@ -85,6 +86,7 @@ def test_las_in_las_out_keeps_the_records_and_sets_the_asprs_classes(tmp_path, r
     assert res.header.generating_software.startswith("kbs ")
 
 
+@pytest.mark.slow
 def test_laz_out_from_a_ply_with_its_crs(tmp_path, rocks):
     X, truth = rocks
     scan = tmp_path / "rocks.ply"
@@ -103,6 +105,7 @@ def test_laz_out_from_a_ply_with_its_crs(tmp_path, rocks):
     assert doc["points"] == "rocks.laz" and doc["scan_units"]["crs"] == "EPSG:32633"
 
 
+@pytest.mark.slow
 def test_codes_a_legacy_point_format_cannot_hold_are_refused_before_any_work(tmp_path, rocks):
     X, truth = rocks
     scan = _las_scene(tmp_path / "scan.las", X, truth)
@@ -116,6 +119,7 @@ def test_codes_a_legacy_point_format_cannot_hold_are_refused_before_any_work(tmp
     assert r.returncode == 0, r.stderr
 
 
+@pytest.mark.slow
 def test_asprs_classes_are_validated_with_positions(tmp_path):
     text = kbs("rules", "show", "outdoor").stdout
     bad = tmp_path / "bad.yaml"
@@ -129,6 +133,7 @@ def test_asprs_classes_are_validated_with_positions(tmp_path):
     assert f"{bad}:{line}:49: asprs_classes.noise: -1 is less than the minimum of 0" in r.stderr
 
 
+@pytest.mark.slow
 def test_a_las_result_and_a_json_of_another_run_are_refused(tmp_path, rocks):
     X, truth = rocks
     scan = _las_scene(tmp_path / "scan.las", X, truth)
@@ -152,6 +157,7 @@ def metres_run(tmp_path_factory) -> tuple[Path, dict]:
     return out / "outdoor.ply", json.loads((out / "outdoor.json").read_text())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("unit", "factor", "how"), [("mm", 1000.0, "comment"), ("ft", 1 / 0.3048, "comment"),
                                                      ("mm", 1000.0, "--units"), ("us-ft", 3937 / 1200, "--units")])
 def test_the_same_scene_in_m_mm_and_ft_gives_the_same_labels(tmp_path, metres_run, unit, factor, how):
@@ -185,6 +191,7 @@ def test_the_same_scene_in_m_mm_and_ft_gives_the_same_labels(tmp_path, metres_ru
         assert f"units {unit}" in PlyData.read(str(tmp_path / "o" / "scene.ply")).comments  # the output says so too
 
 
+@pytest.mark.slow
 def test_an_implausible_spacing_is_a_warning_and_a_note_in_the_json(tmp_path):
     scan = tmp_path / "mm.ply"
     write_ply(scan, read_cloud(EXAMPLE).xyz * 1000.0)  # millimetres, not declared
@@ -204,6 +211,7 @@ def test_an_implausible_spacing_is_a_warning_and_a_note_in_the_json(tmp_path):
     assert "spacing" not in json.loads((tmp_path / "o" / "mm.json").read_text())
 
 
+@pytest.mark.slow
 def test_spacing_declared_by_a_rule_file_is_validated(tmp_path):
     rules = tmp_path / "r.yaml"
     rules.write_text(kbs("rules", "show", "outdoor").stdout.replace("spacing: [0.0005, 2]", "spacing: [2, 0.0005]"))
@@ -256,6 +264,7 @@ def test_autzen_in_feet_is_segmented_in_metres(shared_data, tmp_path):
     assert doc["scan_units"]["horizontal"] == "ft" and doc["scan_units"]["crs"].startswith("PROJCS[")
 
 
+@pytest.mark.slow
 def test_pcd_comments_declare_units(tmp_path):
     X = read_cloud(EXAMPLE).xyz[:2000] * 100.0
     body = "\n".join(f"{x:.4f}   {y:.4f}\t{z:.4f}" for x, y, z in X)
@@ -314,6 +323,7 @@ def cloudcompare_scalar_fields(path: Path) -> dict[str, np.ndarray]:
     return out
 
 
+@pytest.mark.slow
 def test_cloudcompare_loads_cluster_label_membership_as_scalar_fields(tmp_path, metres_run):
     ply, doc = metres_run
     fields = cloudcompare_scalar_fields(ply)
@@ -330,6 +340,7 @@ def test_cloudcompare_loads_cluster_label_membership_as_scalar_fields(tmp_path, 
     assert not {"cluster", "label", "membership"} & set(cloudcompare_scalar_fields(old))
 
 
+@pytest.mark.slow
 def test_kbs_reads_old_and_new_field_names(tmp_path, metres_run):
     ply, doc = metres_run
     v = PlyData.read(str(ply))["vertex"]
@@ -363,6 +374,7 @@ DATA ascii
 """
 
 
+@pytest.mark.slow
 def test_ascii_pcd_with_several_spaces_between_columns(tmp_path, rocks):
     X, _ = rocks
     rows = "\n".join(f"{x:.6g}  {y:.6g}    {z:.6g}" if i % 2 else f" {x:.6g}\t{y:.6g}  {z:.6g} "
@@ -391,6 +403,7 @@ def _e57(path: Path, X: np.ndarray, truth: np.ndarray) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_e57_scans_are_read_with_their_poses(tmp_path, rocks):
     X, truth = rocks
     scan = _e57(tmp_path / "rocks.e57", X, truth)
@@ -405,6 +418,7 @@ def test_e57_scans_are_read_with_their_poses(tmp_path, rocks):
     assert r.stderr == f"kbs: error: {scan}: reading E57 needs the optional package pye57: pip install 'kbs[e57]'\n"
 
 
+@pytest.mark.slow
 def test_standard_input_and_output(tmp_path, rocks):
     X, truth = rocks
     scan = tmp_path / "rocks.ply"
@@ -439,6 +453,7 @@ def test_standard_input_and_output(tmp_path, rocks):
 # -- 5. Python -----------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_the_readme_one_liner_runs():
     readme = (ROOT / "README.md").read_text()
     section = readme[readme.index("### One call: `kbs.segment`"):]
@@ -455,6 +470,7 @@ def test_dir_kbs_lists_the_public_names_only():
     assert not {"annotations", "version", "PackageNotFoundError", "_metadata"} & set(names)
 
 
+@pytest.mark.slow
 def test_knowledge_segment_takes_a_rule_base_name():
     import kbs
     import kbs.knowledge
@@ -476,6 +492,7 @@ COMPOUND_WKT = ('COMPD_CS["UTM 33N + heights in feet",PROJCS["WGS 84 / UTM zone 
                 'VERT_CS["some height",VERT_DATUM["some datum",2005],UNIT["foot",0.3048]]]')
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("pyproj", ["installed", "hidden"])
 def test_a_compound_crs_with_heights_in_feet_is_scaled_axis_by_axis(tmp_path, rocks, pyproj):
     """x and y in metres, z in feet (a compound WKT CRS): z alone is scaled; the same labels as
@@ -506,6 +523,7 @@ def test_a_compound_crs_with_heights_in_feet_is_scaled_axis_by_axis(tmp_path, ro
     assert doc["scan_units"]["metres"] == [1.0, 1.0, 0.3048] and "different units" in doc["notes"][0]
 
 
+@pytest.mark.slow
 def test_clusters_no_label_matched_are_unclassified_not_noise(tmp_path, rocks):
     X, truth = rocks
     scan = _las_scene(tmp_path / "scan.las", X, truth)
@@ -525,6 +543,7 @@ def test_clusters_no_label_matched_are_unclassified_not_noise(tmp_path, rocks):
 # --- optional extras: the report (plotly) and the figures (matplotlib) ------------------------------
 
 
+@pytest.mark.slow
 def test_report_without_plotly_is_a_usage_error_before_any_work(tmp_path):
     """plotly is the `report` extra (64 MB installed, only to inline plotly.js): without it
     `kbs run --report` stops at once, exit 2, naming the extra, and writes nothing."""
@@ -539,6 +558,7 @@ def test_report_without_plotly_is_a_usage_error_before_any_work(tmp_path):
     assert (out / "outdoor.ply").is_file() and (out / "outdoor.json").is_file()
 
 
+@pytest.mark.slow
 def test_render_without_matplotlib_names_the_extra(tmp_path):
     out = tmp_path / "o"
     assert kbs("-q", "run", "--rules", "outdoor", str(EXAMPLE), "--out", str(out)).returncode == 0
@@ -548,6 +568,7 @@ def test_render_without_matplotlib_names_the_extra(tmp_path):
     assert not list(out.glob("*.png"))
 
 
+@pytest.mark.slow
 def test_the_core_install_does_not_import_the_figure_libraries():
     """`kbs run` (the main job) imports neither matplotlib nor plotly."""
     code = ("import sys; from kbs.cli.main import main; code = main(['-q', 'run', '--rules', 'outdoor', "
@@ -561,6 +582,7 @@ def test_the_core_install_does_not_import_the_figure_libraries():
     assert r.stdout.strip().splitlines()[-1] == "[]"
 
 
+@pytest.mark.slow
 def test_rules_show_writes_a_schema_reference_that_works_from_anywhere(tmp_path):
     """`kbs rules show outdoor > my.yaml` in any folder: the editor line points at the installed
     schema (a file URI to a file that exists), and the file checks clean; `kbs rules schema` prints

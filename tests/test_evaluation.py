@@ -339,6 +339,7 @@ def rocks_result(tmp_path_factory):
     return tmp, tmp / "out" / "rocks.ply", truth
 
 
+@pytest.mark.slow
 def test_kbs_eval_end_to_end(rocks_result, capsys):
     tmp, ply, truth = rocks_result
     out = tmp / "eval.json"
@@ -359,6 +360,7 @@ def test_kbs_eval_end_to_end(rocks_result, capsys):
     assert "Hoover" not in stdout and f"{g.f1:.4f}" in stdout
 
 
+@pytest.mark.slow
 def test_a_ground_evaluation_prints_the_ground_table_not_hoover_by_default(rocks_result):
     """--ground-values asks for the ground metrics: their table alone (Hoover's regions table came
     first and took the screen); without --ground-values Hoover is still the default."""
@@ -372,6 +374,7 @@ def test_a_ground_evaluation_prints_the_ground_table_not_hoover_by_default(rocks
     assert r.returncode == 0 and "Hoover et al." in r.stdout and "ground: not computed" in r.stdout
 
 
+@pytest.mark.slow
 def test_kbs_eval_tolerances_print_the_table_1_rows_of_a_result(rocks_result, capsys):
     tmp, ply, truth = rocks_result
     out = tmp / "eval_t.json"

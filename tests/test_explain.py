@@ -268,6 +268,7 @@ def test_a_cluster_given_the_default_label_says_why_no_rule_acted(tmp_path, caps
 # -- the README's printed outputs ------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_the_readme_run_and_explain_block_is_what_kbs_prints(tmp_path):
     """The README's first example block (`kbs run` on the bundled scene, then `kbs explain` and
     `kbs explain --cluster`): every line it shows, but the elisions (`...`) and the time line, is a

@@ -47,6 +47,7 @@ def runs(tmp_path_factory) -> dict[str, Path]:
     return done
 
 
+@pytest.mark.slow
 def test_the_series_of_a_global_run_draws_each_visited_k_with_its_eigen_boxes(runs, tmp_path):
     from kbs.report import figures
 
@@ -66,6 +67,7 @@ def test_the_series_of_a_global_run_draws_each_visited_k_with_its_eigen_boxes(ru
     assert _reddish(img) > 200, "no box of a failing cluster drawn"
 
 
+@pytest.mark.slow
 def test_the_series_of_a_divisive_run_is_the_initial_sweep_with_eigen_boxes(runs, tmp_path):
     from kbs.report import figures
 
@@ -83,6 +85,7 @@ def test_the_series_of_a_divisive_run_is_the_initial_sweep_with_eigen_boxes(runs
     assert _reddish(_png(out)) < 50  # no rule judged those partitions: no red boxes
 
 
+@pytest.mark.slow
 def test_the_cah_view_of_a_cluster_split_by_cah_shows_its_components(runs, tmp_path):
     result = runs["outdoor"]
     records = json.loads(result.read_text())["explanation"]["clusters"]
@@ -119,6 +122,7 @@ def test_the_cah_figure_separates_two_discs_joined_by_a_thin_bridge():
     assert "1 component, 1 significant" in fig.axes[2].get_title()  # no opening: the bridge holds
 
 
+@pytest.mark.slow
 def test_render_cah_refuses_a_missing_or_unknown_cluster(runs):
     result = runs["outdoor"]
     r = kbs("render", str(result), "--kind", "cah")

@@ -157,6 +157,7 @@ def _check_outcome(text: str) -> Any:
         return exc
 
 
+@pytest.mark.slow
 @settings(FUZZ, max_examples=300)
 @given(mutated_rule_base())
 def test_a_mutated_rule_file_loads_or_is_a_positioned_rule_file_error(case):

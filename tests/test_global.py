@@ -79,6 +79,7 @@ def global_run(tmp_path_factory) -> Path:
     return out / "polyhedral.json"
 
 
+@pytest.mark.slow
 def test_the_global_strategy_goes_from_k_to_k_plus_1_until_every_face_is_planar(global_run):
     """The bundled polyhedral scene (12 faces): APD's first maximum is K = 2, where the boxes are
     one thick cluster; the strategy must go on, K after K, to K = 10 where every cluster is planar,
@@ -103,6 +104,7 @@ def test_the_global_strategy_goes_from_k_to_k_plus_1_until_every_face_is_planar(
     assert int(counts[0]) >= 9, r.stdout
 
 
+@pytest.mark.slow
 def test_kbs_explain_lists_each_k_step_and_stars_the_k_kept(global_run):
     r = kbs("explain", str(global_run))
     assert r.returncode == 0, r.stderr
@@ -127,6 +129,7 @@ def test_the_visited_partitions_survive_the_result_file(global_run):
     assert doc["explanation"]["version"] == "1.2"
 
 
+@pytest.mark.slow
 def test_k_max_stops_the_global_strategy_and_says_so(tmp_path):
     rules = tmp_path / "g4.yaml"
     rules.write_text(kbs("rules", "show", "planar_global").stdout.replace("k_max: 30", "k_max: 4"))
@@ -162,6 +165,7 @@ def test_a_failing_cluster_under_min_points_does_not_make_k_grow():
 # -- the ground direction: which cluster, at what distance (issue 13, last item) ---------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("plane_spec", [True, False])
 def test_kbs_run_and_explain_say_which_cluster_gave_the_ground_and_how_far(tmp_path, plane_spec):
     """With a robust-plane spec or a candidate check alone, the ground line names the cluster and

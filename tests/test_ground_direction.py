@@ -68,6 +68,7 @@ def two_planes(*, cluttered: bool, seed: int = 0, tilt: float = 15.0) -> tuple[n
     return np.vstack([near_pts, far]), len(near_pts)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("cluttered", [True, False], ids=["near ground cluttered", "near ground clean"])
 def test_the_near_ground_is_the_ground_not_the_farther_larger_plane(tmp_path, cluttered):
     """The farther plane is larger and clean (it passes 'planar'); the near ground, cluttered, does
@@ -93,6 +94,7 @@ def test_the_near_ground_is_the_ground_not_the_farther_larger_plane(tmp_path, cl
     assert records[chosen]["descriptors"]["center"][0] < 15
 
 
+@pytest.mark.slow
 def test_the_ground_is_explained(tmp_path):
     X, _ = two_planes(cluttered=True)
     scan = tmp_path / "two.ply"
@@ -115,6 +117,7 @@ def test_the_ground_is_explained(tmp_path):
 # --- (c) no plane: the fallback, and why -----------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_scene_with_no_plane_uses_the_fallback_and_says_why(tmp_path):
     rng = np.random.default_rng(4)
     X = np.vstack([rng.normal(c, 1.5, (6000, 3)) for c in ([8, 0, 0], [0, 9, 1], [-7, -5, 2])])  # three blobs
@@ -130,6 +133,7 @@ def test_a_scene_with_no_plane_uses_the_fallback_and_says_why(tmp_path):
     assert note[0].endswith(": the fallback normal [0.0, 0.0, 1.0] is used")
 
 
+@pytest.mark.slow
 def test_a_wall_is_not_the_ground_beyond_max_tilt(tmp_path):
     """Only a rough wall (8 cm thick: not 'planar', but its robust plane holds 79 % of its points;
     90 deg from the fallback): beyond plane.max_tilt, the fallback is used, and the note says the
@@ -241,6 +245,7 @@ def test_the_shipped_outdoor_rules_declare_the_robust_plane():
     assert spec.candidate == "planar" and spec.normal is None
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("old, new, at, message", [
     ("inlier_distance: 0.10", "inlier_distance: -0.1", "-0.1", "scene.ground.plane.inlier_distance: -0.1 is less than or "
                                                                "equal to the minimum of 0"),
@@ -276,6 +281,7 @@ def test_a_plane_with_a_fixed_normal_is_a_warning(tmp_path, capsys):
     assert f"t.yaml:{line}:5: warning: scene.ground.plane is not used: scene.ground.normal fixes the ground" in err, err
 
 
+@pytest.mark.slow
 def test_the_robust_plane_alone_finds_the_ground_for_ground_angle_checks(tmp_path):
     """A rule base whose ground-angle checks have no candidate check, only scene.ground.plane: it is
     valid (before, it needed 'candidate') and finds the cluttered near ground."""

@@ -310,6 +310,7 @@ def test_predicates_command_lists_the_local_surface_predicate():
     assert "height_above_local_ground  [length" in r.stdout and "post.relabel only" in r.stdout
 
 
+@pytest.mark.slow
 def test_user_rule_file_with_the_post_steps_runs(tmp_path):
     """A user's rule base with a fixed ground normal and all three post steps, through the command."""
     X, _ = ground_and_rocks()
@@ -400,6 +401,7 @@ def test_ground_contact_only_from_the_clusters_its_condition_admits():
             assert not checks["level"] or not checks["sheet"]
 
 
+@pytest.mark.slow
 def test_ground_release_moves_raised_ground_points_to_the_nearest_obstacle(shared_data):
     """The SemanticKITTI scan with the shipped outdoor rules, against the same rules without
     post.ground_release: exactly the counted points changed, from ground to obstacle, each standing
@@ -456,6 +458,7 @@ def _ground_of_run(tmp_path, X, rules: str, name: str):
     return np.asarray(v["scalar_label"]) == 0, json.loads((tmp_path / "o" / f"{name}.json").read_text())
 
 
+@pytest.mark.slow
 def test_outdoor_rules_take_a_row_of_parked_cars_roofs_for_obstacles_not_ground(tmp_path):
     """Issue 12: parked cars became ground. Their roofs are as planar and as level as the road, so
     PAh and the ground angle pass them; what tells them from the ground is where they stand: 1.45 m
@@ -469,6 +472,7 @@ def test_outdoor_rules_take_a_row_of_parked_cars_roofs_for_obstacles_not_ground(
     assert "relabelled obstacle by raised [outdoor.yaml:" in r.stdout and "raised (height_above_local_ground = 1.4" in r.stdout
 
 
+@pytest.mark.slow
 def test_airborne_rules_take_a_large_buildings_inner_roof_for_an_object(tmp_path):
     """Issue 12: the roofs of large buildings became ground, each roof patch judged against the
     roof patches around it. airborne.yaml's 'above_terrain' judges it against the lowest terrain
@@ -553,6 +557,7 @@ def test_block_reductions_are_those_of_every_block(reach):
         np.testing.assert_allclose(_slide(B, reach, op), want)
 
 
+@pytest.mark.slow
 def test_post_steps_ask_only_for_the_points_the_bounds_leave_open(monkeypatch, shared_data):
     """ground_contact and ground_release skip the surface query of points whose bounds decide
     their outcome: the result is the same as asking for every point (SemanticKITTI, outdoor)."""

@@ -36,6 +36,7 @@ def test_auto_uses_the_compiled_kernels_only_once_the_warm_up_has_cached_them(mo
     assert _flags._decide() is True and started == [1, 1]
 
 
+@pytest.mark.slow
 def test_one_warm_up_at_a_time_and_it_writes_the_marker(state):
     lock = state / "kbs-jit-warmup.lock"
     lock.touch()

@@ -450,6 +450,7 @@ def test_a_rule_file_with_max_clusters_still_stops_at_it():
     assert stopped and all(f"limit reached: max_clusters = {cap}" in r.notes for r in stopped)
 
 
+@pytest.mark.slow
 def test_explanation_round_trips_through_json():
     X, _ = ground_and_rocks()
     seg = Interpreter(load_rule_base("outdoor")).run(X)

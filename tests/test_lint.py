@@ -27,6 +27,7 @@ def test_ruff_finds_nothing_in_the_library():
     assert r.returncode == 0, r.stdout + r.stderr
 
 
+@pytest.mark.slow
 def test_mypy_finds_nothing_in_the_library(tmp_path):
     """mypy checks the package kbs, which is the repository root: from a folder where kbs is a link
     to it."""

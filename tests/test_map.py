@@ -145,6 +145,7 @@ def test_the_grid_grows_with_the_drive_and_keeps_what_it_has():
 
 # --- meshes --------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_alpha_shape_follows_a_concave_solid_where_the_hull_does_not():
     trimesh = pytest.importorskip("trimesh", reason="trimesh (test extra) checks the meshes")
     # an L-shaped solid, 2 x 2 x 0.5 m with a 1 x 1 corner cut away, sampled on a jittered grid
@@ -178,6 +179,7 @@ def drive_map(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow
 def test_synth_drive_writes_frames_poses_and_truth(drive_map):
     from kbs.io import read_cloud
     from kbs.maps import read_poses
@@ -204,6 +206,7 @@ def test_synth_drive_writes_frames_poses_and_truth(drive_map):
         assert (truth.object_at(W[~g, 0], W[~g, 1], 0.05) == c.fields["object"][~g]).mean() > 0.95
 
 
+@pytest.mark.slow
 def test_kbs_map_of_a_generated_drive_matches_the_true_layout(drive_map):
     """Cell accuracy against the true layout, and the objects against the true obstacles.
 
@@ -297,6 +300,7 @@ def test_kbs_map_geotiff_opens_with_rasterio(drive_map):
         assert data[0, row, col] == OBSTACLE
 
 
+@pytest.mark.slow
 def test_kbs_map_without_poses_says_identity_and_smears_the_turning_drive(drive_map, tmp_path, capsys):
     code, out, err = run(capsys, "map", "--rules", "outdoor", drive_map / "drive" / "scans", "--out", tmp_path, "-j",
                          "1")
@@ -436,6 +440,7 @@ def test_kbs_map_estimates_the_poses_of_three_semantickitti_frames(shared_data, 
     assert int((cls == OBSTACLE).sum()) == doc["grid"]["counts"]["obstacle"]
 
 
+@pytest.mark.slow
 def test_estimated_poses_fail_clearly(shared_data, two_scans, tmp_path, capsys):
     pytest.importorskip("kiss_icp", reason="estimating poses needs KISS-ICP: pip install 'kbs[map]'")
     from kbs.errors import FitError
@@ -500,6 +505,7 @@ def _write_bag(path: Path, frames: list[np.ndarray], *, ros: int, topic: str, fl
                                                                     "std_msgs/msg/String"))
 
 
+@pytest.mark.slow
 def test_kbs_map_reads_a_ros2_bag_as_the_scans_it_holds(drive_map, tmp_path, capsys):
     pytest.importorskip("rosbags", reason="ROS bags need rosbags: pip install 'kbs[map]'")
     from kbs.io import read_cloud
@@ -568,6 +574,7 @@ def test_a_kitti_sequence_folder_gives_its_scans_and_lidar_poses(tmp_path):
     assert read_drive([seq]).poses.source == "identity"
 
 
+@pytest.mark.slow
 def test_kbs_map_without_matplotlib_or_rasterio_writes_the_rest_and_says_so(drive_map, tmp_path):
     """matplotlib (the PNG) and rasterio (the GeoTIFF) come with the `map` extra; without them the
     map's arrays, cloud, objects and index are written and the index's notes say what is missing."""

@@ -131,6 +131,7 @@ def test_an_error_in_the_writer_removes_its_temporary_files_and_keeps_the_old_fi
     assert path.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["a.ply"]
 
 
+@pytest.mark.slow
 def test_a_kill_during_the_write_leaves_the_previous_pair_intact(out):
     """SIGKILL half-way through the PLY (no cleanup can run): the previous pair is untouched and
     still renders; at most a hidden temporary file is left beside it."""
@@ -297,6 +298,7 @@ def _progress(stderr: str) -> list[re.Match]:
     return [m for m in map(PROGRESS.fullmatch, stderr.splitlines()) if m]
 
 
+@pytest.mark.slow
 def test_run_prints_progress_lines_on_a_stderr_that_is_not_a_terminal(tmp_path):
     env = {**os.environ, "KBS_PROGRESS_SECONDS": "0"}  # a line at every split instead of every 10 s
     exe = shutil.which("kbs", path=str(Path(sys.executable).parent))
@@ -310,6 +312,7 @@ def test_run_prints_progress_lines_on_a_stderr_that_is_not_a_terminal(tmp_path):
     assert r.returncode == 0 and r.stderr == "" and r.stdout == ""  # -q: neither progress nor summary
 
 
+@pytest.mark.slow
 def test_a_terminal_gets_no_progress_lines(tmp_path):
     import pty
 
@@ -421,6 +424,7 @@ def _unprivileged() -> list[str]:
     return prefix
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", ["run", "cluster", "render", "run a folder"])
 def test_an_unreadable_input_exits_3_not_2(tmp_path, command):
     prefix = _unprivileged()
@@ -546,6 +550,7 @@ def test_eval_json_is_never_the_results_own_json(out, capsys):
     assert _snapshot(out) == before
 
 
+@pytest.mark.slow
 def test_a_full_disk_while_writing_the_meshes_leaves_the_previous_folder(tmp_path, monkeypatch, capsys):
     """The meshes folder of a scan run again on other points: a failure half-way through leaves the
     earlier folder as it was (it was left half new, half old); a complete run replaces it whole,
@@ -589,6 +594,7 @@ def test_a_full_disk_while_writing_the_meshes_leaves_the_previous_folder(tmp_pat
     assert (folder / "notes.txt").read_text() == "mine"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scale", [1e80, 1e105])
 def test_coordinates_too_large_for_float64_products_are_refused_clearly(tmp_path, scale):
     """Coordinates of 1e80 ran for a minute and printed numpy's 'overflow encountered in multiply'

@@ -57,6 +57,7 @@ def _run(tmp_path: Path, plugin: Path, predicate_name: str, *extra: str):
 # --- exiting and interrupting ------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_sys_exit_while_the_plugin_is_imported_is_a_plugin_error(tmp_path):
     plugin = tmp_path / "quitter.py"
     plugin.write_text("import sys\n\nsys.exit(0)\n")
@@ -66,6 +67,7 @@ def test_sys_exit_while_the_plugin_is_imported_is_a_plugin_error(tmp_path):
     assert "Traceback" not in r.stderr and not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
 def test_sys_exit_in_a_predicate_is_a_plugin_error_naming_the_file_and_line(tmp_path):
     plugin = _plugin(tmp_path, "quits", "sys.exit(0)\n")
     r = _run(tmp_path, plugin, "quits")
@@ -74,12 +76,14 @@ def test_sys_exit_in_a_predicate_is_a_plugin_error_naming_the_file_and_line(tmp_
     assert "Traceback" not in r.stderr and "wrote" not in r.stdout
 
 
+@pytest.mark.slow
 def test_sys_exit_with_a_code_or_a_message_is_a_plugin_error_too(tmp_path):
     plugin = _plugin(tmp_path, "quits", "sys.exit('giving up')\n")
     r = _run(tmp_path, plugin, "quits")
     assert r.returncode == 7 and "called sys.exit('giving up')" in r.stderr, r.stderr
 
 
+@pytest.mark.slow
 def test_ctrl_c_in_a_predicate_still_stops_the_run(tmp_path):
     plugin = _plugin(tmp_path, "interrupted", "raise KeyboardInterrupt\n")
     r = _run(tmp_path, plugin, "interrupted")
@@ -97,6 +101,7 @@ def test_ctrl_c_while_a_plugin_is_imported_still_stops_the_run(tmp_path):
 # --- the plugin file, not an internal module name ------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_failing_predicate_names_its_file_and_the_failing_line(tmp_path):
     plugin = _plugin(tmp_path, "broken", "x = 1.0\nreturn x / 0\n")
     r = _run(tmp_path, plugin, "broken")
@@ -132,6 +137,7 @@ def test_predicates_lists_where_a_plugin_predicate_is_declared():
     assert "kbs_plugin_" not in r.stdout
 
 
+@pytest.mark.slow
 def test_a_predicate_returning_nan_names_its_file(tmp_path):
     plugin = _plugin(tmp_path, "nan", "return float('nan')\n")
     r = _run(tmp_path, plugin, "nan")
@@ -142,6 +148,7 @@ def test_a_predicate_returning_nan_names_its_file(tmp_path):
 # --- read-only views -----------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_predicate_changing_the_ground_normal_is_a_plugin_error_and_labels_do_not_move(tmp_path):
     plugin = _plugin(tmp_path, "tilt", "scene.ground.normal[:] = [1.0, 0.0, 0.0]\nreturn 0.0\n")
     r = _run(tmp_path, plugin, "tilt")
@@ -217,6 +224,7 @@ def test_a_predicate_that_only_reads_still_works_and_the_caller_keeps_writable_a
     assert X.flags.writeable and sensor.flags.writeable  # the read-only views are views, not the caller's arrays
 
 
+@pytest.mark.slow
 def test_a_plugin_raising_a_kbs_error_is_still_named(tmp_path):
     plugin = _plugin(tmp_path, "picky", "from kbs.errors import FitError\nraise FitError('too few points for me')\n")
     r = _run(tmp_path, plugin, "picky")
@@ -225,6 +233,7 @@ def test_a_plugin_raising_a_kbs_error_is_still_named(tmp_path):
            "too few points for me" in r.stderr, r.stderr
 
 
+@pytest.mark.slow
 def test_a_relative_plugin_path_is_named_as_given(tmp_path):
     (tmp_path / "plugins").mkdir()
     (tmp_path / "plugins" / "nodoc.py").write_text("from kbs.knowledge import predicate\n\n\n@predicate(unit='ratio')\n"

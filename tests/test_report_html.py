@@ -69,6 +69,7 @@ def _outside_plotly(page: str) -> str:
     return page.replace(b64, "")
 
 
+@pytest.mark.slow
 def test_report_is_self_contained(outdoor, tmp_path):
     page = write_report(tmp_path / "r.html", **outdoor, title="outdoor").read_text(encoding="utf-8")
     rest = _outside_plotly(page)
@@ -266,6 +267,7 @@ def test_kbs_run_report_of_the_bundled_example_opens_without_errors(tmp_path):
     assert errors == "" and ready
 
 
+@pytest.mark.slow
 @needs_chromium
 def test_clicking_a_cluster_draws_its_cah_view(outdoor, tmp_path):
     """The seed paper's figures 5-7 in the report: a click on a point draws its cluster's projection,
@@ -300,6 +302,7 @@ var t = setInterval(function () {{
     assert f"cluster {biggest} on the ground plane" in dom and f"{view['components']} component" in dom
 
 
+@pytest.mark.slow
 @needs_chromium
 def test_the_report_of_a_global_run_shows_its_k_partitions(tmp_path):
     poly = EXAMPLE.with_name("polyhedral.ply")

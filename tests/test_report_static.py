@@ -48,6 +48,7 @@ def test_palette_distinct_deterministic_never_grey():
     assert tuple(colors_for(np.array([-1]))[0]) == NOISE_RGB
 
 
+@pytest.mark.slow
 def test_run_ply_colours_by_cluster(outdoor_run):
     v = PlyData.read(str(outdoor_run / "outdoor.ply"))["vertex"]
     names = [p.name for p in v.properties]
@@ -63,6 +64,7 @@ def test_run_ply_colours_by_cluster(outdoor_run):
     assert all(col != NOISE_RGB for c, col in seen.items() if c >= 0)
 
 
+@pytest.mark.slow
 def test_run_colour_by_label_and_noise_grey(tmp_path):
     # a scene with a far, sparse handful of points the outdoor rules reject as noise
     rng = np.random.default_rng(0)
@@ -83,6 +85,7 @@ def test_run_colour_by_label_and_noise_grey(tmp_path):
     assert len({tuple(rgb[lab == k][0]) for k in np.unique(lab)}) == len(np.unique(lab))
 
 
+@pytest.mark.slow
 def test_render_all_writes_three_nonblank_pngs(outdoor_run, tmp_path):
     from matplotlib.image import imread
 
@@ -99,6 +102,7 @@ def test_render_all_writes_three_nonblank_pngs(outdoor_run, tmp_path):
         assert len(np.unique((img[..., :3] * 15).round().reshape(-1, 3), axis=0)) >= 4
 
 
+@pytest.mark.slow
 def test_render_missing_files_exit_3(outdoor_run, tmp_path):
     r = kbs("render", str(tmp_path / "nope.json"))
     assert r.returncode == 3 and r.stderr.count("\n") == 1 and "nope.json" in r.stderr
@@ -147,6 +151,7 @@ def test_hull_skips_degenerate_clusters():
     assert (np.einsum("ij,ij->i", n, V[F].mean(axis=1) - V.mean(axis=0)) > 0).all()
 
 
+@pytest.mark.slow
 def test_render_map_of_georeferenced_data_keeps_the_scan_in_view_and_names_the_png(tmp_path):
     """UTM-like coordinates with the sensor left at the origin: the map's axes cover the scan,
     not the origin (the scan was an invisible sliver); `--out fig` writes fig.png and says so; a
@@ -181,6 +186,7 @@ def test_render_map_of_georeferenced_data_keeps_the_scan_in_view_and_names_the_p
     assert r.returncode == 2 and "no label 'road' in this result (labels: ground, obstacle)" in r.stderr
 
 
+@pytest.mark.slow
 def test_clusters_figure_boxes_the_largest_clusters_only():
     """Thousands of clusters (an airborne tile): boxes and labels for the 30 largest, said in the
     figure; every point is still drawn in its cluster's colour."""

@@ -32,6 +32,7 @@ def _room(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     return X, np.concatenate([np.full(len(p), k) for p, k in parts])
 
 
+@pytest.mark.slow
 def test_indoor_rule_base_labels_a_room_floor_walls_ceiling_furniture(tmp_path):
     X, truth = _room(np.random.default_rng(0))
     np.savetxt(tmp_path / "room.xyz", X, fmt="%.4f")

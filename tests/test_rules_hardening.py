@@ -115,6 +115,7 @@ def first_alias_past_the_bound(levels: int = 9, width: int = 9) -> tuple[int, in
     raise AssertionError("the bomb is too small")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("where", ["top", "inline"])
 def test_an_alias_bomb_is_refused_at_the_alias_that_crosses_the_bound(tmp_path, where):
     if where == "top":  # unknown keys: the old code walked the expanded tree to position them
@@ -256,6 +257,7 @@ def many_rules(n: int) -> str:
     return "\n".join(out + ["labels:", "  - {name: other}"]) + "\n"
 
 
+@pytest.mark.slow
 def test_validation_time_grows_linearly_with_the_rule_file():
     """8 x the rules takes about 8 to 12 x the CPU time (it took 44 x, 74 s for 20,000 rules).
     Best of three runs each (CPU time: other processes on the machine count less), a wide margin,
@@ -371,6 +373,7 @@ def test_labels_relabel_rules_and_ground_contact_are_checked_too(tmp_path, capsy
         "post.ground_contact can never move a point"]
 
 
+@pytest.mark.slow
 def test_kbs_run_prints_the_warnings_and_runs(tmp_path, capsys):
     text = OUTDOOR.replace("    if: [not planar, not connected]", "    if: [not planar, not connected, planar]")
     path = write(tmp_path, text)
@@ -388,6 +391,7 @@ def test_the_shipped_rule_bases_and_examples_have_no_warning(capsys):
     assert code == 0 and err == "" and "warning" not in out
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None, derandomize=True)
 @given(st.data())
 def test_never_holds_agrees_with_trying_every_value(data):

@@ -29,6 +29,7 @@ def rocks_scan(tmp_path_factory) -> tuple[Path, np.ndarray]:
     return path, labels
 
 
+@pytest.mark.slow
 def test_run_writes_ply_and_json_and_explains_the_cah_split(rocks_scan, tmp_path):
     scan, labels = rocks_scan
     r = kbs("run", "--rules", "outdoor", str(scan), "--out", str(tmp_path))
@@ -53,6 +54,7 @@ def test_run_writes_ply_and_json_and_explains_the_cah_split(rocks_scan, tmp_path
     assert re.search(r"\n    sheet +no +flatness = ", r.stdout) and re.search(r"\n    level +yes +ground_angle = ", r.stdout)
 
 
+@pytest.mark.slow
 def test_run_says_which_limit_stopped_which_clusters(rocks_scan, tmp_path):
     scan, _ = rocks_scan
     text = kbs("rules", "show", "outdoor").stdout
@@ -71,6 +73,7 @@ def test_run_says_which_limit_stopped_which_clusters(rocks_scan, tmp_path):
     assert by_kind["max_depth"]["setting"] == "limits.max_depth" and by_kind["max_depth"]["value"] == 1
 
 
+@pytest.mark.slow
 def test_explain_unknown_cluster_suggests_one(rocks_scan, tmp_path):
     scan, _ = rocks_scan
     assert kbs("run", "--rules", "outdoor", str(scan), "--out", str(tmp_path)).returncode == 0
@@ -78,6 +81,7 @@ def test_explain_unknown_cluster_suggests_one(rocks_scan, tmp_path):
     assert r.returncode == 2 and "no cluster 'c9.9.9'" in r.stderr and "Traceback" not in r.stderr
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["broken", "syntax"])
 def test_broken_rule_files_give_the_golden_messages(name):
     r = kbs("rules", "check", f"tests/golden/{name}.yaml", cwd=ROOT)
@@ -90,6 +94,7 @@ def test_run_with_a_broken_rule_file_exits_4(tmp_path):
     assert r.returncode == 4 and "unknown predicate 'thicknes'" in r.stderr and "Traceback" not in r.stderr
 
 
+@pytest.mark.slow
 def test_rules_show_and_list_and_check_shipped():
     r = kbs("rules", "show", "outdoor")
     shipped = (ROOT / "rules" / "outdoor.yaml").read_text()
@@ -113,6 +118,7 @@ def test_predicates_lists_builtins_and_plugins():
     assert "param opening_factor: float in [0.0, 10.0] (default 1.0, with method: alpha_opening)" in r.stdout
 
 
+@pytest.mark.slow
 def test_user_rule_file_with_plugin_runs(rocks_scan, tmp_path):
     scan, labels = rocks_scan
     args = ["run", "--rules", str(ROOT / "examples" / "rules" / "poles.yaml"), str(scan), "--out", str(tmp_path)]
@@ -126,6 +132,7 @@ def test_user_rule_file_with_plugin_runs(rocks_scan, tmp_path):
     assert "long" in checks  # the plugin predicate was measured (and 'upright' only where 'long' holds)
 
 
+@pytest.mark.slow
 def test_broken_plugin_exits_7(tmp_path):
     bad = tmp_path / "bad.py"
     bad.write_text("raise RuntimeError('boom')\n")
@@ -139,6 +146,7 @@ def test_broken_plugin_exits_7(tmp_path):
     (["--jobs", "0"], 2),
     (["-j", "-3"], 2),
 ])
+@pytest.mark.slow
 def test_bad_options_exit_2(args, code, tmp_path):
     base = ["run", "--rules", "outdoor", str(EXAMPLE), "--out", str(tmp_path)]
     r = kbs(*(base + args))
@@ -150,6 +158,7 @@ def test_unreadable_cloud_exits_3(tmp_path):
     assert r.returncode == 3 and "missing.ply" in r.stderr
 
 
+@pytest.mark.slow
 def test_bundled_example_runs(tmp_path):
     r = kbs("run", "--rules", "outdoor", str(EXAMPLE), "--out", str(tmp_path))
     assert r.returncode == 0, r.stderr
@@ -218,6 +227,7 @@ def boulders_joined_by_a_ridge(width: float = 0.06, seed: int = 3) -> tuple[np.n
     return np.vstack(parts) - [0.0, 0.0, 1.5], np.concatenate(labels)
 
 
+@pytest.mark.slow
 def test_alpha_opening_separates_boulders_that_a_ridge_joins(tmp_path):
     X, labels = boulders_joined_by_a_ridge()
     scan = tmp_path / "boulders.ply"
@@ -248,6 +258,7 @@ def test_alpha_opening_separates_boulders_that_a_ridge_joins(tmp_path):
             assert (c[labels == k] == m).mean() > 0.95
 
 
+@pytest.mark.slow
 def test_connexity_method_and_opening_factor_are_checked_in_the_rule_file(tmp_path):
     text = kbs("rules", "show", "outdoor").stdout
     bad = tmp_path / "bad.yaml"
@@ -317,6 +328,7 @@ def ground_patches(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     return np.vstack(parts), np.repeat(np.arange(4), [len(p) for p in parts])
 
 
+@pytest.mark.slow
 def test_coplanar_ground_clusters_are_merged_into_one_output_cluster_and_others_are_not(tmp_path):
     X, part = ground_patches()
     scan = tmp_path / "patches.ply"

@@ -343,6 +343,7 @@ def _facets_image() -> tuple[np.ndarray, np.ndarray]:
     return image, facet
 
 
+@pytest.mark.slow
 def test_segcomp_end_to_end_through_kbs_run(tmp_path):
     image, facet = _facets_image()
     scan = tmp_path / "abw.train.3.range"
@@ -425,6 +426,7 @@ def test_segcomp_errors_are_one_line_with_exit_codes(tmp_path, capsys):
 # kbs segcomp -> kbs eval X.ms-seg X.gt-seg (the paper's Table 1)
 
 
+@pytest.mark.slow
 def test_the_abw_rule_base_ships_and_is_written_in_abw_units():
     r = kbs("rules", "list")
     assert r.returncode == 0 and any(line.startswith("abw ") for line in r.stdout.splitlines()), r.stdout
@@ -450,6 +452,7 @@ def test_the_abw_rule_base_ships_and_is_written_in_abw_units():
     assert rb.merge is None and rb.label_names == contest.label_names == ["plane"]
 
 
+@pytest.mark.slow
 def test_synth_abw_writes_a_range_image_whose_points_lie_on_the_gt_faces(tmp_path):
     from kbs.synth.abw import abw_scene
 
@@ -485,6 +488,7 @@ def test_synth_abw_writes_a_range_image_whose_points_lie_on_the_gt_faces(tmp_pat
     assert kbs("synth", "abw", "--tilt", "70").returncode == 2
 
 
+@pytest.mark.slow
 def test_abw_contest_end_to_end_synth_run_segcomp_eval(tmp_path):
     prefix = tmp_path / "abw.synth.0"
     assert kbs("synth", "abw", "--seed", "0", "--out", str(prefix)).returncode == 0

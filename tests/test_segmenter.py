@@ -182,6 +182,7 @@ def two_bundled(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
     return out, r
 
 
+@pytest.mark.slow
 def test_segmenter_equals_kbs_run_on_the_bundled_examples(two_bundled):
     out, r = two_bundled
     assert r.returncode == 0, r.stderr
@@ -212,6 +213,7 @@ def _table(stdout: str) -> list[str]:
     return lines[start:]
 
 
+@pytest.mark.slow
 def test_run_two_files_writes_both_pairs_then_the_time_table(two_bundled):
     out, r = two_bundled
     assert r.returncode == 0, r.stderr
@@ -232,6 +234,7 @@ def test_run_two_files_writes_both_pairs_then_the_time_table(two_bundled):
                         r"\d+\.\d\d s\)", table[3])
 
 
+@pytest.mark.slow
 def test_run_a_directory_takes_its_point_cloud_files_in_name_order(tmp_path):
     scans = tmp_path / "scans"
     scans.mkdir()
@@ -267,6 +270,7 @@ def test_duplicate_stems_exit_2_before_any_work(tmp_path, capsys, case):
     assert not out.exists() and r.out == ""
 
 
+@pytest.mark.slow
 def test_one_unreadable_scan_among_good_ones_the_others_are_written_exit_3(tmp_path):
     broken = tmp_path / "broken.ply"
     broken.write_bytes(EXAMPLE.read_bytes()[:2000])
@@ -284,6 +288,7 @@ def test_one_unreadable_scan_among_good_ones_the_others_are_written_exit_3(tmp_p
     assert table[4].startswith("3 scans (2 failed): segment median ")
 
 
+@pytest.mark.slow
 def test_one_scan_prints_as_before_without_a_table(tmp_path):
     r = kbs_command("run", "--rules", "outdoor", "examples/data/outdoor.ply", "--out", str(tmp_path), cwd=ROOT)
     assert r.returncode == 0, r.stderr
@@ -298,6 +303,7 @@ def test_one_scan_prints_as_before_without_a_table(tmp_path):
     assert lines[4] == f"wrote {tmp_path}/outdoor.ply and {tmp_path}/outdoor.json"
 
 
+@pytest.mark.slow
 def test_the_readme_python_example_runs():
     readme = (ROOT / "README.md").read_text()
     section = readme[readme.index("### Several scans, one rule base"):]
@@ -335,6 +341,7 @@ if __name__ == "__main__":
 """
 
 
+@pytest.mark.slow
 def test_a_process_that_never_closes_its_segmenter_still_exits(tmp_path):
     """In a multiprocessing child (a benchmark, a Dask worker), multiprocessing joins the child's
     own children before Python's exit handlers stop the pool: idle split workers would be waited

@@ -311,6 +311,7 @@ def kbs(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
     return subprocess.run([exe, *args], capture_output=True, text=True, cwd=cwd, env=env, timeout=120)
 
 
+@pytest.mark.slow
 def test_kbs_synth_command_end_to_end(tmp_path):
     out = tmp_path / "poly.ply"
     r = kbs("synth", "polyhedral", "--seed", "3", "--resolution", "60x80", "--out", str(out))

@@ -85,6 +85,7 @@ def rocks(tmp_path_factory) -> tuple[Path, np.ndarray]:
     return path, labels
 
 
+@pytest.mark.slow
 def test_a_rock_across_a_tile_edge_is_one_stitched_cluster_and_its_neighbours_stay_apart(rocks, tmp_path):
     scan, truth = rocks
     r = kbs_cmd("run", "--rules", "outdoor", "-j", "1", "--tile", "6", "--buffer", "1.5", str(scan),
@@ -118,6 +119,7 @@ def test_a_rock_across_a_tile_edge_is_one_stitched_cluster_and_its_neighbours_st
     assert r.returncode == 0 and tree[0].startswith("tiles (") and "partitioned in 4" in r.stdout
 
 
+@pytest.mark.slow
 def test_the_python_api_gives_what_the_command_writes(rocks, tmp_path):
     scan, truth = rocks
     X = np.column_stack([_vertex(scan)[k] for k in "xyz"]).astype(np.float64)
@@ -139,6 +141,7 @@ def test_the_python_api_gives_what_the_command_writes(rocks, tmp_path):
     (["--tile", "6", "--buffer", "-1"], "Invalid value for '--buffer': -1.0 is not in the range x>=0."),
     (["--tile", "6", "--scheduler", " "], "Invalid value for --scheduler: give a Dask scheduler address"),
 ])
+@pytest.mark.slow
 def test_bad_tiling_options_are_usage_errors(rocks, tmp_path, args, message):
     r = kbs_cmd("run", "--rules", "outdoor", "-j", "1", *args, str(rocks[0]), "--out", str(tmp_path))
     assert r.returncode == 2, r.stderr
@@ -160,6 +163,7 @@ def east(cluster, scene) -> float:
 '''
 
 
+@pytest.mark.slow
 def test_a_failing_tile_is_named_with_its_bounds_and_the_run_exits_with_its_code(rocks, tmp_path):
     plugin = tmp_path / "east.py"
     plugin.write_text(FAILING_PLUGIN)
@@ -211,6 +215,7 @@ def test_tiles_on_a_local_dask_cluster_of_2_workers_give_the_in_process_bytes(sh
     assert np.mean(np.asarray(tiled["scalar_label"]) == np.asarray(untiled["scalar_label"])) > 0.95
 
 
+@pytest.mark.slow
 def test_an_unreachable_scheduler_is_a_usage_error(rocks, tmp_path):
     pytest.importorskip("distributed", reason="Dask is not installed: pip install 'kbs[dask]' (it is in [test])")
     r = kbs_cmd("run", "--rules", "outdoor", "--tile", "6", "--scheduler", "tcp://127.0.0.1:9", str(rocks[0]),
@@ -224,6 +229,7 @@ FLAKY_PLUGIN = FAILING_PLUGIN.replace('if x > 3.0:', 'if x > 3.0 and os.environ.
     "from kbs.knowledge import predicate", "import os\n\nfrom kbs.knowledge import predicate")
 
 
+@pytest.mark.slow
 def test_finished_tiles_are_kept_and_resume_segments_only_the_failed_ones(rocks, tmp_path, monkeypatch):
     plugin = tmp_path / "east.py"
     plugin.write_text(FLAKY_PLUGIN)
@@ -251,6 +257,7 @@ def test_finished_tiles_are_kept_and_resume_segments_only_the_failed_ones(rocks,
     assert _normalised(out, "rocks") == _normalised(tmp_path / "fresh", "rocks")
 
 
+@pytest.mark.slow
 def test_resume_takes_no_tile_of_another_grid(rocks, tmp_path, monkeypatch):
     """A tile file whose points differ (another buffer) is segmented again, not taken."""
     out, kept = tmp_path / "out", tmp_path / "out" / "rocks.tiles"
@@ -298,6 +305,7 @@ def east(cluster, scene) -> float:
 '''
 
 
+@pytest.mark.slow
 def test_a_dask_worker_killed_mid_run_gives_the_same_output(rocks, tmp_path, monkeypatch):
     pytest.importorskip("distributed", reason="Dask is not installed: pip install 'kbs[dask]' (it is in [test])")
     plugin = tmp_path / "kill.py"

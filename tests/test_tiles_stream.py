@@ -72,6 +72,7 @@ def rocks_las(tmp_path_factory) -> Path:
     return path
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("suffix", [".las", ".laz"])
 def test_a_las_read_and_written_in_chunks_gives_the_bytes_of_the_in_memory_run(rocks_las, tmp_path, suffix):
     scan = rocks_las
@@ -104,6 +105,7 @@ def test_chunk_points_needs_tile(rocks_las, tmp_path):
     assert r.returncode == 2 and "--chunk-points only applies to a tiled run: give --tile SIZE too" in r.stderr
 
 
+@pytest.mark.slow
 def test_every_tile_takes_the_ground_plane_of_the_whole_cloud(tmp_path):
     """The rocks scene tilted 3 degrees: the untiled run's ground plane is the one every tile of
     the tiled run is given (none finds its own), and the explanation says so."""
@@ -146,6 +148,7 @@ def _normalised_folder(folder: Path) -> dict[str, object]:
     return out
 
 
+@pytest.mark.slow
 def test_a_folder_of_scans_on_a_local_dask_cluster_gives_the_outputs_of_one_process(tmp_path):
     pytest.importorskip("distributed", reason="Dask is not installed: pip install 'kbs[dask]' (it is in [test])")
     from kbs.io import write_ply

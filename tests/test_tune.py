@@ -177,6 +177,7 @@ def truth_from_known_values(tmp_path: Path, scenes: list[Path], planar: str, con
     return out
 
 
+@pytest.mark.slow
 def test_kbs_tune_recovers_the_thresholds_the_truth_was_made_with(tmp_path, capsys, scenes):
     """Truth made with planar.max 0.15 and ground_contact.tolerance 0.14; the file says 0.05 and
     0.05. On these scenes planar 0.05 and 0.15 give other labels on scenes 2 and 3 (not 1), so

@@ -57,6 +57,7 @@ def _map_fill(png: Path) -> float:
     return float((ground | obstacle).mean())
 
 
+@pytest.mark.slow
 def test_render_map_of_a_camera_frame_is_the_ground_seen_from_above_not_a_sliver(camera_run, tmp_path):
     r = kbs("render", str(camera_run / "cam.json"), "--kind", "map", "--out", str(tmp_path / "cam.png"))
     assert r.returncode == 0, r.stderr
@@ -96,6 +97,7 @@ def test_render_clusters_of_a_camera_frame_stand_upright():
     assert clusters[1]["descriptors"]["center"][1] < 1.0  # the caller's descriptors are not turned in place
 
 
+@pytest.mark.slow
 def test_report_of_a_camera_frame_has_up_vertical(camera_run):
     d = _data(camera_run / "cam.html")
     doc = json.loads((camera_run / "cam.json").read_text())
@@ -123,6 +125,7 @@ def many_run(tmp_path_factory) -> Path:
     return tmp / "o"
 
 
+@pytest.mark.slow
 def test_report_colours_are_the_ply_colours_past_cluster_nine(many_run):
     """One palette: the report's colour of each cluster (12 included) is the PLY's red/green/blue."""
     d = _data(many_run / "many.html")
@@ -139,6 +142,7 @@ def test_report_colours_are_the_ply_colours_past_cluster_nine(many_run):
         assert d["noise"] == f"#{r:02x}{g:02x}{b:02x}"
 
 
+@pytest.mark.slow
 def test_report_boxes_only_the_largest_clusters_and_states_each_count(many_run):
     d = _data(many_run / "many.html")
     clusters = json.loads((many_run / "many.json").read_text())["clusters"]
