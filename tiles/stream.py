@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import copy
 import datetime
+import functools
 import math
 import os
 import re
@@ -129,8 +130,7 @@ def spill_las(path: str | os.PathLike[str], folder: str | os.PathLike[str], size
         if problem is not None:
             count += int(problem.split(" points have", 1)[0].replace(",", ""))
             if first is None:  # its row counts from the chunk's start: from the file's
-                first = re.sub(r"\(first: row (\d+)", lambda m, at=start: f"(first: row {int(m.group(1)) + at}",
-                               problem, count=1)
+                first = re.sub(r"\(first: row (\d+)", functools.partial(_row_from, start), problem, count=1)
         start += len(X)
         uv = X @ axes.T
         lo = np.minimum(lo, uv.min(axis=0))
@@ -210,6 +210,11 @@ class SpilledTile(Tile):
     @property  # type: ignore[override]
     def in_core(self) -> np.ndarray:
         return np.fromfile(self.folder / f"{self.name}.core", dtype=np.bool_)
+
+
+def _row_from(start: int, m: re.Match[str]) -> str:
+    """A chunk's row in :func:`coordinate_problem`'s message, counted from the file's start."""
+    return f"(first: row {int(m.group(1)) + start}"
 
 
 def _npy_header(stream: Any, dtype: Any, shape: tuple[int, ...]) -> None:

@@ -183,7 +183,8 @@ class _Edges:
     row i are with rows i and i + 1): what stitching holds is bounded by two rows of tiles."""
 
     def __init__(self, jobs: Sequence[TileJob]) -> None:
-        self.jobs, self.cache = jobs, {}
+        self.jobs = jobs
+        self.cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def get(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if k not in self.cache:
@@ -531,7 +532,8 @@ class StreamedResult:
     def summary(self) -> dict[str, Any]:
         """As :meth:`Segmentation.summary`."""
         records = {i: types.SimpleNamespace(action="limit", n_points=p, id=i, limit=lim) for p, i, lim in self.limits}
-        by_kind = Segmentation.limits_by_kind(types.SimpleNamespace(explanation=types.SimpleNamespace(records=records)))
+        holder: Any = types.SimpleNamespace(explanation=types.SimpleNamespace(records=records))
+        by_kind = Segmentation.limits_by_kind(holder)
         return {"points": self.n, "clusters": self.n_clusters, "splits": self.n_splits, "limits": len(self.limits),
                 "limits_by_kind": by_kind, "points_per_label": dict(self.points_per_label),
                 "seconds": round(self.seconds, 3)}
