@@ -6,7 +6,7 @@ with unlabelled points ignored, ISPRS total error, wall time), then the median o
 each data set. Every method runs in this process on the same points.
 
 Usage: python benchmarks/bench_ground.py [--sets kitti gndnet seq00 isprs las mosd] [--part tune|validate|all]
-                                        [--jobs N] [--outdoor RULES]
+                                        [--jobs N] [--outdoor RULES] [--before outdoor|airborne RULES]
 Each scan is in the tuning or the validation part of benchmarks/splits.yaml (the 'part' column);
 ``--part`` keeps one part, and the medians are given per data set and part.
 kbs runs its splits in ``--jobs`` processes (default -1, one per core, as ``kbs run``); the peers
@@ -158,8 +158,22 @@ def main() -> None:
                     help="only the scans of this part of benchmarks/splits.yaml")
     ap.add_argument("--jobs", type=int, default=-1, help="kbs split processes (-1: one per core)")
     ap.add_argument("--outdoor", default="outdoor", help="rule file of the 'kbs outdoor' rows (default: the shipped one)")
+    ap.add_argument("--before", nargs=2, action="append", default=[], metavar=("RULE_BASE", "FILE"),
+                    help="also 'kbs RULE_BASE before' rows (outdoor or airborne) with another rule file, e.g. "
+                         "the one before a change, in the same run (repeatable)")
     args = ap.parse_args()
     JOBS["kbs"] = args.jobs
+    for base, path in args.before:
+        name = f"kbs {base}"
+        if name not in METHODS:
+            ap.error(f"--before: no rows named '{name}'")
+        only = ("ISPRS", "LAS") if base == "airborne" else None
+        rows = {k: v for k, v in METHODS.items()}
+        METHODS.clear()
+        for k, v in rows.items():
+            if k == name:
+                METHODS[f"{name} before"] = (None, kbs_with(path, "ground", only=only))
+            METHODS[k] = v
     if args.outdoor != "outdoor":
         METHODS["kbs outdoor"] = (None, kbs_with(args.outdoor, "ground"))
         print(f"> kbs outdoor: {args.outdoor}")

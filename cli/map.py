@@ -37,8 +37,9 @@ def _crs(ctx, param, value):
 @click.option("--topic", metavar="TOPIC", help="For a ROS 1/2 bag: the sensor_msgs/PointCloud2 topic (default: the "
               "bag's only one).")
 @click.option("--estimate-poses", is_flag=True,
-              help="Estimate the poses from the scans with KISS-ICP (the map extra) instead of reading them; the "
-              "residual of each frame against the previous one is printed and kept in map.json.")
+              help="Estimate the poses from the scans with KISS-ICP (the map extra) instead of reading them, frame "
+              "by frame on the points the segmentation did not call ground; the motion and residual of each frame "
+              "against the previous one are printed and kept in map.json.")
 @click.option("--calib", type=click.Path(path_type=Path), metavar="FILE",
               help="The KITTI calib.txt of a KITTI poses file (default: the one beside it, if any).")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=Path("kbs-map"),
@@ -49,6 +50,9 @@ def _crs(ctx, param, value):
               help="Voxel side of the fused cloud and of the objects' points, metres.")
 @click.option("--max-gap", type=click.IntRange(1, None), default=1, show_default=True,
               help="Obstacle clusters of frames up to this many frames apart that overlap are one object.")
+@click.option("--report", is_flag=True,
+              help="Also write DIR/map.html: the map view (grid, trajectory, objects with their ids; a click on an "
+              "object lists the frames that saw it and explains its cluster in each). Needs plotly (the report extra).")
 @click.option("--crs", metavar="CRS", callback=_crs, help="The CRS the poses are in (e.g. EPSG:32632), for the GeoTIFF. Default: "
               "the drive's local frame, written as a local engineering CRS.")
 @click.option("--sensor", callback=_vector3, metavar="X,Y,Z", help="Sensor position in each frame (overrides the "
@@ -60,13 +64,14 @@ def _crs(ctx, param, value):
 def map_(ctx: click.Context, rules: str, scans: tuple[Path, ...], poses: Path | None, topic: str | None,
          estimate_poses: bool,
          calib: Path | None,
-         out_dir: Path, cell_size: float, voxel_size: float, max_gap: int, crs: str | None, sensor,
+         out_dir: Path, cell_size: float, voxel_size: float, max_gap: int, report: bool, crs: str | None, sensor,
          plugins: tuple[Path, ...], jobs: int) -> None:
     """Segment every frame of a drive (SCANS: scan files and folders of scans in name order, one
     KITTI sequence folder holding velodyne/*.bin and poses.txt, or one ROS 1/2 bag) with one rule base, bring each into
     the world frame with its pose and fuse them into DIR/: an obstacle grid in log-odds (map.tif,
     map.npy, map.png), the obstacles tracked across frames with a mesh each (objects/), a fused
-    labelled cloud (cloud.ply) and an index of frames, objects and cells (map.json)."""
+    labelled cloud (cloud.ply) and an index of frames, objects and cells (map.json); with --report,
+    the map view (map.html)."""
     from kbs.maps import map_drive, read_drive
     from kbs.maps.files import write_map
 
@@ -74,40 +79,44 @@ def map_(ctx: click.Context, rules: str, scans: tuple[Path, ...], poses: Path | 
     t0 = time.perf_counter()
     if estimate_poses and poses is not None:
         raise click.UsageError("--estimate-poses and --poses: give one of them")
+    if report:  # known before any frame is segmented
+        from kbs.errors import require
+
+        require("plotly", "report", "--report (the HTML map view)")
     from kbs.maps.bags import TopicError
 
     try:
         drive = read_drive(scans, poses, calib=calib, topic=topic)
     except TopicError as exc:
         raise click.BadParameter(str(exc), param_hint="--topic") from exc
+    odometry = None
     if estimate_poses:
-        from dataclasses import replace
+        from kbs.maps.odometry import Odometry
 
-        from kbs.maps.odometry import estimate_poses as estimate
-
-        t1 = time.perf_counter()
-        est = estimate(drive)
-        drive = replace(drive, poses=est)
-        click.echo(f"poses: estimated with KISS-ICP in {time.perf_counter() - t1:.2f} s")
-        for i, r in enumerate(est.residuals, start=1):
-            step = est.matrices[i, :3, 3] - est.matrices[i - 1, :3, 3]
-            click.echo(f"  frame {i + 1}/{len(drive)} {drive.frames[i].name}: moved {np.linalg.norm(step):.2f} m "
-                       f"({', '.join(f'{v:+.2f}' for v in step)}); residual median {r.median:.3f} m, overlap "
-                       f"{r.overlap:.0%} (no motion: {r.median_identity:.3f} m, {r.overlap_identity:.0%})")
-    click.echo(f"drive: {drive.source}; poses: {drive.poses.source}")
-    if drive.poses.note and not quiet:
-        click.echo(f"note: {drive.poses.note}", err=True)
+        odometry = Odometry()  # before any frame: KISS-ICP missing is known now
+        click.echo(f"drive: {drive.source}; poses: estimated with KISS-ICP frame by frame, on the points the "
+                   "segmentation did not call ground")
+    else:
+        click.echo(f"drive: {drive.source}; poses: {drive.poses.source}")
+        if drive.poses.note and not quiet:
+            click.echo(f"note: {drive.poses.note}", err=True)
     n = len(drive)
 
     def progress(r) -> None:
         click.echo(f"  frame {r.index + 1}/{n} {r.name}: {r.n_points:,} points, {r.clusters} clusters (ground "
                    f"{r.n_ground:,}, obstacle {r.n_obstacle:,}); segment {r.segment_seconds:.2f} s, fuse "
                    f"{1e3 * r.fuse_seconds:.1f} ms")
+        if odometry is not None and r.index > 0:
+            step = odometry.matrices[r.index][:3, 3] - odometry.matrices[r.index - 1][:3, 3]
+            e = odometry.residuals[r.index - 1]
+            click.echo(f"    moved {np.linalg.norm(step):.2f} m ({', '.join(f'{v:+.2f}' for v in step)}); residual "
+                       f"median {e.median:.3f} m, overlap {e.overlap:.0%} (no motion: {e.median_identity:.3f} m, "
+                       f"{e.overlap_identity:.0%})")
 
     with Segmenter(rules, jobs=jobs, sensor=sensor, plugins=plugins) as segmenter:
         m = map_drive(segmenter, drive, cell_size=cell_size, voxel_size=voxel_size, max_gap=max_gap,
-                      progress=progress)
-    doc = write_map(m, out_dir, crs=crs)
+                      explain=report, odometry=odometry, progress=progress)
+    doc = write_map(m, out_dir, crs=crs, report=report)
     g = m.grid
     c = g.counts()
     kinds: dict[str, int] = {}
@@ -120,9 +129,10 @@ def map_(ctx: click.Context, rules: str, scans: tuple[Path, ...], poses: Path | 
     seg_s = sorted(r.segment_seconds for r in m.frames)[len(m.frames) // 2]
     click.echo(f"time: {time.perf_counter() - t0:.2f} s; per frame (median) segment {seg_s:.2f} s, fuse "
                f"{m.fuse_ms_per_frame:.1f} ms")
-    written = [doc["files"][k] for k in ("geotiff", "npy", "png", "cloud") if k in doc["files"]]
+    written = [doc["files"][k] for k in ("geotiff", "npy", "png", "cloud", "report") if k in doc["files"]]
     click.echo(f"wrote {', '.join(str(out_dir / f) for f in written)}, {sum(1 for o in doc['objects'] if o['mesh'])} object meshes in "
                f"{out_dir / 'objects'} and {out_dir / 'map.json'}")
     if not quiet:
-        for note in m.notes[1 if drive.poses.note else 0:] + tuple(doc["notes"][len(m.notes):]):
+        shown = 1 if drive.poses.note and odometry is None else 0  # printed before the frames
+        for note in m.notes[shown:] + tuple(doc["notes"][len(m.notes):]):
             click.echo(f"note: {note}", err=True)

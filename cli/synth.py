@@ -76,6 +76,9 @@ def synth_polyhedral(seed: int, out: Path | None, resolution, **options) -> None
               help="With --frames: metres between consecutive poses.")
 @click.option("--yaw-rate", type=click.FloatRange(-45, 45), default=2.0, show_default=True,
               help="With --frames: heading change between consecutive poses, degrees (positive: left).")
+@click.option("--street", is_flag=True,
+              help="With --frames: line the path as a street (buildings, trees and poles on both sides), which "
+              "also gives `kbs map --estimate-poses` surfaces to register on.")
 @click.option("--extent", type=click.FloatRange(5, None), default=25.0, show_default=True,
               help="Farthest range measured, metres.")
 @click.option("--rocks", "n_rocks", type=click.IntRange(0, None), default=None,
@@ -87,18 +90,19 @@ def synth_polyhedral(seed: int, out: Path | None, resolution, **options) -> None
 @click.option("--sensor-height", type=click.FloatRange(0, None, min_open=True), default=1.5, show_default=True,
               help="Metres above the ground's mean level.")
 def synth_outdoor(seed: int, out: Path | None, resolution, n_frames: int | None, step: float, yaw_rate: float,
-                  n_rocks: int | None, **options) -> None:
+                  street: bool, n_rocks: int | None, **options) -> None:
     """Uneven ground, rocks and a bin, seen by a stereo-like sensor; label 0 ground, 1.. objects.
 
     With --frames N: a drive of N frames through one such scene (each frame in its sensor frame,
-    with the true poses and the true obstacle layout), written to the --out folder for `kbs map`."""
+    with the true poses and the true obstacle layout), written to the --out folder for `kbs map`;
+    with --street too, along a street lined with buildings, trees and poles."""
     if resolution is not None:
         options["resolution"] = resolution
     t0 = time.perf_counter()
     if n_frames is not None:
         from kbs.synth.drive import outdoor_drive
 
-        drive = outdoor_drive(seed, n_frames=n_frames, step=step, yaw_rate=yaw_rate,
+        drive = outdoor_drive(seed, n_frames=n_frames, step=step, yaw_rate=yaw_rate, street=street,
                               n_rocks=6 if n_rocks is None else n_rocks, **options)
         line = f"{drive.summary()}; {time.perf_counter() - t0:.2f} s"
         if out is not None:
@@ -106,6 +110,8 @@ def synth_outdoor(seed: int, out: Path | None, resolution, n_frames: int | None,
             line += f"; wrote {out / 'scans'} ({n_frames} PLY), {out / 'poses.txt'} and {out / 'truth.json'}"
         click.echo(line)
         return
+    if street:
+        raise click.UsageError("--street is for a drive: give --frames N too")
     if out is not None and out.is_dir():
         raise click.BadParameter(f"{out} is a directory; give a PLY file name (a folder is for --frames)",
                                  param_hint="--out")

@@ -989,3 +989,60 @@ def plane_inlier_counts(S, a, nrm, dist):
                 c += 1
         counts[h] = c
     return counts
+
+
+# -- the slope surface (height_above_slope_surface) -------------------------------------------
+
+
+@njit(cache=True, nogil=True)
+def surface_grid(T, side, max_cells):
+    """The points ``T`` (m, 2) in square cells of ``side`` (see :func:`_cell_grid`): ``(ny,
+    start, order, lo)`` with ``lo`` (2,) the grid's lower corner; ``ny = -1`` when the grid would
+    have more than ``max_cells`` cells."""
+    ny, start, order, _ix, _iy = _cell_grid(T, side, max_cells)
+    lo = np.empty(2)
+    lo[0] = T[0, 0]
+    lo[1] = T[0, 1]
+    for i in range(1, T.shape[0]):
+        lo[0] = min(lo[0], T[i, 0])
+        lo[1] = min(lo[1], T[i, 1])
+    return ny, start, order, lo
+
+
+@njit(cache=True, nogil=True)
+def slope_lowest(Q, T, heights, owners, own, ny, start, order, lo, side, rise, r2):
+    """For each query ``Q[k]`` (q, 2): ``min_j heights[j] + rise * sqrt(d2)`` over the points
+    ``T[j]`` with ``d2 = dx*dx + dy*dy <= r2`` (as scipy's ``query_ball_point`` compares them)
+    whose owner is not ``own`` (-1: any); +inf where none. The grid (``surface_grid`` of side at
+    least ``sqrt(r2)``) holds every such point in the 3 x 3 block of cells around the query's cell.
+    The value of each point is computed as ``heights[j] + rise * np.sqrt(((T[j] - Q[k]) **
+    2).sum())`` computes it (no fused multiply-add), so the minimum is numpy's."""
+    q = Q.shape[0]
+    nx = (start.shape[0] - 1) // ny
+    out = np.full(q, np.inf)
+    for k in range(q):
+        fa = math.floor((Q[k, 0] - lo[0]) / side)
+        fb = math.floor((Q[k, 1] - lo[1]) / side)
+        if not (fa >= -1.0 and fa <= nx and fb >= -1.0 and fb <= ny):
+            continue
+        a0 = max(int(fa) - 1, 0)
+        a1 = min(int(fa) + 1, nx - 1)
+        b0 = max(int(fb) - 1, 0)
+        b1 = min(int(fb) + 1, ny - 1)
+        best = np.inf
+        for a in range(a0, a1 + 1):
+            for b in range(b0, b1 + 1):
+                c = a * ny + b
+                for p in range(start[c], start[c + 1]):
+                    j = order[p]
+                    if own >= 0 and owners[j] == own:
+                        continue
+                    dx = T[j, 0] - Q[k, 0]
+                    dy = T[j, 1] - Q[k, 1]
+                    d2 = dx * dx + dy * dy
+                    if d2 <= r2:
+                        v = heights[j] + rise * math.sqrt(d2)
+                        if v < best:
+                            best = v
+        out[k] = best
+    return out

@@ -23,6 +23,7 @@ The rank is counted up to a relative tolerance on the spreads ``sigma_i = sqrt(m
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -61,10 +62,11 @@ class ClusterGeometry:
     eigenvectors: np.ndarray
     mass: float
 
-    @property
+    @functools.cached_property
     def rank(self) -> int:
         """Rank of the covariance up to :data:`RANK_TOLERANCE` (0: every point at one position,
-        1: on a line, 2: on a plane, 3: a volume)."""
+        1: on a line, 2: on a plane, 3: a volume); computed once (a cluster's records and
+        predicates ask for it about four times)."""
         sigma = np.sqrt(self.eigenvalues)
         floor = COINCIDENT_TOLERANCE * float(np.max(np.abs(self.center), initial=0.0))
         if sigma[-1] <= floor:

@@ -110,14 +110,23 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
 from kbs.errors import FitError, ParameterError
 from kbs.inference import _flags
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
+
+
+def _kdtree(*args, **kwargs) -> cKDTree:
+    """scipy's ``cKDTree``, imported when first needed: importing kbs (``kbs explain``, ``kbs
+    rules``) does not load scipy."""
+    from scipy.spatial import cKDTree
+
+    return cKDTree(*args, **kwargs)
 
 __all__ = ["METHODS", "Connexity", "alpha_complex", "alpha_opening", "alpha_shape", "assign_to_nearest", "connexity",
            "graph_components", "project_on_plane"]
@@ -321,7 +330,7 @@ def _distinct(P: np.ndarray) -> _Distinct:
     else:  # a single position
         order = np.arange(n)
     S = P[order]
-    tree = cKDTree(S, balanced_tree=False, compact_nodes=False)
+    tree = _kdtree(S, balanced_tree=False, compact_nodes=False)
     if n < 2:
         return _Distinct(S, np.ones(n, dtype=np.int64), order, np.arange(n), tree, tree, 0.0)
     d = tree.query(S, k=2)[0][:, 1]
@@ -336,12 +345,15 @@ def _distinct(P: np.ndarray) -> _Distinct:
     first[1:] = (S[1:] != S[:-1]).any(axis=1)
     point_of = np.cumsum(first) - 1
     U = S[first]
-    tree = cKDTree(U, balanced_tree=False, compact_nodes=False)
+    tree = _kdtree(U, balanced_tree=False, compact_nodes=False)
     spacing = float(np.median(tree.query(U, k=2)[0][:, 1])) if U.shape[0] > 1 else 0.0
     return _Distinct(U, np.bincount(point_of), order, point_of, tree, tree_all, spacing)
 
 
 def _cc(n: int, i: np.ndarray, j: np.ndarray) -> tuple[int, np.ndarray]:
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     graph = coo_matrix((np.ones(i.size, dtype=np.int8), (i, j)), shape=(n, n)).tocsr()
     return connected_components(graph, directed=False)
 
@@ -427,7 +439,7 @@ def _pairs(P: np.ndarray, tree: cKDTree, r: float, pieces: list[tuple[int, int]]
         yield tree.query_pairs(r, output_type="ndarray")
         return
     for start, stop in pieces:
-        near = cKDTree(P[start:stop]).sparse_distance_matrix(tree, r, output_type="ndarray")
+        near = _kdtree(P[start:stop]).sparse_distance_matrix(tree, r, output_type="ndarray")
         i = near["i"] + start
         j = near["j"]
         keep = i < j
@@ -480,7 +492,7 @@ def graph_components(P: np.ndarray, r: float) -> tuple[int, np.ndarray]:
         band[b[across]] = True
         idx = np.flatnonzero(band[cell])
     Q = P[idx]
-    tree = cKDTree(Q)
+    tree = _kdtree(Q)
     src, dst = [], []
     for pairs in _pairs(Q, tree, r, _pair_pieces(Q, tree, r)):
         pa, pb = piece[cell[idx[pairs[:, 0]]]], piece[cell[idx[pairs[:, 1]]]]
@@ -556,7 +568,7 @@ def _opening(D: _Distinct, r: float, erosion_fraction: float) -> np.ndarray:
             todo = todo[~near.any(axis=1) & (d[:, -1] <= r)] if k < m else todo[:0]
             k *= 4
     else:
-        d, _ = cKDTree(U[kept]).query(U[removed], k=1, distance_upper_bound=bound)
+        d, _ = _kdtree(U[kept]).query(U[removed], k=1, distance_upper_bound=bound)
         back = d <= r
     kept[removed[back]] = True
     return kept
@@ -932,6 +944,6 @@ def assign_to_nearest(X2d, labels, significant) -> np.ndarray:
         raise FitError("no significant component to assign the points to")
     out = labels.copy()
     good = np.flatnonzero(ok)
-    _, nearest = cKDTree(P[good]).query(P[~ok], k=1)
+    _, nearest = _kdtree(P[good]).query(P[~ok], k=1)
     out[~ok] = labels[good[nearest]]
     return out

@@ -655,6 +655,8 @@ class Explanation:
             parts.append(f"its robust plane ({g['inlier_share']:.0%} of its points, {g['inliers']:,}, on it)")
         elif method:
             parts.append(f"it passes {method.removeprefix('check ')}")
+        if g.get("supported") is not None:  # scene.ground.choose supporting: why this cluster won
+            parts.append(f"{g['supported']:,} points standing on it")
         if g.get("distance") is not None:  # of the nearest point of its plane: why this cluster won
             unit = f" {g['unit']}" if g.get("unit") else ""
             parts.append(f"{g['distance']:.2f}{unit} from the sensor")
@@ -674,6 +676,8 @@ class Explanation:
                 what.append(f"{v['inlier_share']:.0%} on its robust plane")
             if v.get("distance") is not None:
                 what.append(f"{v['distance']:.2f}{unit} from the sensor")
+            if v.get("supported") is not None:
+                what.append(f"{v['supported']:,} points standing on it")
             method = v.get("method")
             verdict = v["why"] if v.get("why") else "no plane" if not method else \
                 "a plane: it passes " + method.removeprefix("check ") if method.startswith("check ") else f"a plane: its {method}"

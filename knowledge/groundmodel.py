@@ -227,6 +227,16 @@ class LocalGround:
         G = P - self.point
         Q, hp = G @ self.basis.T, G @ self.normal
         rise = float(np.tan(np.radians(slope)))
+        grid = self._slope_grid(radius) if _flags.JIT else None
+        if grid is not None:  # compiled: the same minimum over the same points, without the lists
+            owners = self.owners if own >= 0 else np.zeros(0, dtype=np.int64)
+            ny, start, order, lo, side = grid
+            T = self.tree.data  # type: ignore[attr-defined]
+            lowest = _compiled.slope_lowest(np.ascontiguousarray(Q), T, self.heights, np.asarray(owners, dtype=np.int64),
+                                            own, ny, start, order, lo, side, rise, float(radius) ** 2)
+            reached = np.isfinite(lowest)
+            out[reached] = hp[reached] - lowest[reached]
+            return out
         found = self.tree.query_ball_point(Q, r=radius)  # type: ignore[attr-defined]
         sizes = np.fromiter((len(f) for f in found), dtype=np.int64, count=len(found))
         if not sizes.sum():
@@ -242,6 +252,26 @@ class LocalGround:
         reached = np.isfinite(lowest)
         out[reached] = hp[reached] - lowest[reached]
         return out
+
+    def _slope_grid(self, radius: float) -> tuple | None:
+        """The surface points in cells of side just over ``radius`` for the compiled
+        :meth:`height_above_slope` (``(ny, start, order, lo, side)``, built once per radius), or
+        None when the grid would have more than :attr:`BOUND_CELLS_PER_POINT` cells per surface
+        point (the k-d tree answers then)."""
+        grids = self._slope_grids
+        if radius not in grids:
+            side = float(radius) * 1.001  # the 3 x 3 block holds the disc of radius, rounding aside
+            T = self.tree.data  # type: ignore[attr-defined]
+            grids[radius] = None
+            if side > 0.0 and np.isfinite(side):
+                ny, start, order, lo = _compiled.surface_grid(T, side, float(self.BOUND_CELLS_PER_POINT * T.shape[0] + 4096))
+                if ny >= 0:
+                    grids[radius] = (int(ny), start, order, lo, side)
+        return grids[radius]
+
+    @functools.cached_property
+    def _slope_grids(self) -> dict:
+        return {}
 
     #: the block grid of :meth:`height_bounds` is skipped when it would have more cells than this
     #: many per surface point (an extent absurd for the radius)

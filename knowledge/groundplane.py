@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kbs.inference import _compiled, _flags
+from kbs.inference import _flags
 
 #: Probability that RANSAC misses a plane holding the required share of the points.
 MISS_PROBABILITY = 1e-9
@@ -74,6 +74,8 @@ def _inlier_counts(S: np.ndarray, a: np.ndarray, nrm: np.ndarray, inlier_distanc
     (k, 3), unit normals ``nrm`` (k, 3)): compiled, one pass per hypothesis without a (k, n, 3)
     temporary, the same counts as the numpy expression."""
     if _flags.JIT:
+        from kbs.inference import _compiled  # numba, loaded when a plane is first searched
+
         return _compiled.plane_inlier_counts(np.ascontiguousarray(S), np.ascontiguousarray(a),
                                              np.ascontiguousarray(nrm), float(inlier_distance))
     return (np.abs(np.einsum("kij,kj->ki", S[None, :, :] - a[:, None, :], nrm)) <= inlier_distance).sum(axis=1)
@@ -141,3 +143,47 @@ def robust_plane(X: np.ndarray, inlier_distance: float, min_share: float, *,
     inliers = np.empty(n, dtype=bool)
     inliers[order] = inl
     return RobustPlane(normal=normal, point=point, inliers=inliers, thickness=thickness)
+
+
+def supported_points(X: np.ndarray, normal: np.ndarray, point: np.ndarray, on: np.ndarray,
+                     min_height: float, max_height: float) -> int:
+    """How many points of ``X`` stand on a plane: between ``min_height`` and ``max_height`` above
+    it (along ``normal``) and, seen along the normal, inside its outline, the convex hull of the
+    plane's own points ``on``.
+
+    Parameters
+    ----------
+    X : ndarray (n, 3)
+        The scan.
+    normal : ndarray (3,)
+        Unit normal of the plane, pointing to the side that counts as above.
+    point : ndarray (3,)
+        A point of the plane.
+    on : ndarray (m, 3)
+        The plane's points (its outline is their convex hull in the plane).
+    min_height, max_height : float
+        The band of heights, in length units (``min_height <= h <= max_height``).
+
+    Returns
+    -------
+    int
+        0 when nothing is in the band or the plane's points have no area (on a line).
+    """
+    from scipy.spatial import ConvexHull, QhullError
+
+    normal = np.asarray(normal, dtype=np.float64)
+    h = (X - point) @ normal
+    band = (h >= min_height) & (h <= max_height)
+    if not band.any() or len(on) < 3:
+        return 0
+    u = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    basis = np.stack([u, np.cross(normal, u)], axis=1)  # (3, 2): in-plane coordinates
+    try:
+        hull = ConvexHull((on - point) @ basis)
+    except (QhullError, ValueError):  # all on a line: no outline
+        return 0
+    eq = hull.equations  # inside: eq[:, :2] @ q + eq[:, 2] <= 0 for every edge
+    scale = max(1.0, float(np.abs(eq[:, 2]).max()))
+    inside = (((X[band] - point) @ basis) @ eq[:, :2].T + eq[:, 2] <= 1e-12 * scale).all(axis=1)
+    return int(inside.sum())

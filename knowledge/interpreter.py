@@ -34,7 +34,7 @@ from kbs.inference import UFPONCResult, first_local_max, ufp_onc
 from kbs.inference.incremental import IncrementalSweep
 from kbs.knowledge.connexity import Connexity, assign_to_nearest, project_on_plane
 from kbs.knowledge.explain import NO_LABEL, APDCurve, Catalogue, CheckRecord, ClusterRecord, Explanation
-from kbs.knowledge.groundplane import robust_plane
+from kbs.knowledge.groundplane import robust_plane, supported_points
 from kbs.knowledge.predicates import Cluster, Ground, Measurement, PredicateError, Scene
 from kbs.knowledge.rulebase import Condition, RuleBase
 
@@ -291,7 +291,7 @@ class Interpreter:
             return self._plane_from_normal(X, np.asarray(spec.normal, float), "fixed", info)
         fallback = np.asarray(spec.fallback, float)
         fallback = fallback / np.linalg.norm(fallback)
-        best, no_plane, verdicts, tilted = None, [], [], []
+        best, no_plane, verdicts, tilted, planes = None, [], [], [], []
         if spec.candidate is not None or spec.plane is not None:
             provisional = Scene(self.sensor, None, self.rb.units)
             for cl, rec in candidates:
@@ -319,8 +319,9 @@ class Interpreter:
                     continue
                 dist = float(np.sqrt(((on - self.sensor) ** 2).sum(axis=1).min()))
                 verdict["distance"] = dist  # to the sensor, of its plane's nearest point
-                if best is None or dist < best[0]:
-                    best = (dist, cl, n, point, tilt, found)
+                planes.append((dist, cl, n, point, tilt, found, on, verdict))
+        if planes:
+            best = self._choose(X, planes)
         if best is None:
             tests = [f"passes '{spec.candidate}'"] if spec.candidate is not None else []
             if spec.plane is not None:
@@ -342,16 +343,31 @@ class Interpreter:
             if verdicts and spec.plane is not None:
                 info.update(candidates=verdicts, unit=self.rb.length_unit)
             return self._plane_from_normal(X, np.asarray(spec.fallback, float), "fallback", info)
-        dist, cl, n, point, tilt, found = best
+        dist, cl, n, point, tilt, found, _, verdict = best
         info.update(source=f"cluster {cl.id}", cluster=cl.id, normal=n.tolist(), point=point.tolist(),
                     distance_to_sensor=dist, thickness=found.get("plane_thickness", found["thickness"]),
                     distance=dist, unit=self.rb.length_unit, method=found["method"])
+        if spec.support is not None:
+            info.update(supported=verdict["supported"], candidates=verdicts,
+                        support_band=[spec.support.min_height, spec.support.max_height])
         if spec.plane is not None:
             info.update(method=found["method"], angle_to_fallback=round(tilt, 3), candidates=verdicts,
                         unit=self.rb.length_unit)
             if found["method"] == "robust plane":
                 info.update(inliers=found["inliers"], inlier_share=found["inlier_share"])
         return Ground(normal=n, point=np.asarray(point, float).copy(), source=f"cluster {cl.id}")
+
+    def _choose(self, X: np.ndarray, planes: list[tuple]) -> tuple:
+        """The ground among the candidates that give a plane (distance, cluster, normal, point,
+        tilt, found, plane points, verdict): the closest to the sensor, or with
+        scene.ground.choose 'supporting', the one with the most points standing on it (the
+        closest of equals); each verdict gets its count ('supported')."""
+        support = self.rb.ground.support
+        if support is None:
+            return min(planes, key=lambda p: p[0])  # the first of equals, as before
+        for p in planes:
+            p[7]["supported"] = supported_points(X, p[2], p[3], p[6], support.min_height, support.max_height)
+        return min(planes, key=lambda p: (-p[7]["supported"], p[0]))
 
     def find_ground(self, X: np.ndarray) -> tuple[Ground | None, dict[str, Any]]:
         """The ground plane a run on ``X`` (n, 3) finds, and its explanation's ``ground``, without

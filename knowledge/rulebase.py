@@ -45,7 +45,7 @@ ENGINE_DEFAULTS: dict[str, Any] = {
 #: which makes a point's result depend on the rest of the file; no shipped rule base sets it.
 LIMIT_DEFAULTS: dict[str, Any] = {"max_depth": 8, "min_points": 30, "max_clusters": None}
 GROUND_DEFAULTS: dict[str, Any] = {"normal": "auto", "candidate": None, "min_points": 500, "fallback": [0.0, 0.0, 1.0],
-                                   "plane": None}
+                                   "plane": None, "choose": None}
 
 
 # --- positions and problems ------------------------------------------------------------------
@@ -268,6 +268,19 @@ class PlaneSpec:
 
 
 @dataclass(frozen=True)
+class SupportSpec:
+    """scene.ground.choose: supporting: of the candidates that give a plane, the ground is the one
+    with the most points of the scan standing on it: between ``min_height`` and ``max_height``
+    (length units) above its plane, towards the sensor, inside its outline (the convex hull of
+    its plane's points). A table holds the objects on it; a large face of one of them holds
+    nothing, or only what is stacked on it."""
+
+    min_height: float
+    max_height: float
+    pos: SourcePos
+
+
+@dataclass(frozen=True)
 class GroundSpec:
     normal: tuple[float, float, float] | None  # None = auto
     candidate: str | None
@@ -275,6 +288,9 @@ class GroundSpec:
     fallback: tuple[float, float, float]
     #: the robust plane test of a candidate (None: only the candidate check finds the ground)
     plane: PlaneSpec | None = None
+    #: which plane is the ground: None, the closest to the sensor (the paper's rule); or the one
+    #: supporting the most points
+    support: SupportSpec | None = None
 
 
 @dataclass(frozen=True)
@@ -1250,8 +1266,21 @@ class _Validator:
             if not auto:
                 self.warn(("scene", "ground", "plane"), "scene.ground.plane is not used: scene.ground.normal "
                           "fixes the ground direction (plane only applies with 'normal: auto')", key=True)
+        support = None
+        choose = g["choose"]
+        if isinstance(choose, dict) and isinstance(choose.get("supporting"), dict):  # its shape: the schema
+            band = choose["supporting"]
+            support = SupportSpec(_number(band.get("min_height"), 0.0), _number(band.get("max_height"), 1.0),
+                                  self.pos.pos(("scene", "ground", "choose"), key=True))
+            if support.min_height >= support.max_height:
+                self.add(("scene", "ground", "choose", "supporting", "max_height"),
+                         f"max_height {support.max_height:g} must be greater than min_height {support.min_height:g}"
+                         " (the band of heights above a candidate plane whose points it supports)")
+            if not auto:
+                self.warn(("scene", "ground", "choose"), "scene.ground.choose is not used: scene.ground.normal "
+                          "fixes the ground direction (choose only applies with 'normal: auto')", key=True)
         return GroundSpec(normal=normal, candidate=cand, min_points=_number(g["min_points"], 0, int),
-                          fallback=fallback or (0.0, 0.0, 1.0), plane=plane)
+                          fallback=fallback or (0.0, 0.0, 1.0), plane=plane, support=support)
 
     def _merge(self, raw: Any, labels: list[Label]) -> MergeSpec | None:
         if not isinstance(raw, dict) or not isinstance(raw.get("merge_coplanar"), dict):

@@ -41,6 +41,10 @@ class FrameRecord:
     objects: dict[int, list[int]]  #: output cluster id -> its objects (tracked obstacle clusters only)
     segment_seconds: float
     fuse_seconds: float
+    #: with ``map_drive(..., explain=True)``: output cluster id -> ``label``, ``n_points``, ``ids``
+    #: (its records) and ``why`` (each record's :meth:`~kbs.knowledge.explain.Explanation.why`
+    #: text), for the clusters of tracked objects (``objects``' keys)
+    explanations: dict[int, dict[str, Any]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, eq=False)
@@ -199,8 +203,8 @@ def _check(name: str, value: Any, low: float, integer: bool = False, low_open: b
 def map_drive(segmenter: Any, drive: Drive | Iterable[np.ndarray], poses: Poses | np.ndarray | None = None, *,
               cell_size: float = 0.2, voxel_size: float = 0.1, min_obstacle_points: int = 1,
               l_obstacle: float = 0.85, l_ground: float = -0.4, l_clamp: float = 3.5, max_gap: int = 1,
-              min_object_points: int = 40, alpha: float | None = None,
-              progress: Callable[[FrameRecord], None] | None = None) -> DriveMap:
+              min_object_points: int = 40, alpha: float | None = None, explain: bool = False,
+              odometry: Any = None, progress: Callable[[FrameRecord], None] | None = None) -> DriveMap:
     """Segment every frame of a drive with ``segmenter`` and fuse the frames into a map.
 
     Parameters
@@ -228,6 +232,14 @@ def map_drive(segmenter: Any, drive: Drive | Iterable[np.ndarray], poses: Poses 
         docs/BENCHMARKS.md, 20 gave 3 true objects split in two, 40 none).
     alpha : float, optional
         Alpha-shape radius of the objects' meshes, metres (default ``3 voxel_size``).
+    explain : bool
+        Keep, in each :class:`FrameRecord`'s ``explanations``, why each cluster of a tracked
+        object ended as it did (the map view of the HTML report shows it on a click).
+    odometry : kbs.maps.odometry.Odometry, optional
+        Estimate the poses instead of taking the drive's: each frame, once segmented, is
+        registered with KISS-ICP on its points the segmentation did not call ground (the map's
+        ``poses`` are then the estimated ones, with their residuals). Its errors (a frame that
+        cannot be registered) are :class:`FitError`.
     progress : callable, optional
         Called with each frame's :class:`FrameRecord` once it is fused.
 
@@ -265,7 +277,7 @@ def map_drive(segmenter: Any, drive: Drive | Iterable[np.ndarray], poses: Poses 
     gi = names.index("ground") if "ground" in names else None
     notes = [] if gi is not None else [f"the rule base has no label 'ground' (labels: {', '.join(names)}): every "
                                        "labelled point counts as an obstacle"]
-    if drive.poses.note:
+    if drive.poses.note and odometry is None:
         notes.insert(0, drive.poses.note)
     fparams = FusionParams(cell_size, l_obstacle, l_ground, l_clamp, min_obstacle_points)
     grid = GridAccumulator(fparams)
@@ -278,10 +290,12 @@ def map_drive(segmenter: Any, drive: Drive | Iterable[np.ndarray], poses: Poses 
             seg = segmenter.segment(X)
         except FitError as exc:
             raise FitError(f"frame {i} ({frame.name}): {exc}") from exc
+        ground = seg.label == gi if gi is not None else np.zeros(len(X), dtype=bool)
+        if odometry is not None:
+            T = odometry.register(X, frame.name, keep=~ground)
         t0 = time.perf_counter()
         W = to_world(X, T)
         labelled = seg.label >= 0
-        ground = seg.label == gi if gi is not None else np.zeros(len(X), dtype=bool)
         obstacle = labelled & ~ground
         grid.add(W, ground, obstacle)
         node = tracker.add(i, W, seg.cluster, obstacle)
@@ -291,9 +305,15 @@ def map_drive(segmenter: Any, drive: Drive | Iterable[np.ndarray], poses: Poses 
         mapping: dict[int, list[int]] = {}
         for key in pairs.tolist():
             mapping.setdefault(key >> 32, []).append(key & 0xFFFFFFFF)
+        fuse = time.perf_counter() - t0
+        why: dict[int, dict[str, Any]] = {}
+        if explain:
+            for c in mapping:
+                info = seg.clusters[c]
+                why[c] = {"label": info["label"], "n_points": int(info["n_points"]), "ids": list(info["ids"]),
+                          "why": [seg.explanation.why(r) for r in info["ids"]]}
         rec = FrameRecord(i, frame.name, frame.path, T.copy(), len(X), int(ground.sum()), int(obstacle.sum()),
-                          int((~labelled).sum()), len(seg.clusters), dict(mapping), seg.seconds,
-                          time.perf_counter() - t0)
+                          int((~labelled).sum()), len(seg.clusters), dict(mapping), seg.seconds, fuse, why)
         records.append(rec)
         if progress is not None:
             progress(rec)
@@ -317,5 +337,9 @@ def map_drive(segmenter: Any, drive: Drive | Iterable[np.ndarray], poses: Poses 
               "l_obstacle": l_obstacle, "l_ground": l_ground, "l_clamp": l_clamp, "max_gap": max_gap,
               "min_object_points": min_object_points, "alpha": alpha}
     rb = segmenter.rule_base
-    return DriveMap(grid.result(), tuple(objects), cloud.result(gi, of_node), tuple(records), drive.poses, names,
+    poses_used = drive.poses
+    if odometry is not None:
+        poses_used = odometry.poses()
+        notes.insert(0, poses_used.note)
+    return DriveMap(grid.result(), tuple(objects), cloud.result(gi, of_node), tuple(records), poses_used, names,
                     rb.name, rb.path, params, drive.source, tuple(notes))

@@ -8,15 +8,19 @@ name, then renamed):
 - ``map.png``: a picture of the grid with the trajectory and the objects' ids;
 - ``cloud.ply``: the fused labelled cloud (one point per voxel: label, obstacle, object, frames, count);
 - ``objects/object-<id>.ply``: each tracked object's mesh;
-- ``map.json``: the index of frames, objects and cells (format :data:`MAP_FORMAT`).
+- ``map.json``: the index of frames, objects and cells (format :data:`MAP_FORMAT`);
+- ``map.html`` (when asked): the map view (:mod:`kbs.report.mapview`).
+
+Every file goes through :func:`kbs.io.atomic.replacing` (a temporary file beside it, renamed over
+it when whole): an interrupted write leaves the previous file.
 """
 from __future__ import annotations
 
 import json
 import os
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -35,16 +39,16 @@ LOCAL_CRS_WKT = ('ENGCRS["kbs drive frame",EDATUM["world frame of the drive pose
 
 @contextmanager
 def _atomic(path: Path) -> Iterator[Path]:
-    """A temporary path beside ``path``, renamed to it when the block succeeds."""
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}{path.suffix}")
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    except OSError as exc:
-        raise CloudFileError(str(path), f"cannot write: {exc.strerror or exc}") from exc
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    """A temporary path beside ``path`` (:func:`kbs.io.atomic.replacing`), renamed to it when the
+    block succeeds; an OSError of the writer inside the block is a :class:`CloudFileError` naming
+    ``path``."""
+    from kbs.io.atomic import replacing
+
+    with replacing(path) as (tmp,):
+        try:
+            yield tmp
+        except OSError as exc:
+            raise CloudFileError(str(path), f"cannot write: {exc.strerror or exc}") from exc
 
 
 def png_available() -> bool:
@@ -218,7 +222,7 @@ def _index(m: DriveMap, files: dict[str, Any], crs_note: str) -> dict[str, Any]:
 
 
 def write_map(m: DriveMap, out_dir: str | os.PathLike[str], *, crs: str | None = None,
-              geotiff: bool | None = None) -> dict[str, Any]:
+              geotiff: bool | None = None, report: bool = False) -> dict[str, Any]:
     """Write every file of the map in ``out_dir``; returns the index (``map.json``'s content).
 
     Parameters
@@ -228,6 +232,9 @@ def write_map(m: DriveMap, out_dir: str | os.PathLike[str], *, crs: str | None =
     geotiff : bool, optional
         Write ``map.tif`` (True: rasterio is required; None: when rasterio is installed, else a
         note in the index says why there is none).
+    report : bool
+        Also write ``map.html``, the map view (:func:`kbs.report.mapview.write_map_report`; plotly,
+        the ``report`` extra); its explanations are those ``map_drive(..., explain=True)`` kept.
 
     Raises
     ------
@@ -235,6 +242,8 @@ def write_map(m: DriveMap, out_dir: str | os.PathLike[str], *, crs: str | None =
         A file cannot be written.
     ParameterError
         ``geotiff=True`` without rasterio, or a bad ``crs``.
+    MissingExtra
+        ``report=True`` without plotly.
     """
     from kbs.io import write_ply
     from kbs.report.meshes import write_mesh_ply
@@ -282,6 +291,12 @@ def write_map(m: DriveMap, out_dir: str | os.PathLike[str], *, crs: str | None =
         with _atomic(out / name) as tmp:
             write_mesh_ply(tmp, o.vertices, o.faces)
         files["objects"][o.id] = name
+    if report:
+        from kbs.report.mapview import write_map_report
+
+        with _atomic(out / "map.html") as tmp:
+            write_map_report(m, tmp)
+        files["report"] = "map.html"
     doc = _index(m, files, crs_note)
     doc["notes"] += notes
     with _atomic(out / "map.json") as tmp:

@@ -17,7 +17,9 @@ class GridScore:
 
     A cell's truth is *obstacle* when at least half of it lies under an obstacle standing more
     than ``min_height`` above the terrain, *ground* when none of it does; cells partly covered
-    (less than half) are on an obstacle's rim, where either answer is right, and are left out.
+    (less than half) are on an obstacle's rim, where either answer is right, and are left out, as
+    are cells under a tree's crown and nothing else (free at the ground, an obstacle from above:
+    ``truth.overhang_fraction``, when the truth has one).
 
     Attributes
     ----------
@@ -43,6 +45,8 @@ def score_grid(grid: GridMap, truth: Any, *, min_height: float = 0.05) -> GridSc
     """Score ``grid`` against ``truth`` (a :class:`~kbs.synth.drive.DriveTruth`)."""
     frac = truth.obstacle_fraction(grid.origin, grid.cell_size, grid.shape, min_height=min_height)
     scored = (grid.frames_seen > 0) & ~((frac > 0) & (frac < 0.5))
+    if hasattr(truth, "overhang_fraction"):
+        scored &= ~(truth.overhang_fraction(grid.origin, grid.cell_size, grid.shape) > 0)
     true_o = (frac >= 0.5) & scored
     pred_o = (grid.cls == OBSTACLE) & scored
     tp = int((true_o & pred_o).sum())

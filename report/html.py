@@ -388,14 +388,10 @@ def _hull2d(P: np.ndarray) -> np.ndarray:
     return np.array(hull + hull[:1])
 
 
-# The page. Placeholders are filled in one pass (so nothing filled in is re-read as a placeholder). The error hook comes first, before plotly.js, so that its own errors are caught too.
-_TEMPLATE = r"""<!DOCTYPE html>
-<html lang="en">
-<head>
-<meta charset="utf-8">
-<meta name="viewport" content="width=device-width, initial-scale=1">
-<title>%%TITLE%%</title>
-<script>
+#: The page's error hook (first in ``<head>``, before plotly.js, so that its own errors are caught too):
+#: every error goes into a visible ``#kbs-errors`` box and into ``document.title`` ("KBS-ERROR: ...").
+#: Shared with the map view (:mod:`kbs.report.mapview`).
+ERROR_HOOK = r"""<script>
 (function () {
   var errors = [];
   function report(msg) {
@@ -415,7 +411,33 @@ _TEMPLATE = r"""<!DOCTYPE html>
     return ce.apply(console, arguments);
   };
 })();
-</script>
+</script>"""
+
+#: ``bytes(b64)`` and ``inflate(id)``: a base64 blob as an ArrayBuffer, and a gzip-compressed blob
+#: of the page inflated by the browser (``DecompressionStream``). Shared with the map view.
+INFLATE_JS = r"""  function bytes(b64) {
+    var s = atob(b64), u = new Uint8Array(s.length);
+    for (var i = 0; i < s.length; i++) u[i] = s.charCodeAt(i);
+    return u.buffer;
+  }
+  // plotly.js and the data are gzip-compressed and base64-encoded (a quarter of their size)
+  function inflate(id) {
+    if (typeof DecompressionStream === "undefined")
+      return Promise.reject(new Error("this browser cannot inflate the report's compressed data (DecompressionStream: " +
+                                      "Chrome 80, Firefox 113, Safari 16.4 or later)"));
+    var blob = new Blob([bytes(document.getElementById(id).textContent)]);
+    return new Response(blob.stream().pipeThrough(new DecompressionStream("gzip"))).text();
+  }
+"""
+
+# The page. Placeholders are filled in one pass (so nothing filled in is re-read as a placeholder). The error hook comes first, before plotly.js, so that its own errors are caught too.
+_TEMPLATE = r"""<!DOCTYPE html>
+<html lang="en">
+<head>
+<meta charset="utf-8">
+<meta name="viewport" content="width=device-width, initial-scale=1">
+<title>%%TITLE%%</title>
+@@ERROR_HOOK@@
 <style>
   body { font-family: system-ui, -apple-system, "Segoe UI", sans-serif; margin: 0; color: #222; }
   header { padding: 6px 12px; border-bottom: 1px solid #ddd; }
@@ -475,20 +497,7 @@ _TEMPLATE = r"""<!DOCTYPE html>
 <script>
 (function () {
   "use strict";
-  function bytes(b64) {
-    var s = atob(b64), u = new Uint8Array(s.length);
-    for (var i = 0; i < s.length; i++) u[i] = s.charCodeAt(i);
-    return u.buffer;
-  }
-  // plotly.js and the data are gzip-compressed and base64-encoded (a quarter of their size)
-  function inflate(id) {
-    if (typeof DecompressionStream === "undefined")
-      return Promise.reject(new Error("this browser cannot inflate the report's compressed data (DecompressionStream: " +
-                                      "Chrome 80, Firefox 113, Safari 16.4 or later)"));
-    var blob = new Blob([bytes(document.getElementById(id).textContent)]);
-    return new Response(blob.stream().pipeThrough(new DecompressionStream("gzip"))).text();
-  }
-  inflate("kbs-plotly").then(function (code) {
+@@INFLATE_JS@@  inflate("kbs-plotly").then(function (code) {
     var s = document.createElement("script");
     s.textContent = code;  // runs now: defines window.Plotly
     document.head.appendChild(s);
@@ -754,3 +763,5 @@ function start(D) {
 </body>
 </html>
 """
+_TEMPLATE = _TEMPLATE.replace("@@ERROR_HOOK@@", ERROR_HOOK).replace("@@INFLATE_JS@@", INFLATE_JS)
+

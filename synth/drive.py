@@ -24,7 +24,7 @@ from kbs.inference._validation import Interval, validate_params
 from kbs.synth.outdoor import _OUTDOOR_CONSTRAINTS
 from kbs.synth._params import check_pair, count
 from kbs.synth.outdoor import Bin, Rock, _bin, _rock, _terrain
-from kbs.synth.raycast import HeightField, pinhole_rays, ray_heightfield
+from kbs.synth.raycast import HeightField, pinhole_rays, ray_convex, ray_heightfield, sphere_candidates
 from kbs.synth.scene import Scene
 
 #: Format of ``truth.json``.
@@ -45,6 +45,95 @@ def arc(s: np.ndarray | float, yaw_rate: float) -> tuple[np.ndarray, np.ndarray,
     return np.sin(yaw_rate * s) / yaw_rate, (1.0 - np.cos(yaw_rate * s)) / yaw_rate, yaw_rate * s
 
 
+@dataclass(frozen=True, eq=False)
+class Prism:
+    """A vertical convex prism: a building's block, a pole, a tree's trunk.
+
+    Attributes
+    ----------
+    footprint : np.ndarray, shape (k, 2)
+        Its convex footprint, counter-clockwise (world or sensor frame).
+    base, top : float
+        Heights of its bottom (below the terrain under it) and of its top.
+    """
+
+    footprint: np.ndarray
+    base: float
+    top: float
+
+    def _halfspaces(self) -> tuple[np.ndarray, np.ndarray]:
+        p = np.asarray(self.footprint, dtype=np.float64)
+        e = np.roll(p, -1, axis=0) - p
+        n = np.column_stack([e[:, 1], -e[:, 0]]) / np.linalg.norm(e, axis=1)[:, None]  # outward (CCW)
+        normals = np.vstack([np.column_stack([n, np.zeros(len(n))]), [[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]])
+        offsets = np.concatenate([(n * p).sum(axis=1), [self.top, -self.base]])
+        return normals, offsets
+
+    def cast(self, dirs: np.ndarray) -> np.ndarray:
+        """Distance to the prism along each ray, ``inf`` for a miss."""
+        t = np.full(len(dirs), np.inf)
+        p = np.asarray(self.footprint, dtype=np.float64)
+        c2 = p.mean(axis=0)
+        centre = np.array([c2[0], c2[1], (self.base + self.top) / 2])
+        radius = float(np.hypot(np.linalg.norm(p - c2, axis=1).max(), (self.top - self.base) / 2))
+        idx = sphere_candidates(dirs, centre, radius)
+        if idx.size:
+            t[idx] = ray_convex(dirs[idx], *self._halfspaces())[0]
+        return t
+
+    def top_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Height of its top at ``(x, y)``, ``-inf`` outside its footprint."""
+        normals, offsets = self._halfspaces()
+        inside = np.ones(np.shape(x), dtype=bool)
+        for nv, d in zip(normals[:-2], offsets[:-2]):
+            inside &= nv[0] * x + nv[1] * y <= d
+        return np.where(inside, self.top, -np.inf)
+
+    def moved(self, R: np.ndarray, t: np.ndarray) -> Prism:
+        """Expressed in the frame of the pose ``(R, t)`` (yaw-only rotation)."""
+        return Prism((np.asarray(self.footprint) - t[:2]) @ R[:2, :2], self.base - t[2], self.top - t[2])
+
+
+@dataclass(frozen=True, eq=False)
+class Tree:
+    """A tree: a trunk (an octagonal :class:`Prism`) under an ellipsoidal crown (a one-lobe
+    :class:`~kbs.synth.outdoor.Rock`)."""
+
+    trunk: Prism
+    crown: Rock
+
+    def cast(self, dirs: np.ndarray) -> np.ndarray:
+        return np.minimum(self.trunk.cast(dirs), self.crown.cast(dirs))
+
+    def top_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return np.maximum(self.trunk.top_at(x, y), _rock_top(self.crown, x, y))
+
+    def moved(self, R: np.ndarray, t: np.ndarray) -> Tree:
+        return Tree(self.trunk.moved(R, t), Rock((self.crown.centers - t) @ R, self.crown.axes @ R, self.crown.radii))
+
+
+def _rock_top(s: Rock, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Height of the top of a rock's lobes at ``(x, y)``, ``-inf`` outside them."""
+    top = np.full(np.shape(x), -np.inf)
+    for c, ax, r in zip(s.centers, s.axes, s.radii):
+        # q = ax (p - c) / r; |q|^2 <= 1 is quadratic in z
+        A = ax / r[:, None]  # rows scaled
+        d = np.stack([x - c[0], y - c[1], np.zeros_like(x)], axis=-1) @ A.T  # (..., 3) at z = c_z
+        a = float(A[:, 2] @ A[:, 2])
+        b = 2.0 * (d @ A[:, 2])
+        cc = (d * d).sum(-1) - 1.0
+        disc = b * b - 4 * a * cc
+        with np.errstate(invalid="ignore"):
+            zt = c[2] + (-b + np.sqrt(disc)) / (2 * a)
+        top = np.where(disc >= 0, np.maximum(top, zt), top)
+    return top
+
+
+def _octagon(center: np.ndarray, radius: float) -> np.ndarray:
+    a = (np.arange(8) + 0.5) * np.pi / 4
+    return np.column_stack([center[0] + radius * np.cos(a), center[1] + radius * np.sin(a)])
+
+
 def _in_sensor_frame(obj: Any, T: np.ndarray) -> Any:
     """A rock, bin or terrain expressed in the frame of pose ``T`` (yaw-only rotation)."""
     R, t = T[:3, :3], T[:3, 3]
@@ -54,6 +143,8 @@ def _in_sensor_frame(obj: Any, T: np.ndarray) -> Any:
                            phases=obj.phases + obj.wavevectors @ t[:2])
     if isinstance(obj, Rock):
         return Rock((obj.centers - t) @ R, obj.axes @ R, obj.radii)
+    if isinstance(obj, (Prism, Tree)):
+        return obj.moved(R, t)
     c = (np.array([obj.center[0], obj.center[1], 0.0]) - np.array([t[0], t[1], 0.0])) @ R
     yaw = float(np.arctan2(R[1, 0], R[0, 0]))
     return replace(obj, center=c[:2], yaw=obj.yaw - yaw, base=obj.base - t[2], floor=obj.floor - t[2],
@@ -87,17 +178,9 @@ class DriveTruth:
         top = np.full(x.shape, -np.inf)
         for s in self.solids:
             if isinstance(s, Rock):
-                for c, ax, r in zip(s.centers, s.axes, s.radii):
-                    # q = ax (p - c) / r; |q|^2 <= 1 is quadratic in z
-                    A = ax / r[:, None]  # rows scaled
-                    d = np.stack([x - c[0], y - c[1], np.zeros_like(x)], axis=-1) @ A.T  # (…, 3) at z = c_z
-                    a = float(A[:, 2] @ A[:, 2])
-                    b = 2.0 * (d @ A[:, 2])
-                    cc = (d * d).sum(-1) - 1.0
-                    disc = b * b - 4 * a * cc
-                    with np.errstate(invalid="ignore"):
-                        zt = c[2] + (-b + np.sqrt(disc)) / (2 * a)
-                    top = np.where(disc >= 0, np.maximum(top, zt), top)
+                top = np.maximum(top, _rock_top(s, x, y))
+            elif isinstance(s, (Prism, Tree)):
+                top = np.maximum(top, s.top_at(x, y))
             else:  # a bin: its footprint rectangle, up to its top
                 ca, sa = np.cos(s.yaw), np.sin(s.yaw)
                 u = (x - s.center[0]) * ca + (y - s.center[1]) * sa
@@ -134,6 +217,26 @@ class DriveTruth:
         h = self.exposed_height(X, Y) > min_height
         return h.reshape(nx, subsamples, ny, subsamples).mean(axis=(1, 3))
 
+    def overhang_fraction(self, origin: tuple[float, float], cell_size: float, shape: tuple[int, int], *,
+                          subsamples: int = 4) -> np.ndarray:
+        """Fraction of each cell (as :meth:`obstacle_fraction`) under a tree's crown and under no
+        trunk nor other solid: free at the ground, an obstacle from above; a map is right either
+        way there (:func:`kbs.maps.score.score_grid` leaves these cells out)."""
+        nx, ny = shape
+        off = (np.arange(subsamples) + 0.5) / subsamples
+        xs = origin[0] + (np.arange(nx)[:, None] + off[None, :]).ravel() * cell_size
+        ys = origin[1] + (np.arange(ny)[:, None] + off[None, :]).ravel() * cell_size
+        X, Y = np.meshgrid(xs, ys, indexing="ij")
+        crown = np.zeros(X.shape, dtype=bool)
+        standing = np.zeros(X.shape, dtype=bool)
+        for s in self.solids:
+            if isinstance(s, Tree):
+                crown |= np.isfinite(_rock_top(s.crown, X, Y))
+                standing |= np.isfinite(s.trunk.top_at(X, Y))
+            else:
+                standing |= DriveTruth(self.terrain, (s,), self.object_names, self.poses).exposed_height(X, Y) > 0
+        return (crown & ~standing).reshape(nx, subsamples, ny, subsamples).mean(axis=(1, 3))
+
     def to_dict(self) -> dict[str, Any]:
         t = self.terrain
         objs = []
@@ -141,6 +244,14 @@ class DriveTruth:
             if isinstance(s, Rock):
                 objs.append({"id": i, "name": self.object_names[i], "kind": "rock", "centers": s.centers.tolist(),
                              "axes": s.axes.tolist(), "radii": s.radii.tolist()})
+            elif isinstance(s, Prism):
+                objs.append({"id": i, "name": self.object_names[i], "kind": "prism",
+                             "footprint": np.asarray(s.footprint).tolist(), "base": s.base, "top": s.top})
+            elif isinstance(s, Tree):
+                objs.append({"id": i, "name": self.object_names[i], "kind": "tree",
+                             "footprint": np.asarray(s.trunk.footprint).tolist(), "base": s.trunk.base,
+                             "top": s.trunk.top, "centers": s.crown.centers.tolist(), "axes": s.crown.axes.tolist(),
+                             "radii": s.crown.radii.tolist()})
             else:
                 objs.append({"id": i, "name": self.object_names[i], "kind": "bin", "center": list(map(float, s.center)),
                              "yaw": s.yaw, "size": list(s.size), "base": s.base, "floor": s.floor, "top": s.top})
@@ -159,6 +270,11 @@ class DriveTruth:
             names.append(o["name"])
             if o["kind"] == "rock":
                 solids.append(Rock(np.array(o["centers"]), np.array(o["axes"]), np.array(o["radii"])))
+            elif o["kind"] == "prism":
+                solids.append(Prism(np.array(o["footprint"], dtype=np.float64), float(o["base"]), float(o["top"])))
+            elif o["kind"] == "tree":
+                solids.append(Tree(Prism(np.array(o["footprint"], dtype=np.float64), float(o["base"]), float(o["top"])),
+                                   Rock(np.array(o["centers"]), np.array(o["axes"]), np.array(o["radii"]))))
             else:
                 solids.append(Bin(np.array(o["center"]), float(o["yaw"]), tuple(o["size"]), float(o["base"]),
                                   float(o["floor"]), float(o["top"])))
@@ -246,6 +362,80 @@ _DRIVE_CONSTRAINTS = {
 }
 
 
+def _near(poly: np.ndarray, points: np.ndarray, spacing: float = 0.25) -> np.ndarray:
+    """Distance from each of ``points`` (m, 2) to the closed polygon ``poly`` (k, 2)'s outline
+    (sampled every ``spacing`` metres)."""
+    from scipy.spatial import cKDTree
+
+    edges = []
+    for a, b in zip(poly, np.roll(poly, -1, axis=0)):
+        n = max(2, int(np.ceil(np.linalg.norm(b - a) / spacing)) + 1)
+        edges.append(a + np.linspace(0.0, 1.0, n)[:, None] * (b - a))
+    return cKDTree(np.vstack(edges)).query(points)[0]
+
+
+def _street(rng: np.random.Generator, terrain: HeightField, w: float, s_lo: float, s_hi: float,
+            path_xy: np.ndarray, placed: list[tuple[np.ndarray, float]], gap: float) -> list[tuple[str, Any]]:
+    """Buildings, trees and poles along both sides of the path between arc lengths ``s_lo`` and
+    ``s_hi``, clear of the path and of the objects already ``placed`` (footprint circles)."""
+    out: list[tuple[str, Any]] = []
+
+    def clear(poly: np.ndarray, margin: float) -> bool:
+        if _near(poly, path_xy).min() < margin or _inside(poly, path_xy).any():
+            return False
+        return all(_near(poly, c[None])[0] >= r + gap and not _inside(poly, c[None])[0] for c, r in placed)
+
+    def local(s: float, along: np.ndarray, across: np.ndarray) -> np.ndarray:
+        x, y, h = (float(v) for v in arc(s, w))
+        return np.column_stack([x + along * np.cos(h) - across * np.sin(h), y + along * np.sin(h) + across * np.cos(h)])
+
+    for side in (1.0, -1.0):
+        a = s_lo + rng.uniform(0.0, 4.0)  # buildings: blocks with gaps between them
+        while a < s_hi:
+            length, depth, setback = rng.uniform(6.0, 12.0), rng.uniform(5.0, 9.0), rng.uniform(7.5, 10.0)
+            along = np.array([-0.5, 0.5, 0.5, -0.5]) * length
+            across = side * np.array([setback, setback, setback + depth, setback + depth])
+            poly = local(a + length / 2, along, across)
+            if side < 0:
+                poly = poly[::-1]  # counter-clockwise
+            g = terrain(poly[:, 0], poly[:, 1])
+            height = rng.uniform(4.0, 9.0)
+            if clear(poly, 2.0):
+                out.append(("building", Prism(poly, float(g.min()) - 0.3, float(g.mean()) + height)))
+            a += length + rng.uniform(1.5, 4.0)
+        a = s_lo + rng.uniform(0.0, 6.0)  # trees in front of the buildings
+        while a < s_hi:
+            c = local(a, np.zeros(1), np.array([side * rng.uniform(5.0, 6.5)]))[0]
+            r_trunk, h_trunk = rng.uniform(0.15, 0.3), rng.uniform(2.0, 3.0)
+            crown = np.array([rng.uniform(1.2, 2.0), 0.0, rng.uniform(1.0, 1.8)])
+            crown[1] = crown[0] * rng.uniform(0.8, 1.0)
+            ground = float(terrain(c[0], c[1]))
+            trunk = Prism(_octagon(c, r_trunk), ground - 0.3, ground + h_trunk + 0.5 * crown[2])
+            if clear(_octagon(c, crown[0]), 0.8) and all(np.linalg.norm(c - q) >= crown[0] + r + gap for q, r in placed):
+                out.append(("tree", Tree(trunk, Rock(np.array([[c[0], c[1], ground + h_trunk + crown[2]]]),
+                                                     np.eye(3)[None], crown[None]))))
+                placed.append((c, float(crown[0])))
+            a += rng.uniform(6.0, 10.0)
+        a = s_lo + rng.uniform(0.0, 4.0)  # poles at the kerb
+        while a < s_hi:
+            c = local(a, np.zeros(1), np.array([side * rng.uniform(2.5, 4.0)]))[0]
+            r_pole = rng.uniform(0.08, 0.15)
+            ground = float(terrain(c[0], c[1]))
+            pole = Prism(_octagon(c, r_pole), ground - 0.3, ground + rng.uniform(4.0, 7.0))
+            if clear(pole.footprint, 1.0) and all(np.linalg.norm(c - q) >= r_pole + r + gap for q, r in placed):
+                out.append(("pole", pole))
+                placed.append((c, r_pole))
+            a += rng.uniform(4.0, 8.0)
+    return out
+
+
+def _inside(poly: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Whether ``points`` (m, 2) lie inside the convex counter-clockwise polygon ``poly``."""
+    e = np.roll(poly, -1, axis=0) - poly
+    cross = e[None, :, 0] * (points[:, None, 1] - poly[None, :, 1]) - e[None, :, 1] * (points[:, None, 0] - poly[None, :, 0])
+    return (cross >= 0).all(axis=1)
+
+
 def outdoor_drive(
     seed: int = 0,
     *,
@@ -267,6 +457,7 @@ def outdoor_drive(
     lateral: tuple[float, float] = (1.5, 5.0),
     gap: float = 0.5,
     max_tries: int = 500,
+    street: bool = False,
 ) -> DriveScene:
     """A drive of ``n_frames`` frames through one outdoor scene (see the module's doc).
 
@@ -288,6 +479,15 @@ def outdoor_drive(
     extent, n_rocks, with_bin, resolution, fov_deg, tilt_deg, sensor_height, noise, density_r0,
     ground_amplitude, rock_size, bin_size, gap, max_tries
         As :func:`kbs.synth.outdoor_scene`.
+    street : bool
+        Also line the path as a street is lined: on each side, buildings (blocks 6-12 m long,
+        5-9 m deep, 4-9 m high, 7.5-10 m from the path, 1.5-4 m apart), trees (a trunk under an
+        ellipsoidal crown, 5-6.5 m from the path, every 6-10 m) and poles (4-7 m high, 2.5-4 m
+        from the path, every 4-8 m), from 8 m behind the first pose to past the last view. They
+        are drawn from a generator of their own, so the rocks, the bin and the rays of a drive
+        without them are the same. Their faces give a registration (``kbs map
+        --estimate-poses``) what flat ground and a few rocks do not: surfaces facing the
+        direction of travel.
 
     Returns
     -------
@@ -302,8 +502,10 @@ def outdoor_drive(
                   with_bin=with_bin, resolution=resolution, fov_deg=fov_deg, tilt_deg=tilt_deg,
                   sensor_height=sensor_height, noise=noise, density_r0=density_r0,
                   ground_amplitude=ground_amplitude, rock_size=rock_size, bin_size=bin_size, lateral=lateral, gap=gap,
-                  max_tries=max_tries)
+                  max_tries=max_tries, street=street)
     validate_params("outdoor_drive", params, _DRIVE_CONSTRAINTS)
+    if not isinstance(street, (bool, np.bool_)):
+        raise ParameterError(f"The 'street' parameter of outdoor_drive must be a bool. Got {street!r} instead.")
     resolution = check_pair("outdoor_drive", "resolution", resolution, numbers.Integral, 0, None)
     fov_deg = check_pair("outdoor_drive", "fov_deg", fov_deg, numbers.Real, 0, 180)
     rock_size = check_pair("outdoor_drive", "rock_size", rock_size, numbers.Real, 0, None)
@@ -349,6 +551,15 @@ def outdoor_drive(
         else:
             raise ParameterError(f"outdoor_drive could not place {'the bin' if is_bin else f'rock {i + 1}'} beside "
                                  f"the path after {max_tries} tries; ask for fewer or smaller objects, or a longer drive")
+    if street:
+        counts: dict[str, int] = {}
+        street_s = np.linspace(-12.0, path_far + 8.0, int((path_far + 20.0) / 0.25) + 2)
+        street_path = np.column_stack(arc(street_s, w)[:2])
+        for kind, obj in _street(np.random.default_rng([seed, 1]), terrain, w, -8.0, path_far + 5.0, street_path,
+                                 placed, gap):
+            counts[kind] = counts.get(kind, 0) + 1
+            solids.append(obj)
+            names.append(f"{kind} {counts[kind]}")
 
     frames = []
     for i in range(n_frames):
@@ -377,8 +588,13 @@ def outdoor_drive(
             "sensor, x forward, y left, z up; label 0 ground, 1.. the drive's objects",
             object_names=tuple(names), pixel=np.flatnonzero(hit), shape=tuple(resolution), terrain=local_terrain,
             solids=tuple(local), params=params))
+    furniture = ""
+    if street:
+        kinds = [n.rsplit(" ", 1)[0] for n in names[n_rocks + int(with_bin) + 1:]]
+        furniture = ", " + ", ".join(count(kinds.count(k), k, k + "s") for k in ("building", "tree", "pole")) + \
+            " along the street"
     description = (f"outdoor drive, seed {seed}: {n_frames} frames {step:g} m apart turning {yaw_rate:g} deg per "
-                   f"frame, {count(n_rocks, 'rock', 'rocks')}{', a bin' if with_bin else ''} beside the path; camera "
+                   f"frame, {count(n_rocks, 'rock', 'rocks')}{', a bin' if with_bin else ''} beside the path{furniture}; camera "
                    f"{resolution[0]}x{resolution[1]} px, fov {fov_deg[0]:g}x{fov_deg[1]:g} deg, tilt {tilt_deg:g} deg, "
                    f"{sensor_height:g} m above the ground, range <= {extent:g} m")
     return DriveScene(tuple(frames), DriveTruth(terrain, tuple(solids), tuple(names), poses), description, params)

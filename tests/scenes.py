@@ -145,3 +145,19 @@ def airborne_large_building(seed: int = 7) -> tuple[np.ndarray, np.ndarray]:
     wall[:, 2] += 0.03125 * wall[:, 0]
     X = np.vstack([np.column_stack([xy, z]), wall]) + [512000.0, 5400000.0, 250.0]
     return X, np.r_[inside.astype(int), np.ones(len(wall), int)]
+
+
+def airborne_step_and_building(seed: int = 9, step: float = 4.0) -> tuple[np.ndarray, np.ndarray]:
+    """An airborne scan (z up, about 1 point per square metre) of level terrain, 160 m x 160 m, with
+    a terrain step of ``step`` metres across it (the upper terrace x > 10 m; the step's face a 2 m
+    wide bank), and beside the step, on the lower terrace, a flat-roofed building 24 m x 16 m, its
+    roof 7 m up, with a few points on its walls. Labels: 0 bare earth (both terraces and the bank),
+    1 the building."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-80, 80, (25600, 2))
+    z = step * np.clip((xy[:, 0] - 10.0) / 2.0, 0.0, 1.0) + rng.normal(0, 0.05, len(xy))
+    inside = (np.abs(xy[:, 0] + 12.0) < 12) & (np.abs(xy[:, 1]) < 8)  # x in [-24, 0]: 10 m from the bank
+    z[inside] += 7.0
+    wall = np.column_stack([rng.uniform(-24, 0, 120), np.full(120, -8.0), rng.uniform(0.5, 6.5, 120)])
+    X = np.vstack([np.column_stack([xy, z]), wall]) + [512000.0, 5400000.0, 250.0]
+    return X, np.r_[inside.astype(int), np.ones(len(wall), int)]

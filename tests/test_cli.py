@@ -101,3 +101,24 @@ def test_bad_option_is_a_usage_error():
 def test_unwritable_output_is_a_clean_error(tmp_path):
     r = kbs("cluster", str(EXAMPLE), "--k-max", "2", "--out", str(tmp_path / "no" / "such" / "dir" / "o.ply"))
     assert r.returncode == 3 and "cannot write" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.slow  # kbs subprocesses: pytest --runslow (CI) runs it
+def test_commands_that_do_not_segment_load_neither_numba_nor_scipy(tmp_path):
+    """`kbs explain`, `kbs rules show` and `kbs predicates` read and print: they do not pay for
+    the compiled kernels (numba) or the k-d trees (scipy), which only a segmentation loads (issue
+    9: start-up). Before, importing kbs.knowledge loaded both (connexity, ground direction)."""
+    assert kbs("-q", "run", "--rules", "outdoor", str(EXAMPLE), "--out", str(tmp_path / "o")).returncode == 0
+    code = ("import sys, io, contextlib; from kbs.cli.main import main\n"
+            "with contextlib.redirect_stdout(io.StringIO()):\n    code = main(sys.argv[1:])\n"
+            "print(sorted(m for m in ('numba', 'scipy', 'sklearn') if m in sys.modules)); sys.exit(code)")
+    for args in (["explain", str(tmp_path / "o" / "outdoor.json")], ["rules", "show", "outdoor"], ["predicates"]):
+        r = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stderr
+        assert r.stdout.strip().splitlines()[-1] == "[]", (args, r.stdout)
+    # and a segmentation still loads them when it needs them
+    code = ("import sys; import numpy as np, kbs; kbs.Segmenter('outdoor').segment(np.random.default_rng(0)"
+            ".normal(size=(3000, 3)) * [5, 5, 0.05]); print(sorted(m for m in ('numba', 'scipy') if m in sys.modules))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "'scipy'" in r.stdout.strip().splitlines()[-1]  # numba too when the compiled kernels are on

@@ -1,0 +1,139 @@
+"""The table as the largest supporting plane under the objects (``scene.ground.choose:
+supporting``, examples/rules/tabletop.yaml; issue 12): a large box face near the camera is not the
+table, through ``kbs run`` on generated Kinect-like scenes (benchmarks/tabletop_scenes.py); the
+count of supported points against a brute-force reference; bad values refused at their position."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from shapely.geometry import MultiPoint, Point
+
+from kbs.cli.main import main
+from kbs.evaluation import ground_metrics
+from kbs.io import write_ply
+from kbs.knowledge import load_rule_base
+from kbs.knowledge.groundplane import supported_points
+from test_cli import kbs
+
+ROOT = Path(__file__).resolve().parents[1]
+TABLETOP = (ROOT / "examples" / "rules" / "tabletop.yaml").read_text(encoding="utf-8")
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from tabletop_scenes import tabletop_scene  # noqa: E402
+
+
+def run_scene(tmp_path: Path, seed: int, rules: str = str(ROOT / "examples" / "rules" / "tabletop.yaml")):
+    X, lab, _ = tabletop_scene(seed)
+    scan = tmp_path / f"table{seed}.ply"
+    write_ply(scan, X)
+    r = kbs("run", "--rules", rules, "-j", "1", str(scan), "--out", str(tmp_path / "out"), "--force")
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((tmp_path / "out" / f"table{seed}.json").read_text())
+    from kbs.io import read_cloud
+
+    out = read_cloud(tmp_path / "out" / f"table{seed}.ply")
+    table = doc["label_names"].index("table") if "label_names" in doc else None
+    pred = out.fields["scalar_label"].astype(int) == table
+    f1 = ground_metrics(pred, np.where(lab == 1, 1, 0), ground_values=(1,)).f1
+    return r, doc, X, lab, f1
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [1, 11])
+def test_a_large_box_face_is_not_the_table(tmp_path, seed):
+    """A large box in the front half of the table: its top face (seed 1: 39,000 points, more than
+    the table's 34,000; seed 11: the table's cluster holds objects and fails 'planar', the box top
+    passes) was the closest planar candidate and became the table (F1 0.64 / 0.84 before); the
+    plane supporting the most points is the table."""
+    r, doc, X, lab, f1 = run_scene(tmp_path, seed)
+    g = doc["explanation"]["ground"]
+    n, p = np.array(g["normal"]), np.array(g["point"])
+    on = np.abs((X - p) @ n) < 0.01
+    assert (lab[on] == 1).mean() > 0.95, g  # the plane found is the table's
+    assert f1 > 0.99, (f1, g)
+    cands = [v for v in g["candidates"] if v.get("supported") is not None]
+    assert len(cands) >= 2 and g["supported"] == max(v["supported"] for v in cands)
+    assert "points standing on it" in r.stdout
+
+
+@pytest.mark.slow
+def test_a_table_cluster_holding_a_large_box_is_split(tmp_path):
+    """The table's cluster swallowed a large box: not planar, and too blobby for SAh's 'sheet', it
+    stayed one cluster, labelled background (1,791 of the table's 11,004 points, F1 0.911 before;
+    other scenes lost all their table). Mostly at the table's height (median within 1 cm) yet not
+    planar, it is split ('table_and_object')."""
+    r, doc, X, lab, f1 = run_scene(tmp_path, 35)
+    assert f1 > 0.99, f1
+    split = [c for c in doc["explanation"]["clusters"] if c.get("rule") == "table_and_object"]
+    assert split, "the rule split the table's cluster"
+
+
+@pytest.mark.slow
+def test_closest_keeps_the_papers_choice(tmp_path):
+    """Without 'choose' (the paper's rule, 'closest'), the same scene takes the box face: the
+    choice, not anything else in the rule file, makes the difference."""
+    rules = tmp_path / "closest.yaml"
+    text = TABLETOP
+    start, end = text.index("    choose:"), text.index("    fallback:")
+    rules.write_text(text[:start] + text[end:], encoding="utf-8")
+    assert load_rule_base(str(rules)).ground.support is None
+    _, doc, X, lab, f1 = run_scene(tmp_path, 1, str(rules))
+    assert f1 < 0.7
+
+
+def test_supported_points_match_a_brute_force_count():
+    rng = np.random.default_rng(3)
+    normal = np.array([0.0, -0.8, -0.6])
+    u = np.array([1.0, 0.0, 0.0])
+    v = np.cross(normal, u)
+    point = np.array([0.1, 0.2, 0.9])
+    uv = rng.uniform(-0.4, 0.4, (3000, 2)) * [1.0, 0.6]
+    on = point + uv[:, :1] * u + uv[:, 1:] * v
+    X = point + rng.uniform(-0.7, 0.7, (5000, 1)) * u + rng.uniform(-0.5, 0.5, (5000, 1)) * v \
+        + rng.uniform(-0.2, 0.8, (5000, 1)) * normal
+    got = supported_points(X, normal, point, on, 0.01, 0.5)
+    hull = MultiPoint([tuple(q) for q in uv]).convex_hull
+    h = (X - point) @ normal
+    ref = sum(1 for x, hh in zip(X, h) if 0.01 <= hh <= 0.5
+              and hull.covers(Point(float((x - point) @ u), float((x - point) @ v))))
+    assert got == ref and 0 < got < len(X)
+    assert supported_points(X, normal, point, on[:2], 0.01, 0.5) == 0  # no outline
+    assert supported_points(X, normal, point, on, 5.0, 6.0) == 0  # nothing in the band
+
+
+@pytest.mark.parametrize("old, new, at, message", [
+    ("max_height: 0.5 ", "max_height: 0.005 ", "0.005",
+     "max_height 0.005 must be greater than min_height 0.01"),
+    ("min_height: 0.01 ", "min_height: -0.01 ", "-0.01",
+     "scene.ground.choose.supporting.min_height: -0.01 is less than the minimum of 0"),
+    ("max_height: 0.5 ", "max_height: 50 cm ", "50 cm", "must be a number"),
+    ("      supporting:", "      supportin:", "supportin:", "unknown key 'supportin' in scene.ground.choose (did you mean 'supporting'?)"),
+])
+def test_a_bad_choice_is_refused_at_its_position(tmp_path, capsys, old, new, at, message):
+    assert old in TABLETOP
+    text = TABLETOP.replace(old, new, 1)
+    rules = tmp_path / "t.yaml"
+    rules.write_text(text, encoding="utf-8")
+    line = text[:text.index(at)].count("\n") + 1
+    col = text.index(at) - text.rfind("\n", 0, text.index(at))
+    scan = tmp_path / "s.ply"
+    write_ply(scan, tabletop_scene(0, resolution=(60, 80))[0])
+    assert main(["run", "--rules", str(rules), str(scan), "--out", str(tmp_path / "out")]) == 4
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and f"t.yaml:{line}:" in err and message in err, err
+    if message.startswith("max_height"):
+        assert f"t.yaml:{line}:{col}: " in err, err
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
+def test_choose_with_a_fixed_normal_is_a_warning(tmp_path, capsys):
+    text = TABLETOP.replace("normal: auto", "normal: [0, -1, 0]", 1)
+    rules = tmp_path / "t.yaml"
+    rules.write_text(text, encoding="utf-8")
+    assert main(["rules", "check", str(rules)]) == 0
+    err = capsys.readouterr().err
+    line = text[:text.index("    choose:")].count("\n") + 1
+    assert f"t.yaml:{line}:5: warning: scene.ground.choose is not used" in err, err
