@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import re
 import shutil
 import tempfile
@@ -289,7 +290,8 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
         check_classes_fit(pc.source, rb.asprs_classes, name)
     scan_units = _scan_units(pc, units, name, quiet)
     t_read = time.perf_counter() - t0
-    too_big = coordinate_problem(pc.xyz * segmenter.scale(scan_units))  # the file's fault (3), said before the work
+    # the file's fault (3), said before the work (a spilled file's points were checked as they were read)
+    too_big = coordinate_problem(pc.xyz * segmenter.scale(scan_units)) if spilled is None else None
     if too_big is not None:
         raise CloudFileError(name, too_big)
     if tiling is None:
@@ -308,8 +310,7 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
         from kbs.tiles.store import TileStore
 
         store = TileStore(out_dir / f"{cloud.stem}.tiles", segmenter)
-        seg = _segment_tiled(segmenter, pc.xyz, cloud, tiling, quiet=quiet, t0=t0, store=store,
-                             plan=None if spilled is None else (spilled.grid, spilled.tiles))
+        seg = _segment_tiled(segmenter, pc.xyz, cloud, tiling, quiet=quiet, t0=t0, store=store, spilled=spilled)
         spacing = []
     t1 = time.perf_counter()
     if not to_stdout:
@@ -317,15 +318,17 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
     from kbs.report.colors import rgb_fields
 
     f = segmenter.scale(scan_units)
-    clusters, frame_note = _scan_frame(seg.clusters, f)
+    clusters, frame_note = _scan_frame(seg.clusters if spilled is None else [], f)  # streamed: written by pieces
     used_sensor = (np.asarray(segmenter.sensor, dtype=float) / f).tolist() if sensor is None else list(sensor)
     results = {"cluster": seg.cluster, "label": seg.label, "membership": seg.membership}
-    fields = result_fields(pc, {**results, **rgb_fields(seg.cluster if color_by == "cluster" else seg.label)})
+    # streamed (a spilled LAS/LAZ written as LAS/LAZ): the result's columns are files, read a chunk at a time
+    fields = {} if spilled is not None else \
+        result_fields(pc, {**results, **rgb_fields(seg.cluster if color_by == "cluster" else seg.label)})
     doc = {
         "kbs_version": __version__, "input": name, "n_points": len(pc), "n_dropped": pc.n_dropped,
         "rule_base": rb.name, "rule_file": rb.path, "units": rb.units, "sensor": used_sensor,
         "label_names": seg.label_names, "summary": seg.summary(), "clusters": clusters,
-        "explanation": seg.explanation.to_dict(),
+        "explanation": seg.explanation.to_dict() if spilled is None else None,
     }
     if tiling is not None:
         doc["tiling"] = seg.tiling
@@ -342,7 +345,12 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
     las = None
     if fmt != "ply":
         classes = rb.asprs_classes
-        codes = class_codes(seg.label, seg.cluster, seg.label_names, classes) if classes else None
+        if spilled is not None:
+            from kbs.tiles.streamed import CodesColumn
+
+            codes = CodesColumn(seg.label, seg.cluster, seg.label_names, dict(classes)) if classes else None
+        else:
+            codes = class_codes(seg.label, seg.cluster, seg.label_names, classes) if classes else None
         if spilled is not None:
             from kbs.tiles.stream import ChunkedLas
 
@@ -353,7 +361,12 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
         run_id = write_result_stream(sys.stdout.buffer, f".{fmt}", pc.xyz, fields, run_id=new_run_id(), las=las,
                                      comments=comments)
     else:
-        run_id = write_result_pair(points, js, pc.xyz, fields, doc, run_id=new_run_id(), las=las, comments=comments)
+        run_id = write_result_pair(points, js, pc.xyz, fields, doc, run_id=new_run_id(), las=las, comments=comments,
+                                   pieces=seg.pieces() if spilled is not None else None)
+        if spilled is not None and (meshes or report):  # the whole result, read back, for the meshes and the page
+            written = json.loads(js.read_text(encoding="utf-8"))
+            clusters, doc["explanation"] = written["clusters"], written["explanation"]
+            seg = dataclasses.replace(seg, columns={k: np.asarray(v) for k, v in seg.columns.items()})
     if tiling is not None:
         store.remove()  # the result is written: the finished tiles are no longer needed
     t_write = time.perf_counter() - t1
@@ -404,7 +417,7 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
 
 
 def _segment_tiled(segmenter: Segmenter, xyz: np.ndarray, cloud: Path, tiling: Tiling, *, quiet: bool, t0: float,
-                   store=None, plan=None):
+                   store=None, spilled=None):
     from kbs.tiles import segment_tiled
     from kbs.tiles.run import SchedulerError
 
@@ -422,9 +435,13 @@ def _segment_tiled(segmenter: Segmenter, xyz: np.ndarray, cloud: Path, tiling: T
             lines()
 
     try:
+        if spilled is not None:
+            from kbs.tiles.streamed import segment_streamed
+
+            return segment_streamed(segmenter, spilled, store, scheduler=tiling.scheduler, workers=tiling.workers,
+                                    progress=progress, resume=tiling.resume)
         return segment_tiled(segmenter, xyz, tiling.size, tiling.buffer, scheduler=tiling.scheduler,
-                             workers=tiling.workers, progress=progress, store=store, resume=tiling.resume,
-                             plan=plan)
+                             workers=tiling.workers, progress=progress, store=store, resume=tiling.resume)
     except SchedulerError as exc:
         raise click.BadParameter(str(exc), param_hint="--scheduler") from exc
 

@@ -41,7 +41,7 @@ import json
 import math
 import os
 import uuid
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -111,11 +111,30 @@ def strict_json(doc: Any) -> str:
         return json.dumps(_finite_or_none(doc), separators=(",", ":"), default=jsonable, allow_nan=False)
 
 
-def _write_json_bytes(stream: Any, data: bytes) -> None:
-    stream.write(data)
+def _write_json_bytes(stream: Any, data: bytes | Iterable[bytes]) -> None:
+    if isinstance(data, bytes):
+        stream.write(data)
+        return
+    for part in data:
+        stream.write(part)
 
 
-def _write_json_file(path: Path, data: bytes, target: Path) -> None:
+def _json_pieces(doc: Mapping[str, Any], run_id: str, points: str | None,
+                 pieces: Mapping[str, Callable[[], Iterable[str]]]) -> Iterator[bytes]:
+    """:func:`_json_bytes`, the values of ``pieces``' keys written from their pieces of text."""
+    marks = {key: f"\x00kbs piece {key}\x00" for key in pieces}
+    text = _json_bytes({**doc, **marks}, run_id, points).decode("utf-8")
+    cuts = sorted((text.index(json.dumps(mark)), key) for key, mark in marks.items())
+    at = 0
+    for where, key in cuts:
+        yield text[at:where].encode("utf-8")
+        for part in pieces[key]():
+            yield part.encode("utf-8")
+        at = where + len(json.dumps(marks[key]))
+    yield text[at:].encode("utf-8")
+
+
+def _write_json_file(path: Path, data: bytes | Iterable[bytes], target: Path) -> None:
     try:
         with open(path, "wb") as stream:
             _write_json_bytes(stream, data)
@@ -133,7 +152,8 @@ def result_comments(run_id: str) -> list[str]:
 def write_result_pair(points: str | os.PathLike[str], js: str | os.PathLike[str], xyz: np.ndarray,
                       fields: Mapping[str, np.ndarray], doc: Mapping[str, Any], *,
                       run_id: str | None = None, las: Callable[[str], Any] | None = None,
-                      comments: Iterable[str] = ()) -> str:
+                      comments: Iterable[str] = (),
+                      pieces: Mapping[str, Callable[[], Iterable[str]]] | None = None) -> str:
     """Write one result, the points file and ``js``, as a whole: both or neither.
 
     Parameters
@@ -153,6 +173,9 @@ def write_result_pair(points: str | os.PathLike[str], js: str | os.PathLike[str]
         instead of PLY (:func:`kbs.io.las.build_las`).
     comments : iterable of str
         More PLY header comments (``units mm``, ``crs ...``), after the run id.
+    pieces : mapping of str to callable, optional
+        Keys of ``doc`` whose value is written from ``pieces[key]()``: pieces of JSON text (a
+        tiled result's clusters and explanation, never whole in memory); ``doc[key]`` is ignored.
 
     Returns
     -------
@@ -169,7 +192,7 @@ def write_result_pair(points: str | os.PathLike[str], js: str | os.PathLike[str]
     points, js = Path(os.fspath(points)), Path(os.fspath(js))
     run_id = run_id or new_run_id()
     built = build_ply(xyz, fields, comments=[*result_comments(run_id), *comments]) if las is None else las(run_id)
-    data = _json_bytes(doc, run_id, points.name)
+    data = _json_bytes(doc, run_id, points.name) if not pieces else _json_pieces(doc, run_id, points.name, pieces)
     try:
         with replacing(points, js) as (tmp_points, tmp_js):
             if las is None:

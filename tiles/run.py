@@ -99,8 +99,20 @@ def scene_ground(segmenter: Segmenter, X: np.ndarray) -> tuple[Any, dict[str, An
     untiled run finds it (:meth:`~kbs.knowledge.interpreter.Interpreter.find_ground`); on every k-th
     point when ``X`` holds more than :data:`GROUND_SAMPLE_POINTS`. Every tile takes it."""
     n = X.shape[0]
-    step = max(1, -(-n // GROUND_SAMPLE_POINTS))
-    ground, info = segmenter._interpreter.find_ground(X[::step] if step > 1 else X)
+    step = ground_step(n)
+    return sample_ground(segmenter, X[::step] if step > 1 else X, n)
+
+
+def ground_step(n: int) -> int:
+    """Every how many points of a cloud of ``n`` the ground plane is found on (:func:`scene_ground`)."""
+    return max(1, -(-n // GROUND_SAMPLE_POINTS))
+
+
+def sample_ground(segmenter: Segmenter, sample: np.ndarray, n: int) -> tuple[Any, dict[str, Any]]:
+    """:func:`scene_ground` of a cloud of ``n`` points from its ``sample`` (every
+    :func:`ground_step`-th point of it)."""
+    step = ground_step(n)
+    ground, info = segmenter._interpreter.find_ground(sample)
     if "source" in info:
         info["source"] = f"whole cloud: {info['source']}"
     info["scope"] = (f"found once on the whole cloud ({n:,} points)" if step == 1 else
@@ -257,22 +269,31 @@ def dask_client(scheduler: str, workers: int | None = None):
 def _segment_on_dask(segmenter: Segmenter, X: np.ndarray, tiles: Sequence[Tile], todo: Sequence[int],
                      scheduler: str, workers: int | None, progress: Callable[[str], None] | None,
                      finished: Callable[[int, Any, int], None], given: tuple[Any, dict[str, Any]]) -> None:
+    spec = (segmenter.rule_base.path, segmenter.sensor, segmenter.plugins)
+    _submit_all(scheduler, workers, progress, finished, todo,
+                lambda k: (_segment_task, *spec, X[tiles[k].index], given), [t.name for t in tiles])
+
+
+def _submit_all(scheduler: str, workers: int | None, progress: Callable[[str], None] | None,
+                finished: Callable[[int, Any, int], None], todo: Sequence[int],
+                task_of: Callable[[int], tuple[Any, ...]], names: Sequence[str]) -> None:
+    """Run the tasks ``task_of(k)`` (a function and its arguments) for ``k`` in ``todo`` on Dask,
+    a bounded number in flight; ``finished(k, result or exception, done)`` as each ends."""
     from distributed import as_completed
 
     client = dask_client(scheduler, workers)
     try:
         if progress is not None:
             progress(f"Dask dashboard: {client.dashboard_link}")
-        spec = (segmenter.rule_base.path, segmenter.sensor, segmenter.plugins)
 
         def submit(k: int) -> Any:
-            future = client.submit(_segment_task, *spec, X[tiles[k].index], given, retries=1, pure=False,
-                                   key=f"kbs-tile-{tiles[k].name}-{os.urandom(6).hex()}")
+            fn, *args = task_of(k)
+            future = client.submit(fn, *args, retries=1, pure=False, key=f"kbs-tile-{names[k]}-{os.urandom(6).hex()}")
             futures[future] = k
             return future
 
-        # a bounded number of tiles in flight (a tile's points are copied from X when it is
-        # submitted): the client holds the points of those tiles, not of the whole cloud
+        # a bounded number of tiles in flight (a task's arguments are made when it is submitted):
+        # the client holds those of these tiles, not of the whole cloud
         n_workers = max(len(client.scheduler_info().get("workers", {})), workers or 1 if scheduler == "local" else 1)
         window = max(2, IN_FLIGHT_PER_WORKER * n_workers)
         futures: dict[Any, int] = {}
@@ -285,6 +306,7 @@ def _segment_on_dask(segmenter: Segmenter, X: np.ndarray, tiles: Sequence[Tile],
             except Exception as exc:  # the task died twice (a worker lost), or a bug in it
                 out = exc
             k = futures.pop(future)
+            future.release()
             if queue:
                 pending.add(submit(queue.pop(0)))
             finished(k, out, done)

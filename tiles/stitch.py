@@ -12,7 +12,7 @@ note.
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -61,16 +61,26 @@ class _Union:
 
 def _links(a: Tile, ra: Segmentation, b: Tile, rb: Segmentation) -> list[tuple[int, int, int]]:
     """(cluster of a, cluster of b, shared points) for the clusters of two tiles that are one."""
-    _, ia, ib = np.intersect1d(a.index, b.index, assume_unique=True, return_indices=True)
-    if ia.size == 0:
-        return []
-    ca, cb = ra.cluster[ia].astype(np.int64), rb.cluster[ib].astype(np.int64)
-    na = np.bincount(ca[ca >= 0], minlength=len(ra.clusters))
-    nb = np.bincount(cb[cb >= 0], minlength=len(rb.clusters))
-    both = (ca >= 0) & (cb >= 0) & (ra.label[ia] == rb.label[ib])
-    pairs, counts = np.unique(np.stack([ca[both], cb[both]], axis=1), axis=0, return_counts=True)
     size_a = np.bincount(ra.cluster[ra.cluster >= 0], minlength=len(ra.clusters))
     size_b = np.bincount(rb.cluster[rb.cluster >= 0], minlength=len(rb.clusters))
+    return pair_links(a.index, ra.cluster, ra.label, size_a, b.index, rb.cluster, rb.label, size_b)
+
+
+def pair_links(index_a: np.ndarray, cluster_a: np.ndarray, label_a: np.ndarray, size_a: np.ndarray,
+               index_b: np.ndarray, cluster_b: np.ndarray, label_b: np.ndarray,
+               size_b: np.ndarray) -> list[tuple[int, int, int]]:
+    """:func:`_links` from the points of two tiles that the other may hold: ``index_a`` (increasing
+    indices into the cloud) with their ``cluster_a`` and ``label_a``, and ``size_a``, the points of
+    each cluster of tile a in the whole tile (likewise for b). Any superset of the points both tiles
+    hold gives the same links (a streamed run passes the points near the tiles' edges alone)."""
+    _, ia, ib = np.intersect1d(index_a, index_b, assume_unique=True, return_indices=True)
+    if ia.size == 0:
+        return []
+    ca, cb = cluster_a[ia].astype(np.int64), cluster_b[ib].astype(np.int64)
+    na = np.bincount(ca[ca >= 0], minlength=len(size_a))
+    nb = np.bincount(cb[cb >= 0], minlength=len(size_b))
+    both = (ca >= 0) & (cb >= 0) & (label_a[ia] == label_b[ib])
+    pairs, counts = np.unique(np.stack([ca[both], cb[both]], axis=1), axis=0, return_counts=True)
     out = []
     for (x, y), k in zip(pairs.tolist(), counts.tolist()):
         if k < MIN_SHARED_POINTS:
@@ -84,6 +94,10 @@ def _links(a: Tile, ra: Segmentation, b: Tile, rb: Segmentation) -> list[tuple[i
         if k >= MIN_SHARED_FRACTION * small and small >= MIN_SHARED_OF_CLUSTER * size:
             out.append((x, y, k))
     return out
+
+
+#: The neighbours of a tile (i + di, j + dj) its links are looked for with: each neighbouring pair once.
+NEIGHBOURS = ((0, 1), (1, -1), (1, 0), (1, 1))
 
 
 def stitch(X: np.ndarray, grid: TileGrid, tiles: Sequence[Tile], results: Sequence[Segmentation], *,
@@ -125,7 +139,7 @@ def stitch(X: np.ndarray, grid: TileGrid, tiles: Sequence[Tile], results: Sequen
     shared: dict[int, list[str]] = {}
     by_cell = {(t.i, t.j): k for k, t in enumerate(tiles)}
     for ka, a in enumerate(tiles):
-        for di, dj in ((0, 1), (1, -1), (1, 0), (1, 1)):  # each neighbouring pair once
+        for di, dj in NEIGHBOURS:
             kb = by_cell.get((a.i + di, a.j + dj))
             if kb is None:
                 continue
@@ -206,24 +220,8 @@ def _explanation(tiles, results, offsets, roots, out_of_root, shared, stitched, 
         e = r.explanation
         grounds[t.name] = e.ground
         children.append(f"{t.name}/{e.root}")
-        for rec in e.walk():
-            d = dict(vars(rec))
-            d["id"] = f"{t.name}/{rec.id}"
-            d["parent"] = f"{t.name}/{rec.parent}" if rec.parent else ROOT
-            d["depth"] = rec.depth + 1
-            d["children"] = [f"{t.name}/{c}" for c in rec.children]
-            d["notes"] = list(rec.notes)
-            if rec.output_index is not None:
-                g = int(offsets[k] + rec.output_index)
-                out = int(out_of_root[roots[g]])
-                d["output_index"] = out if out >= 0 else None
-                if out < 0:
-                    d["notes"].append(f"only in the buffer of tile {t.name}: its points are in the cores of "
-                                      f"other tiles, which took them")
-                elif out in stitched:
-                    links = f": shares buffer points with {'; '.join(shared[g])}" if g in shared else ""
-                    d["notes"].append(f"stitched across tile edges into output cluster {out}{links}")
-            records[d["id"]] = ClusterRecord(**d)
+        for rec in tile_records(t.name, e, int(offsets[k]), roots, out_of_root, shared, stitched):
+            records[rec.id] = rec
     records[ROOT] = ClusterRecord(id=ROOT, parent=None, depth=0, n_points=n, action="partition", children=children,
                                   notes=[f"{len(tiles)} tiles: " + ", ".join(t.bounds_text() for t in tiles)])
     sources = sorted({str(g.get("source", "not used")) for g in grounds.values()})
@@ -237,3 +235,36 @@ def _explanation(tiles, results, offsets, roots, out_of_root, shared, stitched, 
     return Explanation(rule_base=first.rule_base, rule_file=first.rule_file, strategy=first.strategy,
                        label_names=list(first.label_names), records=records, root=ROOT, ground=ground,
                        notes=[summary, *notes, *tile_notes], catalogue=first.catalogue)
+
+
+def tile_records(name: str, e: Explanation, offset: int, roots: np.ndarray, out_of_root: np.ndarray,
+                 shared: dict[int, list[str]], stitched: set[int]) -> Iterator[ClusterRecord]:
+    """The records of one tile's explanation ``e`` as the stitched explanation holds them, in its
+    order: ids prefixed with the tile's ``name``, the output cluster each became, notes on the
+    stitched ones and on those only in the buffer (``offset``: the tile's first node number)."""
+    for rec in e.walk():
+        d = dict(vars(rec))
+        d["notes"] = list(rec.notes)
+        yield ClusterRecord(**stitched_record(d, name, offset, roots, out_of_root, shared, stitched))
+
+
+def stitched_record(d: dict[str, Any], name: str, offset: int, roots: np.ndarray, out_of_root: np.ndarray,
+                    shared: dict[int, list[str]], stitched: set[int]) -> dict[str, Any]:
+    """One record of a tile (its fields ``d``, changed in place and returned) as the stitched
+    explanation holds it (:func:`tile_records`)."""
+    rid, parent, output_index = d["id"], d["parent"], d["output_index"]
+    d["id"] = f"{name}/{rid}"
+    d["parent"] = f"{name}/{parent}" if parent else ROOT
+    d["depth"] = d["depth"] + 1
+    d["children"] = [f"{name}/{c}" for c in d["children"]]
+    if output_index is not None:
+        g = offset + output_index
+        out = int(out_of_root[roots[g]])
+        d["output_index"] = out if out >= 0 else None
+        if out < 0:
+            d["notes"].append(f"only in the buffer of tile {name}: its points are in the cores of "
+                              f"other tiles, which took them")
+        elif out in stitched:
+            links = f": shares buffer points with {'; '.join(shared[g])}" if g in shared else ""
+            d["notes"].append(f"stitched across tile edges into output cluster {out}{links}")
+    return d

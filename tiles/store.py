@@ -6,7 +6,7 @@ a JSON document (label names, clusters, explanation, seconds) with the tile's ke
 digest of everything the tile's result depends on: the rule file's text, the plugins' texts, the
 sensor, the kbs version, and the tile's points (their indices and coordinates). A file whose key
 differs (another rule base, another cloud, another grid) is not used. Each file is written whole
-or not at all (:func:`kbs.io.atomic.replacing`).
+or not at all (written beside it, then renamed; not synced: a torn file is one :meth:`TileStore.load` cannot read).
 """
 from __future__ import annotations
 
@@ -19,7 +19,6 @@ from typing import Any
 import numpy as np
 
 from kbs.errors import CloudFileError
-from kbs.io.atomic import replacing
 from kbs.knowledge.explain import Explanation
 from kbs.knowledge.interpreter import Segmentation
 from kbs.knowledge.segmenter import Segmenter
@@ -58,15 +57,28 @@ class TileStore:
     def key(self, tile: Tile, X: np.ndarray, given: Any = None) -> str:
         """The digest of what ``tile``'s result depends on (``given``: the whole cloud's ground plane
         and its explanation, as :func:`kbs.tiles.run.scene_ground` returns them)."""
+        index = tile.index
+        return self.key_of(index, X[index], given)
+
+    def key_of(self, index: np.ndarray, points: np.ndarray, given: Any = None) -> str:
+        """:meth:`key` of a tile of the points ``points`` (n_tile, 3) at ``index`` in the cloud."""
         h = hashlib.sha256(self._base)
         if given is not None:
             ground, info = given
             if ground is not None:
                 h.update(np.concatenate([ground.normal, ground.point]).astype(np.float64).tobytes())
             h.update(json.dumps(info, sort_keys=True, default=str).encode("utf-8"))
-        h.update(np.ascontiguousarray(tile.index, dtype=np.int64).tobytes())
-        h.update(np.ascontiguousarray(X[tile.index], dtype=np.float64).tobytes())
+        h.update(np.ascontiguousarray(index, dtype=np.int64).tobytes())
+        h.update(np.ascontiguousarray(points, dtype=np.float64).tobytes())
         return h.hexdigest()
+
+    @classmethod
+    def at(cls, folder: str | os.PathLike[str], base: bytes) -> TileStore:
+        """The store of ``folder`` with the digest of an existing store's segmenter (``store._base``):
+        what a Dask worker saves its tiles with."""
+        store = cls.__new__(cls)
+        store.folder, store._base = Path(os.fspath(folder)), base
+        return store
 
     def path(self, tile: Tile) -> Path:
         return self.folder / f"{tile.name}.npz"
@@ -93,12 +105,17 @@ class TileStore:
         doc = {"format": TILE_FORMAT, "key": key, "tile": tile.name, "label_names": seg.label_names,
                "clusters": seg.clusters, "explanation": seg.explanation.to_dict(), "seconds": seg.seconds}
         data = np.frombuffer(strict_json(doc).encode("utf-8"), dtype=np.uint8)
+        path = self.path(tile)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
         try:
             self.folder.mkdir(parents=True, exist_ok=True)
-            with replacing(self.path(tile)) as (tmp,):
-                with open(tmp, "wb") as stream:
-                    np.savez(stream, cluster=seg.cluster, label=seg.label, membership=seg.membership, doc=data)
+            # renamed whole into place, not synced to the disk: a file a crash left torn is one
+            # load() cannot read, and that tile is segmented again (a sync per tile cost 5 % of a run)
+            with open(tmp, "wb") as stream:
+                np.savez(stream, cluster=seg.cluster, label=seg.label, membership=seg.membership, doc=data)
+            os.replace(tmp, path)
         except OSError as exc:
+            tmp.unlink(missing_ok=True)
             raise CloudFileError(str(self.path(tile)), f"cannot write: {exc.strerror or exc}") from exc
 
     def remove(self) -> None:

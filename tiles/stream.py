@@ -22,8 +22,10 @@ from __future__ import annotations
 
 import copy
 import datetime
+import functools
 import math
 import os
+import re
 import types
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -33,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from kbs.errors import CloudFileError
+from kbs.knowledge.segmenter import coordinate_problem
 from kbs.tiles.grid import Tile, TileGrid, ground_axes
 
 #: Points read at a time from a LAS/LAZ file (``kbs run --chunk-points``).
@@ -68,7 +71,7 @@ class SpilledCloud:
     def remove(self) -> None:
         """Delete the spill files (and the folder if nothing else is in it)."""
         for path in self.folder.glob("*"):
-            if path.suffix in (".idx", ".npy"):
+            if path.suffix in (".idx", ".core", ".npy", ".npz"):
                 path.unlink(missing_ok=True)
         try:
             self.folder.rmdir()
@@ -108,7 +111,8 @@ def spill_las(path: str | os.PathLike[str], folder: str | os.PathLike[str], size
     Raises
     ------
     CloudFileError
-        The file cannot be read, or holds no point.
+        The file cannot be read, holds no point, or a coordinate the engine cannot take
+        (:func:`kbs.knowledge.segmenter.coordinate_problem`, the error of an untiled run).
     ParameterError
         Bad size or buffer (as :meth:`TileGrid.fit`).
     """
@@ -120,46 +124,104 @@ def spill_las(path: str | os.PathLike[str], folder: str | os.PathLike[str], size
     axes = ground_axes(normal)
     lo = np.full(2, np.inf)
     hi = np.full(2, -np.inf)
-    for X in _chunks(path, chunk_points):  # 1: the extent
+    first, count, start = None, 0, 0
+    for X in _chunks(path, chunk_points):  # 1: the extent, and coordinates the engine cannot take
+        problem = coordinate_problem(X)
+        if problem is not None:
+            count += int(problem.split(" points have", 1)[0].replace(",", ""))
+            if first is None:  # its row counts from the chunk's start: from the file's
+                first = re.sub(r"\(first: row (\d+)", functools.partial(_row_from, start), problem, count=1)
+        start += len(X)
         uv = X @ axes.T
         lo = np.minimum(lo, uv.min(axis=0))
         hi = np.maximum(hi, uv.max(axis=0))
+    if first is not None:
+        raise CloudFileError(str(path), f"{count:,}" + first[first.index(" points have"):])
     grid = _grid(size, buffer, axes, lo, hi)
     folder.mkdir(parents=True, exist_ok=True)
-    xyz = np.lib.format.open_memmap(folder / "xyz.npy", mode="w+", dtype=np.float64, shape=(n, 3))
-    index = np.lib.format.open_memmap(folder / "index.npy", mode="w+", dtype=np.int64, shape=(n,))
     files: dict[tuple[int, int], Path] = {}
     core_count = np.zeros(grid.shape, dtype=np.int64)
+    tile_count = np.zeros(grid.shape, dtype=np.int64)
     start = 0
-    for X in _chunks(path, chunk_points):  # 2: the points, and each to its tiles
-        m = len(X)
-        if start + m > n:
-            raise CloudFileError(str(path), f"holds more points than its header's {n:,}")
-        xyz[start:start + m] = X
-        gi = np.arange(start, start + m, dtype=np.int64)
-        index[start:start + m] = gi
-        uv = X @ grid.axes.T
-        ij = grid.cells(uv)
-        np.add.at(core_count, (ij[:, 0], ij[:, 1]), 1)
-        for (i, j), rows in _tile_rows(grid, uv).items():
-            target = files.setdefault((i, j), folder / f"t{i}_{j}.idx")
-            with open(target, "ab") as stream:
-                gi[rows].tofile(stream)
-        start += m
+    # written with plain writes, not through a memory map: the pages written do not stay in this
+    # process's resident memory (a map's dirty pages would, the whole cloud's)
+    with open(folder / "xyz.npy", "wb") as xyz_out, open(folder / "index.npy", "wb") as index_out:
+        _npy_header(xyz_out, np.float64, (n, 3))
+        _npy_header(index_out, np.int64, (n,))
+        for X in _chunks(path, chunk_points):  # 2: the points, and each to its tiles
+            m = len(X)
+            if start + m > n:
+                raise CloudFileError(str(path), f"holds more points than its header's {n:,}")
+            xyz_out.write(np.ascontiguousarray(X, dtype="<f8").tobytes())
+            gi = np.arange(start, start + m, dtype=np.int64)
+            index_out.write(gi.astype("<i8").tobytes())
+            uv = X @ grid.axes.T
+            ij = grid.cells(uv)
+            np.add.at(core_count, (ij[:, 0], ij[:, 1]), 1)
+            for (i, j), rows in _tile_rows(grid, uv).items():
+                target = files.setdefault((i, j), folder / f"t{i}_{j}.idx")
+                with open(target, "ab") as stream:
+                    gi[rows].tofile(stream)
+                with open(target.with_suffix(".core"), "ab") as stream:
+                    ((ij[rows, 0] == i) & (ij[rows, 1] == j)).tofile(stream)
+                tile_count[i, j] += rows.size
+            start += m
     if start != n:
         raise CloudFileError(str(path), f"holds {start:,} points, its header says {n:,}")
-    xyz.flush()
-    index.flush()
-    tiles = []
+    xyz = np.load(folder / "xyz.npy", mmap_mode="r")
+    index = np.load(folder / "index.npy", mmap_mode="r")
+    tiles: list[Tile] = []
     for i in range(grid.shape[0]):
         for j in range(grid.shape[1]):
             if not core_count[i, j]:
                 continue
-            idx = np.fromfile(files[(i, j)], dtype=np.int64)
-            in_core = np.all(grid.cells(xyz[idx] @ grid.axes.T) == (i, j), axis=1)
             u0, v0 = grid.origin[0] + i * grid.size, grid.origin[1] + j * grid.size
-            tiles.append(Tile(f"t{i}_{j}", i, j, (u0, v0, u0 + grid.size, v0 + grid.size), idx, in_core))
+            tiles.append(SpilledTile(f"t{i}_{j}", i, j, (u0, v0, u0 + grid.size, v0 + grid.size), folder,
+                                     int(tile_count[i, j]), int(core_count[i, j])))
     return SpilledCloud(xyz=xyz, index=index, grid=grid, tiles=tiles, header=header, folder=folder)
+
+
+class SpilledTile(Tile):
+    """A :class:`~kbs.tiles.grid.Tile` of a spilled cloud whose ``index`` and ``in_core`` stay in
+    the spill folder (``<name>.idx``, ``<name>.core``), read each time they are asked for: the
+    process that plans and stitches holds no per-point array of the tiles.
+
+    Attributes
+    ----------
+    folder : Path
+    n_points, n_core : int
+        The tile's points (core and buffer) and its core's.
+    """
+
+    folder: Path
+    n_points: int
+    n_core: int
+
+    def __init__(self, name: str, i: int, j: int, core: tuple[float, float, float, float], folder: Path,
+                 n_points: int, n_core: int) -> None:
+        for key, value in (("name", name), ("i", i), ("j", j), ("core", core), ("folder", Path(folder)),
+                           ("n_points", n_points), ("n_core", n_core)):
+            object.__setattr__(self, key, value)
+
+    @property  # type: ignore[override]
+    def index(self) -> np.ndarray:
+        return np.fromfile(self.folder / f"{self.name}.idx", dtype=np.int64)
+
+    @property  # type: ignore[override]
+    def in_core(self) -> np.ndarray:
+        return np.fromfile(self.folder / f"{self.name}.core", dtype=np.bool_)
+
+
+def _row_from(start: int, m: re.Match[str]) -> str:
+    """A chunk's row in :func:`coordinate_problem`'s message, counted from the file's start."""
+    return f"(first: row {int(m.group(1)) + start}"
+
+
+def _npy_header(stream: Any, dtype: Any, shape: tuple[int, ...]) -> None:
+    """The header of a ``.npy`` file of ``shape`` and ``dtype`` (little-endian, C order), its data
+    to be written after it."""
+    np.lib.format.write_array_header_1_0(stream, {"descr": np.lib.format.dtype_to_descr(np.dtype(dtype).newbyteorder("<")),
+                                                  "fortran_order": False, "shape": shape})
 
 
 def _grid(size: float, buffer: float, axes: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> TileGrid:

@@ -1,0 +1,215 @@
+"""Tiled runs of a LAS/LAZ file with the stitching process's memory bounded by the tile size
+(kbs.tiles.streamed): the tiles' results stay in their files, the links come from the points near
+the tiles' edges, the output is computed and written from files in chunks, and the bytes written
+are those of the in-memory path (--chunk-points 0)."""
+from __future__ import annotations
+
+import pickle
+import re
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pytest
+
+from kbs.inference import cluster_geometry
+from kbs.tiles import TileGrid
+from kbs.tiles.stream import spill_las
+from kbs.tiles.streamed import TileJob, _descriptors, _edge_mask, _new_column
+from scenes import ground_and_rocks
+from test_cli import kbs as kbs_cmd
+
+
+def _normalised(path: Path) -> bytes:
+    """A result file's bytes with its run id (32 hex digits) and the JSON's timing blanked."""
+    data = re.sub(rb"[0-9a-f]{32}", b"0" * 32, path.read_bytes())
+    return re.sub(rb'"seconds":[0-9.e+-]+', b'"seconds":0', data)
+
+
+# -- the parts --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("size, buffer", [(10.0, 0.5), (7.5, 2.0), (3.0, 5.0), (6.0, 1.5)])
+def test_every_point_a_tile_shares_with_another_is_in_its_edge_points(size, buffer):
+    """The links are computed from each tile's edge points alone: every point two tiles hold
+    must be among the edge points of both (else a crossing cluster would not be stitched)."""
+    X = np.random.default_rng(9).uniform([-20, 5, 0], [13, 31, 4], (4000, 3))
+    grid = TileGrid.fit(X, size, buffer)
+    tiles = grid.tiles(X)
+    edges = {t.name: set(t.index[_edge_mask(grid, t, X[t.index] @ grid.axes.T)].tolist()) for t in tiles}
+    held = {}
+    for t in tiles:
+        for i in t.index.tolist():
+            held.setdefault(i, []).append(t.name)
+    shared = {i: names for i, names in held.items() if len(names) > 1}
+    assert shared  # the case is tested
+    for i, names in shared.items():
+        for name in names:
+            assert i in edges[name], (i, name)
+    interior = sum(len(t.index) - len(edges[t.name]) for t in tiles)
+    assert size < 2 * buffer or interior > 0  # and the edge points are not simply every point
+
+
+@pytest.mark.parametrize("jit", [True, False])
+def test_the_descriptors_summed_in_chunks_are_cluster_geometry_to_the_last_bit(tmp_path, monkeypatch, jit):
+    from kbs.inference import _flags
+    from kbs.tiles import streamed
+
+    monkeypatch.setattr(_flags, "JIT", jit)
+    monkeypatch.setattr(streamed, "CHUNK_POINTS", 777)  # clusters spread over many chunks
+    rng = np.random.default_rng(2)
+    n, k = 5000, 7
+    X = rng.normal(0, 1, (n, 3)) * [30, 20, 2] + [4.5e5, 5.4e6, 80]
+    cl = rng.integers(-1, k, n).astype(np.int32)
+    u = rng.uniform(0.05, 1, n).astype(np.float32)
+    np.save(tmp_path / "xyz.npy", X)
+    cols = {}
+    for name, values in (("cluster", cl), ("membership", u)):
+        cols[name] = _new_column(tmp_path / f"{name}.npy", values.dtype, n)
+        mm = np.load(cols[name].path, mmap_mode="r+")
+        mm[:] = values
+        del mm
+    got = _descriptors(tmp_path / "xyz.npy", cols["cluster"], cols["membership"], k)
+    for c in range(k):
+        idx = np.flatnonzero(cl == c)
+        want = cluster_geometry(X[idx], u.astype(np.float64)[idx])
+        assert got["center"][c].tobytes() == want.center.tobytes()
+        assert got["eigenvalues"][c].tobytes() == want.eigenvalues.tobytes()
+        assert got["eigenvectors"][c].tobytes() == want.eigenvectors.tobytes()
+        assert got["mass"][c] == want.mass
+
+
+def test_a_tile_task_carries_paths_not_points(tmp_path):
+    """What is sent to a Dask worker for a tile is a few hundred bytes, whatever its points."""
+    rng = np.random.default_rng(1)
+    X = rng.uniform([0, 0, 0], [100, 100, 5], (60_000, 3))
+    header = laspy.LasHeader(point_format=1, version="1.2")
+    header.scales = np.array([0.001, 0.001, 0.001])
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = X[:, 0], X[:, 1], X[:, 2]
+    las.write(str(tmp_path / "a.las"))
+    spilled = spill_las(tmp_path / "a.las", tmp_path / "spill", 50.0, 5.0)
+    tile = spilled.tiles[0]
+    assert tile.index.size > 15_000
+    job = TileJob(str(spilled.folder / "xyz.npy"), tile, spilled.grid, str(tmp_path / "store"), b"x" * 32, False)
+    assert len(pickle.dumps(job)) < 2_000
+    spilled.remove()
+
+
+def test_a_worker_that_cannot_read_the_spill_folder_says_it_needs_a_shared_file_system(tmp_path):
+    from kbs.errors import ParameterError
+    from kbs.tiles.stream import SpilledTile
+    from kbs.tiles.streamed import run_job
+
+    tile = SpilledTile("t0_0", 0, 0, (0.0, 0.0, 10.0, 10.0), tmp_path / "elsewhere", 10, 10)
+    job = TileJob(str(tmp_path / "elsewhere" / "xyz.npy"), tile, TileGrid.fit(np.zeros((1, 3)), 10.0, 1.0),
+                  str(tmp_path / "store"), b"x" * 32, False)
+    with pytest.raises(ParameterError, match=r"this worker cannot read the tile's points \(No such file or directory: "
+                                             r".*elsewhere/t0_0.idx\): the workers of a Dask scheduler read the tiles"):
+        run_job(lambda X: None, job, (None, {}))
+
+
+# -- through the command: the bytes of the in-memory path ---------------------------------------------
+
+
+@pytest.mark.slow  # a whole real scan three times, once on Dask: pytest --runslow (CI) runs it
+def test_a_real_airborne_las_tiled_and_streamed_gives_the_bytes_of_the_in_memory_run(shared_data, tmp_path):
+    pytest.importorskip("distributed", reason="Dask is not installed: pip install 'kbs[dask]' (it is in [test])")
+    scan = shared_data / "las" / "sample_c.las"  # airborne, an urban block 83 m x 75 m: 9 tiles of 30 m
+    args = ["-q", "run", "--rules", "airborne", "--tile", "30", str(scan)]
+    whole = kbs_cmd(*args, "-j", "1", "--chunk-points", "0", "--out", str(tmp_path / "whole"))
+    assert whole.returncode == 0, whole.stderr
+    here = kbs_cmd(*args, "-j", "1", "--chunk-points", "5000", "--out", str(tmp_path / "here"))
+    assert here.returncode == 0, here.stderr
+    dask = kbs_cmd(*args, "-j", "2", "--scheduler", "local", "--out", str(tmp_path / "dask"))
+    assert dask.returncode == 0, dask.stderr
+    doc = (tmp_path / "whole" / "sample_c.json").read_text()
+    assert '"tiles":[{"name":"t0_0"' in doc and doc.count('"core_points"') >= 9
+    assert '"stitched":[' in doc  # clusters crossing tile edges were merged
+    for name in ("sample_c.las", "sample_c.json"):
+        assert _normalised(tmp_path / "here" / name) == _normalised(tmp_path / "whole" / name), name
+        assert _normalised(tmp_path / "dask" / name) == _normalised(tmp_path / "whole" / name), name
+    for out in ("here", "dask"):  # the spill folder and the tile files are gone
+        assert sorted(p.name for p in (tmp_path / out).iterdir()) == ["sample_c.json", "sample_c.las"]
+
+
+def test_a_streamed_run_on_a_scan_with_too_large_coordinates_names_the_row_and_counts_them_all(tmp_path):
+    X, _ = ground_and_rocks()
+    X = X[:3000].copy()
+    X[[2500, 2900], 0] = 2e50
+    header = laspy.LasHeader(point_format=1, version="1.2")
+    header.offsets, header.scales = np.zeros(3), np.array([1e44, 1e-3, 1e-3])
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = X[:, 0], X[:, 1], X[:, 2]
+    las.write(str(tmp_path / "big.las"))
+    base = ["run", "--rules", "outdoor", "-j", "1", "--tile", "6", str(tmp_path / "big.las")]
+    streamed = kbs_cmd(*base, "--chunk-points", "1000", "--out", str(tmp_path / "a"))
+    whole = kbs_cmd(*base, "--chunk-points", "0", "--out", str(tmp_path / "b"))
+    assert streamed.returncode == whole.returncode == 3, (streamed.stderr, whole.stderr)
+    assert "2 points have a coordinate beyond" in whole.stderr and "first: row 2500" in whole.stderr
+    assert streamed.stderr == whole.stderr and "Traceback" not in streamed.stderr
+
+
+# -- faults: a tile that fails, a worker that dies ------------------------------------------------------
+
+
+def _east_rules(tmp_path: Path, plugin_text: str) -> list[str]:
+    """The outdoor rules with a check measured by a plugin (test_tiles' failing or killing one)."""
+    plugin = tmp_path / "east.py"
+    plugin.write_text(plugin_text)
+    rules = tmp_path / "east.yaml"
+    text = kbs_cmd("rules", "show", "outdoor").stdout
+    text = text.replace("checks:\n", "checks:\n  west: {predicate: east, max: 100.0}\n", 1)
+    rules.write_text(re.sub(r"if: \[planar, level\]", "if: [planar, level, west]", text))
+    return ["--rules", str(rules), "--plugin", str(plugin)]
+
+
+@pytest.fixture(scope="module")
+def rocks_las(tmp_path_factory) -> Path:
+    X, _ = ground_and_rocks()
+    path = tmp_path_factory.mktemp("las") / "rocks.las"
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.offsets, header.scales = np.floor(X.min(axis=0)), np.array([1e-4, 1e-4, 1e-4])
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = X[:, 0], X[:, 1], X[:, 2]
+    las.write(str(path))
+    return path
+
+
+def test_a_streamed_run_keeps_its_finished_tiles_and_resume_segments_only_the_failed_one(rocks_las, tmp_path,
+                                                                                          monkeypatch):
+    from test_tiles import FLAKY_PLUGIN
+
+    args = ["run", *_east_rules(tmp_path, FLAKY_PLUGIN), "-j", "1", "--tile", "6", "--buffer", "1.5",
+            "--chunk-points", "4000", str(rocks_las)]
+    out, kept = tmp_path / "out", tmp_path / "out" / "rocks.tiles"
+    monkeypatch.setenv("KBS_TEST_FAIL_EAST", "1")  # tile t1_1 fails, the three others are done and kept
+    r = kbs_cmd(*args, "--out", str(out))
+    assert r.returncode == 7, r.stderr
+    assert "tile t1_1 [" in r.stderr and f"the finished tiles are kept in {kept}: run again with --resume" in r.stderr
+    assert sorted(p.name for p in kept.iterdir()) == ["t0_0.npz", "t0_1.npz", "t1_0.npz"]
+    assert sorted(p.name for p in out.iterdir()) == ["rocks.tiles"]  # no result, no spill folder left
+    monkeypatch.delenv("KBS_TEST_FAIL_EAST")
+    r = kbs_cmd(*args, "--resume", "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    assert f"kbs: resumed 3 of 4 tiles from {kept}" in r.stderr
+    assert not kept.exists()
+    fresh = kbs_cmd(*args, "--out", str(tmp_path / "fresh"))
+    assert fresh.returncode == 0, fresh.stderr
+    for name in ("rocks.las", "rocks.json"):
+        assert _normalised(out / name) == _normalised(tmp_path / "fresh" / name)
+
+
+def test_a_dask_worker_killed_in_a_streamed_run_gives_the_same_bytes(rocks_las, tmp_path, monkeypatch):
+    pytest.importorskip("distributed", reason="Dask is not installed: pip install 'kbs[dask]' (it is in [test])")
+    from test_tiles import KILLING_PLUGIN
+
+    args = ["-q", "run", *_east_rules(tmp_path, KILLING_PLUGIN), "--tile", "6", "--buffer", "1.5", str(rocks_las)]
+    assert kbs_cmd(*args, "-j", "1", "--out", str(tmp_path / "here")).returncode == 0
+    marker = tmp_path / "killed"
+    monkeypatch.setenv("KBS_TEST_KILL_MARKER", str(marker))
+    r = kbs_cmd(*args, "-j", "2", "--scheduler", "local", "--out", str(tmp_path / "dask"))
+    assert r.returncode == 0, r.stderr
+    assert marker.read_text() == "killed"  # a worker died in a tile; Dask ran the tile again on another
+    for name in ("rocks.las", "rocks.json"):
+        assert _normalised(tmp_path / "dask" / name) == _normalised(tmp_path / "here" / name)

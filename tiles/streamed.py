@@ -1,0 +1,604 @@
+"""A tiled run of a spilled LAS/LAZ file with the memory of the stitching process bounded by the
+tile size, not the cloud (``kbs run --tile`` on a LAS/LAZ file read in chunks).
+
+:func:`segment_streamed` gives the result :func:`kbs.tiles.run.segment_tiled` and
+:func:`kbs.tiles.stitch.stitch` give, byte for byte once written, without holding the tiles'
+results:
+
+1. each tile is segmented (in this process or as a Dask task) from its points read from the spill
+   folder (the task gets file paths, not arrays); its whole result goes to its tile file
+   (:class:`~kbs.tiles.store.TileStore`), the cluster and label of the points near the tile's
+   edges (the only ones a neighbour may hold) to a file in the spill folder, and what comes back
+   is small (:class:`TileSummary`): each cluster's size, label and ids, the counts of the summary;
+2. the clusters crossing tile edges are merged from those edge points alone, two rows of tiles
+   read at a time (:func:`kbs.tiles.stitch.pair_links`);
+3. the per-point result (cluster, label, membership) is written to files in the spill folder,
+   reading the tile files in turn; the output clusters' descriptors are summed over those files
+   in chunks (the sums of :func:`kbs.inference.cluster_geometry`, in its order: the same numbers);
+4. the JSON's clusters and explanation are written piece by piece (:meth:`StreamedResult.pieces`:
+   one tile's records at a time) and the LAS/LAZ chunk by chunk (:class:`FileColumn`).
+
+What the stitching process still holds grows with the number of tiles and of output clusters
+(a few numbers, a label and the record ids per cluster; the limits' ids of the summary), not with
+the points.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+import types
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kbs.errors import KbsError, ParameterError
+from kbs.knowledge.explain import ClusterRecord, Explanation
+from kbs.knowledge.interpreter import NO_LABEL, Segmentation
+from kbs.tiles.grid import Tile, TileGrid
+from kbs.tiles.stitch import NEIGHBOURS, ROOT, _Union, pair_links, stitched_record
+from kbs.tiles.store import TileStore
+
+#: Points summed (and written) at a time when the output is computed from the files.
+CHUNK_POINTS = 1_000_000
+
+
+@dataclass(frozen=True)
+class TileSummary:
+    """What stitching needs of one tile's result (its whole result is in its tile file).
+
+    Attributes
+    ----------
+    name : str
+    sizes, core_sizes : ndarray (K,) int64
+        The points of each of the tile's K clusters, in the whole tile and in its core.
+    clusters : list of (label, ids)
+        Each tile cluster's label and explanation record ids.
+    label_counts : ndarray (L + 2,) int64
+        Core points per label, then core points in no cluster, then core points of a cluster
+        with no label.
+    n_splits : int
+    limits : list of (n_points, id, limit)
+        The records a limit stopped (ids prefixed with the tile's name).
+    root : str
+        The id of the tile explanation's root.
+    ground, notes, head
+        The explanation's ground and notes; ``head``: rule_base, rule_file, strategy,
+        label_names, catalogue.
+    """
+
+    name: str
+    sizes: np.ndarray
+    core_sizes: np.ndarray
+    clusters: list[tuple[Any, list[str]]]
+    label_counts: np.ndarray
+    n_splits: int
+    limits: list[tuple[int, str, Any]]
+    root: str
+    ground: dict[str, Any]
+    notes: list[str]
+    head: dict[str, Any] = field(default_factory=dict)
+
+
+def summarize(tile: Tile, grid: TileGrid, index: np.ndarray, in_core: np.ndarray, points: np.ndarray,
+              seg: Segmentation, edges: Path | None = None) -> TileSummary:
+    """The :class:`TileSummary` of ``tile``'s result ``seg`` (its ``points`` (n, 3) at ``index``);
+    the tile's edge points (those a neighbouring tile may hold: their indices into the cloud,
+    increasing, and their cluster and label here) go to the file ``edges``."""
+    cl = np.asarray(seg.cluster)
+    k = len(seg.clusters)
+    sizes = np.bincount(cl[cl >= 0], minlength=k).astype(np.int64)
+    cc = cl[in_core]
+    core_sizes = np.bincount(cc[cc >= 0], minlength=k).astype(np.int64)
+    lab = np.asarray(seg.label)[in_core]
+    counts = [np.count_nonzero(lab == i) for i in range(len(seg.label_names))]
+    counts += [np.count_nonzero(cc < 0), np.count_nonzero((lab < 0) & (cc >= 0))]
+    if edges is not None:
+        edge = _edge_mask(grid, tile, points @ grid.axes.T)
+        with open(edges, "wb") as stream:
+            np.savez(stream, index=np.asarray(index)[edge], cluster=cl[edge], label=np.asarray(seg.label)[edge])
+    e = seg.explanation
+    records = e.records.values()
+    return TileSummary(
+        name=tile.name, sizes=sizes, core_sizes=core_sizes,
+        clusters=[(c["label"], list(c["ids"])) for c in seg.clusters],
+        label_counts=np.array(counts, dtype=np.int64),
+        n_splits=sum(r.action in ("split", "split_components") for r in records),
+        limits=[(r.n_points, f"{tile.name}/{r.id}", r.limit) for r in records if r.action == "limit"],
+        root=e.root, ground=e.ground, notes=list(e.notes),
+        head={"rule_base": e.rule_base, "rule_file": e.rule_file, "strategy": e.strategy,
+              "label_names": list(e.label_names), "catalogue": e.catalogue})
+
+
+def _edge_mask(grid: TileGrid, tile: Tile, uv: np.ndarray) -> np.ndarray:
+    """The points of a tile (ground coordinates ``uv``) that a neighbouring tile may hold: within
+    the buffer (and a rounding margin) of an edge of its core. A superset is harmless."""
+    near = np.zeros(len(uv), dtype=bool)
+    for axis, c in ((0, tile.i), (1, tile.j)):
+        start = grid.origin[axis] + c * grid.size
+        slack = 1e-6 * grid.size + 1e-9 * (abs(start) + grid.size)
+        near |= uv[:, axis] <= start + grid.buffer + slack
+        near |= uv[:, axis] >= start + grid.size - grid.buffer - slack
+    return near
+
+
+# -- the tiles: each segmented from the spill folder, its result to its tile file ---------------------
+
+
+@dataclass(frozen=True)
+class TileJob:
+    """What a task needs to segment one tile of a spilled cloud: paths and small values only."""
+
+    xyz: str
+    tile: Tile
+    grid: TileGrid
+    store: str
+    base: bytes
+    resume: bool
+
+
+def read_rows(path: str | os.PathLike[str], index: np.ndarray) -> np.ndarray:
+    """Rows ``index`` of the ``.npy`` file ``path`` (a copy; the file's map is dropped on return,
+    so its pages do not stay in this process's memory)."""
+    mm = np.load(os.fspath(path), mmap_mode="r")
+    try:
+        return np.array(mm[index])
+    finally:
+        del mm
+
+
+def run_job(segment: Callable[[np.ndarray], Segmentation], job: TileJob,
+            given: tuple[Any, dict[str, Any]]) -> tuple[TileSummary, bool]:
+    """Segment ``job``'s tile with ``segment`` (points -> result), or take its file when resuming
+    and the file is this tile's; save it, return its summary and whether it was resumed."""
+    try:
+        index, in_core = job.tile.index, job.tile.in_core
+        points = read_rows(job.xyz, index)
+    except OSError as exc:
+        raise ParameterError(f"this worker cannot read the tile's points ({exc.strerror or exc}: {exc.filename}): "
+                             f"the workers of a Dask scheduler read the tiles from, and write their results to, "
+                             f"the output folder: give them a shared file system that holds it at the same path, "
+                             f"or run with 'local' or in process") from exc
+    store = TileStore.at(job.store, job.base)
+    key = store.key_of(index, points, given)
+    seg = store.load(job.tile, key) if job.resume else None
+    resumed = seg is not None
+    if seg is None:
+        seg = segment(points)
+        store.save(job.tile, key, seg)
+    return summarize(job.tile, job.grid, index, in_core, points, seg, edges_path(job)), resumed
+
+
+def edges_path(job: TileJob) -> Path:
+    """The file of the tile's edge points: in the spill folder, beside the coordinates."""
+    return Path(job.xyz).with_name(f"{job.tile.name}.edges.npz")
+
+
+class _Edges:
+    """The tiles' edge points read from their files, two rows of the grid at a time (the links of
+    row i are with rows i and i + 1): what stitching holds is bounded by two rows of tiles."""
+
+    def __init__(self, jobs: Sequence[TileJob]) -> None:
+        self.jobs = jobs
+        self.cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    def get(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if k not in self.cache:
+            row = self.jobs[k].tile.i
+            for old in [c for c in self.cache if self.jobs[c].tile.i < row - 1]:
+                del self.cache[old]
+            with np.load(edges_path(self.jobs[k])) as f:
+                self.cache[k] = (f["index"], f["cluster"], f["label"])
+        return self.cache[k]
+
+
+def _task(rules: str, sensor: tuple[float, float, float], plugins: tuple[str, ...], job: TileJob,
+          given: tuple[Any, dict[str, Any]]) -> tuple[TileSummary, bool] | KbsError:
+    """One tile on a Dask worker (:func:`run_job`); a KbsError is returned, not raised (see
+    :func:`kbs.tiles.run._segment_task`)."""
+    from kbs.tiles.run import _segment_tile, _worker_segmenter
+
+    segmenter = _worker_segmenter(rules, sensor, plugins)
+    try:
+        return run_job(lambda X: _segment_tile(segmenter, X, given), job, given)
+    except KbsError as exc:
+        return exc
+
+
+def segment_streamed(segmenter: Any, spilled: Any, store: TileStore, *, scheduler: str | None = None,
+                     workers: int | None = None, progress: Callable[[str], None] | None = None,
+                     resume: bool = False) -> StreamedResult:
+    """Segment the tiles of a spilled LAS/LAZ file (:func:`kbs.tiles.stream.spill_las`) and stitch
+    them with bounded memory: each tile's result goes to ``store``, the output to files in the
+    spill folder. Arguments and errors as :func:`kbs.tiles.run.segment_tiled`'s."""
+    from kbs.tiles.run import TileError, _segment_tile
+
+    t0 = time.perf_counter()
+    tiles, grid = spilled.tiles, spilled.grid
+    xyz_path = str(spilled.folder / "xyz.npy")
+    n = int(spilled.xyz.shape[0])
+    given = _ground(segmenter, xyz_path, n)
+    jobs = [TileJob(xyz_path, t, grid, str(store.folder), store._base, resume) for t in tiles]
+    summaries: list[TileSummary | None] = [None] * len(tiles)
+    failures: dict[int, BaseException] = {}
+    n_resumed = 0
+
+    def finished(k: int, out: Any, done: int) -> None:
+        nonlocal n_resumed
+        if isinstance(out, BaseException):
+            failures[k] = out
+            return
+        summaries[k], resumed = out
+        n_resumed += resumed
+        if progress is not None and not resumed:
+            progress(f"{tiles[k].name} ({done}/{len(tiles)} tiles)")
+
+    if scheduler is None:
+        for done, k in enumerate(range(len(tiles)), start=1):
+            try:
+                out: Any = run_job(lambda X: _segment_tile(segmenter, X, given), jobs[k], given)
+            except KbsError as exc:
+                out = exc
+            finished(k, out, done)
+    else:
+        from kbs.tiles.run import _submit_all
+
+        spec = (segmenter.rule_base.path, segmenter.sensor, segmenter.plugins)
+        _submit_all(scheduler, workers, progress, finished, list(range(len(tiles))),
+                    lambda k: (_task, *spec, jobs[k], given), [t.name for t in tiles])
+    if resume and progress is not None:
+        progress(f"resumed {n_resumed} of {len(tiles)} tiles from {store.folder}")
+    if failures:
+        first = min(failures)
+        raise TileError(tiles[first], _n_points(tiles[first]), failures[first],
+                        failed=[tiles[k] for k in sorted(failures)], total=len(tiles),
+                        kept=store.folder if len(failures) < len(tiles) else None)
+    done_summaries = [s for s in summaries if s is not None]
+    return _stitch(spilled, grid, tiles, done_summaries, _Edges(jobs), store, given[1], t0)
+
+
+def _n_points(tile: Tile) -> int:
+    return int(getattr(tile, "n_points", None) or tile.index.size)
+
+
+def _ground(segmenter: Any, xyz_path: str, n: int) -> tuple[Any, dict[str, Any]]:
+    """:func:`kbs.tiles.run.scene_ground` of the spilled cloud: its sample read from the file (at
+    most :data:`kbs.tiles.run.GROUND_SAMPLE_POINTS` points in memory)."""
+    from kbs.tiles.run import ground_step, sample_ground
+
+    mm = np.load(xyz_path, mmap_mode="r")
+    try:
+        sample = np.array(mm[::ground_step(n)])
+    finally:
+        del mm
+    return sample_ground(segmenter, sample, n)
+
+
+# -- stitching from the summaries ---------------------------------------------------------------------
+
+
+def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], summaries: Sequence[TileSummary], edges: _Edges,
+            store: TileStore, given: dict[str, Any], t0: float) -> StreamedResult:
+    offsets = np.concatenate([[0], np.cumsum([len(s.sizes) for s in summaries])]).astype(np.int64)
+    total = int(offsets[-1])
+    uf = _Union(total)
+    shared: dict[int, list[str]] = {}
+    by_cell = {(t.i, t.j): k for k, t in enumerate(tiles)}
+    for ka, a in enumerate(tiles):
+        sa = summaries[ka]
+        for di, dj in NEIGHBOURS:
+            kb = by_cell.get((a.i + di, a.j + dj))
+            if kb is None:
+                continue
+            b = tiles[kb]
+            (ia, ca, la), (ib, cb, lb) = edges.get(ka), edges.get(kb)
+            for x, y, k in pair_links(ia, ca, la, sa.sizes, ib, cb, lb, summaries[kb].sizes):
+                uf.union(int(offsets[ka] + x), int(offsets[kb] + y))
+                shared.setdefault(int(offsets[ka] + x), []).append(f"{b.name} cluster {y} ({k:,} shared points)")
+                shared.setdefault(int(offsets[kb] + y), []).append(f"{a.name} cluster {x} ({k:,} shared points)")
+    roots = np.array([uf.find(i) for i in range(total)], dtype=np.int64)
+    core_sizes = np.concatenate([s.core_sizes for s in summaries]) if total else np.zeros(0, dtype=np.int64)
+    sizes = np.bincount(roots, weights=core_sizes, minlength=total).astype(np.int64) if total else \
+        np.zeros(0, dtype=np.int64)
+    alive = np.flatnonzero(sizes)
+    order = alive[np.lexsort((alive, -sizes[alive]))]
+    out_of_root = np.full(total + 1, -1, dtype=np.int64)
+    out_of_root[order] = np.arange(order.size)
+    out_of_node = out_of_root[roots] if total else np.zeros(0, dtype=np.int64)
+
+    n = int(spilled.xyz.shape[0])
+    folder = Path(spilled.folder)
+    columns = {name: _new_column(folder / f"out-{name}.npy", dtype, n)
+               for name, dtype in (("cluster", np.int32), ("label", np.int32), ("membership", np.float32))}
+    for k, t in enumerate(tiles):  # each point takes the result of the tile whose core holds it
+        with np.load(store.path(t), allow_pickle=False) as f:
+            local = f["cluster"].astype(np.int64)
+            label, membership = f["label"], f["membership"]
+        in_core = t.in_core
+        core = t.index[in_core]
+        local = local[in_core]
+        values = {"cluster": np.where(local >= 0, out_of_node[np.maximum(local, 0) + offsets[k]] if total else -1, -1),
+                  "label": label[in_core], "membership": membership[in_core]}
+        for name, column in columns.items():
+            mm = np.load(column.path, mmap_mode="r+")
+            mm[core] = values[name]
+            mm.flush()
+            del mm
+    geometry = _descriptors(folder / "xyz.npy", columns["cluster"], columns["membership"], order.size)
+
+    members: dict[int, list[int]] = {}
+    for g in range(total):
+        members.setdefault(int(roots[g]), []).append(g)
+    tile_of = np.searchsorted(offsets, np.arange(total), side="right") - 1
+    stitched = set()
+    for gi, root in enumerate(order.tolist()):
+        if sum(int(core_sizes[g]) > 0 for g in members[root]) > 1:
+            stitched.add(gi)
+    head = summaries[0].head
+    label_names = list(head["label_names"])
+    grounds = {t.name: s.ground for t, s in zip(tiles, summaries)}
+    k_st = len(stitched)
+    notes = [f"{len(tiles)} tiles; {k_st} output cluster{'s' if k_st != 1 else ''} stitched across tile edges",
+             *[f"{t.name}: {note}" for t, s in zip(tiles, summaries) for note in s.notes]]
+    root_record = ClusterRecord(id=ROOT, parent=None, depth=0, n_points=n, action="partition",
+                                children=[f"{t.name}/{s.root}" for t, s in zip(tiles, summaries)],
+                                notes=[f"{len(tiles)} tiles: " + ", ".join(t.bounds_text() for t in tiles)])
+    ground = {**given, "tiles": grounds} if given else \
+        {"source": f"per tile ({', '.join(sorted({str(g.get('source', 'not used')) for g in grounds.values()}))})",
+         "tiles": grounds}
+    explanation = Explanation(rule_base=head["rule_base"], rule_file=head["rule_file"], strategy=head["strategy"],
+                              label_names=label_names, records={ROOT: root_record}, root=ROOT, ground=ground,
+                              notes=notes, catalogue=head["catalogue"])
+    counts = np.sum([s.label_counts for s in summaries], axis=0)
+    per_label = {name: int(counts[i]) for i, name in enumerate(label_names)}
+    per_label["noise (rejected)" if "noise" in per_label else "noise"] = int(counts[len(label_names)])
+    if counts[len(label_names) + 1]:
+        per_label[NO_LABEL] = int(counts[len(label_names) + 1])
+    limits = [lim for s in summaries for lim in s.limits]
+    tiling = {"size": grid.size, "buffer": grid.buffer, "axes": grid.axes.tolist(), "origin": list(grid.origin),
+              "shape": list(grid.shape), "stitched": k_st,
+              "tiles": [{"name": t.name, "core": list(t.core), "points": _n_points(t),
+                         "core_points": int(getattr(t, "n_core", None) or np.count_nonzero(t.in_core))}
+                        for t in tiles]}
+    return StreamedResult(
+        n=n, columns=columns, label_names=label_names, explanation=explanation, tiling=tiling,
+        seconds=time.perf_counter() - t0, n_clusters=int(order.size), n_splits=sum(s.n_splits for s in summaries),
+        limits=limits, points_per_label=per_label,
+        _tiles=list(tiles), _summaries=list(summaries), _store=store, _offsets=offsets, _roots=roots,
+        _out_of_root=out_of_root, _order=order, _members=members, _tile_of=tile_of, _shared=shared,
+        _stitched=stitched, _geometry=geometry, _sizes=sizes)
+
+
+# -- the per-point output, in files ---------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FileColumn:
+    """A per-point array in a ``.npy`` file, read by slices (``column[a:b]``: a copy of those rows,
+    nothing kept mapped) or whole (``np.asarray(column)``)."""
+
+    path: Path
+    dtype: Any
+    shape: tuple[int, ...]
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape))
+
+    def __getitem__(self, key: slice) -> np.ndarray:
+        mm = np.load(self.path, mmap_mode="r")
+        try:
+            return np.array(mm[key])
+        finally:
+            del mm
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        out = np.load(self.path)
+        return out if dtype is None else out.astype(dtype)
+
+    def chunks(self, size: int = CHUNK_POINTS) -> Iterator[tuple[int, np.ndarray]]:
+        for start in range(0, self.shape[0], size):
+            yield start, self[start:start + size]
+
+
+def _new_column(path: Path, dtype: Any, n: int) -> FileColumn:
+    from kbs.tiles.stream import _npy_header
+
+    with open(path, "wb") as stream:
+        _npy_header(stream, dtype, (n,))
+        stream.truncate(stream.tell() + n * np.dtype(dtype).itemsize)  # every point is written once, by its core
+    return FileColumn(path, np.dtype(dtype), (n,))
+
+
+@dataclass(frozen=True)
+class CodesColumn:
+    """The ASPRS codes of :func:`kbs.io.las.class_codes`, computed a slice at a time."""
+
+    label: FileColumn
+    cluster: FileColumn
+    label_names: list[str]
+    classes: dict[str, int]
+
+    def __getitem__(self, key: slice) -> np.ndarray:
+        from kbs.io.las import class_codes
+
+        return class_codes(self.label[key], self.cluster[key], self.label_names, self.classes)
+
+
+def _descriptors(xyz_path: Path, cluster: FileColumn, membership: FileColumn, k: int) -> dict[str, np.ndarray]:
+    """Centre, covariance, eigenvalues, eigenvectors and mass of each of the ``k`` output clusters,
+    from the files in chunks: the sums of :func:`kbs.inference._compiled.geometry3`, in its order
+    (each cluster's points by increasing index), so the same numbers as ``cluster_geometry`` on
+    the cluster's points and memberships."""
+    from kbs.inference import _flags
+
+    if not _flags.JIT:  # the numpy reference sums in another order: its numbers need each cluster whole
+        return _descriptors_reference(xyz_path, cluster, membership, k)
+    from kbs.tiles._sums import centre_sums, covariance_sums, eigen
+
+    den, mass, c = np.zeros(k), np.zeros(k), np.zeros((k, 3))
+    xyz = FileColumn(xyz_path, np.dtype(np.float64), (len(cluster), 3))
+    for start, cl in cluster.chunks():
+        stop = start + len(cl)
+        centre_sums(xyz[start:stop], cl, membership[start:stop].astype(np.float64), den, mass, c)
+    ok = (den > 0.0) & (mass > 0.0)
+    centre = np.zeros((k, 3))
+    centre[ok] = c[ok] / den[ok, None]
+    s = np.zeros((k, 6))
+    for start, cl in cluster.chunks():
+        stop = start + len(cl)
+        covariance_sums(xyz[start:stop], cl, membership[start:stop].astype(np.float64), centre, s)
+    cov, lam, vec = eigen(s, mass, ok)
+    return {"center": centre, "covariance": cov, "eigenvalues": lam, "eigenvectors": vec, "mass": mass}
+
+
+def _descriptors_reference(xyz_path: Path, cluster: FileColumn, membership: FileColumn,
+                           k: int) -> dict[str, np.ndarray]:
+    """:func:`_descriptors` without the compiled kernels (``KBS_JIT=0``, or before they are
+    compiled): ``cluster_geometry`` on each cluster's points, as :func:`stitch` computes them (the
+    per-point arrays in memory then)."""
+    from kbs.inference import cluster_geometry
+
+    cl = np.asarray(cluster)
+    weights = np.asarray(membership).astype(np.float64)
+    X = np.load(xyz_path, mmap_mode="r")
+    point_order = np.argsort(cl, kind="stable")
+    starts = np.searchsorted(cl[point_order], np.arange(k + 1))
+    out = {"center": np.zeros((k, 3)), "covariance": np.zeros((k, 3, 3)), "eigenvalues": np.zeros((k, 3)),
+           "eigenvectors": np.zeros((k, 3, 3)), "mass": np.zeros(k)}
+    for gi in range(k):
+        idx = point_order[starts[gi]:starts[gi + 1]]
+        geo = cluster_geometry(X[idx], weights[idx])
+        for name, value in (("center", geo.center), ("covariance", geo.covariance), ("eigenvalues", geo.eigenvalues),
+                            ("eigenvectors", geo.eigenvectors), ("mass", geo.mass)):
+            out[name][gi] = value
+    del X
+    return out
+
+
+# -- the result ---------------------------------------------------------------------------------------
+
+
+@dataclass
+class StreamedResult:
+    """A stitched tiled result whose per-point arrays (``cluster``, ``label``, ``membership``:
+    :class:`FileColumn`) are in files and whose clusters and explanation are written piece by piece
+    (:meth:`pieces`). ``explanation`` holds the root record alone (its ground, notes and the tiles
+    as children)."""
+
+    n: int
+    columns: dict[str, FileColumn]
+    label_names: list[str]
+    explanation: Explanation
+    tiling: dict[str, Any]
+    seconds: float
+    n_clusters: int
+    n_splits: int
+    limits: list[tuple[int, str, Any]]
+    points_per_label: dict[str, int]
+    _tiles: list[Tile]
+    _summaries: list[TileSummary]
+    _store: TileStore
+    _offsets: np.ndarray
+    _roots: np.ndarray
+    _out_of_root: np.ndarray
+    _order: np.ndarray
+    _members: dict[int, list[int]]
+    _tile_of: np.ndarray
+    _shared: dict[int, list[str]]
+    _stitched: set[int]
+    _geometry: dict[str, np.ndarray]
+    _sizes: np.ndarray
+
+    @property
+    def cluster(self) -> FileColumn:
+        return self.columns["cluster"]
+
+    @property
+    def label(self) -> FileColumn:
+        return self.columns["label"]
+
+    @property
+    def membership(self) -> FileColumn:
+        return self.columns["membership"]
+
+    def summary(self) -> dict[str, Any]:
+        """As :meth:`Segmentation.summary`."""
+        records = {i: types.SimpleNamespace(action="limit", n_points=p, id=i, limit=lim) for p, i, lim in self.limits}
+        holder: Any = types.SimpleNamespace(explanation=types.SimpleNamespace(records=records))
+        by_kind = Segmentation.limits_by_kind(holder)
+        return {"points": self.n, "clusters": self.n_clusters, "splits": self.n_splits, "limits": len(self.limits),
+                "limits_by_kind": by_kind, "points_per_label": dict(self.points_per_label),
+                "seconds": round(self.seconds, 3)}
+
+    def cluster_items(self) -> Iterator[dict[str, Any]]:
+        """The output clusters (``clusters`` of a result), one at a time, as :func:`stitch` makes them."""
+        from kbs.inference.geometry import ClusterGeometry
+
+        geo_all = self._geometry
+        for gi, root in enumerate(self._order.tolist()):
+            parts = []
+            for g in self._members[root]:
+                k = int(self._tile_of[g])
+                c = int(g - self._offsets[k])
+                s = self._summaries[k]
+                in_core = int(s.core_sizes[c])
+                if in_core:
+                    label, ids = s.clusters[c]
+                    parts.append({"tile": self._tiles[k].name, "cluster": c, "label": label, "core_points": in_core,
+                                  "ids": [f"{self._tiles[k].name}/{i}" for i in ids]})
+            geo = ClusterGeometry(center=geo_all["center"][gi].copy(), covariance=geo_all["covariance"][gi].copy(),
+                                  eigenvalues=geo_all["eigenvalues"][gi].copy(),
+                                  eigenvectors=geo_all["eigenvectors"][gi].copy(), mass=float(geo_all["mass"][gi]))
+            item = {"index": gi, "ids": [i for p in parts for i in p["ids"]], "label": parts[0]["label"],
+                    "n_points": int(self._sizes[root]),
+                    "descriptors": {"center": geo.center.tolist(), "normal": geo.normal.tolist(),
+                                    "thickness": geo.thickness, "eigenvalues": geo.eigenvalues.tolist(),
+                                    "mass": geo.mass}}
+            if len(parts) > 1:
+                item["stitched"] = parts
+            yield item
+
+    def records(self) -> Iterator[dict[str, Any]]:
+        """The explanation's records in its order, as plain data (``to_dict``'s): the root, then
+        each tile's, read from its file (:func:`kbs.tiles.stitch.stitched_record`)."""
+        from kbs.knowledge.explain import _record_dict
+
+        yield _record_dict(self.explanation.records[ROOT])
+        for k, t in enumerate(self._tiles):
+            with np.load(self._store.path(t), allow_pickle=False) as f:
+                doc = json.loads(bytes(f["doc"]).decode("utf-8"))
+            for d in doc["explanation"]["clusters"]:  # to_dict's records: depth-first from the root
+                yield stitched_record(d, t.name, int(self._offsets[k]), self._roots, self._out_of_root, self._shared,
+                                      self._stitched)
+
+    def pieces(self) -> dict[str, Callable[[], Iterator[str]]]:
+        """The JSON text of ``clusters`` and ``explanation``, piece by piece (for
+        :func:`kbs.io.result.write_result_pair`'s ``pieces``)."""
+        from kbs.io.result import strict_json
+
+        def clusters() -> Iterator[str]:
+            yield "["
+            for k, item in enumerate(self.cluster_items()):
+                yield ("," if k else "") + strict_json(item)
+            yield "]"
+
+        def explanation() -> Iterator[str]:
+            marker = "\x00kbs records\x00"
+            alone = ClusterRecord(id=ROOT, parent=None, depth=0, n_points=self.n)  # its records are written here
+            d = dataclasses.replace(self.explanation, records={ROOT: alone}).to_dict()
+            d["clusters"] = marker
+            before, after = strict_json(d).split(json.dumps(marker), 1)
+            yield before + "["
+            for k, rec in enumerate(self.records()):
+                yield ("," if k else "") + strict_json(rec)
+            yield "]" + after
+
+        return {"clusters": clusters, "explanation": explanation}
