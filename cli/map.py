@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from kbs.cli.run import _jobs, _vector3, plugin_option
+from kbs.cli.run import _check_scheduler, _jobs, _vector3, plugin_option
 from kbs.knowledge import Segmenter
 from kbs.knowledge.rulebase import shipped_rule_bases
 
@@ -58,14 +58,20 @@ def _crs(ctx, param, value):
 @click.option("--sensor", callback=_vector3, metavar="X,Y,Z", help="Sensor position in each frame (overrides the "
               "rule base's).")
 @plugin_option
+@click.option("--scheduler", "scheduler", metavar="ADDRESS|local",
+              help="Segment the frames as Dask tasks: on the scheduler at ADDRESS (tcp://host:8786; its workers "
+              "need the rule file, the plugins and kbs at the same paths), or on a LocalCluster of -j workers "
+              "('local'; -1: one per core); the frames are fused here, in order, as they arrive. Needs pip install "
+              "'kbs[dask]'. The map is the same as without it.")
 @click.option("-j", "--jobs", type=click.IntRange(min=-1), default=-1, show_default=True, callback=_jobs,
-              help="Processes computing the UFP-ONC splits; -1: one per available core.")
+              help="Processes computing the UFP-ONC splits (with --scheduler local: the Dask workers); -1: one per "
+              "available core.")
 @click.pass_context
 def map_(ctx: click.Context, rules: str, scans: tuple[Path, ...], poses: Path | None, topic: str | None,
          estimate_poses: bool,
          calib: Path | None,
          out_dir: Path, cell_size: float, voxel_size: float, max_gap: int, report: bool, crs: str | None, sensor,
-         plugins: tuple[Path, ...], jobs: int) -> None:
+         plugins: tuple[Path, ...], scheduler: str | None, jobs: int) -> None:
     """Segment every frame of a drive (SCANS: scan files and folders of scans in name order, one
     KITTI sequence folder holding velodyne/*.bin and poses.txt, or one ROS 1/2 bag) with one rule base, bring each into
     the world frame with its pose and fuse them into DIR/: an obstacle grid in log-odds (map.tif,
@@ -79,6 +85,8 @@ def map_(ctx: click.Context, rules: str, scans: tuple[Path, ...], poses: Path | 
     t0 = time.perf_counter()
     if estimate_poses and poses is not None:
         raise click.UsageError("--estimate-poses and --poses: give one of them")
+    if scheduler is not None:
+        _check_scheduler(scheduler)
     if report:  # known before any frame is segmented
         from kbs.errors import require
 
@@ -113,9 +121,16 @@ def map_(ctx: click.Context, rules: str, scans: tuple[Path, ...], poses: Path | 
                        f"median {e.median:.3f} m, overlap {e.overlap:.0%} (no motion: {e.median_identity:.3f} m, "
                        f"{e.overlap_identity:.0%})")
 
-    with Segmenter(rules, jobs=jobs, sensor=sensor, plugins=plugins) as segmenter:
-        m = map_drive(segmenter, drive, cell_size=cell_size, voxel_size=voxel_size, max_gap=max_gap,
-                      explain=report, odometry=odometry, progress=progress)
+    from kbs.tiles.run import SchedulerError
+
+    # with a scheduler the workers segment, each with its own loaded rule base: this one only reads the rules
+    with Segmenter(rules, jobs=1 if scheduler else jobs, sensor=sensor, plugins=plugins) as segmenter:
+        try:
+            m = map_drive(segmenter, drive, cell_size=cell_size, voxel_size=voxel_size, max_gap=max_gap,
+                          explain=report, odometry=odometry, progress=progress, scheduler=scheduler,
+                          workers=None if jobs == -1 else jobs)
+        except SchedulerError as exc:
+            raise click.BadParameter(str(exc), param_hint="--scheduler") from exc
     doc = write_map(m, out_dir, crs=crs, report=report)
     g = m.grid
     c = g.counts()

@@ -204,7 +204,8 @@ def map_drive(segmenter: Any, drive: Drive | Iterable[np.ndarray], poses: Poses 
               cell_size: float = 0.2, voxel_size: float = 0.1, min_obstacle_points: int = 1,
               l_obstacle: float = 0.85, l_ground: float = -0.4, l_clamp: float = 3.5, max_gap: int = 1,
               min_object_points: int = 40, alpha: float | None = None, explain: bool = False,
-              odometry: Any = None, progress: Callable[[FrameRecord], None] | None = None) -> DriveMap:
+              odometry: Any = None, progress: Callable[[FrameRecord], None] | None = None,
+              scheduler: str | None = None, workers: int | None = None) -> DriveMap:
     """Segment every frame of a drive with ``segmenter`` and fuse the frames into a map.
 
     Parameters
@@ -242,6 +243,14 @@ def map_drive(segmenter: Any, drive: Drive | Iterable[np.ndarray], poses: Poses 
         cannot be registered) are :class:`FitError`.
     progress : callable, optional
         Called with each frame's :class:`FrameRecord` once it is fused.
+    scheduler : str, optional
+        Segment the frames as Dask tasks: ``"local"`` (a ``LocalCluster`` of ``workers`` processes,
+        default one per core, started for this call) or the address of a running scheduler (its
+        workers load the rule file and plugins from the same paths). Each worker segments with its
+        own loaded copy of ``segmenter``'s rule base; the frames are fused here, in their order, as
+        their segmentations arrive, so the map is the one of the in-process run (None).
+    workers : int, optional
+        The number of workers of a ``"local"`` scheduler.
 
     Returns
     -------
@@ -284,12 +293,14 @@ def map_drive(segmenter: Any, drive: Drive | Iterable[np.ndarray], poses: Poses 
     tracker = ObjectTracker(cell_size, voxel_size, max_gap=max_gap, min_points=min_object_points)
     cloud = _CloudAccumulator(voxel_size, len(names))
     records: list[FrameRecord] = []
-    for i, (frame, T) in enumerate(zip(drive.frames, drive.poses.matrices)):
-        X = frame.load()
-        try:
-            seg = segmenter.segment(X)
-        except FitError as exc:
-            raise FitError(f"frame {i} ({frame.name}): {exc}") from exc
+    framed = list(zip(drive.frames, drive.poses.matrices))
+
+    def fuse_frame(i: int, X: np.ndarray, seg: Any) -> None:
+        frame, T = framed[i]
+        if isinstance(seg, FitError):
+            raise FitError(f"frame {i} ({frame.name}): {seg}") from seg
+        if isinstance(seg, BaseException):  # another KbsError of a Dask worker's segmenter, or its task lost twice
+            raise seg
         ground = seg.label == gi if gi is not None else np.zeros(len(X), dtype=bool)
         if odometry is not None:
             T = odometry.register(X, frame.name, keep=~ground)
@@ -317,6 +328,17 @@ def map_drive(segmenter: Any, drive: Drive | Iterable[np.ndarray], poses: Poses 
         records.append(rec)
         if progress is not None:
             progress(rec)
+
+    if scheduler is None:
+        for i, (frame, _) in enumerate(framed):
+            X = frame.load()
+            try:
+                seg = segmenter.segment(X)
+            except FitError as exc:
+                seg = exc
+            fuse_frame(i, X, seg)
+    else:
+        _segment_on_dask(segmenter, [f for f, _ in framed], scheduler, workers, fuse_frame)
     groups, of_node = tracker.objects()
     objects = []
     for oid, g in enumerate(groups):
@@ -343,3 +365,36 @@ def map_drive(segmenter: Any, drive: Drive | Iterable[np.ndarray], poses: Poses 
         notes.insert(0, poses_used.note)
     return DriveMap(grid.result(), tuple(objects), cloud.result(gi, of_node), tuple(records), poses_used, names,
                     rb.name, rb.path, params, drive.source, tuple(notes))
+
+
+def _segment_on_dask(segmenter: Any, frames: list[Any], scheduler: str, workers: int | None,
+                     fuse_frame: Callable[[int, np.ndarray, Any], None]) -> None:
+    """Segment ``frames`` as Dask tasks (:func:`kbs.tiles.run._submit_all`: a bounded number in
+    flight, a task lost with its worker run again once) and hand each to ``fuse_frame(i, X,
+    segmentation or error)`` in frame order: a frame that ends before an earlier one waits (with its
+    points) until that one is fused."""
+    import logging
+
+    from kbs.errors import KbsError
+    from kbs.tiles.run import _segment_task, _submit_all
+
+    logging.getLogger("distributed").setLevel(logging.ERROR)  # a worker's start and stop are not kbs's news
+    spec = (segmenter.rule_base.path, tuple(segmenter.sensor), tuple(segmenter.plugins))
+    loaded: dict[int, np.ndarray] = {}
+    arrived: dict[int, Any] = {}
+    next_frame = 0
+
+    def task_of(k: int) -> tuple[Any, ...]:
+        loaded[k] = frames[k].load()  # read here: the fusion needs the points too
+        return (_segment_task, *spec, loaded[k], None)
+
+    def finished(k: int, out: Any, done: int) -> None:
+        nonlocal next_frame
+        if isinstance(out, BaseException) and not isinstance(out, KbsError):
+            out = FitError(f"its Dask task failed twice ({type(out).__name__}: {out})")
+        arrived[k] = out
+        while next_frame in arrived:
+            fuse_frame(next_frame, loaded.pop(next_frame), arrived.pop(next_frame))
+            next_frame += 1
+
+    _submit_all(scheduler, workers, None, finished, range(len(frames)), task_of, [f.name for f in frames])

@@ -353,6 +353,41 @@ def test_kbs_map_objects_have_meshes_frames_and_index(drive_map):
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+@pytest.mark.slow
+def test_kbs_map_frames_on_a_local_dask_cluster_give_the_map_of_one_process(drive_map, tmp_path, capsys):
+    """The frames segmented as Dask tasks on 2 workers (fused here, in order, as they arrive): every
+    file is the in-process run's, byte for byte, and map.json differs only in the timings."""
+    pytest.importorskip("distributed", reason="--scheduler needs the dask extra")
+    d = drive_map / "drive"
+    code, out, err = run(capsys, "-q", "map", "--rules", "outdoor", d / "scans", "--poses", d / "poses.txt",
+                         "--out", tmp_path / "map", "-j", "2", "--scheduler", "local")
+    assert code == 0, err
+    one, dask = drive_map / "map", tmp_path / "map"
+    names = sorted(p.relative_to(one).as_posix() for p in one.rglob("*") if p.is_file())
+    assert names == sorted(p.relative_to(dask).as_posix() for p in dask.rglob("*") if p.is_file())
+    assert any(n.startswith("objects/") for n in names)
+    for name in names:
+        if name != "map.json":
+            assert (one / name).read_bytes() == (dask / name).read_bytes(), name
+
+    def untimed(doc):
+        doc.pop("fuse_ms_per_frame")
+        for f in doc["frames"]:
+            assert f.pop("segment_seconds") > 0 and f.pop("fuse_seconds") >= 0
+        return doc
+
+    assert untimed(json.loads((one / "map.json").read_text())) == untimed(json.loads((dask / "map.json").read_text()))
+
+
+@pytest.mark.slow
+def test_kbs_map_with_an_unreachable_scheduler_is_a_usage_error(two_scans, tmp_path, capsys):
+    pytest.importorskip("distributed", reason="--scheduler needs the dask extra")
+    code, out, err = run(capsys, "map", "--rules", "outdoor", two_scans / "scans", "--out", tmp_path / "map",
+                         "--scheduler", "tcp://127.0.0.1:9")
+    assert code == 2 and "no Dask scheduler answers at 'tcp://127.0.0.1:9'" in err and "Traceback" not in err, err
+    assert not (tmp_path / "map").exists()
+
+
 def test_kbs_map_geotiff_opens_with_rasterio(drive_map):
     rasterio = pytest.importorskip("rasterio", reason="the GeoTIFF needs the map extra: pip install 'kbs[map]'")
     doc = json.loads((drive_map / "map" / "map.json").read_text())
