@@ -163,17 +163,23 @@ def east(cluster, scene) -> float:
 '''
 
 
-@pytest.mark.slow
-def test_a_failing_tile_is_named_with_its_bounds_and_the_run_exits_with_its_code(rocks, tmp_path):
+def east_rules(tmp_path: Path, plugin_text: str) -> list[str]:
+    """``--rules``/``--plugin`` arguments: the outdoor rules with a check ``west`` measured by the
+    plugin ``plugin_text`` (a predicate ``east`` that fails, or kills its worker, east of 3 m)."""
     plugin = tmp_path / "east.py"
-    plugin.write_text(FAILING_PLUGIN)
+    plugin.write_text(plugin_text)
     rules = tmp_path / "east.yaml"
     text = kbs_cmd("rules", "show", "outdoor").stdout
     text = text.replace("checks:\n", "checks:\n  west: {predicate: east, max: 100.0}\n", 1)
     text, n = re.subn(r"if: \[planar, level\]", "if: [planar, level, west]", text)
-    assert n >= 1
+    assert n >= 1, "the outdoor rules no longer have 'if: [planar, level]'"
     rules.write_text(text)
-    r = kbs_cmd("run", "--rules", str(rules), "--plugin", str(plugin), "-j", "1", "--tile", "6", "--buffer", "1.5",
+    return ["--rules", str(rules), "--plugin", str(plugin)]
+
+
+@pytest.mark.slow
+def test_a_failing_tile_is_named_with_its_bounds_and_the_run_exits_with_its_code(rocks, tmp_path):
+    r = kbs_cmd("run", *east_rules(tmp_path, FAILING_PLUGIN), "-j", "1", "--tile", "6", "--buffer", "1.5",
                 str(rocks[0]), "--out", str(tmp_path / "out"))
     assert r.returncode == 7, r.stderr
     assert re.search(r"kbs: error: tile t1_1 \[0\.000\d+, 6\.000\d+\] x \[0\.001\d+, 6\.001\d*\] \(7,700 points\): ",
@@ -231,13 +237,7 @@ FLAKY_PLUGIN = FAILING_PLUGIN.replace('if x > 3.0:', 'if x > 3.0 and os.environ.
 
 @pytest.mark.slow
 def test_finished_tiles_are_kept_and_resume_segments_only_the_failed_ones(rocks, tmp_path, monkeypatch):
-    plugin = tmp_path / "east.py"
-    plugin.write_text(FLAKY_PLUGIN)
-    rules = tmp_path / "east.yaml"
-    text = kbs_cmd("rules", "show", "outdoor").stdout
-    text = text.replace("checks:\n", "checks:\n  west: {predicate: east, max: 100.0}\n", 1)
-    rules.write_text(re.sub(r"if: \[planar, level\]", "if: [planar, level, west]", text))
-    args = ["run", "--rules", str(rules), "--plugin", str(plugin), "-j", "1", "--tile", "6", "--buffer", "1.5",
+    args = ["run", *east_rules(tmp_path, FLAKY_PLUGIN), "-j", "1", "--tile", "6", "--buffer", "1.5",
             str(rocks[0])]
     out, kept = tmp_path / "out", tmp_path / "out" / "rocks.tiles"
     monkeypatch.setenv("KBS_TEST_FAIL_EAST", "1")  # tile t1_1 fails, the three others are done and kept
@@ -308,13 +308,7 @@ def east(cluster, scene) -> float:
 @pytest.mark.slow
 def test_a_dask_worker_killed_mid_run_gives_the_same_output(rocks, tmp_path, monkeypatch):
     pytest.importorskip("distributed", reason="Dask is not installed: pip install 'kbs[dask]' (it is in [test])")
-    plugin = tmp_path / "kill.py"
-    plugin.write_text(KILLING_PLUGIN)
-    rules = tmp_path / "east.yaml"
-    text = kbs_cmd("rules", "show", "outdoor").stdout
-    text = text.replace("checks:\n", "checks:\n  west: {predicate: east, max: 100.0}\n", 1)
-    rules.write_text(re.sub(r"if: \[planar, level\]", "if: [planar, level, west]", text))
-    args = ["-q", "run", "--rules", str(rules), "--plugin", str(plugin), "--tile", "6", "--buffer", "1.5", str(rocks[0])]
+    args = ["-q", "run", *east_rules(tmp_path, KILLING_PLUGIN), "--tile", "6", "--buffer", "1.5", str(rocks[0])]
     assert kbs_cmd(*args, "-j", "1", "--out", str(tmp_path / "here")).returncode == 0
     marker = tmp_path / "killed"
     monkeypatch.setenv("KBS_TEST_KILL_MARKER", str(marker))

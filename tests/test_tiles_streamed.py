@@ -50,6 +50,7 @@ def test_every_point_a_tile_shares_with_another_is_in_its_edge_points(size, buff
     assert size < 2 * buffer or interior > 0  # and the edge points are not simply every point
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("jit", [True, False])
 def test_the_descriptors_summed_in_chunks_are_cluster_geometry_to_the_last_bit(tmp_path, monkeypatch, jit):
     from kbs.inference import _flags
@@ -153,17 +154,6 @@ def test_a_streamed_run_on_a_scan_with_too_large_coordinates_names_the_row_and_c
 # -- faults: a tile that fails, a worker that dies ------------------------------------------------------
 
 
-def _east_rules(tmp_path: Path, plugin_text: str) -> list[str]:
-    """The outdoor rules with a check measured by a plugin (test_tiles' failing or killing one)."""
-    plugin = tmp_path / "east.py"
-    plugin.write_text(plugin_text)
-    rules = tmp_path / "east.yaml"
-    text = kbs_cmd("rules", "show", "outdoor").stdout
-    text = text.replace("checks:\n", "checks:\n  west: {predicate: east, max: 100.0}\n", 1)
-    rules.write_text(re.sub(r"if: \[planar, level\]", "if: [planar, level, west]", text))
-    return ["--rules", str(rules), "--plugin", str(plugin)]
-
-
 @pytest.fixture(scope="module")
 def rocks_las(tmp_path_factory) -> Path:
     X, _ = ground_and_rocks()
@@ -176,11 +166,12 @@ def rocks_las(tmp_path_factory) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_a_streamed_run_keeps_its_finished_tiles_and_resume_segments_only_the_failed_one(rocks_las, tmp_path,
                                                                                           monkeypatch):
-    from test_tiles import FLAKY_PLUGIN
+    from test_tiles import FLAKY_PLUGIN, east_rules
 
-    args = ["run", *_east_rules(tmp_path, FLAKY_PLUGIN), "-j", "1", "--tile", "6", "--buffer", "1.5",
+    args = ["run", *east_rules(tmp_path, FLAKY_PLUGIN), "-j", "1", "--tile", "6", "--buffer", "1.5",
             "--chunk-points", "4000", str(rocks_las)]
     out, kept = tmp_path / "out", tmp_path / "out" / "rocks.tiles"
     monkeypatch.setenv("KBS_TEST_FAIL_EAST", "1")  # tile t1_1 fails, the three others are done and kept
@@ -200,11 +191,12 @@ def test_a_streamed_run_keeps_its_finished_tiles_and_resume_segments_only_the_fa
         assert _normalised(out / name) == _normalised(tmp_path / "fresh" / name)
 
 
+@pytest.mark.slow
 def test_a_dask_worker_killed_in_a_streamed_run_gives_the_same_bytes(rocks_las, tmp_path, monkeypatch):
     pytest.importorskip("distributed", reason="Dask is not installed: pip install 'kbs[dask]' (it is in [test])")
-    from test_tiles import KILLING_PLUGIN
+    from test_tiles import KILLING_PLUGIN, east_rules
 
-    args = ["-q", "run", *_east_rules(tmp_path, KILLING_PLUGIN), "--tile", "6", "--buffer", "1.5", str(rocks_las)]
+    args = ["-q", "run", *east_rules(tmp_path, KILLING_PLUGIN), "--tile", "6", "--buffer", "1.5", str(rocks_las)]
     assert kbs_cmd(*args, "-j", "1", "--out", str(tmp_path / "here")).returncode == 0
     marker = tmp_path / "killed"
     monkeypatch.setenv("KBS_TEST_KILL_MARKER", str(marker))
