@@ -459,6 +459,21 @@ PAGE_TOP = r"""  h2 { font-size: 13px; margin: 2px 0; }
 <main>
 """
 
+# The end of the page both templates share: the gzip-compressed plotly.js and data, inflated in
+# the browser, plotly.js run, then the page's own start(D) with the data (defined after it).
+PAGE_BOOT = r"""<script id="kbs-plotly" type="application/gzip">%%PLOTLYJS%%</script>
+<script id="kbs-data" type="application/gzip">%%DATA%%</script>
+<script>
+(function () {
+  "use strict";
+@@INFLATE_JS@@  inflate("kbs-plotly").then(function (code) {
+    var s = document.createElement("script");
+    s.textContent = code;  // runs now: defines window.Plotly
+    document.head.appendChild(s);
+    return inflate("kbs-data");
+  }).then(function (text) { start(JSON.parse(text)); });
+"""
+
 # The page. Placeholders are filled in one pass (so nothing filled in is re-read as a placeholder). The error hook comes first, before plotly.js, so that its own errors are caught too.
 _TEMPLATE = PAGE_HEAD + r"""  #left { flex: 3 1 0; min-width: 0; display: flex; flex-direction: column; }
   #right { flex: 2 1 0; min-width: 280px; display: flex; flex-direction: column; gap: 6px; }
@@ -497,18 +512,7 @@ _TEMPLATE = PAGE_HEAD + r"""  #left { flex: 3 1 0; min-width: 0; display: flex; 
     <div id="cah">Click a cluster to see its projection, alpha-shape and alpha-opening.</div>
   </div>
 </main>
-<script id="kbs-plotly" type="application/gzip">%%PLOTLYJS%%</script>
-<script id="kbs-data" type="application/gzip">%%DATA%%</script>
-<script>
-(function () {
-  "use strict";
-@@INFLATE_JS@@  inflate("kbs-plotly").then(function (code) {
-    var s = document.createElement("script");
-    s.textContent = code;  // runs now: defines window.Plotly
-    document.head.appendChild(s);
-    return inflate("kbs-data");
-  }).then(function (text) { start(JSON.parse(text)); });
-
+""" + PAGE_BOOT + r"""
 function start(D) {
   var Int = D.int === 2 ? Int16Array : Int32Array;
   var xyz = new Float32Array(bytes(D.xyz)), cl = new Int(bytes(D.cluster)), lb = new Int(bytes(D.label));

@@ -30,7 +30,7 @@ import numpy as np
 
 from kbs.errors import require
 from kbs.report.colors import hex_colors
-from kbs.report.html import ERROR_HOOK, INFLATE_JS, PAGE_HEAD, PAGE_TOP, _b64, _gz64, _hull2d, _json, _plotly_gz64
+from kbs.report.html import ERROR_HOOK, INFLATE_JS, PAGE_BOOT, PAGE_HEAD, PAGE_TOP, _b64, _gz64, _hull2d, _json, _plotly_gz64
 
 __all__ = ["write_map_report", "map_report_data", "MAX_CELLS"]
 
@@ -144,19 +144,7 @@ _TEMPLATE = PAGE_HEAD + r"""  #left { flex: 3 1 0; min-width: 0; }
     <div id="why">Click an object to see the frames that saw it and why each frame's cluster ended as it did.</div>
   </div>
 </main>
-<script id="kbs-plotly" type="application/gzip">%%PLOTLYJS%%</script>
-<script id="kbs-data" type="application/gzip">%%DATA%%</script>
-<script>
-(function () {
-  "use strict";
-@@INFLATE_JS@@
-  inflate("kbs-plotly").then(function (code) {
-    var s = document.createElement("script");
-    s.textContent = code;  // runs now: defines window.Plotly
-    document.head.appendChild(s);
-    return inflate("kbs-data");
-  }).then(function (text) { start(JSON.parse(text)); });
-
+""" + PAGE_BOOT + r"""
 function start(D) {
   var G = D.grid, cls = new Uint8Array(bytes(G.cls)), z = [];
   for (var j = 0; j < G.ny; j++) {  // rows south to north (the y axis goes up)
