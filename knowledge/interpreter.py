@@ -32,9 +32,9 @@ import numpy as np
 from kbs.errors import FitError, KbsError
 from kbs.inference import UFPONCResult, first_local_max, ufp_onc
 from kbs.inference.incremental import IncrementalSweep
-from kbs.knowledge.connexity import Connexity, assign_to_nearest, project_on_plane
+from kbs.geometry.connexity import Connexity, assign_to_nearest, project_on_plane
 from kbs.knowledge.explain import NO_LABEL, APDCurve, Catalogue, CheckRecord, ClusterRecord, Explanation
-from kbs.knowledge.groundplane import robust_plane, supported_points
+from kbs.geometry.groundplane import robust_plane, supported_points
 from kbs.knowledge.predicates import Cluster, Ground, Measurement, PredicateError, Scene
 from kbs.knowledge.rulebase import Condition, RuleBase
 
@@ -816,7 +816,7 @@ class Interpreter:
     # -- the local ground surface: relabel and ground contact ----------------------------------------
 
     def _local_ground(self, X, leaves, scene: Scene):
-        from kbs.knowledge.groundmodel import LocalGround
+        from kbs.geometry.groundmodel import LocalGround
 
         spec = self.rb.ground_model
         mine = [i for i, (_, _, rec) in enumerate(leaves) if rec.label == spec.label]
