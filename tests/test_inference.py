@@ -28,7 +28,6 @@ from kbs.inference.voxel import HorizontalFrame, ladder_size
 from scenes import anisotropic_blobs, ground_and_boxes, rz, turn
 
 
-
 def gmm_with(centers, covariances, priors) -> GaussianMixture:
     """A scikit-learn GaussianMixture carrying exactly the given parameters."""
     gm = GaussianMixture(n_components=len(priors), covariance_type="full")
