@@ -64,13 +64,8 @@ PRIVATE_EXCEPTIONS: dict[tuple[str, str], str] = {
                                    "compiled module, one warm-up, one KBS_JIT for the whole library",
     ("tiles", "kbs.inference"): "as above (_flags: the streamed sums take the compiled path as the engine does)",
     ("cli", "kbs.inference"): "kbs warmup runs the compiled kernels' warm-up (_flags, _warmup)",
-    ("tiles", "kbs.io.las"): "the streamed LAS writer writes the run-id VLR and software field as write_las does "
-                             "(not made public in this branch)",
     ("tiles", "kbs.knowledge.explain"): "the streamed stitch writes explanation records as the interpreter does "
                                         "(_record_dict; the explanation record is being reworked in knowledge)",
-    ("maps", "kbs.tiles.run"): "kbs map submits frames as the tiles submit tiles (_segment_task, _submit_all; "
-                               "not made public in this branch)",
-    ("cli", "kbs.tiles.run"): "kbs run's workers build their segmenter as the tiles' do (_worker_segmenter)",
 }
 
 THIRD_PARTY = {"yaml": {"knowledge", "cli"}, "click": {"cli"}}
