@@ -33,7 +33,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_ground  # noqa: E402
 
-import kbs.knowledge.connexity as C  # noqa: E402
+import kbs.geometry.connexity as C  # noqa: E402
 import kbs.knowledge.predicates as P  # noqa: E402
 from kbs.evaluation import ground_metrics  # noqa: E402
 from kbs.knowledge import Interpreter, load_rule_base  # noqa: E402

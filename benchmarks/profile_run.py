@@ -78,10 +78,10 @@ STAGES: dict[str, tuple[str, str, list[str]]] = {
                    ["kbs.knowledge.actions.split:Split.divide", "kbs.knowledge.actions.split_components:SplitComponents.divide"]),
     "descriptors": ("interp", "cluster descriptors (fuzzy covariance, eigenvectors)",
                     ["kbs.inference.geometry:cluster_geometry"]),
-    "connexity": ("pred", "predicates: connexity", ["kbs.knowledge.connexity:connexity"]),
+    "connexity": ("pred", "predicates: connexity", ["kbs.geometry.connexity:connexity"]),
     "predicates": ("pred", "predicates: the rest", ["kbs.knowledge.predicates:Predicate.measure"]),
     "post.model": ("post", "ground_model (local ground surface built)",
-                   ["kbs.knowledge.post.ground_model:GroundModel.build", "kbs.knowledge.groundmodel:LocalGround.build"]),
+                   ["kbs.knowledge.post.ground_model:GroundModel.build", "kbs.geometry.groundmodel:LocalGround.build"]),
     "post.relabel": ("post", "relabel (its measures against the surface)",
                      ["kbs.knowledge.post.relabel:Relabel.apply"]),
     "post.release": ("post", "ground_release", ["kbs.knowledge.post.ground_release:GroundRelease.apply"]),
@@ -274,7 +274,7 @@ def child(spec: dict) -> dict:
     import kbs.knowledge  # noqa: F401
     t_imports = time.perf_counter() - t_start
     for m in ("kbs.inference.ufp_onc", "kbs.inference.engine", "kbs.inference.voxel", "kbs.inference.kernels",
-              "kbs.inference.geometry", "kbs.knowledge.connexity", "kbs.knowledge.groundmodel",
+              "kbs.inference.geometry", "kbs.geometry.connexity", "kbs.geometry.groundmodel",
               "kbs.knowledge.predicates", "kbs.knowledge.interpreter", "kbs.cli.common", "kbs.report.colors",
               "kbs.io.readers"):
         try:

@@ -145,6 +145,7 @@ def _cah_points(res, cluster_id: str, result: Path):
     approximating plane."""
     import numpy as np
 
+    from kbs.geometry.pca import principal_axes
     from kbs.knowledge.predicates import did_you_mean
 
     records = {r["id"]: r for r in (res.doc.get("explanation") or {}).get("clusters", [])}
@@ -176,5 +177,4 @@ def _cah_points(res, cluster_id: str, result: Path):
     ground = (res.doc.get("explanation") or {}).get("ground") or {}
     if ground.get("normal") is not None:
         return sel, np.asarray(ground["normal"], float), center, "the ground plane", what
-    _, v = np.linalg.eigh(np.cov(P.T))
-    return sel, v[:, 0], center, "its best approximating plane (no ground plane in this run)", what
+    return sel, principal_axes(P).normal, center, "its best approximating plane (no ground plane in this run)", what

@@ -650,13 +650,13 @@ def _scan_task(rules: str, sensor: tuple[float, float, float], plugins: tuple[st
     import contextlib
     import io
 
-    from kbs.tiles.run import _worker_segmenter
+    from kbs.tiles.run import worker_segmenter
 
     out, err = io.StringIO(), io.StringIO()
     result, code, message = None, None, ""
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         try:
-            result = run_scan(_worker_segmenter(rules, sensor, plugins), scan, out_dir, **options)
+            result = run_scan(worker_segmenter(rules, sensor, plugins), scan, out_dir, **options)
         except KbsError as exc:
             code, message = int(exc.exit_code), str(exc)
     return result, code, message, out.getvalue(), err.getvalue()

@@ -7,16 +7,10 @@ import click
 import numpy as np
 
 from kbs.errors import CloudFileError
+from kbs.evaluation.segcomp import image_region_normals, segmentation_to_image
 from kbs.io import PointCloud
 from kbs.io.result import read_result_cloud
-from kbs.io.segcomp import (
-    FIRST_REGION_LABEL,
-    read_sunraster,
-    region_normals,
-    segmentation_to_image,
-    write_ms_nor,
-    write_ms_seg,
-)
+from kbs.io.segcomp import FIRST_REGION_LABEL, read_sunraster, write_ms_nor, write_ms_seg
 
 
 def _result_arrays(result: Path, cloud: PointCloud) -> tuple[np.ndarray, np.ndarray]:
@@ -92,7 +86,7 @@ def segcomp(ctx: click.Context, result: Path, image_path: Path, out: Path | None
     n_regions = int(np.unique(labels[labels >= FIRST_REGION_LABEL]).size)
     if n_regions == 0:
         raise CloudFileError(str(result), "no cluster of at least 3 points: nothing to segment (every point is noise)")
-    region_normal = region_normals(labels, cloud.xyz, pixel) if normals is not None else None
+    region_normal = image_region_normals(labels, cloud.xyz, pixel) if normals is not None else None
     for path in (out, normals):
         if path is not None:
             _not_an_input(path, result, image_path)

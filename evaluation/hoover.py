@@ -40,6 +40,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from kbs.errors import ParameterError
+from kbs.geometry.pca import principal_axes
 
 Kind = Literal["correct", "over", "under"]
 
@@ -290,9 +291,7 @@ def region_normals(points: np.ndarray, labels: np.ndarray,
         if hi - lo < MIN_NORMAL_POINTS:
             continue
         P = X[order[lo:hi]]
-        C = np.cov(P, rowvar=False, bias=True)
-        _, vecs = np.linalg.eigh(C)
-        out[int(r)] = vecs[:, 0]
+        out[int(r)] = principal_axes(P).normal
     return out
 
 

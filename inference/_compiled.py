@@ -794,7 +794,7 @@ def local_medians(d, idx, heights, owners, own, neighbours):
 
 # -- connexity (CAh) on the projected points -----------------------------------------------------
 #
-# The graph of :mod:`kbs.knowledge.connexity` links distinct positions at most ``r`` apart. With
+# The graph of :mod:`kbs.geometry.connexity` links distinct positions at most ``r`` apart. With
 # square cells of side ``r``, two linked points lie in the same or 8-adjacent cells, so each pair
 # is met once by visiting, for every cell, itself and four of its neighbours. Distances are
 # compared as scipy's k-d tree compares them (``dx*dx + dy*dy <= r*r`` for the degrees and the

@@ -86,18 +86,21 @@ def _extra_dtype(name: str, values: np.ndarray) -> np.dtype | None:
     return dtype if dtype in _EXTRA_DTYPES else None
 
 
-def _without_run_id(vlrs: list[Any]) -> list[Any]:
+def without_run_id(vlrs: list[Any]) -> list[Any]:
+    """The VLRs but kbs's run-id record (a LAS written by kbs carries one, replaced when rewritten)."""
     return [v for v in vlrs if not (v.user_id == RUN_ID_USER_ID and v.record_id == RUN_ID_RECORD_ID)]
 
 
-def _run_id_vlr(run_id: str) -> Any:
+def run_id_vlr(run_id: str) -> Any:
+    """The VLR that carries a kbs run id."""
     from laspy.vlrs.vlr import VLR
 
     return VLR(user_id=RUN_ID_USER_ID, record_id=RUN_ID_RECORD_ID, description="kbs run id",
                record_data=run_id.encode("ascii"))
 
 
-def _software() -> str:
+def software_id() -> str:
+    """The LAS header's generating software: ``kbs VERSION`` (32 characters at most)."""
     from kbs import __version__
 
     return f"kbs {__version__}"[:32]
@@ -138,7 +141,7 @@ def build_las(xyz: np.ndarray, fields: Mapping[str, np.ndarray], kbs_fields: Map
                 out.remove_extra_dim(name)
                 out.add_extra_dim(laspy.ExtraBytesParams(f"{name}_in"[:32], old.dtype, description=desc[:32]))
                 out[f"{name}_in"[:32]] = old
-        out.header.vlrs = _without_run_id(list(out.header.vlrs))
+        out.header.vlrs = without_run_id(list(out.header.vlrs))
     else:
         rgb = all(c in fields for c in ("red", "green", "blue"))
         header = laspy.LasHeader(point_format=7 if rgb else 6, version="1.4")
@@ -172,8 +175,8 @@ def build_las(xyz: np.ndarray, fields: Mapping[str, np.ndarray], kbs_fields: Map
         out[name] = np.asarray(kbs_fields[name]).astype(dtype)
     if classification is not None:
         out.classification = classification
-    out.header.vlrs.append(_run_id_vlr(run_id))
-    out.header.generating_software = _software()
+    out.header.vlrs.append(run_id_vlr(run_id))
+    out.header.generating_software = software_id()
     out.header.creation_date = datetime.date.today()
     return out
 

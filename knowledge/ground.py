@@ -10,8 +10,8 @@ from typing import Any
 
 import numpy as np
 
+from kbs.geometry.groundplane import robust_plane, supported_points
 from kbs.knowledge.explain import ClusterRecord
-from kbs.knowledge.groundplane import robust_plane, supported_points
 from kbs.knowledge.predicates import Cluster, Ground, Scene
 
 

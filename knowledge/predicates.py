@@ -29,7 +29,7 @@ import numpy as np
 
 from kbs.errors import ExitCode, KbsError
 from kbs.inference import ClusterGeometry, angle_between_planes, cluster_geometry
-import kbs.knowledge.connexity as _connexity
+import kbs.geometry.connexity as _connexity
 
 #: Units a predicate may declare. 'length' is the rule base's own length unit.
 UNITS: dict[str, str] = {
@@ -185,7 +185,7 @@ class Scene:
     sensor: np.ndarray
     ground: Ground | None
     unit: str
-    #: the local ground surface (:class:`~kbs.knowledge.groundmodel.LocalGround`), built after the
+    #: the local ground surface (:class:`~kbs.geometry.groundmodel.LocalGround`), built after the
     #: clusters are labelled; only the rule base's ``post.relabel`` conditions can see it
     ground_model: Any = None
 

@@ -104,7 +104,7 @@ class Surface:
     """The local ground surface a ``ground_model`` step built, and the leaf (its position in
     :attr:`PostState.leaves`) each of its points came from."""
 
-    model: Any  # kbs.knowledge.groundmodel.LocalGround
+    model: Any  # kbs.geometry.groundmodel.LocalGround
     owner: np.ndarray
     #: the step that built it (a relabel step builds it again the same way)
     spec: Any = None

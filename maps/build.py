@@ -369,14 +369,14 @@ def map_drive(segmenter: Any, drive: Drive | Iterable[np.ndarray], poses: Poses 
 
 def _segment_on_dask(segmenter: Any, frames: list[Any], scheduler: str, workers: int | None,
                      fuse_frame: Callable[[int, np.ndarray, Any], None]) -> None:
-    """Segment ``frames`` as Dask tasks (:func:`kbs.tiles.run._submit_all`: a bounded number in
+    """Segment ``frames`` as Dask tasks (:func:`kbs.tiles.run.submit_all`: a bounded number in
     flight, a task lost with its worker run again once) and hand each to ``fuse_frame(i, X,
     segmentation or error)`` in frame order: a frame that ends before an earlier one waits (with its
     points) until that one is fused."""
     import logging
 
     from kbs.errors import KbsError
-    from kbs.tiles.run import _segment_task, _submit_all
+    from kbs.tiles.run import segment_task, submit_all
 
     logging.getLogger("distributed").setLevel(logging.ERROR)  # a worker's start and stop are not kbs's news
     spec = (segmenter.rule_base.path, tuple(segmenter.sensor), tuple(segmenter.plugins))
@@ -386,7 +386,7 @@ def _segment_on_dask(segmenter: Any, frames: list[Any], scheduler: str, workers:
 
     def task_of(k: int) -> tuple[Any, ...]:
         loaded[k] = frames[k].load()  # read here: the fusion needs the points too
-        return (_segment_task, *spec, loaded[k], None)
+        return (segment_task, *spec, loaded[k], None)
 
     def finished(k: int, out: Any, done: int) -> None:
         nonlocal next_frame
@@ -397,4 +397,4 @@ def _segment_on_dask(segmenter: Any, frames: list[Any], scheduler: str, workers:
             fuse_frame(next_frame, loaded.pop(next_frame), arrived.pop(next_frame))
             next_frame += 1
 
-    _submit_all(scheduler, workers, None, finished, range(len(frames)), task_of, [f.name for f in frames])
+    submit_all(scheduler, workers, None, finished, range(len(frames)), task_of, [f.name for f in frames])

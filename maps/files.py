@@ -147,10 +147,12 @@ def write_png(m: DriveMap, path: Path) -> None:
     import matplotlib.pyplot as plt
     from matplotlib.colors import ListedColormap
 
+    from kbs.report.colors import GRID_HEX
+
     g = m.grid
     x0, y0, x1, y1 = g.bounds
     fig, ax = plt.subplots(figsize=(8, 8 * max(0.3, min(3.0, (y1 - y0) / max(x1 - x0, 1e-9)))), dpi=110)
-    ax.imshow(g.raster(g.cls), cmap=ListedColormap(["#f0f0f0", "#9ccc65", "#b71c1c"]), vmin=0, vmax=2,
+    ax.imshow(g.raster(g.cls), cmap=ListedColormap(list(GRID_HEX)), vmin=0, vmax=2,
               extent=(x0, x1, y0, y1), interpolation="nearest")
     h = np.where(g.cls == OBSTACLE, g.obstacle_height, np.nan)
     if np.isfinite(h).any():

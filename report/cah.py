@@ -1,5 +1,5 @@
 """A cluster's connexity (CAh) view, as data: its points projected on a plane, their alpha-shape
-and its alpha-opening (the seed paper's figures 5-7), computed with :mod:`kbs.knowledge.connexity`
+and its alpha-opening (the seed paper's figures 5-7), computed with :mod:`kbs.geometry.connexity`
 (the ``alpha_opening`` method of the connexity predicate). Drawn by
 :func:`kbs.report.figures.cah_figure` (PNG) and by the HTML report (on click on a cluster)."""
 from __future__ import annotations
@@ -30,7 +30,7 @@ class CahView:
 def cah_view(X: np.ndarray, normal: np.ndarray, center: np.ndarray, *, alpha_factor: float = 3.0,
              opening_factor: float = 1.0, min_fraction: float = 0.05) -> CahView:
     """The CAh view of points ``X`` (n, 3) projected on the plane through ``center`` with ``normal``."""
-    from kbs.knowledge.connexity import alpha_opening, alpha_shape, connexity, project_on_plane
+    from kbs.geometry.connexity import alpha_opening, alpha_shape, connexity, project_on_plane
 
     X = np.asarray(X, dtype=np.float64)
     conn = connexity(X, center, normal, method="alpha_opening", alpha_factor=alpha_factor,

@@ -22,6 +22,10 @@ import numpy as np
 #: RGB (uint8) of noise / unassigned points (cluster or label -1).
 NOISE_RGB = (128, 128, 128)
 
+#: The cells of a drive's obstacle grid by class (unknown 0, ground 1, obstacle 2): the colours of
+#: ``map.png`` (:mod:`kbs.maps.files`) and of the map view's grid (:mod:`kbs.report.mapview`).
+GRID_HEX = ("#f0f0f0", "#9ccc65", "#b71c1c")
+
 # matplotlib tab20, dark shades (even indices) first, then light ones; its greys (127,127,127)
 # and (199,199,199) left out so that grey means noise only.
 _TAB20_DARK = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from kbs.errors import CloudFileError, require
+from kbs.geometry.pca import plane_basis, principal_axes
 from kbs.report.colors import NOISE_RGB, colors_for
 from kbs.report.view import View
 
@@ -178,19 +179,13 @@ def cluster_axes(X: np.ndarray, weights: np.ndarray, normal: np.ndarray | None) 
     """Eigenvectors (3, 3), columns e1 e2 e3 by increasing variance, of the weighted covariance of
     a cluster's points; when ``normal`` (the JSON descriptor) is given, e1 is it and e2, e3 are
     the principal directions within its plane."""
-    w = np.asarray(weights, dtype=float)
-    w = w / w.sum() if w.sum() > 0 else np.full(len(X), 1.0 / len(X))
-    c = w @ X
-    cov = (X - c).T @ ((X - c) * w[:, None])
+    pca = principal_axes(X, weights=weights)
     if normal is None:
-        return np.linalg.eigh(cov)[1]
+        return pca.eigenvectors
+    cov = pca.covariance
     n = np.asarray(normal, dtype=float)
     n = n / np.linalg.norm(n)
-    helper = np.eye(3)[int(np.argmin(np.abs(n)))]
-    u = np.cross(n, helper)
-    u /= np.linalg.norm(u)
-    v = np.cross(n, u)
-    B = np.column_stack([u, v])
+    B = plane_basis(n).T  # (3, 2): in-plane directions
     _, vec2 = np.linalg.eigh(B.T @ cov @ B)
     return np.column_stack([n, B @ vec2[:, 0], B @ vec2[:, 1]])
 

@@ -63,6 +63,7 @@ from typing import Any
 import numpy as np
 
 from kbs.errors import require
+from kbs.geometry.pca import principal_axes
 from kbs.knowledge.explain import Explanation
 from kbs.report.colors import NOISE_HEX, hex_colors
 from kbs.report.view import view_of
@@ -135,8 +136,8 @@ def eigen_boxes(xyz: np.ndarray, cluster: np.ndarray, n_clusters: int) -> list[d
         if len(P) < 2:
             out.append(None)
             continue
-        c = P.mean(axis=0)
-        w, V = np.linalg.eigh(np.cov(P - c, rowvar=False, bias=True))
+        pca = principal_axes(P)
+        c, w, V = pca.center, pca.eigenvalues, pca.eigenvectors
         half = 2.0 * np.sqrt(np.clip(w, 0.0, None))
         signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
         corners = c + (signs * half) @ V.T
@@ -329,7 +330,7 @@ def _cah_views(xyz: np.ndarray, cluster: np.ndarray, clusters: Sequence[dict[str
         if normal is not None:
             n, plane = np.asarray(normal, dtype=float), "the ground plane"
         else:
-            n, plane = np.linalg.eigh(np.cov(P.T))[1][:, 0], "its best approximating plane"
+            n, plane = principal_axes(P).normal, "its best approximating plane"
         try:
             v = cah_view(P, n, center)
         except (ValueError, ArithmeticError) as exc:  # e.g. every point on one position: no shape

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from kbs.errors import require
-from kbs.report.colors import hex_colors
+from kbs.report.colors import GRID_HEX, hex_colors
 from kbs.report.html import ERROR_HOOK, INFLATE_JS, PAGE_BOOT, PAGE_HEAD, PAGE_TOP, _b64, _gz64, _hull2d, _json, _plotly_gz64
 
 __all__ = ["write_map_report", "map_report_data", "MAX_CELLS"]
@@ -161,8 +161,7 @@ function start(D) {
 
   var traces = [{ type: "heatmap", z: z, x0: G.x0 + G.cell / 2, dx: G.cell, y0: G.y0 + G.cell / 2, dy: G.cell,
                   zmin: 0, zmax: 2, showscale: false, zsmooth: false, name: "grid",
-                  colorscale: [[0, "#f0f0f0"], [0.333, "#f0f0f0"], [0.333, "#9ccc65"], [0.667, "#9ccc65"],
-                               [0.667, "#b71c1c"], [1, "#b71c1c"]],
+                  colorscale: @@GRID_COLOURS@@,
                   hovertemplate: "x %{x:.1f}, y %{y:.1f}<extra></extra>" }];
   D.objects.forEach(function (o) {
     traces.push({ type: "scatter", mode: "lines", x: o.hull[0], y: o.hull[1], fill: "toself", fillcolor: o.color,
@@ -253,3 +252,5 @@ function start(D) {
 </html>
 """
 _TEMPLATE = _TEMPLATE.replace("@@ERROR_HOOK@@", ERROR_HOOK).replace("@@INFLATE_JS@@", INFLATE_JS)
+_TEMPLATE = _TEMPLATE.replace("@@GRID_COLOURS@@", '[[0, "{0}"], [0.333, "{0}"], [0.333, "{1}"], [0.667, "{1}"],\n'
+                              '                               [0.667, "{2}"], [1, "{2}"]]'.format(*GRID_HEX))

@@ -25,6 +25,7 @@ import numpy as np
 import plyfile
 
 from kbs.errors import CloudFileError
+from kbs.geometry.pca import principal_axes
 from kbs.io.atomic import sigint_held, temporary_path
 from kbs.inference import ClusterGeometry, cluster_geometry
 from kbs.inference.geometry import RANK_TOLERANCE
@@ -92,9 +93,8 @@ def ground_mesh(points: np.ndarray, *, edge_factor: float = 3.0) -> tuple[np.nda
     P = np.asarray(points, dtype=np.float64)
     if P.shape[0] < 3:
         raise ValueError(f"{P.shape[0]} ground points (a surface needs at least 3)")
-    c = P.mean(axis=0)
-    cov = np.cov((P - c).T)
-    lam, vec = np.linalg.eigh(cov)
+    pca = principal_axes(P, ddof=1)
+    c, cov, lam, vec = pca.center, pca.covariance, pca.eigenvalues, pca.eigenvectors
     shape = ClusterGeometry(center=c, covariance=cov, eigenvalues=np.maximum(lam, 0.0), eigenvectors=vec,
                             mass=float(P.shape[0]))
     if shape.degenerate:

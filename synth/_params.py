@@ -4,7 +4,7 @@ from __future__ import annotations
 from typing import Any
 
 from kbs.errors import ParameterError
-from kbs.inference._validation import Interval
+from kbs.inference import Interval
 
 
 def check_pair(owner: str, name: str, value: Any, kind: type, low: float, high: float | None) -> tuple:

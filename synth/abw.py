@@ -27,7 +27,7 @@ import numpy as np
 from shapely.geometry import box as shapely_box
 
 from kbs.errors import ParameterError
-from kbs.inference._validation import Interval, validate_params
+from kbs.inference import Interval, validate_params
 from kbs.io.segcomp import (
     ABW_CALIBRATION,
     ABW_SHAPE,
@@ -38,7 +38,7 @@ from kbs.io.segcomp import (
     write_sunraster,
 )
 from kbs.synth._params import check_pair, count
-from kbs.synth.polyhedral import _place
+from kbs.synth.polyhedral import place_solids
 from kbs.synth.raycast import ray_convex, ray_plane
 
 #: Least and greatest range value with data (0 is "no data").
@@ -238,7 +238,7 @@ def abw_scene(
     half_w = 255 * (cal.offset + table_range / cal.scale) / abs(cal.focal)
     region = shapely_box(-half_w, -half_w / cal.aspect, half_w, half_w / cal.aspect)
     kinds = ["box"] * n_boxes + ["wedge"] * n_wedges
-    local = _place(rng, kinds, region, size_range, gap, 0.0, max_tries, in_view)
+    local = place_solids(rng, kinds, region, size_range, gap, 0.0, max_tries, in_view)
 
     # cast the rays from the camera (ray_convex / ray_plane take the ray origin as 0)
     dirs = _camera_rays(cal)

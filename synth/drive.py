@@ -20,10 +20,9 @@ from typing import Any
 import numpy as np
 
 from kbs.errors import CloudFileError, ParameterError
-from kbs.inference._validation import Interval, validate_params
-from kbs.synth.outdoor import _OUTDOOR_CONSTRAINTS
+from kbs.inference import Interval, validate_params
 from kbs.synth._params import check_pair, count
-from kbs.synth.outdoor import Bin, Rock, _bin, _rock, _terrain
+from kbs.synth.outdoor import OUTDOOR_CONSTRAINTS, Bin, Rock, random_bin, random_rock, random_terrain
 from kbs.synth.raycast import HeightField, pinhole_rays, ray_convex, ray_heightfield, sphere_candidates
 from kbs.synth.scene import Scene
 
@@ -355,7 +354,7 @@ def _jsonable(o: Any) -> Any:
 
 
 _DRIVE_CONSTRAINTS = {
-    **_OUTDOOR_CONSTRAINTS,  # the scene's own settings, as outdoor_scene checks them
+    **OUTDOOR_CONSTRAINTS,  # the scene's own settings, as outdoor_scene checks them
     "n_frames": [Interval(numbers.Integral, 1, None)],
     "step": [Interval(numbers.Real, 0, None, closed="neither")],
     "yaw_rate": [Interval(numbers.Real, -45, 45, closed="both")],
@@ -518,7 +517,7 @@ def outdoor_drive(
                              f"({sensor_height:g}). Got {ground_amplitude!r} instead.")
     bin_size = tuple(float(v) for v in bin_size)
     rng = np.random.default_rng(seed)
-    terrain = _terrain(rng, sensor_height, ground_amplitude)
+    terrain = random_terrain(rng, sensor_height, ground_amplitude)
     w = np.radians(yaw_rate) / step  # rad per metre
     s = np.arange(n_frames) * step
     px, py, heading = arc(s, w)
@@ -541,7 +540,7 @@ def outdoor_drive(
             d = rng.uniform(*lateral)
             x, y, h = arc(a, w)
             xy = np.array([float(x) - side * d * np.sin(float(h)), float(y) + side * d * np.cos(float(h))])
-            obj, reach = _bin(rng, xy, bin_size, terrain) if is_bin else _rock(rng, xy, rock_size, terrain)
+            obj, reach = random_bin(rng, xy, bin_size, terrain) if is_bin else random_rock(rng, xy, rock_size, terrain)
             clear_path = np.linalg.norm(path_xy - xy, axis=1).min() >= reach + 0.5
             if clear_path and all(np.linalg.norm(xy - c) >= reach + rc + gap for c, rc in placed):
                 placed.append((xy, reach))

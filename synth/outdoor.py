@@ -13,7 +13,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from kbs.errors import ParameterError
-from kbs.inference._validation import Interval, validate_params
+from kbs.inference import Interval, validate_params
 from kbs.synth._params import check_pair, count
 from kbs.synth.raycast import (
     HeightField,
@@ -111,7 +111,7 @@ class Bin:
         return t
 
 
-def _terrain(rng: np.random.Generator, sensor_height: float, amplitude: float, n_waves: int = 5) -> HeightField:
+def random_terrain(rng: np.random.Generator, sensor_height: float, amplitude: float, n_waves: int = 5) -> HeightField:
     """A smooth random terrain: ``n_waves`` sinusoids of wavelengths 6-30 m, heights within
     ``+- amplitude`` of ``-sensor_height``."""
     wavelength = rng.uniform(6.0, 30.0, n_waves)
@@ -122,7 +122,7 @@ def _terrain(rng: np.random.Generator, sensor_height: float, amplitude: float, n
                        wavevectors=k, phases=rng.uniform(0.0, 2 * np.pi, n_waves))
 
 
-def _rock(
+def random_rock(
     rng: np.random.Generator, center_xy: np.ndarray, size_range: tuple[float, float], terrain: HeightField
 ) -> tuple[Rock, float]:
     """A rock of 1-3 lobes at ``center_xy``, its main lobe 35-65 % buried; returns it and the
@@ -143,7 +143,7 @@ def _rock(
     return Rock(centers, np.array(axes), radii), reach
 
 
-def _bin(
+def random_bin(
     rng: np.random.Generator, center_xy: np.ndarray, size: tuple[float, float, float], terrain: HeightField
 ) -> tuple[Bin, float]:
     """A bin at ``center_xy`` with a random yaw; returns it and the radius of its footprint circle."""
@@ -160,7 +160,8 @@ def _bin(
     return b, float(np.hypot(length, width) / 2)
 
 
-_OUTDOOR_CONSTRAINTS = {
+#: The settings of outdoor_scene and their allowed values (outdoor_drive checks the same ones).
+OUTDOOR_CONSTRAINTS = {
     "seed": [Interval(numbers.Integral, 0, None)],
     "extent": [Interval(numbers.Real, 5, None)],
     "n_rocks": [Interval(numbers.Integral, 0, None)],
@@ -249,7 +250,7 @@ def outdoor_scene(
                   fov_deg=fov_deg, tilt_deg=tilt_deg, sensor_height=sensor_height, noise=noise,
                   density_r0=density_r0, ground_amplitude=ground_amplitude, rock_size=rock_size,
                   bin_size=bin_size, gap=gap, max_tries=max_tries)
-    validate_params("outdoor_scene", params, _OUTDOOR_CONSTRAINTS)
+    validate_params("outdoor_scene", params, OUTDOOR_CONSTRAINTS)
     resolution = check_pair("outdoor_scene", "resolution", resolution, numbers.Integral, 0, None)
     fov_deg = check_pair("outdoor_scene", "fov_deg", fov_deg, numbers.Real, 0, 180)
     rock_size = check_pair("outdoor_scene", "rock_size", rock_size, numbers.Real, 0, None)
@@ -267,7 +268,7 @@ def outdoor_scene(
         raise ParameterError(f"The 'ground_amplitude' parameter of outdoor_scene must be below sensor_height "
                              f"({sensor_height:g}). Got {ground_amplitude!r} instead.")
     rng = np.random.default_rng(seed)
-    terrain = _terrain(rng, sensor_height, ground_amplitude)
+    terrain = random_terrain(rng, sensor_height, ground_amplitude)
 
     # objects: rocks then the bin, footprint circles apart
     near, far = 3.5, max(3.5, 0.6 * extent)
@@ -280,7 +281,7 @@ def outdoor_scene(
         for _ in range(max_tries):
             r, az = rng.uniform(near, far), rng.uniform(-half_azimuth, half_azimuth)
             xy = np.array([r * np.cos(az), r * np.sin(az)])
-            obj, reach = _bin(rng, xy, bin_size, terrain) if is_bin else _rock(rng, xy, rock_size, terrain)
+            obj, reach = random_bin(rng, xy, bin_size, terrain) if is_bin else random_rock(rng, xy, rock_size, terrain)
             if all(np.linalg.norm(xy - c) >= reach + rc + gap for c, rc in placed):
                 placed.append((xy, reach))
                 if is_bin:

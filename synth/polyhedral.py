@@ -13,7 +13,7 @@ import numpy as np
 from shapely.geometry import MultiPoint, Polygon
 
 from kbs.errors import ParameterError
-from kbs.inference._validation import Interval, validate_params
+from kbs.inference import Interval, validate_params
 from kbs.synth._params import check_pair, count
 from kbs.synth.raycast import pinhole_rays, ray_convex, ray_plane
 from kbs.synth.scene import Face, Scene
@@ -131,7 +131,7 @@ def _in_view(X: np.ndarray, fov_deg: tuple[float, float], tilt_deg: float, inner
                 and (np.abs(v) <= inner * np.tan(np.radians(fov_deg[0]) / 2)).all())
 
 
-def _place(
+def place_solids(
     rng: np.random.Generator, kinds: list[str], region: Polygon, size_range: tuple[float, float], gap: float,
     z0: float, max_tries: int, in_view: Callable[[np.ndarray], bool],
 ) -> list[Solid]:
@@ -255,7 +255,7 @@ def polyhedral_scene(
 
     region = _view_region(fov_deg, tilt_deg, sensor_height, max_range)
     kinds = ["box"] * n_boxes + ["wedge"] * n_wedges
-    solids = _place(rng, kinds, region, size_range, gap, z0, max_tries,
+    solids = place_solids(rng, kinds, region, size_range, gap, z0, max_tries,
                     lambda X: _in_view(X, fov_deg, tilt_deg, 0.95, max_range))
 
     dirs = pinhole_rays(resolution, fov_deg, tilt_deg)

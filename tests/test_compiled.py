@@ -223,7 +223,7 @@ def _scan_piece():
 @pytest.mark.parametrize("case", ["blobs", "bridged", "lattice", "strip", "far", "scan"])
 @pytest.mark.parametrize("kw", [{}, {"opening": False}, {"erosion_fraction": 0.6}, {"alpha": 0.5}])
 def test_compiled_connexity_equals_the_kd_tree_version(monkeypatch, case, kw):
-    from kbs.knowledge.connexity import connexity
+    from kbs.geometry.connexity import connexity
 
     X = _connexity_cases()[case]
     args = (X, X.mean(axis=0), np.array([0.0, 0.0, 1.0]))
@@ -249,7 +249,7 @@ def test_connexity_grid_refuses_an_absurd_extent():
 def test_compiled_plane_inlier_counts_are_the_numpy_counts():
     """The RANSAC scoring of the ground-plane search: the compiled counts equal numpy's einsum
     counts exactly, on points whose distances to the hypotheses straddle the threshold."""
-    from kbs.knowledge.groundplane import _inlier_counts
+    from kbs.geometry.groundplane import _inlier_counts
 
     rng = np.random.default_rng(3)
     S = rng.normal(size=(3000, 3)) * [20.0, 20.0, 0.05] + [5.0, -3.0, -1.7]

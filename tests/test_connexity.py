@@ -16,7 +16,7 @@ from sklearn.neighbors import NearestNeighbors
 
 from kbs.errors import FitError, ParameterError
 from kbs.inference import cluster_geometry
-from kbs.knowledge.connexity import (
+from kbs.geometry.connexity import (
     Connexity,
     assign_to_nearest,
     connexity,
@@ -264,7 +264,7 @@ def test_kernel_matches_a_dense_brute_force_reference(seed):
 
 
 def test_median_degree_on_a_sample_of_a_large_cluster(monkeypatch):
-    import kbs.knowledge.connexity as module
+    import kbs.geometry.connexity as module
 
     monkeypatch.setattr(module, "_MEDIAN_SAMPLE", 97)
     rng = np.random.default_rng(10)
@@ -300,7 +300,7 @@ def test_dilation_looks_past_removed_nearest_points():
 
 
 def test_degree_lower_bounds_are_exact_at_the_edge_of_the_sure_cells():
-    import kbs.knowledge.connexity as module
+    import kbs.geometry.connexity as module
 
     # cells of side r / 5: (0, 0) and (3, 2) cells apart are within r only up to their far corners
     r = 1.0
@@ -317,7 +317,7 @@ def test_degree_lower_bounds_are_exact_at_the_edge_of_the_sure_cells():
               elements=st.floats(0, 5).map(lambda v: round(v, 2))),
        st.floats(0.05, 2.0))
 def test_degree_lower_bounds_never_exceed_the_degree(P, r):
-    import kbs.knowledge.connexity as module
+    import kbs.geometry.connexity as module
 
     U = np.unique(P, axis=0)
     degree = (cdist(U, U) <= r).sum(axis=1) - 1
@@ -365,7 +365,7 @@ def test_graph_components_property_against_dense_components(P, r):
 
 
 def test_large_neighbourhoods_are_walked_in_pieces_with_the_same_result(monkeypatch):
-    import kbs.knowledge.connexity as module
+    import kbs.geometry.connexity as module
 
     X, _ = three_rocks()
     base = connexity(X, X.mean(axis=0), UP, alpha=0.3)
@@ -479,7 +479,7 @@ def test_the_opening_removes_a_bridge_narrower_than_twice_its_radius(ratio):
     # erosion by a disc of radius rho keeps the centres of the discs that fit inside the shape:
     # none fits in a bridge of width w < 2 rho, so the bridge disappears and the dilation, which
     # only grows what is left, cannot bring it back
-    from kbs.knowledge.connexity import alpha_opening
+    from kbs.geometry.connexity import alpha_opening
 
     rho = 0.2
     parts = alpha_opening(two_discs_and_bridge(ratio * 2 * rho), rho)
@@ -490,7 +490,7 @@ def test_the_opening_removes_a_bridge_narrower_than_twice_its_radius(ratio):
 
 @pytest.mark.parametrize("ratio", [1.02, 1.1, 2.0])
 def test_the_opening_keeps_a_bridge_wider_than_twice_its_radius(ratio):
-    from kbs.knowledge.connexity import alpha_opening
+    from kbs.geometry.connexity import alpha_opening
 
     rho = 0.2
     shape = two_discs_and_bridge(ratio * 2 * rho)
@@ -503,7 +503,7 @@ def test_the_opening_keeps_a_bridge_wider_than_twice_its_radius(ratio):
 def test_opening_with_a_zero_radius_is_the_shape_and_an_empty_shape_has_no_component():
     import shapely
 
-    from kbs.knowledge.connexity import alpha_opening
+    from kbs.geometry.connexity import alpha_opening
 
     shape = two_discs_and_bridge(0.01)
     assert [p.equals(shape) for p in alpha_opening(shape, 0.0)] == [True]
@@ -514,7 +514,7 @@ def test_opening_with_a_zero_radius_is_the_shape_and_an_empty_shape_has_no_compo
 def test_alpha_complex_against_circumradii_computed_from_the_circumcentres():
     from scipy.spatial import Delaunay
 
-    from kbs.knowledge.connexity import alpha_complex, alpha_shape
+    from kbs.geometry.connexity import alpha_complex, alpha_shape
 
     rng = np.random.default_rng(12)
     P = rng.uniform(0, 4, (400, 2))
@@ -538,7 +538,7 @@ def test_alpha_complex_against_circumradii_computed_from_the_circumcentres():
 
 
 def test_alpha_complex_of_collinear_or_too_few_points_is_empty():
-    from kbs.knowledge.connexity import alpha_complex, alpha_shape
+    from kbs.geometry.connexity import alpha_complex, alpha_shape
 
     line = np.c_[np.linspace(0, 1, 20), np.zeros(20)]
     assert alpha_complex(line, 1.0).shape == (0, 3) and alpha_shape(line, 1.0).is_empty
@@ -634,7 +634,7 @@ def test_alpha_opening_against_a_raster_opening():
     # (scipy.ndimage), on random blobs, bridges and specks; components and area agree
     from scipy import ndimage
 
-    from kbs.knowledge.connexity import alpha_opening, alpha_shape
+    from kbs.geometry.connexity import alpha_opening, alpha_shape
 
     rng = np.random.default_rng(13)
     for seed in range(3):

@@ -16,7 +16,7 @@ from kbs.cli.main import main
 from kbs.evaluation import ground_metrics
 from kbs.io import write_ply
 from kbs.knowledge import Interpreter, load_rule_base
-from kbs.knowledge.groundplane import hypotheses_needed, robust_plane
+from kbs.geometry.groundplane import hypotheses_needed, robust_plane
 from test_cli import kbs
 
 ROOT = Path(__file__).resolve().parents[1]

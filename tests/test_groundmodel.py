@@ -13,7 +13,8 @@ from plyfile import PlyData
 
 from kbs.io import write_ply
 from kbs.knowledge import Interpreter, PredicateRegistry, RuleFileError, load_rule_base
-from kbs.knowledge.groundmodel import LocalGround, plane_basis
+from kbs.geometry.groundmodel import LocalGround
+from kbs.geometry.pca import plane_basis
 from kbs.knowledge.rulebase import parse_rule_base
 from scenes import airborne_large_building, airborne_step_and_building, ground_and_parked_cars, ground_and_rocks
 from test_cli import kbs
@@ -92,7 +93,7 @@ def test_max_points_bounds_the_points_a_cluster_asks_the_surface_for(monkeypatch
     """height_above_local_ground's max_points: a large roof asks the surface for that many of its
     points, evenly spread, and measures about the same height as with all of them; 0 asks for all."""
     from kbs.knowledge import Cluster, Scene
-    from kbs.knowledge.groundmodel import LocalGround as LG
+    from kbs.geometry.groundmodel import LocalGround as LG
     from kbs.knowledge.predicates import Ground, height_above_local_ground
 
     rng = np.random.default_rng(5)
@@ -594,7 +595,7 @@ def test_height_bounds_hold_every_answer_of_the_query():
 def test_block_reductions_are_those_of_every_block(reach):
     """The separable block minimum, maximum and sum of the bounds' grids equal a direct loop over
     each cell's (2 reach + 1)^2 block (cells beyond the edges left out)."""
-    from kbs.knowledge.groundmodel import _slide
+    from kbs.geometry.groundmodel import _slide
 
     rng = np.random.default_rng(reach)
     A = rng.normal(size=(9, 13))

@@ -184,3 +184,26 @@ def test_the_map_view_opens_on_the_object_named_in_its_address(mapped, tmp_path)
     assert re.search(rf'<div id="object-{last}" class="sel"', r.stdout)
     assert f"object {last}: seen in" in r.stdout
 
+
+
+@pytest.mark.slow  # a drive mapped through kbs map: pytest --runslow (CI) runs it
+def test_the_map_view_and_map_png_draw_the_grid_in_the_one_set_of_grid_colours(mapped):
+    """The grid's class colours (unknown, ground, obstacle) are kbs.report.colors.GRID_HEX in the
+    page's colour scale and in the pixels of map.png."""
+    import re
+
+    from kbs.report.colors import GRID_HEX
+
+    page = (mapped / "map" / "map.html").read_text(encoding="utf-8")
+    scale = re.search(r"colorscale: (\[\[0, .*?\]\]),", page, re.S)
+    assert scale is not None
+    stops = json.loads(scale.group(1))
+    assert [c for _, c in stops] == [GRID_HEX[0], GRID_HEX[0], GRID_HEX[1], GRID_HEX[1], GRID_HEX[2], GRID_HEX[2]]
+    png = mapped / "map" / "map.png"
+    if not png.exists():
+        pytest.skip("no map.png (matplotlib is not installed)")
+    import matplotlib.image
+
+    rgb = (matplotlib.image.imread(str(png))[..., :3] * 255).round().astype(int).reshape(-1, 3)
+    seen = {f"#{r:02x}{g:02x}{b:02x}" for r, g, b in np.unique(rgb, axis=0)}
+    assert {GRID_HEX[0], GRID_HEX[1]} <= seen  # unknown and ground cells (obstacles are shaded by height)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from kbs.knowledge import Cluster, Ground, PredicateError, PredicateRegistry, Scene
-from kbs.knowledge.groundmodel import LocalGround
+from kbs.geometry.groundmodel import LocalGround
 from test_cli import EXAMPLE, ROOT, kbs
 
 PLUGIN_HEAD = "import sys\nimport numpy as np\nfrom kbs.knowledge import predicate\n\n"

@@ -14,6 +14,7 @@ from plyfile import PlyData
 
 from kbs.cli.main import main
 from kbs.errors import CloudFileError, ParameterError
+from kbs.evaluation.segcomp import image_region_normals, region_labels, segmentation_to_image
 from kbs.io import read_cloud, write_ply
 from kbs.io.segcomp import (
     ABW_ALTERNATIVE_CALIBRATION,
@@ -24,9 +25,6 @@ from kbs.io.segcomp import (
     read_ms_nor,
     read_range,
     read_sunraster,
-    region_labels,
-    region_normals,
-    segmentation_to_image,
     write_ms_nor,
     write_ms_seg,
     write_sunraster,
@@ -313,7 +311,7 @@ def test_region_normals_are_the_planes_normals():
     b = np.column_stack([u, w, np.full(200, -4.0)])  # normal (0, 0, 1)
     labels = np.zeros((20, 20), dtype=np.uint8)
     labels.ravel()[:200], labels.ravel()[200:] = 10, 11
-    normals = region_normals(labels, np.vstack([a, b]), np.arange(400))
+    normals = image_region_normals(labels, np.vstack([a, b]), np.arange(400))
     np.testing.assert_allclose(normals[10], np.array([-0.5, 0, 1]) / np.sqrt(1.25), atol=1e-12)
     np.testing.assert_allclose(normals[11], [0, 0, 1], atol=1e-12)
 

@@ -210,7 +210,7 @@ def segment_tiled(segmenter: Segmenter, points: Any, size: float, buffer: float 
 
 
 @functools.lru_cache(maxsize=4)
-def _worker_segmenter(rules: str, sensor: tuple[float, float, float], plugins: tuple[str, ...]) -> Segmenter:
+def worker_segmenter(rules: str, sensor: tuple[float, float, float], plugins: tuple[str, ...]) -> Segmenter:
     """The segmenter of a Dask worker process: loaded at its first tile, kept for the next ones."""
     return Segmenter(rules, jobs=1, sensor=sensor, plugins=plugins)
 
@@ -225,12 +225,12 @@ def _segment_tile(segmenter: Segmenter, points: np.ndarray, given: tuple[Any, di
         interpreter.given_ground = None
 
 
-def _segment_task(rules: str, sensor: tuple[float, float, float], plugins: tuple[str, ...],
-                  points: np.ndarray, given: tuple[Any, dict[str, Any]]) -> Segmentation | KbsError:
+def segment_task(rules: str, sensor: tuple[float, float, float], plugins: tuple[str, ...],
+                 points: np.ndarray, given: tuple[Any, dict[str, Any]]) -> Segmentation | KbsError:
     """One tile on a Dask worker. A KbsError is returned, not raised: Dask retries what raises
     (a worker lost), and a bad tile would fail the same way again."""
     try:
-        return _segment_tile(_worker_segmenter(rules, sensor, plugins), points, given)
+        return _segment_tile(worker_segmenter(rules, sensor, plugins), points, given)
     except KbsError as exc:
         return exc
 
@@ -270,13 +270,13 @@ def _segment_on_dask(segmenter: Segmenter, X: np.ndarray, tiles: Sequence[Tile],
                      scheduler: str, workers: int | None, progress: Callable[[str], None] | None,
                      finished: Callable[[int, Any, int], None], given: tuple[Any, dict[str, Any]]) -> None:
     spec = (segmenter.rule_base.path, segmenter.sensor, segmenter.plugins)
-    _submit_all(scheduler, workers, progress, finished, todo,
-                lambda k: (_segment_task, *spec, X[tiles[k].index], given), [t.name for t in tiles])
+    submit_all(scheduler, workers, progress, finished, todo,
+                lambda k: (segment_task, *spec, X[tiles[k].index], given), [t.name for t in tiles])
 
 
-def _submit_all(scheduler: str, workers: int | None, progress: Callable[[str], None] | None,
-                finished: Callable[[int, Any, int], None], todo: Sequence[int],
-                task_of: Callable[[int], tuple[Any, ...]], names: Sequence[str]) -> None:
+def submit_all(scheduler: str, workers: int | None, progress: Callable[[str], None] | None,
+               finished: Callable[[int, Any, int], None], todo: Sequence[int],
+               task_of: Callable[[int], tuple[Any, ...]], names: Sequence[str]) -> None:
     """Run the tasks ``task_of(k)`` (a function and its arguments) for ``k`` in ``todo`` on Dask,
     a bounded number in flight; ``finished(k, result or exception, done)`` as each ends."""
     from distributed import as_completed

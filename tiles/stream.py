@@ -274,7 +274,7 @@ class ChunkedLas:
     def header(self) -> Any:
         import laspy
 
-        from kbs.io.las import KBS_DIMENSIONS, _run_id_vlr, _software, _without_run_id
+        from kbs.io.las import KBS_DIMENSIONS, run_id_vlr, software_id, without_run_id
 
         header = las_header(self.source)
         kept = set(header.point_format.extra_dimension_names)
@@ -285,11 +285,11 @@ class ChunkedLas:
             for name, new in self.renamed.items():
                 header.remove_extra_dim(name)
                 header.add_extra_dim(laspy.ExtraBytesParams(new, dtypes[name], description=descs[name][:32]))
-        header.vlrs = _without_run_id(list(header.vlrs))
+        header.vlrs = without_run_id(list(header.vlrs))
         header.add_extra_dims([laspy.ExtraBytesParams(name, dtype, description=desc)
                                for name, (dtype, desc) in KBS_DIMENSIONS.items()])
-        header.vlrs.append(_run_id_vlr(self.run_id))
-        header.generating_software = _software()
+        header.vlrs.append(run_id_vlr(self.run_id))
+        header.generating_software = software_id()
         header.creation_date = datetime.date.today()
         return header
 

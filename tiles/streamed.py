@@ -199,10 +199,10 @@ class _Edges:
 def _task(rules: str, sensor: tuple[float, float, float], plugins: tuple[str, ...], job: TileJob,
           given: tuple[Any, dict[str, Any]]) -> tuple[TileSummary, bool] | KbsError:
     """One tile on a Dask worker (:func:`run_job`); a KbsError is returned, not raised (see
-    :func:`kbs.tiles.run._segment_task`)."""
-    from kbs.tiles.run import _segment_tile, _worker_segmenter
+    :func:`kbs.tiles.run.segment_task`)."""
+    from kbs.tiles.run import _segment_tile, worker_segmenter
 
-    segmenter = _worker_segmenter(rules, sensor, plugins)
+    segmenter = worker_segmenter(rules, sensor, plugins)
     try:
         return run_job(lambda X: _segment_tile(segmenter, X, given), job, given)
     except KbsError as exc:
@@ -245,10 +245,10 @@ def segment_streamed(segmenter: Any, spilled: Any, store: TileStore, *, schedule
                 out = exc
             finished(k, out, done)
     else:
-        from kbs.tiles.run import _submit_all
+        from kbs.tiles.run import submit_all
 
         spec = (segmenter.rule_base.path, segmenter.sensor, segmenter.plugins)
-        _submit_all(scheduler, workers, progress, finished, list(range(len(tiles))),
+        submit_all(scheduler, workers, progress, finished, list(range(len(tiles))),
                     lambda k: (_task, *spec, jobs[k], given), [t.name for t in tiles])
     if resume and progress is not None:
         progress(f"resumed {n_resumed} of {len(tiles)} tiles from {store.folder}")

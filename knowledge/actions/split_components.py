@@ -30,7 +30,7 @@ class SplitComponents(Action):
 
     def divide(self, engine: Any, node: Node, cluster: Cluster, record: ClusterRecord, rule: Any,
                prepared: Any) -> list[Node]:
-        from kbs.knowledge.connexity import Connexity, assign_to_nearest, project_on_plane
+        from kbs.geometry.connexity import Connexity, assign_to_nearest, project_on_plane
 
         conn: Connexity | None = None
         for f in rule.condition.facts():  # reuse the components of the failed connexity check

@@ -51,7 +51,7 @@ class GroundModel(PostStep):
 
     def build(self, state: PostState, ctx: PostContext) -> Surface:
         """The surface from the leaves labelled :attr:`label` now."""
-        from kbs.knowledge.groundmodel import LocalGround
+        from kbs.geometry.groundmodel import LocalGround
 
         leaves, ground = state.leaves, state.scene.ground
         assert ground is not None  # apply() saw to it

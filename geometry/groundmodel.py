@@ -17,16 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kbs.geometry.pca import plane_basis
 from kbs.inference import _compiled, _flags
-
-
-def plane_basis(normal: np.ndarray) -> np.ndarray:
-    """Two orthonormal vectors (2, 3) spanning the plane of unit ``normal``."""
-    n = np.asarray(normal, dtype=np.float64)
-    a = np.eye(3)[int(np.argmin(np.abs(n)))]
-    e1 = np.cross(n, a)
-    e1 /= np.linalg.norm(e1)
-    return np.stack([e1, np.cross(n, e1)])
 
 
 def _slide(A: np.ndarray, reach: int, op) -> np.ndarray:

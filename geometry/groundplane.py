@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kbs.geometry.pca import principal_axes
 from kbs.inference import _flags
 
 #: Probability that RANSAC misses a plane holding the required share of the points.
@@ -82,9 +83,10 @@ def _inlier_counts(S: np.ndarray, a: np.ndarray, nrm: np.ndarray, inlier_distanc
 
 
 def _principal_plane(Q: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    c = Q.mean(axis=0)
-    w, v = np.linalg.eigh(np.cov((Q - c).T))
-    return v[:, 0], c, float(np.sqrt(max(w[0], 0.0)))
+    """Normal, centre and thickness of the inliers' plane; the sample covariance (``ddof=1``):
+    the thickness is stored in the result and compared with the rule file's bounds."""
+    pca = principal_axes(Q, ddof=1)
+    return pca.normal, pca.center, pca.thickness
 
 
 def robust_plane(X: np.ndarray, inlier_distance: float, min_share: float, *,
