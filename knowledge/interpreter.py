@@ -33,6 +33,7 @@ from kbs.errors import FitError, KbsError
 from kbs.inference import UFPONCResult, first_local_max, ufp_onc
 from kbs.inference.incremental import IncrementalSweep
 from kbs.knowledge.connexity import Connexity, assign_to_nearest, project_on_plane
+from kbs.knowledge.engine_settings import UFP_ONC_RULE_SETTINGS
 from kbs.knowledge.explain import NO_LABEL, APDCurve, Catalogue, CheckRecord, ClusterRecord, Explanation
 from kbs.knowledge.groundplane import robust_plane, supported_points
 from kbs.knowledge.predicates import Cluster, Ground, Measurement, PredicateError, Scene
@@ -198,10 +199,10 @@ class Interpreter:
     # -- engine --------------------------------------------------------------------------------
 
     def _ufp_kwargs(self, stop: str, min_k: int = 1) -> dict[str, Any]:
+        """ufp_onc's keywords: the rule file's engine settings that are ufp_onc's (the table of
+        kbs.inference.settings says which), and the caller's ``stop`` and ``min_k``."""
         e = self.rb.engine
-        return {"k_max": e["k_max"], "m": e["m"], "tol": e["tol"], "fcm_tol": e["fcm_tol"], "max_iter": e["max_iter"],
-                "min_variance": e["min_variance"], "max_condition": e["max_condition"],
-                "new_prototype": e["new_prototype"], "stop": stop, "min_k": min_k, "max_fit_points": e["max_fit_points"]}
+        return {**{s.name: e[s.name] for s in UFP_ONC_RULE_SETTINGS}, "stop": stop, "min_k": min_k}
 
     def _ufp_onc(self, X: np.ndarray, stop: str, min_k: int = 1) -> UFPONCResult:
         return ufp_onc(X, **self._ufp_kwargs(stop, min_k))
