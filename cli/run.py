@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import re
 import shutil
 import tempfile
@@ -364,7 +363,7 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
         run_id = write_result_pair(points, js, pc.xyz, fields, doc, run_id=new_run_id(), las=las, comments=comments,
                                    pieces=seg.pieces() if spilled is not None else None)
         if spilled is not None and (meshes or report):  # the whole result, read back, for the meshes and the page
-            written = json.loads(js.read_text(encoding="utf-8"))
+            written = read_result_json(js, require=("clusters", "explanation"))
             clusters, doc["explanation"] = written["clusters"], written["explanation"]
             seg = dataclasses.replace(seg, columns={k: np.asarray(v) for k, v in seg.columns.items()})
     if tiling is not None:
