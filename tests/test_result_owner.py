@@ -99,3 +99,27 @@ def test_eval_and_segcomp_say_the_same_of_a_cloud_without_its_clusters(result, t
     assert capsys.readouterr().err.endswith(f"{ply}: {MISSING.format('cluster')}\n")
     assert main(["segcomp", str(ply), "--image", str(tmp_path / "scan.range")]) == 3  # refused before the image
     assert capsys.readouterr().err.endswith(f"{ply}: {MISSING.format('cluster')}\n")
+
+
+@pytest.mark.slow  # a tiled, streamed run with its page and meshes (about 10 s)
+def test_a_streamed_result_is_read_back_through_io_for_its_page_and_meshes(tmp_path):
+    """A streamed LAS run writes its result in pieces, then reads it back (read_result_json) for
+    the page and the meshes: they hold every cluster the JSON does."""
+    import laspy
+
+    from scenes import ground_and_rocks
+
+    X, _ = ground_and_rocks()
+    scan = tmp_path / "rocks.las"
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.offsets, header.scales = np.floor(X.min(axis=0)), np.array([1e-4, 1e-4, 1e-4])
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = X[:, 0], X[:, 1], X[:, 2]
+    las.write(str(scan))
+    out = tmp_path / "out"
+    assert main(["-q", "run", "--rules", "outdoor", "-j", "1", "--tile", "6", "--buffer", "1.5", "--chunk-points",
+                 "4000", "--report", "--meshes", str(scan), "--out", str(out)]) == 0
+    doc = json.loads((out / "rocks.json").read_text())
+    assert doc["clusters"] and (out / "rocks.html").stat().st_size > 0
+    meshes = sorted((out / "rocks-meshes").iterdir())
+    assert meshes, "no mesh written"

@@ -78,10 +78,13 @@ def test_the_engines_defaults_are_the_tables(fn):
     assert params and {k: p.default for k, p in params.items()} == {k: DEFAULTS[k] for k in params}
 
 
-def test_ufp_onc_checks_every_setting_it_takes_with_the_tables_constraint():
+def test_ufp_onc_and_the_sweep_check_every_setting_they_take_with_the_tables_constraint():
+    from kbs.inference.incremental import _CONSTRAINTS as sweep_constraints
+
     params = _settings_of(ufp_onc)
     assert set(ENGINE_CONSTRAINTS) == set(params) == {s.name for s in ENGINE_SETTINGS if s.in_ufp_onc}
-    for name, allowed in ENGINE_CONSTRAINTS.items():
+    assert set(sweep_constraints) == set(_settings_of(IncrementalSweep))
+    for name, allowed in [*ENGINE_CONSTRAINTS.items(), *sweep_constraints.items()]:
         assert allowed == list(SETTINGS[name].allowed)
 
 
