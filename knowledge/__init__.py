@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from kbs.knowledge.explain import APDCurve, CheckRecord, ClusterRecord, Explanation
 from kbs.knowledge.interpreter import Interpreter, Segmentation
+from kbs.knowledge.parts import Action, PostStep
 from kbs.knowledge.predicates import (
     Cluster,
     Ground,
@@ -23,5 +24,5 @@ from kbs.knowledge.segmenter import Segmenter, segment
 __all__ = [
     "APDCurve", "CheckRecord", "ClusterRecord", "Explanation", "Interpreter", "Segmentation", "segment",
     "Cluster", "Ground", "Measurement", "Predicate", "PredicateError", "PredicateRegistry", "Scene", "predicate",
-    "RuleBase", "RuleFileError", "load_rule_base", "shipped_rule_bases", "Segmenter",
+    "RuleBase", "RuleFileError", "load_rule_base", "shipped_rule_bases", "Segmenter", "PostStep", "Action",
 ]

@@ -485,10 +485,18 @@ def make_predicate(func: Callable, *, name: str, unit: str, value_range, needs_g
 
 
 class PredicateRegistry:
-    """Name -> :class:`Predicate`. Build one with :meth:`default`, then add plugins."""
+    """Name -> :class:`Predicate`, and the other parts a rule file may name: the post steps
+    (``post_steps``, key -> class) and the actions (``actions``, key -> instance). Build one with
+    :meth:`default`, then add plugins (a plugin file may declare all three kinds)."""
 
     def __init__(self, predicates: Iterable[Predicate] = ()) -> None:
+        from kbs.knowledge.actions import ACTIONS
+        from kbs.knowledge.post import STEPS
+
         self._items: dict[str, Predicate] = {}
+        self.post_steps: dict[str, Any] = dict(STEPS)
+        self.actions: dict[str, Any] = {k: cls() for k, cls in ACTIONS.items()}
+        self._origins: dict[tuple[str, str], str] = {}
         for p in predicates:
             self.add(p)
 
@@ -517,18 +525,41 @@ class PredicateRegistry:
             )
         self._items[pred.name] = pred
 
+    def add_part(self, cls: Any, origin: str) -> None:
+        """Add a post step or action class (:mod:`kbs.knowledge.parts`) after checking its
+        contract; a key that clashes with another part of its kind is an error."""
+        from kbs.knowledge.parts import check_part
+
+        kind = check_part(cls, origin)
+        table: dict[str, Any] = self.post_steps if kind == "post step" else self.actions
+        if kind not in ("post step", "action"):
+            raise PredicateError(f"{origin}: a plugin may add post steps and actions, not a {kind} ({cls.key})")
+        if cls.key in table or (kind == "action" and cls.key == "accept"):
+            known = self._origins.get((kind, cls.key), "kbs")
+            raise PredicateError(f"{kind} '{cls.key}' from {origin} clashes with the one from {known}")
+        table[cls.key] = cls if kind == "post step" else cls()
+        self._origins[(kind, cls.key)] = origin
+
     def add_object(self, obj: Any, origin: str) -> int:
-        """Add a Predicate, or every Predicate found in a module; returns how many."""
+        """Add a Predicate, or every Predicate, post step and action class a module declares
+        (defined in it, not imported); returns how many."""
+        from kbs.knowledge.parts import Action, PostStep, Strategy
+
         if isinstance(obj, Predicate):
             self.add(obj)
             return 1
         if isinstance(obj, ModuleType):
             found = [v for v in vars(obj).values() if isinstance(v, Predicate)]
-            if not found:
-                raise PredicateError(f"{origin}: no predicate found (declare them with @kbs.knowledge.predicate)")
+            parts = [v for v in vars(obj).values() if isinstance(v, type) and issubclass(v, (PostStep, Action, Strategy))
+                     and v.__module__ == obj.__name__]
+            if not found and not parts:
+                raise PredicateError(f"{origin}: no predicate found (declare them with @kbs.knowledge.predicate; "
+                                     "post steps and actions as subclasses of kbs.knowledge.PostStep / Action)")
             for p in found:
                 self.add(p)
-            return len(found)
+            for cls in parts:
+                self.add_part(cls, origin)
+            return len(found) + len(parts)
         raise PredicateError(f"{origin}: expected a predicate or a module of predicates, got {type(obj).__name__}")
 
     def add_plugin_file(self, path: str | Path) -> int:

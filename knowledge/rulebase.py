@@ -16,6 +16,7 @@ must be finite. Each is a problem at its position, as any other.
 from __future__ import annotations
 
 import functools
+import copy
 import json
 import math
 import reprlib
@@ -245,6 +246,8 @@ class Rule:
     action: str
     doc: str
     pos: SourcePos
+    #: the action's part (:mod:`kbs.knowledge.actions`, or a plugin's)
+    part: Any = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -293,56 +296,6 @@ class GroundSpec:
     support: SupportSpec | None = None
 
 
-@dataclass(frozen=True)
-class MergeSpec:
-    label: str
-    max_angle: float
-    max_offset: float
-
-
-@dataclass(frozen=True)
-class GroundModelSpec:
-    label: str
-    neighbours: int
-    radius: float
-    pos: SourcePos
-
-
-@dataclass(frozen=True)
-class Relabel:
-    """A post rule: a cluster labelled ``source`` whose condition holds takes label ``target``."""
-
-    name: str
-    source: str
-    target: str
-    condition: Condition
-    doc: str
-    pos: SourcePos
-
-
-@dataclass(frozen=True)
-class ContactSpec:
-    tolerance: float
-    sources: tuple[str, ...]  #: labels whose points may join the ground
-    pos: SourcePos
-    condition: Condition | None = None  #: only clusters for which it holds give points
-
-
-@dataclass(frozen=True)
-class ReleaseSpec:
-    tolerance: float
-    target: str  #: the label of the clusters released points join
-    pos: SourcePos
-
-
-#: The thresholds ``kbs tune`` may fit, per part of a rule file: post step -> its numeric fields
-#: (a check's are its ``min`` and ``max``). ``tune`` on anything else is a problem.
-TUNABLE_POST_FIELDS: dict[str, tuple[str, ...]] = {
-    "merge_coplanar": ("max_angle", "max_offset"),
-    "ground_model": ("neighbours", "radius"),
-    "ground_contact": ("tolerance",),
-    "ground_release": ("tolerance",),
-}
 #: Evenly spaced values a ``tune: {min, max}`` mark tries when it gives no ``steps``.
 TUNE_STEPS = 5
 
@@ -378,7 +331,7 @@ class Tunable:
     @property
     def name(self) -> str:
         """'checks.planar.max', 'post.ground_contact.tolerance'."""
-        return ".".join(self.path)
+        return ".".join(str(p) for p in self.path if not isinstance(p, int))
 
 
 @dataclass(frozen=True)
@@ -396,13 +349,10 @@ class RuleBase:
     checks: Mapping[str, Check]
     rules: tuple[Rule, ...]
     labels: tuple[Label, ...]
-    merge: MergeSpec | None
     path: str
     text: str = field(repr=False)
-    ground_model: GroundModelSpec | None = None
-    relabel: tuple[Relabel, ...] = ()
-    contact: ContactSpec | None = None
-    release: ReleaseSpec | None = None
+    #: the post steps, in the order they run (:mod:`kbs.knowledge.post`, or a plugin's)
+    post: tuple[Any, ...] = ()
     #: ASPRS classification code of each label (and of 'noise', the rejected points) in LAS output.
     asprs_classes: Mapping[str, int] | None = None
     #: spacing: the median point spacing [min, max] the rule base suits (its unit); None: not declared.
@@ -416,6 +366,35 @@ class RuleBase:
     @property
     def label_names(self) -> list[str]:
         return [lb.name for lb in self.labels]
+
+    def step(self, key: str) -> Any:
+        """The first post step named ``key``, or None."""
+        return next((s for s in self.post if s.key == key), None)
+
+    @property
+    def merge(self) -> Any:
+        """The merge_coplanar step, or None."""
+        return self.step("merge_coplanar")
+
+    @property
+    def ground_model(self) -> Any:
+        """The (first) ground_model step, or None."""
+        return self.step("ground_model")
+
+    @property
+    def relabel(self) -> tuple[Any, ...]:
+        """The relabel rules of every relabel step, in order."""
+        return tuple(r for s in self.post if s.key == "relabel" for r in s.rules)
+
+    @property
+    def contact(self) -> Any:
+        """The (first) ground_contact step, or None."""
+        return self.step("ground_contact")
+
+    @property
+    def release(self) -> Any:
+        """The (first) ground_release step, or None."""
+        return self.step("ground_release")
 
     @property
     def needs_ground(self) -> bool:
@@ -435,12 +414,18 @@ def schema() -> dict:
     return json.loads(resources.files("kbs.rules").joinpath(SCHEMA_FILE).read_text(encoding="utf-8"))
 
 
-@lru_cache(maxsize=1)
-def _schema_validator() -> Draft202012Validator:
+@lru_cache(maxsize=8)
+def _schema_validator(actions: tuple[str, ...] = ()) -> Draft202012Validator:
     """A validator of :func:`schema` with its non-recursive definitions ('name', 'vector3')
     written out where they are used: the same schema, validated some 1.5 x faster (a reference
-    costs a look-up for each of the thousands of names a large file holds)."""
-    doc = schema()
+    costs a look-up for each of the thousands of names a large file holds).
+
+    ``actions``: the actions a rule may take (the registry's: plugins add some). ``post`` is
+    checked step by step, each against its own part's schema (:meth:`_Validator._post`)."""
+    doc = copy.deepcopy(schema())
+    if actions:
+        doc["properties"]["rules"]["items"]["properties"]["then"] = {"enum": list(actions)}
+    doc["properties"]["post"] = {}
     defs = doc.get("$defs", {})
     plain = {f"#/$defs/{k}": v for k, v in defs.items() if "$ref" not in json.dumps(v)}
 
@@ -457,6 +442,48 @@ def _schema_validator() -> Draft202012Validator:
         return node
 
     return Draft202012Validator(inline(doc))
+
+
+@lru_cache(maxsize=64)
+def _fragment_validator(step: Any) -> Draft202012Validator:
+    """A validator of one post step's spec: its schema, with the rule-file schema's definitions."""
+    return Draft202012Validator({**step.schema, "$defs": schema().get("$defs", {})})
+
+
+def _fragment_field(step: Any, field: str) -> dict[str, Any]:
+    """The schema of one field of a post step's spec ({} when it has none)."""
+    props = step.schema.get("properties", {})
+    return props.get(field, {}) if isinstance(props, dict) else {}
+
+
+class _StepContext:
+    """What a part's ``parse``/``validate`` may ask of the file being read
+    (:class:`kbs.knowledge.parts.SpecContext`)."""
+
+    def __init__(self, v: _Validator, path: tuple, labels: list[str], checks: Mapping[str, Check],
+                 earlier: tuple) -> None:
+        self.v, self.path, self.labels, self.checks, self.earlier = v, path, labels, checks, earlier
+
+    def add(self, path: tuple, message: str, *, key: bool = False) -> None:
+        self.v.add(path, message, key=key)
+
+    def warn(self, path: tuple, message: str, *, key: bool = False) -> None:
+        self.v.warn(path, message, key=key)
+
+    def pos(self, path: tuple, *, key: bool = False) -> SourcePos:
+        return self.v.pos.pos(path, key=key)
+
+    def label_ref(self, path: tuple, name: Any) -> None:
+        self.v._label_ref(path, name, self.labels)
+
+    def condition(self, raw: Any, path: tuple) -> Condition | None:
+        return self.v._condition(raw, path, self.checks)
+
+    def never(self, cond: Condition, path: tuple, what: str) -> None:
+        self.v._never(cond, path, self.checks, what)
+
+    def number(self, value: Any, default: float, kind: type = float) -> Any:
+        return _number(value, default, kind)
 
 
 def shipped_rule_bases() -> list[str]:
@@ -869,11 +896,39 @@ class _Validator:
             self.problems.append(Problem(SourcePos(self.pos.file, mark.line + 1, mark.column + 1),
                                          f"duplicate key '{_clip(str(path[-1]), 30)}' in {_where(path[:-1])}",
                                          self.pos.line(mark.line + 1)))
-        for err in _schema_validator().iter_errors(self.data):
+        for err in _schema_validator(tuple(self.registry.actions)).iter_errors(self.data):
             self._schema_error(err)
+        self._post_shape(self.data.get("post"))
 
-    def _schema_error(self, err) -> None:
-        path = tuple(err.absolute_path)
+    def _post_shape(self, raw: Any) -> None:
+        """``post``: a sequence of one-key mappings naming known steps (or one mapping of them)."""
+        known = list(self.registry.post_steps)
+
+        def unknown(path: tuple, key: Any, where: str) -> None:
+            hint = self.hint(key, known)
+            self.add(path, f"unknown key '{_clip(str(key), 30)}' in {where}"
+                     + (f" (did you mean '{hint}'?)" if hint else f"; allowed: {_listing(known)}"), key=True)
+
+        if raw is None or "post" not in self.data:
+            return
+        if isinstance(raw, dict):
+            for k in raw:
+                if k not in self.registry.post_steps:
+                    unknown(("post", k), k, "post")
+        elif isinstance(raw, list):
+            for i, item in enumerate(raw):
+                if not isinstance(item, dict) or len(item) != 1:
+                    self.add(("post", i), f"post[{i}] must be one step: a mapping of one step name to its settings "
+                             f"(e.g. '- ground_model: {{label: ground}}'); got {_brief(item)}")
+                    continue
+                k = next(iter(item))
+                if k not in self.registry.post_steps:
+                    unknown(("post", i, k), k, f"post[{i}]")
+        else:
+            self.add(("post",), f"post must be a sequence of steps; got {_brief(raw)}")
+
+    def _schema_error(self, err, prefix: tuple = ()) -> None:
+        path = prefix + tuple(err.absolute_path)
         where = _where(path)
         sch, inst, kind = err.schema, err.instance, err.validator
         if kind == "additionalProperties" and isinstance(inst, dict):
@@ -923,8 +978,7 @@ class _Validator:
         scene = d.get("scene") if isinstance(d.get("scene"), dict) else {}
         sensor = scene.get("sensor", [0.0, 0.0, 0.0])
         ground = self._ground(scene.get("ground") if isinstance(scene.get("ground"), dict) else {}, checks)
-        merge = self._merge(d.get("post"), labels)
-        gmodel, relabel, contact, release = self._post(d.get("post"), checks, labels)
+        post = self._post(d.get("post"), checks, labels)
         self._model_checks_placed(checks, rules, labels)
         classes = self._asprs_classes(d.get("asprs_classes"), [lb.name for lb in labels])
         tunables = self._tunables(checks)
@@ -937,9 +991,8 @@ class _Validator:
         return RuleBase(
             name=d["name"], description=str(d.get("description", "")).strip(), units=d["units"], engine=engine,
             strategy=d["strategy"], limits=limits, sensor=tuple(float(x) for x in sensor), ground=ground,
-            checks=checks, rules=tuple(rules), labels=tuple(labels), merge=merge, path=self.pos.file,
-            text="\n".join(self.pos.lines), ground_model=gmodel, relabel=tuple(relabel), contact=contact,
-            release=release, warnings=tuple(sorted(self.warnings, key=lambda p: (p.pos.line, p.pos.col))),
+            checks=checks, rules=tuple(rules), labels=tuple(labels), path=self.pos.file,
+            text="\n".join(self.pos.lines), post=tuple(post), warnings=tuple(sorted(self.warnings, key=lambda p: (p.pos.line, p.pos.col))),
             asprs_classes=classes, spacing=None if spacing is None else (float(spacing[0]), float(spacing[1])),
             tunables=tuple(tunables),
         )
@@ -957,11 +1010,17 @@ class _Validator:
                 if t is not None:
                     out.append(t)
         post = self.data.get("post")
-        for step, allowed in TUNABLE_POST_FIELDS.items():
-            spec = post.get(step) if isinstance(post, dict) else None
-            if isinstance(spec, dict) and "tune" in spec:
+        items = (list(post.items()) if isinstance(post, dict) else
+                 [(i, item) for i, item in enumerate(post) if isinstance(item, dict) and len(item) == 1]
+                 if isinstance(post, list) else [])
+        for where, item in items:
+            step, spec = (where, item) if isinstance(where, str) else next(iter(item.items()))
+            cls = self.registry.post_steps.get(step) if isinstance(step, str) else None
+            if cls is not None and isinstance(spec, dict) and "tune" in spec:
+                allowed = cls.tunable
                 fields = tuple(f for f in allowed if f in spec)
-                t = self._tunable(("post", step), spec, fields, allowed, None)
+                base = ("post", step) if isinstance(where, str) else ("post", where, step)
+                t = self._tunable(base, spec, fields, allowed, None)
                 if t is not None:
                     out.append(t)
         out.sort(key=lambda t: (t.mark.line, t.mark.col))
@@ -999,7 +1058,7 @@ class _Validator:
         current = spec.get(field)
         if isinstance(current, bool) or not isinstance(current, (int, float)):
             return None  # the schema reported it
-        integer = base == ("post", "ground_model") and field == "neighbours"
+        integer = base[0] == "post" and _fragment_field(self.registry.post_steps[base[-1]], field).get("type") == "integer"
         has_range = "min" in mark or "max" in mark
         if "values" in mark and (has_range or "steps" in mark):
             self.add(at, f"tune on {what}: give either 'values' or 'min'/'max' (with 'steps'), not both", key=True)
@@ -1042,7 +1101,7 @@ class _Validator:
             self.add(vpath, f"tune on {what}.{field}: {bad}")
             return None
         values = tuple(sorted({round(v, 12) for v in [*grid, float(current)]}))
-        return Tunable(path=tuple(str(p) for p in base) + (field,), value=float(current), values=values,
+        return Tunable(path=tuple(base) + (field,), value=float(current), values=values,
                        integer=integer, pos=self.pos.pos(base + (field,)), mark=self.pos.pos(at, key=True))
 
     def _tune_value_problem(self, base: tuple, field: str, values: list[float], check: Check | None,
@@ -1064,7 +1123,7 @@ class _Validator:
                 if clash:
                     return f"value {clash[0]:g} would make the check never pass ({other} is {o:g})"
             return None
-        prop = schema()["properties"]["post"]["properties"][base[1]]["properties"].get(field, {})
+        prop = _fragment_field(self.registry.post_steps[base[-1]], field)
         for v in values:
             if "minimum" in prop and v < prop["minimum"] or "maximum" in prop and v > prop["maximum"]:
                 return f"value {v:g} is outside [{prop.get('minimum', '-inf')}, {prop.get('maximum', 'inf')}]"
@@ -1188,16 +1247,13 @@ class _Validator:
             seen.add(spec["name"])
             cond = self._condition(spec.get("if"), path + ("if",), checks) if "if" in spec else None
             action = spec.get("then")
-            if cond is None or action not in ACTIONS:
+            part = self.registry.actions.get(action) if isinstance(action, str) else None
+            if cond is None or part is None:
                 continue
             self._never(cond, path + ("if",), checks, f"rule '{spec['name']}' can never act")
-            if action == "split_components":
-                negated = [f for f in cond.facts() if f.negated and f.name in checks
-                           and checks[f.name].predicate.name == "connexity"]
-                if not negated:
-                    self.add(path + ("then",), f"rule '{spec['name']}': split_components needs a failed connexity "
-                             "check in its condition (e.g. 'if: not connected'), to know the components")
-            out.append(Rule(spec["name"], cond, action, str(spec.get("doc", "")), self.pos.pos(path)))
+            rule = Rule(spec["name"], cond, action, str(spec.get("doc", "")), self.pos.pos(path), part)
+            part.validate(rule, path, _StepContext(self, path, [], checks, ()))
+            out.append(rule)
         return out
 
     def _labels(self, raw: Any, checks: Mapping[str, Check]) -> list[Label]:
@@ -1282,104 +1338,50 @@ class _Validator:
         return GroundSpec(normal=normal, candidate=cand, min_points=_number(g["min_points"], 0, int),
                           fallback=fallback or (0.0, 0.0, 1.0), plane=plane, support=support)
 
-    def _merge(self, raw: Any, labels: list[Label]) -> MergeSpec | None:
-        if not isinstance(raw, dict) or not isinstance(raw.get("merge_coplanar"), dict):
-            return None
-        m = raw["merge_coplanar"]
-        self._label_ref(("post", "merge_coplanar", "label"), m.get("label"), [lb.name for lb in labels])
-        return MergeSpec(label=str(m.get("label")), max_angle=_number(m.get("max_angle"), 10.0),
-                         max_offset=_number(m.get("max_offset"), 0.15))
-
     def _label_ref(self, path: tuple, name: Any, names: list[str]) -> None:
         if isinstance(name, str) and name not in names:
             hint = self.hint(name, names)
             self.add(path, f"unknown label '{_clip(name, 30)}'" + (f" (did you mean '{hint}'?)" if hint
                                                                     else f"; labels: {_listing(names)}"))
 
-    def _post(self, raw: Any, checks: Mapping[str, Check], labels: list[Label]):
-        """post.ground_model, post.relabel, post.ground_contact and post.ground_release."""
-        if not isinstance(raw, dict):
-            raw = {}
-        names = [lb.name for lb in labels]
-        gm = raw.get("ground_model")
-        model = None
-        if isinstance(gm, dict) and isinstance(gm.get("label"), str):
-            self._label_ref(("post", "ground_model", "label"), gm["label"], names)
-            model = GroundModelSpec(label=gm["label"], neighbours=_number(gm.get("neighbours"), 8, int),
-                                    radius=_number(gm.get("radius"), 3.0),
-                                    pos=self.pos.pos(("post", "ground_model"), key=True))
-        relabel = self._relabel(raw.get("relabel"), checks, names, model)
-        contact = self._contact(raw.get("ground_contact"), checks, names, model)
-        release = self._release(raw.get("ground_release"), names, model)
-        return model, relabel, contact, release
+    def _post(self, raw: Any, checks: Mapping[str, Check], labels: list[Label]) -> list[Any]:
+        """The post steps, in the order they run: ``post`` as a sequence of one-key mappings, or,
+        as older files write it, one mapping of steps (run in :data:`kbs.knowledge.post.LEGACY_ORDER`,
+        then any other step in file order)."""
+        from kbs.knowledge.post import LEGACY_ORDER
 
-    def _relabel(self, raw: Any, checks: Mapping[str, Check], names: list[str],
-                 model: GroundModelSpec | None) -> list[Relabel]:
-        out: list[Relabel] = []
-        seen: set[str] = set()
-        for i, spec in enumerate(raw if isinstance(raw, list) else []):
-            path = ("post", "relabel", i)
-            if not isinstance(spec, dict) or not all(isinstance(spec.get(k), str) for k in ("name", "from", "to")):
-                continue  # the schema reported it
-            if spec["name"] in seen:
-                self.add(path + ("name",), f"relabel rule '{spec['name']}' is defined twice")
-            seen.add(spec["name"])
-            self._label_ref(path + ("from",), spec["from"], names)
-            self._label_ref(path + ("to",), spec["to"], names)
-            if spec["from"] == spec["to"]:
-                self.add(path + ("to",), f"relabel rule '{spec['name']}' changes nothing: from and to are both "
-                         f"'{spec['to']}'")
-            cond = self._condition(spec.get("if"), path + ("if",), checks) if "if" in spec else None
-            if cond is None:
-                continue
-            self._never(cond, path + ("if",), checks, f"relabel rule '{spec['name']}' can never act")
-            if model is None:
-                uses = [f.name for f in cond.facts() if f.name in checks and checks[f.name].predicate.needs_ground_model]
-                if uses:
-                    self.add(path + ("if",), f"relabel rule '{spec['name']}': check '{uses[0]}' needs the local ground "
-                             "surface, but post.ground_model does not declare it")
-            out.append(Relabel(spec["name"], spec["from"], spec["to"], cond, str(spec.get("doc", "")),
-                               self.pos.pos(path)))
-        return out
-
-    def _surface_step(self, key: str, raw: Any, model: GroundModelSpec | None) -> bool:
-        """Whether post.<key> is there with a numeric tolerance; it needs post.ground_model."""
-        tol = raw.get("tolerance") if isinstance(raw, dict) else None
-        if not isinstance(tol, (int, float)) or isinstance(tol, bool):
-            return False  # absent, or the schema reported it
-        if model is None:
-            self.add(("post", key), f"{key} needs post.ground_model (the surface points are measured against)",
-                     key=True)
-        return True
-
-    def _own_label(self, path: tuple, what: str, name: Any, model: GroundModelSpec | None) -> None:
-        if model is not None and name == model.label:
-            self.add(path, f"{what} '{name}', the ground model's own label, changes nothing")
-
-    def _contact(self, raw: Any, checks: Mapping[str, Check], names: list[str],
-                 model: GroundModelSpec | None) -> ContactSpec | None:
-        if not self._surface_step("ground_contact", raw, model):
-            return None
-        src = raw.get("from")
-        if isinstance(src, list):
-            for j, name in enumerate(src):
-                self._label_ref(("post", "ground_contact", "from", j), name, names)
-                self._own_label(("post", "ground_contact", "from", j), "ground_contact from", name, model)
-            sources = tuple(x for x in src if isinstance(x, str))
+        steps = self.registry.post_steps
+        if isinstance(raw, dict):
+            order = [k for k in LEGACY_ORDER if k in raw] + [k for k in raw if k not in LEGACY_ORDER]
+            items = [(("post", k), k, raw[k]) for k in order]
+        elif isinstance(raw, list):
+            items = [(("post", i, k), k, v) for i, item in enumerate(raw) if isinstance(item, dict) and len(item) == 1
+                     for k, v in item.items()]
         else:
-            sources = tuple(n for n in names if model is None or n != model.label)
-        cond = self._condition(raw["if"], ("post", "ground_contact", "if"), checks) if "if" in raw else None
-        if cond is not None:
-            self._never(cond, ("post", "ground_contact", "if"), checks, "post.ground_contact can never move a point")
-        return ContactSpec(float(raw["tolerance"]), sources, self.pos.pos(("post", "ground_contact"), key=True), cond)
-
-    def _release(self, raw: Any, names: list[str], model: GroundModelSpec | None) -> ReleaseSpec | None:
-        if not isinstance(raw, dict) or not isinstance(raw.get("to"), str) \
-                or not self._surface_step("ground_release", raw, model):
-            return None
-        self._label_ref(("post", "ground_release", "to"), raw["to"], names)
-        self._own_label(("post", "ground_release", "to"), "ground_release to", raw["to"], model)
-        return ReleaseSpec(float(raw["tolerance"]), raw["to"], self.pos.pos(("post", "ground_release"), key=True))
+            return []
+        out: list[Any] = []
+        names = [lb.name for lb in labels]
+        for path, key, spec in items:
+            cls = steps.get(key) if isinstance(key, str) else None
+            if cls is None:
+                continue  # the schema reported it
+            before = len(self.problems)
+            for err in _fragment_validator(cls).iter_errors(spec):
+                self._schema_error(err, prefix=path)
+            invalid = len(self.problems) > before
+            ctx = _StepContext(self, path, names, checks, tuple(out))
+            try:  # read even when invalid (the file is refused anyway): the steps after it see it
+                step = cls.parse(spec, ctx)
+            except KbsError:
+                raise
+            except Exception as exc:  # a plugin step's bug: say which step, where
+                if not invalid:
+                    self.add(path, f"post step '{key}' failed to read its settings: {type(exc).__name__}: {exc}",
+                             key=True)
+                continue
+            if step is not None:
+                out.append(step)
+        return out
 
     def _model_checks_placed(self, checks: Mapping[str, Check], rules: list[Rule], labels: list[Label]) -> None:
         """A check on the local ground surface cannot decide splits or labels: the surface is made

@@ -32,6 +32,7 @@ from kbs.knowledge.explain import ClusterRecord
 from kbs.knowledge.interpreter import Interpreter, Segmentation
 from kbs.knowledge.predicates import PredicateRegistry
 from kbs.knowledge.rulebase import RuleBase, Tunable, parse_rule_base
+from kbs.knowledge.state import Judged, Leaf
 
 # a plain YAML scalar (a number, as the validation made sure) from its first character: up to a
 # space, a comment, or the end of a flow collection's item
@@ -126,15 +127,23 @@ def _fresh(rec: ClusterRecord) -> ClusterRecord:
     return out
 
 
+def _fresh_judged(judged: Judged) -> Judged:
+    """A copy of a strategy's outcome that labelling and the post steps may write to."""
+    leaves = tuple(Leaf(lf.node, lf.cluster, _fresh(lf.record)) for lf in judged.leaves)
+    records = {k: _fresh(r) for k, r in judged.records.items()}
+    records.update({lf.id: lf.record for lf in leaves})
+    return dataclasses.replace(judged, leaves=leaves, records=records, ground_info=copy.deepcopy(judged.ground_info),
+                               notes=tuple(judged.notes))
+
+
 class _Recorder(Interpreter):
     """An interpreter that keeps what its last run had before labelling."""
 
-    state: tuple | None = None
+    state: Judged | None = None
 
-    def _finish(self, X, leaves, scene, records, ground_info, notes, t0, sweep=None) -> Segmentation:
-        self.state = (X, [(dataclasses.replace(node), cl, _fresh(rec)) for node, cl, rec in leaves], scene,
-                      {k: _fresh(r) for k, r in records.items()}, copy.deepcopy(ground_info), list(notes))
-        return super()._finish(X, leaves, scene, records, ground_info, notes, t0, sweep=sweep)
+    def finish(self, judged: Judged, t0: float) -> Segmentation:
+        self.state = _fresh_judged(judged)
+        return super().finish(judged, t0)
 
 
 @dataclass
@@ -154,7 +163,7 @@ class SplitTree:
     rule_base: RuleBase
     segmentation: Segmentation
     seconds: float
-    _state: tuple = dataclasses.field(repr=False, default=())
+    _state: Judged | None = dataclasses.field(repr=False, default=None)
     _sensor: np.ndarray | None = dataclasses.field(repr=False, default=None)
 
     @classmethod
@@ -173,7 +182,7 @@ class SplitTree:
             rec.progress = None
             if interpreter is None:
                 rec.close()
-        assert rec.state is not None  # set by the run's _finish
+        assert rec.state is not None  # set by the run's finish
         return cls(rule_base, seg, time.perf_counter() - t0, rec.state, rec.sensor.copy())
 
     def label(self, rule_base: RuleBase) -> Segmentation:
@@ -182,12 +191,9 @@ class SplitTree:
         (:func:`split_relevant`); the caller sees to it."""
         if rule_base is self.rule_base:
             return self.segmentation
-        X, leaves, scene, records, ground_info, notes = self._state
-        fresh = [(dataclasses.replace(node), cl, _fresh(rec)) for node, cl, rec in leaves]
-        recs = {k: _fresh(r) for k, r in records.items()}
-        recs.update({rec.id: rec for _, _, rec in fresh})
+        assert self._state is not None
         it = Interpreter(rule_base, sensor=self._sensor, jobs=1)
-        return it._finish(X, fresh, scene, recs, copy.deepcopy(ground_info), list(notes), time.perf_counter())
+        return it.finish(_fresh_judged(self._state), time.perf_counter())
 
 
 def recorder(rule_base: RuleBase, *, sensor: Any = None, jobs: int = 1) -> _Recorder:

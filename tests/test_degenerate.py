@@ -183,7 +183,7 @@ def test_a_line_in_a_scene_is_explained_and_the_other_labels_do_not_move(tmp_pat
     # the ground for an obstacle whatever its plane: the made-up plane alone is what is shown here
     text = (ROOT / "rules" / "outdoor.yaml").read_text()
     rules = tmp_path / "outdoor.yaml"
-    rules.write_text(re.sub(r"\n    - name: raised\n(.*\n)*?      if: raised\n", "\n", text))
+    rules.write_text(re.sub(r"\n      - name: raised\n(.*\n)*?        if: raised\n", "\n", text))
     rb = load_rule_base(str(rules))
     assert [r.name for r in rb.relabel] == ["low_level"]
     with Interpreter(rb) as it:

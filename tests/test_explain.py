@@ -71,7 +71,7 @@ def test_why_of_an_obstacle_says_which_label_conditions_did_not_hold(example, ca
     assert ("    ground [outdoor.yaml:84] if planar and level: does not hold: planar does not hold "
             "(thickness = 0.06635 m > 0.05 m); navigable\n") in out
     assert "    obstacle [outdoor.yaml:87] no condition (the default label)\n" in out
-    assert "  post.relabel, the rules for clusters labelled obstacle:\n    low_level [outdoor.yaml:99] obstacle -> ground" in out
+    assert "  post.relabel, the rules for clusters labelled obstacle:\n    low_level [outdoor.yaml:95] obstacle -> ground" in out
 
 
 # -- 2. a cluster a limit stopped ---------------------------------------------------------------
@@ -236,8 +236,8 @@ def test_the_report_tells_unlabelled_clusters_from_noise(tmp_path):
     text, n = re.subn(r"\n  - name: obstacle\n", "\n", text)
     assert n == 1
     text = text.replace("asprs_classes: {ground: 2, obstacle: 1, noise: 7}", "")
-    text = re.sub(r"\n  relabel:\n(    .*\n|      .*\n)+", "\n", text)
-    text = re.sub(r"\n  ground_release:.*\n(    .*\n)+", "\n", text)
+    text = re.sub(r"\n  - relabel:\n(      .*\n|        .*\n)+", "\n", text)
+    text = re.sub(r"\n  - ground_release:.*\n(      .*\n)+", "\n", text)
     rules = tmp_path / "ground_only.yaml"
     rules.write_text(text)
     assert main(["-q", "run", "--rules", str(rules), "-j", "1", str(EXAMPLE), "--out", str(tmp_path), "--report"]) == 0

@@ -188,7 +188,7 @@ def test_kbs_run_and_explain_say_which_cluster_gave_the_ground_and_how_far(tmp_p
 
 def test_the_engine_settings_reach_the_global_sweep(monkeypatch):
     """engine.fcm_tol (and the others) reach the global strategy's sweep as they reach UFP-ONC."""
-    import kbs.knowledge.interpreter as interp_mod
+    import kbs.knowledge.strategies.global_sweep as interp_mod
 
     seen = []
     real = interp_mod.IncrementalSweep

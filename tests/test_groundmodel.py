@@ -246,8 +246,8 @@ def test_ground_contact_moves_only_points_on_the_surface_and_says_so():
     X, _ = ground_and_rocks()
     rb = load_rule_base("outdoor")
     lines = rb.text.splitlines()
-    start = lines.index(next(line for line in lines if line.startswith("  ground_contact:")))
-    end = next((i for i in range(start + 1, len(lines)) if not lines[i].startswith("    ")), len(lines))
+    start = lines.index(next(line for line in lines if line.startswith("  - ground_contact:")))
+    end = next((i for i in range(start + 1, len(lines)) if not lines[i].startswith("      ")), len(lines))
     text = "\n".join(lines[:start] + lines[end:])  # the same rules without post.ground_contact
     rb_off = parse_rule_base(text, "outdoor.yaml", PredicateRegistry.default(entry_points_too=False))
     assert rb_off.contact is None and rb.contact is not None
@@ -411,8 +411,8 @@ def test_ground_release_moves_raised_ground_points_to_the_nearest_obstacle(share
     gt = np.load(data / "000001.labels.npy").ravel()
     rb = load_rule_base("outdoor")
     lines = rb.text.splitlines()
-    start = lines.index(next(line for line in lines if line.startswith("  ground_release:")))
-    end = next(i for i in range(start + 1, len(lines)) if not lines[i].startswith("    "))
+    start = lines.index(next(line for line in lines if line.startswith("  - ground_release:")))
+    end = next(i for i in range(start + 1, len(lines)) if not lines[i].startswith("      "))
     rb_off = parse_rule_base("\n".join(lines[:start] + lines[end:]), "outdoor.yaml",
                              PredicateRegistry.default(entry_points_too=False))
     assert rb_off.release is None and rb.release.tolerance == 0.10 and rb.release.target == "obstacle"
@@ -424,10 +424,10 @@ def test_ground_release_moves_raised_ground_points_to_the_nearest_obstacle(share
     to_obstacle = (seg_off.label == 0) & (seg.label == 1)
     assert to_obstacle.sum() == released and changed.sum() == released
     # the surface both steps measured against: the ground clusters before either moved a point
-    start = lines.index(next(line for line in lines if line.startswith("  ground_contact:")))
-    end = next((i for i in range(start + 1, len(lines)) if not lines[i].startswith("    ")), len(lines))
+    start = lines.index(next(line for line in lines if line.startswith("  - ground_contact:")))
+    end = next((i for i in range(start + 1, len(lines)) if not lines[i].startswith("      ")), len(lines))
     no_moves = [line for line in lines[:start] + lines[end:]]
-    s0 = no_moves.index(next(line for line in no_moves if line.startswith("  ground_release:")))
+    s0 = no_moves.index(next(line for line in no_moves if line.startswith("  - ground_release:")))
     no_moves = no_moves[:s0] + no_moves[s0 + 3:]
     rb_none = parse_rule_base("\n".join(no_moves), "outdoor.yaml", PredicateRegistry.default(entry_points_too=False))
     assert rb_none.release is None and rb_none.contact is None

@@ -43,11 +43,11 @@ def marked(tmp_path: Path, name: str = "marked.yaml", **edits: str) -> Path:
 
 
 PLANAR = "    max: 0.05                  # m\n"
-CONTACT = "    tolerance: 0.05            # m\n"
+CONTACT = "      tolerance: 0.05            # m\n"
 LOW = "    max: 0.25                  # m\n"
 #: outdoor.yaml's 'raised' check and relabel rule, to take out (old -> new)
 WITHOUT_RAISED = {"c": (re.search(r"\n(  raised:\n(    .*\n)+)", OUTDOOR)[1], ""),
-                  "d": (re.search(r"\n(    - name: raised\n(      .*\n)+)", OUTDOOR)[1], "")}
+                  "d": (re.search(r"\n(      - name: raised\n(        .*\n)+)", OUTDOOR)[1], "")}
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +73,7 @@ def problems(text: str) -> list[str]:
 
 def test_tune_marks_are_read_with_their_values_and_positions():
     text = OUTDOOR.replace(PLANAR, PLANAR + "    tune: {min: 0.02, max: 0.1, steps: 5}\n", 1)
-    text = text.replace(CONTACT, CONTACT + "    tune: [0.02, 0.1]\n", 1)
+    text = text.replace(CONTACT, CONTACT + "      tune: [0.02, 0.1]\n", 1)
     rb = parse_rule_base(text, "t.yaml", PredicateRegistry.default())
     planar, contact = rb.tunables
     assert planar.name == "checks.planar.max" and planar.value == 0.05
@@ -103,12 +103,12 @@ def test_bad_tune_marks_are_positioned_problems(mark, message):
 
 
 def test_bad_tune_marks_on_post_steps():
-    text = OUTDOOR.replace("    max_offset: 0.15\n", "    max_offset: 0.15\n    tune: [0.1, 0.2]\n", 1)
+    text = OUTDOOR.replace("      max_offset: 0.15\n", "      max_offset: 0.15\n      tune: [0.1, 0.2]\n", 1)
     assert any("say which threshold with 'field'" in p for p in problems(text))
-    text = OUTDOOR.replace("    max_offset: 0.15\n", "    max_offset: 0.15\n    tune: {field: label, values: [1, 2]}\n")
+    text = OUTDOOR.replace("      max_offset: 0.15\n", "      max_offset: 0.15\n      tune: {field: label, values: [1, 2]}\n")
     assert any("'label' is not a number kbs tune can fit (numeric thresholds here: max_angle, max_offset)" in p
                for p in problems(text))
-    text = OUTDOOR.replace(CONTACT, CONTACT + "    tune: [0.0, 0.05]\n", 1)
+    text = OUTDOOR.replace(CONTACT, CONTACT + "      tune: [0.0, 0.05]\n", 1)
     assert any("value 0 must be above 0" in p for p in problems(text))
 
 
@@ -121,7 +121,7 @@ def test_a_bad_tune_mark_exits_4_from_kbs_tune_with_its_position(tmp_path, capsy
 
 
 def test_kbs_run_ignores_the_tune_marks(tmp_path, capsys, scenes):
-    rules = marked(tmp_path, a=(PLANAR, PLANAR + "    tune: [0.03, 0.1]\n"), b=(CONTACT, CONTACT + "    tune: [0.01, 0.2]\n"))
+    rules = marked(tmp_path, a=(PLANAR, PLANAR + "    tune: [0.03, 0.1]\n"), b=(CONTACT, CONTACT + "      tune: [0.01, 0.2]\n"))
     for name, r in (("plain", "outdoor"), ("marked", str(rules))):
         assert main(["-q", "run", "--rules", r, str(scenes[0]), "--out", str(tmp_path / name), "-j", "1"]) == 0
     a = read_result_cloud(tmp_path / "plain" / "scene1.ply").fields
@@ -137,9 +137,9 @@ def test_labelling_the_split_tree_again_gives_a_full_runs_result(tmp_path, scene
     """Every label-only setting, by the split tree labelled again, against a full run of the
     same rule base (the reference)."""
     rules = marked(tmp_path, a=(LOW, LOW + "    tune: [0.1, 0.25, 0.5]\n"),
-                   b=(CONTACT, CONTACT + "    tune: [0.02, 0.05, 0.14]\n"),
-                   c=("    tolerance: 0.10            # m\n", "    tolerance: 0.10            # m\n    tune: [0.05, 0.3]\n"),
-                   d=("    max_offset: 0.15\n", "    max_offset: 0.15\n    tune: {field: max_angle, values: [2, 10]}\n"))
+                   b=(CONTACT, CONTACT + "      tune: [0.02, 0.05, 0.14]\n"),
+                   c=("      tolerance: 0.10            # m\n", "      tolerance: 0.10            # m\n      tune: [0.05, 0.3]\n"),
+                   d=("      max_offset: 0.15\n", "      max_offset: 0.15\n      tune: {field: max_angle, values: [2, 10]}\n"))
     rb = load_rule_base(str(rules))
     assert not any(split_relevant(rb, t) for t in rb.tunables)
     X = read_cloud(scenes[1]).xyz
@@ -165,7 +165,7 @@ def truth_from_known_values(tmp_path: Path, scenes: list[Path], planar: str, con
     post.ground_contact.tolerance = contact (and without the 'raised' rule if asked): one .npy of
     0/1 (1 ground) per scene."""
     tmp_path.mkdir(exist_ok=True)
-    rules = marked(tmp_path, "truth.yaml", a=(PLANAR, f"    max: {planar}\n"), b=(CONTACT, f"    tolerance: {contact}\n"),
+    rules = marked(tmp_path, "truth.yaml", a=(PLANAR, f"    max: {planar}\n"), b=(CONTACT, f"      tolerance: {contact}\n"),
                    **(WITHOUT_RAISED if without_raised else {}))
     out = []
     for scene in scenes:
@@ -186,7 +186,7 @@ def test_kbs_tune_recovers_the_thresholds_the_truth_was_made_with(tmp_path, caps
     that there 0.05 and 0.15 agree, and no fold could tell them apart."""
     truths = truth_from_known_values(tmp_path, scenes, "0.15", "0.14", without_raised=True)
     rules = marked(tmp_path, a=(PLANAR, PLANAR + "    tune: [0.03, 0.05, 0.15]\n"),
-                   b=(CONTACT, CONTACT + "    tune: {min: 0.02, max: 0.2, steps: 4}  # 0.02 0.08 0.14 0.2\n"),
+                   b=(CONTACT, CONTACT + "      tune: {min: 0.02, max: 0.2, steps: 4}  # 0.02 0.08 0.14 0.2\n"),
                    **WITHOUT_RAISED)
     out, report = tmp_path / "tuned.yaml", tmp_path / "report.json"
     pairs = [str(p) for pair in zip(scenes, truths) for p in pair]
@@ -225,7 +225,7 @@ def test_kbs_tune_recovers_the_thresholds_the_truth_was_made_with(tmp_path, caps
 
 def test_kbs_tune_keeps_the_files_values_when_they_made_the_truth(tmp_path, capsys, scenes):
     truths = truth_from_known_values(tmp_path, scenes[:2], "0.05", "0.05")
-    rules = marked(tmp_path, b=(CONTACT, CONTACT + "    tune: [0.02, 0.14, 0.2]\n"))
+    rules = marked(tmp_path, b=(CONTACT, CONTACT + "      tune: [0.02, 0.14, 0.2]\n"))
     out = tmp_path / "tuned.yaml"
     pairs = [str(p) for pair in zip(scenes[:2], truths) for p in pair]
     code, stdout, err = run_kbs(capsys, "tune", "--rules", str(rules), *pairs, "--ground-values", "1",
@@ -239,7 +239,7 @@ def test_kbs_tune_does_not_replace_a_file_it_did_not_write(tmp_path, capsys, sce
     """--out and --report as kbs run's outputs: an existing file kbs did not write is refused before
     the work (exit 3, as kbs run), replaced with --force; kbs tune's own output is replaced."""
     truths = truth_from_known_values(tmp_path, scenes[:2], "0.05", "0.05")
-    rules = marked(tmp_path, b=(CONTACT, CONTACT + "    tune: [0.02, 0.14]\n"))
+    rules = marked(tmp_path, b=(CONTACT, CONTACT + "      tune: [0.02, 0.14]\n"))
     pairs = [str(p) for pair in zip(scenes[:2], truths) for p in pair]
     out, report = tmp_path / "notes.yaml", tmp_path / "notes.json"
     out.write_text("my notes\n")
@@ -270,7 +270,7 @@ def test_kbs_tune_bounds_the_evaluations(tmp_path, capsys, scenes):
 
 def test_kbs_tune_time_limit_and_progress(tmp_path, capsys, scenes, monkeypatch):
     truths = truth_from_known_values(tmp_path, scenes[:2], "0.05", "0.05")
-    rules = marked(tmp_path, b=(CONTACT, CONTACT + "    tune: [0.02, 0.14, 0.2]\n"))
+    rules = marked(tmp_path, b=(CONTACT, CONTACT + "      tune: [0.02, 0.14, 0.2]\n"))
     report = tmp_path / "r.json"
     pairs = [str(p) for pair in zip(scenes[:2], truths) for p in pair]
     monkeypatch.setenv("KBS_PROGRESS_SECONDS", "0")
@@ -438,7 +438,7 @@ def test_kbs_tune_says_when_the_held_back_scans_do_not_support_the_move(tmp_path
     file's value, and the report and the new file say so."""
     a = truth_from_known_values(tmp_path / "a", scenes[:1], "0.05", "0.14")
     b = truth_from_known_values(tmp_path / "b", scenes[1:2], "0.05", "0.02")
-    rules = marked(tmp_path, b=(CONTACT, CONTACT + "    tune: [0.02, 0.14]\n"))
+    rules = marked(tmp_path, b=(CONTACT, CONTACT + "      tune: [0.02, 0.14]\n"))
     out, report = tmp_path / "tuned.yaml", tmp_path / "r.json"
     code, stdout, err = run_kbs(capsys, "tune", "--rules", str(rules), str(scenes[0]), str(a[0]), str(scenes[1]),
                                 str(b[0]), "--ground-values", "1", "--out", str(out), "--report", str(report), "-j", "1")

@@ -1,0 +1,36 @@
+"""``split``: the cluster is partitioned again by UFP-ONC on its own points."""
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+from kbs.errors import FitError
+from kbs.knowledge.explain import APDCurve, ClusterRecord
+from kbs.knowledge.parts import Action
+from kbs.knowledge.predicates import Cluster
+from kbs.knowledge.state import Node
+
+
+class Split(Action):
+    """UFP-ONC on the cluster's own points, K by APD's first local maximum among K >= split_min_k
+    (at least 2); its children are the hard clusters of that partition, the largest first."""
+
+    key: ClassVar[str] = "split"
+    divides: ClassVar[bool] = True
+
+    def prepare(self, engine: Any, cluster: Cluster) -> Any:
+        """The split starts as soon as the cluster is judged (in a worker when jobs > 1)."""
+        return engine.submit_split(cluster.X)  # the cluster's points, X[node.idx]: no second copy
+
+    def divide(self, engine: Any, node: Node, cluster: Cluster, record: ClusterRecord, rule: Any,
+               prepared: Any) -> list[Node]:
+        X = engine.X
+        res = prepared.result() if prepared is not None else \
+            engine.ufp_onc(X[node.idx], "first_max", min_k=engine.rule_base.engine["split_min_k"])
+        k = res.chosen_k
+        if k < 2:
+            if len(res.partitions) < 2:
+                raise FitError("UFP-ONC found no second cluster")
+            k = 2
+        record.apd = APDCurve(tuple(p.k for p in res.partitions), tuple(p.apd for p in res.partitions), k)
+        u = res.memberships if k == res.chosen_k else res.partition(k).predict_proba(X[node.idx])
+        return node.children(u)

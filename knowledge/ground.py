@@ -1,0 +1,151 @@
+"""The ground plane of a scene (``scene.ground``): fixed by the rule file, or found from the data as
+the seed paper says: the closest large plane to the sensor among the clusters of the initial
+partition (or, with ``choose: supporting``, the plane most points stand on), with the fallback
+normal only when no candidate gives a plane. The explanation's ``ground`` section records which
+cluster, how it was found, and every candidate's verdict."""
+from __future__ import annotations
+
+import copy
+from typing import Any
+
+import numpy as np
+
+from kbs.knowledge.explain import ClusterRecord
+from kbs.knowledge.groundplane import robust_plane, supported_points
+from kbs.knowledge.predicates import Cluster, Ground, Scene
+
+
+def find(run: Any, X: np.ndarray, candidates: list[tuple[Cluster, ClusterRecord]], info: dict) -> Ground | None:
+    """The ground plane (scene.ground): fixed, or the closest large plane to the sensor among the
+    candidates (the clusters of the initial partition with at least min_points points): a
+    candidate passing the candidate check gives the plane of all its points; one that fails it
+    but whose robust plane (scene.ground.plane) holds enough of its points within the inlier
+    distance, and lies within its max_tilt of the fallback normal, gives that plane. The
+    fallback only when no candidate gives a plane. ``info`` (the explanation's ``ground``)
+    records which cluster, how it was found, and every candidate's verdict."""
+    spec = run.rule_base.ground
+    if not run.rule_base.needs_ground and spec.normal is None and spec.candidate is None and spec.plane is None \
+            and run.rule_base.ground_model is None:
+        return None
+    if run.given_ground is not None:  # found once on the whole cloud this one is a tile of
+        ground, given = run.given_ground
+        info.update(copy.deepcopy(given))
+        return ground
+    if spec.normal is not None:
+        return plane_from_normal(X, np.asarray(spec.normal, float), "fixed", info)
+    fallback = np.asarray(spec.fallback, float)
+    fallback = fallback / np.linalg.norm(fallback)
+    best, no_plane, verdicts, tilted, planes = None, [], [], [], []
+    if spec.candidate is not None or spec.plane is not None:
+        provisional = Scene(run.sensor, None, run.rule_base.units)
+        for cl, rec in candidates:
+            if cl.n_points < spec.min_points:
+                continue
+            if cl.geometry.degenerate:  # its points on a line: no plane to give
+                no_plane.append(cl.id)
+                verdicts.append({"cluster": cl.id, "points": cl.n_points,
+                                 "why": f"degenerate: {cl.geometry.degeneracy}"})
+                continue
+            found = _candidate_plane(run, cl, rec, provisional)
+            verdict = {"cluster": cl.id, "points": cl.n_points, **{k: v for k, v in found.items() if k != "plane"}}
+            verdicts.append(verdict)
+            if found["plane"] is None:
+                continue
+            n, point, on = found["plane"]
+            if (run.sensor - point) @ n < 0:  # point up, towards the sensor
+                n = -n
+            tilt = float(np.degrees(np.arccos(min(1.0, abs(float(n @ fallback))))))
+            verdict["angle_to_fallback"] = round(tilt, 3)
+            max_tilt = spec.plane.max_tilt if spec.plane is not None else None
+            if found["method"] == "robust plane" and max_tilt is not None and tilt > max_tilt:
+                verdict["why"] = f"its robust plane is {tilt:.1f} deg from the fallback normal > max_tilt {max_tilt:g} deg"
+                tilted.append(cl.id)
+                continue
+            dist = float(np.sqrt(((on - run.sensor) ** 2).sum(axis=1).min()))
+            verdict["distance"] = dist  # to the sensor, of its plane's nearest point
+            planes.append((dist, cl, n, point, tilt, found, on, verdict))
+    if planes:
+        best = _choose(run, X, planes)
+    if best is None:
+        tests = [f"passes '{spec.candidate}'"] if spec.candidate is not None else []
+        if spec.plane is not None:
+            tests.append(f"has a robust plane holding >= {spec.plane.min_inlier_share:.0%} of its points within "
+                         f"{spec.plane.inlier_distance:g}{run.rule_base.length_unit and ' ' + run.rule_base.length_unit}")
+        why = (f"no cluster of the initial partition with >= {spec.min_points} points {' or '.join(tests)}"
+               if tests else "scene.ground declares neither a candidate check nor a robust plane")
+        if no_plane:
+            why += (f" and has a plane ({len(no_plane)} degenerate)" if spec.plane is None else
+                    f" ({len(no_plane)} degenerate: no plane)")
+        if tilted:
+            why += (f" within max_tilt {spec.plane.max_tilt:g} deg of the fallback (the robust plane of "
+                    f"{', '.join(tilted[:5])}{' ...' if len(tilted) > 5 else ''} is tilted more)")
+        shares = [f"{v['cluster']} {v['inlier_share']:.0%}" for v in verdicts
+                  if v.get("inlier_share") is not None and v["cluster"] not in tilted]
+        if shares:
+            why += f" (the share of their points on their robust planes: {', '.join(shares[:5])})"
+        info["note"] = f"{why}: the fallback normal {list(spec.fallback)} is used"
+        if verdicts and spec.plane is not None:
+            info.update(candidates=verdicts, unit=run.rule_base.length_unit)
+        return plane_from_normal(X, np.asarray(spec.fallback, float), "fallback", info)
+    dist, cl, n, point, tilt, found, _, verdict = best
+    info.update(source=f"cluster {cl.id}", cluster=cl.id, normal=n.tolist(), point=point.tolist(),
+                distance_to_sensor=dist, thickness=found.get("plane_thickness", found["thickness"]),
+                distance=dist, unit=run.rule_base.length_unit, method=found["method"])
+    if spec.support is not None:
+        info.update(supported=verdict["supported"], candidates=verdicts,
+                    support_band=[spec.support.min_height, spec.support.max_height])
+    if spec.plane is not None:
+        info.update(method=found["method"], angle_to_fallback=round(tilt, 3), candidates=verdicts,
+                    unit=run.rule_base.length_unit)
+        if found["method"] == "robust plane":
+            info.update(inliers=found["inliers"], inlier_share=found["inlier_share"])
+    return Ground(normal=n, point=np.asarray(point, float).copy(), source=f"cluster {cl.id}")
+
+def _choose(run: Any, X: np.ndarray, planes: list[tuple]) -> tuple:
+    """The ground among the candidates that give a plane (distance, cluster, normal, point,
+    tilt, found, plane points, verdict): the closest to the sensor, or with
+    scene.ground.choose 'supporting', the one with the most points standing on it (the
+    closest of equals); each verdict gets its count ('supported')."""
+    support = run.rule_base.ground.support
+    if support is None:
+        return min(planes, key=lambda p: p[0])  # the first of equals, as before
+    for p in planes:
+        p[7]["supported"] = supported_points(X, p[2], p[3], p[6], support.min_height, support.max_height)
+    return min(planes, key=lambda p: (-p[7]["supported"], p[0]))
+
+def _candidate_plane(run: Any, cl: Cluster, rec: ClusterRecord, provisional: Scene) -> dict[str, Any]:
+    """How a ground candidate gives a plane: ``plane`` (normal, point, its points) or None,
+    ``method``, and what was measured."""
+    spec = run.rule_base.ground
+    geo = cl.geometry
+    if spec.candidate is not None and run.fact(cl, provisional, rec)(spec.candidate):
+        return {"plane": (geo.normal, geo.center, cl.X), "method": f"check '{spec.candidate}'",
+                "thickness": geo.thickness}
+    out: dict[str, Any] = {"plane": None, "thickness": geo.thickness}
+    if spec.candidate is not None:
+        out["why"] = f"fails '{spec.candidate}'"
+    if spec.plane is None:
+        return out
+    p = spec.plane
+    rp = robust_plane(cl.X, p.inlier_distance, p.min_inlier_share)
+    if rp is None:
+        out["why"] = "no plane through its points"
+        return out
+    out.update(inliers=rp.n_inliers, inlier_share=round(rp.share, 4), plane_thickness=rp.thickness)
+    unit = run.rule_base.length_unit and " " + run.rule_base.length_unit
+    if rp.share < p.min_inlier_share:
+        out["why"] = (f"its robust plane holds {rp.share:.0%} of its points within {p.inlier_distance:g}{unit}"
+                      f" < {p.min_inlier_share:.0%}")
+    elif rp.n_inliers < spec.min_points:
+        out["why"] = f"its robust plane holds {rp.n_inliers} points < min_points {spec.min_points}"
+    else:
+        out.update(plane=(rp.normal, rp.point, cl.X[rp.inliers]), method="robust plane")
+        out.pop("why", None)
+    return out
+
+def plane_from_normal(X: np.ndarray, n: np.ndarray, source: str, info: dict) -> Ground:
+    n = n / np.linalg.norm(n)
+    q = float(np.quantile(X @ n, 0.05))
+    info.update(source=source, normal=n.tolist(), point=(q * n).tolist())
+    return Ground(normal=n, point=q * n, source=source)
+

@@ -1,0 +1,78 @@
+"""What the steps on the local ground surface share: moving points between leaves, and asking
+the surface for batches of leaves at once."""
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Sequence
+
+import numpy as np
+
+from kbs.knowledge.state import Leaf
+
+#: points per batch of surface queries
+SURFACE_BATCH = 1 << 18
+
+
+def needs_surface(key: str, ctx) -> None:
+    """Report a step on the local ground surface that no ground_model step comes before."""
+    if not any(s.key == "ground_model" for s in ctx.earlier):
+        ctx.add(ctx.path, f"{key} needs post.ground_model (the surface points are measured against)", key=True)
+
+
+def take(leaf: Leaf, move: np.ndarray, targets: np.ndarray, moved_in: dict) -> tuple[Leaf, list[int]]:
+    """Take the points ``move`` (mask) out of ``leaf``, bound for the leaves at positions
+    ``targets``; returns the leaf without them and the destination positions."""
+    node = leaf.node
+    dest = np.unique(targets)
+    pos = np.flatnonzero(move)
+    for t in dest:
+        sel = pos[targets == t]
+        moved_in.setdefault(int(t), []).append((node.idx[sel], node.weight[sel], node.path[sel]))
+    keep = ~move
+    return leaf.with_points(node.idx[keep], node.weight[keep], node.path[keep]), [int(t) for t in dest]
+
+
+def receive(leaves: list[Leaf], moved_in: dict, note: str) -> None:
+    """Append moved points (idx, weight, path) to their destination leaves, with a note."""
+    for t, parts in moved_in.items():
+        lf = leaves[t]
+        n_in = sum(p[0].size for p in parts)
+        leaves[t] = lf.with_points(np.concatenate([lf.node.idx] + [p[0] for p in parts]),
+                                   np.concatenate([lf.node.weight] + [p[1] for p in parts]),
+                                   np.concatenate([lf.node.path] + [p[2] for p in parts]))
+        lf.record.notes.append(note.format(n=f"{n_in:,}"))
+
+
+def surface_batches(X: np.ndarray, todo: Sequence[Leaf], model,
+                    may_matter: Callable | None = None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """For each leaf of ``todo`` in order: (heights above the local surface, positions of the
+    nearest surface points) of its points, asked for batches of leaves of about
+    :data:`SURFACE_BATCH` points together (few small queries, bounded temporaries).
+
+    ``may_matter(hp, lo, hi)``: which points the caller needs, from their heights above the
+    ground plane and the bounds of the surface under them (:meth:`LocalGround.height_bounds`);
+    the others are not asked for and come back as NaN (height) and -1 (nearest). The caller
+    promises that their outcome is the same either way (the bounds decide it)."""
+    batch: list[Leaf] = []
+    size = 0
+    for i, lf in enumerate(todo):
+        batch.append(lf)
+        size += lf.size
+        if size < SURFACE_BATCH and i + 1 < len(todo):
+            continue
+        P = X[np.concatenate([b.node.idx for b in batch])]
+        hp = (P - model.point) @ model.normal
+        bounds = model.height_bounds(P) if may_matter is not None else None
+        if bounds is None or may_matter is None:
+            ground, nearest = model.query(P)
+            h = hp - ground
+        else:
+            ask = np.flatnonzero(may_matter(hp, *bounds))
+            h = np.full(P.shape[0], np.nan)
+            nearest = np.full(P.shape[0], -1, dtype=np.int64)
+            ground, nearest[ask] = model.query(P[ask])
+            h[ask] = hp[ask] - ground
+        stop = 0
+        for b in batch:
+            start, stop = stop, stop + b.size
+            yield h[start:stop], nearest[start:stop]
+        batch, size = [], 0

@@ -1,0 +1,74 @@
+"""``ground_model``: the local ground surface, from the points of the clusters of one label."""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any, ClassVar
+
+import numpy as np
+
+from kbs.knowledge.parts import PostContext, PostStep, SpecContext
+from kbs.knowledge.rulebase import SourcePos
+from kbs.knowledge.state import PostState, Surface
+
+
+@dataclass(frozen=True)
+class GroundModel(PostStep):
+    """A local ground surface from the points of the clusters of one label: the ground height under a
+    point is the median height of its nearest such points (in the ground plane's coordinates, within
+    radius). Used by predicates such as height_above_local_ground and by ground_contact.
+
+    Later steps measure against it (relabel conditions, ground_release, ground_contact); a relabel
+    step that changes labels builds it again from the new labels. Without a ground plane (a rule
+    base with no way to orient the ground) it is skipped, and the explanation says so.
+    """
+
+    key: ClassVar[str] = "ground_model"
+    schema: ClassVar[dict[str, Any]] = {
+        "type": "object", "additionalProperties": False, "required": ["label"],
+        "properties": {
+            "label": {"$ref": "#/$defs/name"},
+            "neighbours": {"description": "ground points whose median height is the local ground height",
+                           "type": "integer", "minimum": 1, "maximum": 64},
+            "radius": {"description": "length units; farther ground points do not count", "type": "number",
+                       "exclusiveMinimum": 0},
+            "tune": {"$ref": "#/$defs/tune"},
+        },
+    }
+    tunable: ClassVar[tuple[str, ...]] = ("neighbours", "radius")
+
+    label: str
+    neighbours: int
+    radius: float
+    pos: SourcePos
+
+    @classmethod
+    def parse(cls, raw: Any, ctx: SpecContext) -> GroundModel | None:
+        if not isinstance(raw, dict) or not isinstance(raw.get("label"), str):
+            return None  # the schema reported it
+        ctx.label_ref(ctx.path + ("label",), raw["label"])
+        return cls(label=raw["label"], neighbours=ctx.number(raw.get("neighbours"), 8, int),
+                   radius=ctx.number(raw.get("radius"), 3.0), pos=ctx.pos(ctx.path, key=True))
+
+    def build(self, state: PostState, ctx: PostContext) -> Surface:
+        """The surface from the leaves labelled :attr:`label` now."""
+        from kbs.knowledge.groundmodel import LocalGround
+
+        leaves, ground = state.leaves, state.scene.ground
+        assert ground is not None  # apply() saw to it
+        mine = [i for i, lf in enumerate(leaves) if lf.label == self.label]
+        index = np.concatenate([leaves[i].node.idx for i in mine]) if mine else np.zeros(0, dtype=np.int64)
+        owner = np.concatenate([np.full(leaves[i].size, i) for i in mine]) if mine else np.zeros(0, dtype=np.int64)
+        model = LocalGround.build(ctx.X, index, ground.normal, ground.point, neighbours=self.neighbours,
+                                  radius=self.radius, owners=np.searchsorted(mine, owner) if mine else owner,
+                                  owner_ids=tuple(leaves[i].id for i in mine), workers=ctx.jobs)
+        return Surface(model=model, owner=owner, spec=self)
+
+    def apply(self, state: PostState, ctx: PostContext) -> PostState:
+        if state.scene.ground is None:  # the rule base has no way to orient the ground: say so, do nothing
+            ctx.ground_info["local_model"] = {"note": "no ground plane: post.ground_model skipped"}
+            return replace(state, surface=None)
+        surface = self.build(state, ctx)
+        ctx.ground_info["local_model"] = {"label": self.label, "points": surface.model.n_points,
+                                          "neighbours": self.neighbours, "radius": self.radius,
+                                          "source": self.pos.short}
+        return replace(state, surface=surface)

@@ -1,0 +1,78 @@
+"""``merge_coplanar``: clusters of one label whose planes agree become one output cluster."""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any, ClassVar
+
+import numpy as np
+
+from kbs.knowledge.parts import PostContext, PostStep, SpecContext
+from kbs.knowledge.rulebase import SourcePos
+from kbs.knowledge.state import PostState
+
+
+@dataclass(frozen=True)
+class MergeCoplanar(PostStep):
+    """Merge clusters of one label whose planes agree (the seed paper merges ground planes).
+
+    Two clusters agree when their normals are within max_angle and each centre is within
+    max_offset of the other's plane; agreement is transitive. A cluster with no plane (its points
+    on a line) and a cluster whose points all left for others take no part. Each merged group
+    takes the place of its first member.
+    """
+
+    key: ClassVar[str] = "merge_coplanar"
+    schema: ClassVar[dict[str, Any]] = {
+        "type": "object", "additionalProperties": False, "required": ["label"],
+        "properties": {
+            "label": {"$ref": "#/$defs/name"},
+            "max_angle": {"description": "degrees", "type": "number", "minimum": 0, "maximum": 90},
+            "max_offset": {"description": "length units, plane-to-centre distance", "type": "number", "minimum": 0},
+            "tune": {"$ref": "#/$defs/tune"},
+        },
+    }
+    tunable: ClassVar[tuple[str, ...]] = ("max_angle", "max_offset")
+
+    label: str
+    max_angle: float
+    max_offset: float
+    pos: SourcePos
+
+    @classmethod
+    def parse(cls, raw: Any, ctx: SpecContext) -> MergeCoplanar | None:
+        if not isinstance(raw, dict):
+            return None
+        ctx.label_ref(ctx.path + ("label",), raw.get("label"))
+        return cls(label=str(raw.get("label")), max_angle=ctx.number(raw.get("max_angle"), 10.0),
+                   max_offset=ctx.number(raw.get("max_offset"), 0.15), pos=ctx.pos(ctx.path, key=True))
+
+    def apply(self, state: PostState, ctx: PostContext) -> PostState:
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+
+        leaves = state.leaves
+        n = len(leaves)
+        rows: list[np.ndarray] = []
+        cols: list[np.ndarray] = []
+        cand = np.array([i for i, lf in enumerate(leaves)
+                         if lf.label == self.label and lf.size and not lf.cluster.geometry.degenerate], dtype=int)
+        if cand.size > 1:
+            geos = [leaves[i].cluster.geometry for i in cand]
+            N = np.array([g.normal for g in geos])
+            C = np.array([g.center for g in geos])
+            cos = np.clip(np.abs(N @ N.T), 0.0, 1.0)
+            off = np.abs(np.einsum("id,ijd->ij", N, C[None, :, :] - C[:, None, :]))  # j's centre to i's plane
+            ok = (np.degrees(np.arccos(cos)) <= self.max_angle) & (np.maximum(off, off.T) <= self.max_offset)
+            a, b = np.nonzero(ok)
+            rows.append(cand[a])
+            cols.append(cand[b])
+        for g in state.groups or ():  # an earlier grouping step's groups stay together
+            rows.append(np.full(len(g) - 1, g[0], dtype=int))
+            cols.append(np.asarray(g[1:], dtype=int))
+        r = np.concatenate(rows) if rows else np.zeros(0, dtype=int)
+        c = np.concatenate(cols) if cols else np.zeros(0, dtype=int)
+        _, comp = connected_components(coo_matrix((np.ones(r.size), (r, c)), shape=(n, n)), directed=False)
+        out: dict[int, list[int]] = {}
+        for i, g in enumerate(comp):  # a group takes the place of its first member (leaf order)
+            out.setdefault(int(g), []).append(i)
+        return replace(state, groups=tuple(tuple(m) for m in out.values()))

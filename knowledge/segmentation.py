@@ -1,0 +1,93 @@
+"""The result of a run (:class:`Segmentation`) and the kinds of limit that keep a cluster from
+being divided (:data:`STOP_KINDS`)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from kbs.knowledge.explain import NO_LABEL, Explanation
+
+
+@dataclass(frozen=True)
+class Segmentation:
+    """The result of a run.
+
+    Attributes
+    ----------
+    cluster : ndarray (n,) int32
+        Output cluster of each point (numbered by decreasing size), -1 = not assigned (noise).
+    label : ndarray (n,) int32
+        Index into ``label_names``, -1 = none (noise).
+    membership : ndarray (n,) float32
+        Membership of each point in its cluster (product of the fuzzy memberships along its path
+        in the split tree; crisp splits count 1).
+    label_names : list of str
+    explanation : Explanation
+    clusters : list of dict
+        One per output cluster: index, ids of the records merged into it, label, size, descriptors.
+    seconds : float
+    """
+
+    cluster: np.ndarray
+    label: np.ndarray
+    membership: np.ndarray
+    label_names: list[str]
+    explanation: Explanation
+    clusters: list[dict[str, Any]]
+    seconds: float
+
+    @property
+    def n_splits(self) -> int:
+        return sum(bool(r.children) and r.action != "partition" for r in self.explanation.records.values())
+
+    def limits_by_kind(self) -> dict[str, dict[str, Any]]:
+        """The clusters a rule wanted split but that were kept, grouped by what stopped them.
+
+        Keys are the kinds of :data:`STOP_KINDS`, in that order (only those that occurred). Each
+        value: ``setting`` (the rule-file key that decides it, e.g. ``'limits.max_depth'``, or None
+        when it is not a setting: the split failed, or gave a single cluster), ``value`` (that
+        setting's value), ``count``, ``points`` (their points when judged) and ``clusters`` (their
+        ids, the largest first).
+        """
+        out: dict[str, dict[str, Any]] = {}
+        stopped = sorted((r for r in self.explanation.records.values() if r.action == "limit"),
+                         key=lambda r: (-r.n_points, r.id))
+        for r in stopped:
+            lim = r.limit or {"kind": "other", "setting": None, "value": None}
+            e = out.setdefault(lim["kind"], {"setting": lim["setting"], "value": lim["value"], "count": 0,
+                                             "points": 0, "clusters": []})
+            e["count"] += 1
+            e["points"] += r.n_points
+            e["clusters"].append(r.id)
+        order = list(STOP_KINDS)
+        return dict(sorted(out.items(), key=lambda kv: order.index(kv[0]) if kv[0] in order else len(order)))
+
+    def summary(self) -> dict[str, Any]:
+        """Counts; ``points_per_label``: each label's points, then ``noise`` (points in no output
+        cluster: rejected; ``noise (rejected)`` when the rule base has a label named noise) and,
+        when there are, ``no label matched`` (points of output clusters no label's condition held
+        for)."""
+        counts = {name: int((self.label == i).sum()) for i, name in enumerate(self.label_names)}
+        counts["noise (rejected)" if "noise" in counts else "noise"] = int((self.cluster < 0).sum())
+        unlabelled = int(((self.label < 0) & (self.cluster >= 0)).sum())
+        if unlabelled:
+            counts[NO_LABEL] = unlabelled
+        return {"points": int(self.cluster.size), "clusters": len(self.clusters), "splits": self.n_splits,
+                "limits": sum(r.action == "limit" for r in self.explanation.records.values()),
+                "limits_by_kind": self.limits_by_kind(),
+                "points_per_label": counts, "seconds": round(self.seconds, 3)}
+
+
+#: Why a cluster that a rule wanted split was kept (``ClusterRecord.limit['kind']``), and the
+#: rule-file setting that decides it (None: not a setting of the file).
+STOP_KINDS: dict[str, str | None] = {
+    "max_depth": "limits.max_depth",          # the cluster is max_depth splits below the scene
+    "min_points": "limits.min_points",        # it has fewer points
+    "max_clusters": "limits.max_clusters",    # the whole split tree has that many clusters (optional cap)
+    "k_max": "engine.k_max",                  # strategy global: no partition of the scene beyond K = k_max
+    "split_failed": None,                     # the engine could not split its points
+    "single_cluster": None,                   # the split put all its points in one cluster
+    "unpartitioned": None,                    # the scene could not be partitioned (further, for global)
+}

@@ -1,0 +1,106 @@
+"""``divisive``: the scene's first partition, then every cluster a rule wants divided is divided
+on its own, and its children judged in turn."""
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import numpy as np
+
+from kbs.errors import FitError
+from kbs.inference import UFPONCResult
+from kbs.knowledge.explain import APDCurve, ClusterRecord
+from kbs.knowledge.parts import Strategy
+from kbs.knowledge.state import Judged, Leaf, Node
+
+
+class Divisive(Strategy):
+    """The scene's initial partition (K by APD's first local maximum, or fixed), then every cluster
+    a rule wants divided is divided on its own (by its action: UFP-ONC on its points, its
+    connected components) and its children are judged in turn, one level of the tree at a time.
+
+    The limits are per cluster (max_depth, min_points): the subtree of a cluster depends only on
+    its points and the scene (sensor, ground plane), not on how much else the file holds. The
+    optional max_clusters is the exception: a cap on the clusters of the whole split tree, counted
+    in wave order, so with it a point's result depends on the rest of the file.
+    """
+
+    key: ClassVar[str] = "divisive"
+
+    def partition(self, run: Any, X: np.ndarray) -> UFPONCResult:
+        fixed_k = isinstance(run.rule_base.engine["initial_k"], int)
+        return run.ufp_onc(X, "k_max" if fixed_k else "first_max")
+
+    @staticmethod
+    def first_children(run: Any, X: np.ndarray, root: Node, res: UFPONCResult, notes: list[str]) -> tuple[int, list[Node]]:
+        """K of the first partition and its clusters."""
+        k = run.initial_k(res, notes)
+        u = res.memberships if k == res.chosen_k else res.partition(k).predict_proba(X)
+        return k, root.children(u)
+
+    def run(self, run: Any, X: np.ndarray, root: Node, records: dict[str, ClusterRecord],
+            res: UFPONCResult) -> Judged:
+        notes = list(res.notes)
+        k0, children = self.first_children(run, X, root, res, notes)
+        records["c"].apd = APDCurve(tuple(p.k for p in res.partitions), tuple(p.apd for p in res.partitions), k0)
+        del res, root  # the (n, K) memberships: the children hold copies of their part
+        return self.divide(run, X, children, records, notes)
+
+    @staticmethod
+    def divide(run: Any, X: np.ndarray, children: list[Node], records: dict[str, ClusterRecord],
+               notes: list[str]) -> Judged:
+        """Breadth first, one level of the split tree (a wave) at a time: every cluster of the wave
+        is judged, the divisions it asks for are started (the UFP-ONC splits side by side when
+        jobs > 1), then the decisions are applied in order — exactly the order of a first-in
+        first-out queue, so the optional max_clusters, when a rule file sets it, stops the same
+        clusters whatever the number of jobs."""
+        from kbs.knowledge.interpreter import _Splitter
+
+        rb = run.rule_base
+        records["c"].children = [c.id for c in children]
+        wave = [(c, *run.record(c)) for c in children]
+        children.clear()  # the wave holds them now: a node split below is freed with its wave
+        ground_info: dict[str, Any] = {}
+        scene = run.scene(run.ground([(cl, rec) for _, cl, rec in wave], ground_info))
+        leaves: list[Leaf] = []
+        n_clusters = len(wave)
+        with _Splitter(run.interpreter, run.ufp_kwargs("first_max", rb.engine["split_min_k"])) as splitter:
+            run.splitter = splitter
+            while wave:
+                judged = []
+                for node, cl, rec in wave:
+                    records[node.id] = rec
+                    action, rule = run.judge(cl, scene, rec)
+                    prepared = None
+                    if action.divides and run.cannot_split(node, 0) is None:  # max_clusters: known later
+                        prepared = action.prepare(run, cl)
+                    judged.append((node, cl, rec, action, rule, prepared))
+                wave = []
+                for node, cl, rec, action, rule, prepared in judged:
+                    if not action.divides:
+                        rec.action = action.key
+                        if action.keeps:
+                            leaves.append(Leaf(node, cl, rec))
+                        continue
+                    why_not = run.cannot_split(node, n_clusters)
+                    kids: list[Node] = []
+                    if why_not is None:
+                        try:
+                            kids = action.divide(run, node, cl, rec, rule, prepared)
+                        except FitError as exc:
+                            why_not = "split_failed", f"the split failed: {exc}"
+                        if why_not is None and len(kids) < 2:
+                            why_not = "single_cluster", "the split gave a single cluster"
+                    if why_not is not None:
+                        run.stop(rec, *why_not)
+                        leaves.append(Leaf(node, cl, rec))
+                        continue
+                    rec.action = action.key
+                    rec.children = [k.id for k in kids]
+                    n_clusters += len(kids) - 1
+                    kid_records = [(k, *run.record(k)) for k in kids]
+                    action.inherit(run, rule, kid_records)
+                    wave.extend(kid_records)
+                    if run.progress:
+                        run.progress(f"{node.id} split in {len(kids)}")
+            run.splitter = None
+        return Judged(X, tuple(leaves), scene, records, ground_info, tuple(notes))
