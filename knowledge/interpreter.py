@@ -52,13 +52,15 @@ class Interpreter:
         if not isinstance(jobs, (int, np.integer)) or jobs == 0 or jobs < -1:
             raise ValueError(f"jobs must be a positive number of processes or -1 (one per core), got {jobs!r}")
         self.jobs = available_cores() if jobs == -1 else int(jobs)
+        self._pool: Any = None  # the ProcessPoolExecutor of the split workers, once started
+        self._pool_finalizer: Any = None
 
     # -- worker processes ------------------------------------------------------------------------
 
     def _worker_pool(self):
         """The pool of split workers (``jobs`` > 1), started when first needed and kept until
         :meth:`close`, so that frame after frame reuses it."""
-        pool = getattr(self, "_pool", None)
+        pool = self._pool
         if pool is None:
             import multiprocessing
             from concurrent.futures import ProcessPoolExecutor
@@ -171,15 +173,18 @@ class _Job:
     demand, when ``jobs`` is 1)."""
 
     def __init__(self, X: np.ndarray, kwargs: dict[str, Any], future=None) -> None:
-        self.X, self.kwargs, self.future = X, kwargs, future
+        self.X: np.ndarray | None = X
+        self.kwargs, self.future = kwargs, future
 
     def result(self) -> UFPONCResult:
         from concurrent.futures.process import BrokenProcessPool
 
+        X = self.X
+        assert X is not None, "a split's result is taken once"
         try:
-            status, value = self.future.result() if self.future is not None else _split_job(self.X, self.kwargs)
+            status, value = self.future.result() if self.future is not None else _split_job(X, self.kwargs)
         except BrokenProcessPool:  # a worker died (killed, out of memory): do this split here
-            status, value = _split_job(self.X, self.kwargs)
+            status, value = _split_job(X, self.kwargs)
         self.X = self.future = None  # the points and the result are the caller's now: nothing kept here
         if status == "error":
             raise FitError(value)

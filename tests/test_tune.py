@@ -211,7 +211,7 @@ def test_kbs_tune_recovers_the_thresholds_the_truth_was_made_with(tmp_path, caps
     assert len(new) == len(old) + 1 and len(changed) == 2
     cv = f"cross-validated ground F1 1.0000 (file's values: {doc['cv_original_score']:.4f})"
     assert changed[0][1] == f"    max: 0.15                  # m  # kbs tune: 0.05 -> 0.15, {cv}"
-    assert changed[1][1] == f"    tolerance: 0.14            # m  # kbs tune: 0.05 -> 0.14, {cv}"
+    assert changed[1][1] == f"      tolerance: 0.14            # m  # kbs tune: 0.05 -> 0.14, {cv}"
     assert out.read_text().endswith("\n")
     assert load_rule_base(str(out)).checks["planar"].max == 0.15
     # the markdown report on stdout
