@@ -13,6 +13,7 @@ from kbs.cli.common import (
     cloud_argument,
     force_option,
     progress_bar,
+    setting_option,
     write_result_ply,
 )
 from kbs.inference import ufp_onc
@@ -34,13 +35,10 @@ def format_k_table(result) -> str:
 
 @click.command()
 @cloud_argument
-@click.option("--k-max", type=click.IntRange(1, 50), default=10, show_default=True, help="Largest K tried.")
-@click.option("--m", "m", type=click.FloatRange(1.0, None, min_open=True), default=2.0, show_default=True,
-              help="Fuzzifier.")
-@click.option("--stop", type=click.Choice(["k_max", "first_max"]), default="k_max", show_default=True,
-              help="Compute every K, or stop at APD's first local maximum.")
-@click.option("--max-fit-points", type=click.IntRange(10, None), default=6000, show_default=True,
-              help="Clouds larger than this are fitted on a voxel grid of at most this many voxels.")
+@setting_option("--k-max", "k_max")
+@setting_option("--m", "m")
+@setting_option("--stop", "stop")
+@setting_option("--max-fit-points", "max_fit_points")
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path),
               help="Write the cloud with per-vertex 'cluster' and 'membership' to this PLY file (never over "
                    "CLOUD; over a file kbs did not write only with --force).")

@@ -9,7 +9,7 @@ import sys
 import time
 from pathlib import Path
 from collections.abc import Callable, Iterator, Mapping
-from typing import TextIO
+from typing import Any, TextIO
 
 import click
 import numpy as np
@@ -157,3 +157,32 @@ def write_result_ply(path: Path, cloud: PointCloud, results: Mapping[str, np.nda
     """Write the cloud's points with its own fields and the per-point ``results`` to a PLY file
     (:func:`result_fields`), whole or not at all, with a kbs run id (returned) in its header."""
     return write_result_cloud(path, cloud.xyz, result_fields(cloud, results), run_id=run_id)
+
+
+def setting_type(name: str) -> click.ParamType:
+    """The click type of an engine setting, from its first allowed value kind in the table of
+    :mod:`kbs.inference.settings` (an option cannot say None: a setting whose None means 'automatic'
+    takes its other kind)."""
+    import numbers
+
+    from kbs.inference._validation import Interval, Options
+    from kbs.inference.settings import SETTINGS
+
+    c = SETTINGS[name].allowed[0]
+    if isinstance(c, Options):
+        return click.Choice(list(c.values))
+    if not isinstance(c, Interval):
+        raise TypeError(f"no click type for {c!r}")
+    lo_open, hi_open = c.closed in ("right", "neither"), c.closed in ("left", "neither")
+    if c.kind is numbers.Integral:
+        return click.IntRange(None if c.low is None else int(c.low), None if c.high is None else int(c.high),
+                              min_open=lo_open, max_open=hi_open)
+    return click.FloatRange(c.low, c.high, min_open=lo_open, max_open=hi_open)
+
+
+def setting_option(flag: str, name: str, **kw: Any):
+    """A click option for the engine setting ``name``: its type, default and help from the table."""
+    from kbs.inference.settings import SETTINGS
+
+    s = SETTINGS[name]
+    return click.option(flag, name, type=setting_type(name), default=s.default, show_default=True, help=s.doc, **kw)

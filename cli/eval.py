@@ -29,7 +29,14 @@ from kbs.evaluation.segcomp import DEFAULT_TOLERANCES, segcomp_table
 from kbs.io import read_result_json
 from kbs.io.segcomp import FIRST_REGION_LABEL, NON_REGION_VALUES, read_gt_seg, read_ms_nor, read_range, read_sunraster
 from kbs.io.atomic import replacing
-from kbs.io.result import InputFiles, check_output, check_pair, read_result_cloud
+from kbs.io.result import (
+    InputFiles,
+    check_output,
+    check_pair,
+    read_result_cloud,
+    require_fields,
+    result_label_names,
+)
 
 
 def _int_list(ctx: click.Context, param: click.Parameter, value: str | None) -> tuple[int, ...] | None:
@@ -72,10 +79,7 @@ def _label_names(result: Path) -> tuple[Path, list[str] | None]:
         return js, None
     doc = read_result_json(js, require=("label_names",))
     check_pair(result, js, doc)
-    names = doc["label_names"]
-    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
-        raise CloudFileError(str(js), "not a kbs result file ('label_names' is not a list of names)")
-    return js, names
+    return js, result_label_names(doc, js)
 
 
 def _nan_none(x: float) -> float | None:
@@ -233,9 +237,7 @@ def eval_(result: Path, ground_truth: str, tolerance: float, ground_values: tupl
     hoover_said = do_hoover is not None
     if do_hoover is None:  # a ground evaluation asks for the ground table; the regions on request
         do_hoover = ground_values is None
-    cloud = read_result_cloud(result)
-    if "cluster" not in cloud.fields:
-        raise CloudFileError(str(result), "not a kbs result: no per-vertex 'cluster' field (write one with kbs run)")
+    cloud = read_result_cloud(result, require=("cluster",))
     try:
         gt = load_ground_truth(ground_truth, cloud)
     except UnknownFieldError as exc:
@@ -258,8 +260,7 @@ def eval_(result: Path, ground_truth: str, tolerance: float, ground_values: tupl
             close = difflib.get_close_matches(ground_label, names, n=1)
             raise click.BadParameter(f"no label {ground_label!r} in {js} (labels: {', '.join(names) or 'none'})"
                                      + (f"; did you mean {close[0]!r}?" if close else ""), param_hint="--ground-label")
-        if "label" not in cloud.fields:
-            raise CloudFileError(str(result), "not a kbs result: no per-vertex 'label' field")
+        require_fields(cloud, result, ("label",))
         index = names.index(ground_label)
         ground = ground_metrics(np.asarray(cloud.fields["label"]) == index, gt, ground_values=ground_values,
                                 unlabelled_values=unlabelled)

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import re
 import shutil
 import tempfile
@@ -364,7 +363,7 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
         run_id = write_result_pair(points, js, pc.xyz, fields, doc, run_id=new_run_id(), las=las, comments=comments,
                                    pieces=seg.pieces() if spilled is not None else None)
         if spilled is not None and (meshes or report):  # the whole result, read back, for the meshes and the page
-            written = json.loads(js.read_text(encoding="utf-8"))
+            written = read_result_json(js, require=("clusters", "explanation"))
             clusters, doc["explanation"] = written["clusters"], written["explanation"]
             seg = dataclasses.replace(seg, columns={k: np.asarray(v) for k, v in seg.columns.items()})
     if tiling is not None:
@@ -817,10 +816,22 @@ _SCHEMA_LINE = re.compile(r"^(#\s*yaml-language-server:\s*\$schema=)(\S+)(.*)$")
 
 @rules.command("show")
 @click.argument("name")
-def rules_show(name: str) -> None:
+@click.option("--engine", "engine", is_flag=True,
+              help="Print the engine settings the rule base uses instead, one a line: value (and the default when "
+                   "it differs), allowed values, what it does.")
+@plugin_option
+def rules_show(name: str, engine: bool, plugins: tuple[Path, ...]) -> None:
     """Print a shipped rule base (or a rule file). Its editor schema line points at the installed
     schema (a file URI), so that `kbs rules show outdoor > my.yaml` keeps completion and checks in
     editors that read it (yaml-language-server)."""
+    if engine:
+        from kbs.knowledge.engine_settings import settings_lines
+
+        rb = load_rule_base(name, _registry(plugins))
+        click.echo(f"engine settings of '{rb.name}' ({rb.path}):")
+        for line in settings_lines(rb.engine):
+            click.echo(f"  {line}")
+        return
     _, text = resolve(name)
     first, sep, rest = text.partition("\n")
     m = _SCHEMA_LINE.match(first)
@@ -831,9 +842,21 @@ def rules_show(name: str) -> None:
 
 @rules.command("schema")
 @click.option("--json", "as_json", is_flag=True, help="Print the schema itself instead of its path.")
-def rules_schema(as_json: bool) -> None:
+@click.option("--engine", "engine", is_flag=True,
+              help="Print the settings of the rule file's engine: section instead, one a line: name, default, "
+                   "allowed values, what it does.")
+def rules_schema(as_json: bool, engine: bool) -> None:
     """Print the installed path of the rule files' JSON Schema (for editors: yaml-language-server's
     `$schema=` line, VS Code's yaml.schemas)."""
+    if as_json and engine:
+        raise click.UsageError("--json and --engine exclude each other")
+    if engine:
+        from kbs.knowledge.engine_settings import settings_lines
+
+        click.echo("engine: section of a rule file (name = default: allowed values. what it does):")
+        for line in settings_lines():
+            click.echo(f"  {line}")
+        return
     path = _schema_path()
     click.echo(path.read_text(encoding="utf-8") if as_json else str(path), nl=not as_json)
 

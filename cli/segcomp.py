@@ -9,14 +9,13 @@ import numpy as np
 from kbs.errors import CloudFileError
 from kbs.evaluation.segcomp import image_region_normals, segmentation_to_image
 from kbs.io import PointCloud
-from kbs.io.result import read_result_cloud
+from kbs.io.result import read_result_cloud, require_fields
 from kbs.io.segcomp import FIRST_REGION_LABEL, read_sunraster, write_ms_nor, write_ms_seg
 
 
 def _result_arrays(result: Path, cloud: PointCloud) -> tuple[np.ndarray, np.ndarray]:
     """The result's per-point ``cluster`` and ``pixel``, or a one-line error saying what is missing."""
-    if "cluster" not in cloud.fields:
-        raise CloudFileError(str(result), "no 'cluster' field: not a `kbs run` result")
+    require_fields(cloud, result, ("cluster",))
     if "pixel" not in cloud.fields:
         raise CloudFileError(
             str(result),

@@ -31,7 +31,9 @@ from kbs.inference._validation import (
 )
 from kbs.inference.engine import fcm_fit, gg_fit, gg_memberships, memberships_in_chunks, new_prototype_memberships
 from kbs.inference.kernels import memberships_from_sq_dist, sq_euclidean
-from kbs.inference.ufp_onc import ENGINE_CONSTRAINTS, FitSet, prepare_fit_set, ufp_onc
+from kbs.inference.settings import FIT_DEFAULTS as _D
+from kbs.inference.settings import constraints
+from kbs.inference.ufp_onc import FitSet, prepare_fit_set, ufp_onc
 
 
 class NotFittedError(ParameterError, _SklearnNotFittedError):
@@ -162,18 +164,17 @@ class FuzzyCMeans(_FuzzyBase):
     dropped_ : tuple of DroppedCluster
     """
 
+    #: the engine settings' constraints are the table's (:mod:`kbs.inference.settings`)
     _constraints = {
         "n_clusters": [Interval(numbers.Integral, 1, None)],
-        "m": ENGINE_CONSTRAINTS["m"],
+        **constraints(("m", "tol", "max_iter", "min_cluster_size")),
         "init": [Options(("incremental", "k-means++")), ArrayLike()],
-        "tol": ENGINE_CONSTRAINTS["tol"],
-        "max_iter": ENGINE_CONSTRAINTS["max_iter"],
-        "min_cluster_size": ENGINE_CONSTRAINTS["min_cluster_size"],
         "random_state": [Interval(numbers.Integral, 0, None), NoneValue(), RandomStateLike()],
     }
 
-    def __init__(self, n_clusters: int = 2, *, m: float = 2.0, init="incremental", tol: float = 1e-4,
-                 max_iter: int = 300, min_cluster_size: float | None = None, random_state=None) -> None:
+    def __init__(self, n_clusters: int = 2, *, m: float = _D["m"], init="incremental", tol: float = _D["tol"],
+                 max_iter: int = _D["max_iter"], min_cluster_size: float | None = _D["min_cluster_size"],
+                 random_state=None) -> None:
         self.n_clusters = n_clusters
         self.m = m
         self.init = init
@@ -261,18 +262,20 @@ class GathGeva(_FuzzyBase):
     dropped_ : tuple of DroppedCluster
     """
 
+    #: the engine settings' constraints are the table's (:mod:`kbs.inference.settings`)
     _constraints = {
-        **{k: ENGINE_CONSTRAINTS[k] for k in ("m", "center_power", "tol", "fcm_tol", "max_iter", "fcm_max_iter",
-                                             "min_variance", "max_condition", "min_cluster_size")},
+        **constraints(("m", "center_power", "tol", "fcm_tol", "max_iter", "fcm_max_iter", "min_variance",
+                       "max_condition", "min_cluster_size")),
         "n_clusters": [Interval(numbers.Integral, 1, None)],
         "init": [Options(("incremental", "fcm")), ArrayLike()],
         "random_state": FuzzyCMeans._constraints["random_state"],
     }
 
-    def __init__(self, n_clusters: int = 2, *, m: float = 2.0, center_power: float | None = None,
-                 init="incremental", tol: float = 1e-4, fcm_tol: float = 1e-3, max_iter: int = 300,
-                 fcm_max_iter: int = 100, min_variance: float = 1e-6, max_condition: float = 1e4,
-                 min_cluster_size: float | None = None, random_state=None) -> None:
+    def __init__(self, n_clusters: int = 2, *, m: float = _D["m"], center_power: float | None = _D["center_power"],
+                 init="incremental", tol: float = _D["tol"], fcm_tol: float = _D["fcm_tol"],
+                 max_iter: int = _D["max_iter"], fcm_max_iter: int = _D["fcm_max_iter"],
+                 min_variance: float = _D["min_variance"], max_condition: float = _D["max_condition"],
+                 min_cluster_size: float | None = _D["min_cluster_size"], random_state=None) -> None:
         self.n_clusters = n_clusters
         self.m = m
         self.center_power = center_power

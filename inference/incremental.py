@@ -32,7 +32,12 @@ from kbs.errors import FitError
 from kbs.inference._validation import check_points, validate_params
 from kbs.inference.engine import GGState, fcm_fit, gg_fit, new_prototype_memberships
 from kbs.inference.kernels import validity
-from kbs.inference.ufp_onc import ENGINE_CONSTRAINTS, KPartition, prepare_fit_set
+from kbs.inference.settings import DEFAULTS, constraints
+from kbs.inference.ufp_onc import KPartition, prepare_fit_set
+
+#: the table's constraints of the settings IncrementalSweep takes (:mod:`kbs.inference.settings`)
+_CONSTRAINTS = constraints(("m", "center_power", "tol", "fcm_tol", "max_iter", "fcm_max_iter", "min_variance",
+                            "max_condition", "min_cluster_size", "max_fit_points", "voxel_size", "chunk_size"))
 
 
 class IncrementalSweep:
@@ -50,16 +55,18 @@ class IncrementalSweep:
         Events worth telling a user (layers that hit max_iter, prototypes that died).
     """
 
-    def __init__(self, X: np.ndarray, *, m: float = 2.0, center_power: float | None = None, tol: float = 1e-3,
-                 fcm_tol: float = 1e-3, max_iter: int = 100, fcm_max_iter: int = 100, min_variance: float = 1e-6,
-                 max_condition: float = 1e4, min_cluster_size: float | None = None,
-                 max_fit_points: int | None = 6000, voxel_size: float | None = None,
-                 chunk_size: int = 65536) -> None:
+    def __init__(self, X: np.ndarray, *, m: float = DEFAULTS["m"], center_power: float | None = DEFAULTS["center_power"],
+                 tol: float = DEFAULTS["tol"], fcm_tol: float = DEFAULTS["fcm_tol"], max_iter: int = DEFAULTS["max_iter"],
+                 fcm_max_iter: int = DEFAULTS["fcm_max_iter"], min_variance: float = DEFAULTS["min_variance"],
+                 max_condition: float = DEFAULTS["max_condition"],
+                 min_cluster_size: float | None = DEFAULTS["min_cluster_size"],
+                 max_fit_points: int | None = DEFAULTS["max_fit_points"], voxel_size: float | None = DEFAULTS["voxel_size"],
+                 chunk_size: int = DEFAULTS["chunk_size"]) -> None:
         params = dict(m=m, center_power=center_power, tol=tol, fcm_tol=fcm_tol, max_iter=max_iter,
                       fcm_max_iter=fcm_max_iter, min_variance=min_variance, max_condition=max_condition,
                       min_cluster_size=min_cluster_size, max_fit_points=max_fit_points, voxel_size=voxel_size,
                       chunk_size=chunk_size)
-        validate_params("IncrementalSweep", params, {k: v for k, v in ENGINE_CONSTRAINTS.items() if k in params})
+        validate_params("IncrementalSweep", params, _CONSTRAINTS)
         X = check_points(X, owner="IncrementalSweep")
         w = np.ones(X.shape[0])
         self.fit = prepare_fit_set(X, w, max_fit_points=max_fit_points, voxel_size=voxel_size)

@@ -10,7 +10,6 @@ cloud about the vertical) and memberships are then computed for every point in b
 """
 from __future__ import annotations
 
-import numbers
 import time
 from dataclasses import dataclass, field
 from collections.abc import Callable
@@ -18,7 +17,7 @@ from collections.abc import Callable
 import numpy as np
 
 from kbs.errors import FitError, ParameterError
-from kbs.inference._validation import Interval, NoneValue, Options, check_points, check_weights, validate_params
+from kbs.inference._validation import check_points, check_weights, validate_params
 from kbs.inference.engine import (
     DroppedCluster,
     GGState,
@@ -30,27 +29,11 @@ from kbs.inference.engine import (
     worst_point_memberships,
 )
 from kbs.inference.kernels import FlooredGaussians, Moments, validity
+from kbs.inference.settings import DEFAULTS, UFP_ONC_CONSTRAINTS
 from kbs.inference.voxel import HorizontalFrame, auto_voxel_size, bounds, ladder_size, voxel_reduce
 
-#: Allowed values of the engine settings, declared as data.
-ENGINE_CONSTRAINTS: dict[str, list] = {
-    "k_max": [Interval(numbers.Integral, 1, None)],
-    "m": [Interval(numbers.Real, 1, None, closed="neither")],
-    "center_power": [Interval(numbers.Real, 1, None), NoneValue()],
-    "tol": [Interval(numbers.Real, 0, None, closed="neither")],
-    "fcm_tol": [Interval(numbers.Real, 0, None, closed="neither")],
-    "max_iter": [Interval(numbers.Integral, 1, None)],
-    "fcm_max_iter": [Interval(numbers.Integral, 1, None)],
-    "min_variance": [Interval(numbers.Real, 0, None, closed="neither")],
-    "max_condition": [Interval(numbers.Real, 1, None)],
-    "min_cluster_size": [Interval(numbers.Real, 0, None, closed="neither"), NoneValue()],
-    "new_prototype": [Options(("distance", "worst"))],
-    "stop": [Options(("k_max", "first_max"))],
-    "min_k": [Interval(numbers.Integral, 1, None)],
-    "max_fit_points": [Interval(numbers.Integral, 10, None), NoneValue()],
-    "voxel_size": [Interval(numbers.Real, 0, None, closed="neither"), NoneValue()],
-    "chunk_size": [Interval(numbers.Integral, 1, None)],
-}
+#: Allowed values of ufp_onc's settings: the table's (:mod:`kbs.inference.settings`).
+ENGINE_CONSTRAINTS: dict[str, list] = UFP_ONC_CONSTRAINTS
 
 
 @dataclass(frozen=True)
@@ -205,27 +188,29 @@ def prepare_fit_set(X: np.ndarray, w: np.ndarray, *, max_fit_points: int | None,
 
 def ufp_onc(
     X: np.ndarray,
-    k_max: int = 10,
+    k_max: int = DEFAULTS["k_max"],
     *,
     sample_weight: np.ndarray | None = None,
-    m: float = 2.0,
-    center_power: float | None = None,
-    tol: float = 1e-3,
-    fcm_tol: float = 1e-3,
-    max_iter: int = 100,
-    fcm_max_iter: int = 100,
-    min_variance: float = 1e-6,
-    max_condition: float = 1e4,
-    min_cluster_size: float | None = None,
-    new_prototype: str = "distance",
-    stop: str = "k_max",
-    min_k: int = 1,
-    max_fit_points: int | None = 6000,
-    voxel_size: float | None = None,
-    chunk_size: int = 65536,
+    m: float = DEFAULTS["m"],
+    center_power: float | None = DEFAULTS["center_power"],
+    tol: float = DEFAULTS["tol"],
+    fcm_tol: float = DEFAULTS["fcm_tol"],
+    max_iter: int = DEFAULTS["max_iter"],
+    fcm_max_iter: int = DEFAULTS["fcm_max_iter"],
+    min_variance: float = DEFAULTS["min_variance"],
+    max_condition: float = DEFAULTS["max_condition"],
+    min_cluster_size: float | None = DEFAULTS["min_cluster_size"],
+    new_prototype: str = DEFAULTS["new_prototype"],
+    stop: str = DEFAULTS["stop"],
+    min_k: int = DEFAULTS["min_k"],
+    max_fit_points: int | None = DEFAULTS["max_fit_points"],
+    voxel_size: float | None = DEFAULTS["voxel_size"],
+    chunk_size: int = DEFAULTS["chunk_size"],
     progress: Callable[[KPartition], None] | None = None,
 ) -> UFPONCResult:
     """Run UFP-ONC on points ``X`` (n, D) for K = 1 .. k_max.
+
+    The settings' allowed values, defaults and docs are the table of :mod:`kbs.inference.settings`.
 
     Parameters
     ----------

@@ -10,7 +10,10 @@ format:
   ``scalar_label``, ``scalar_membership`` (:data:`PLY_NAMES`): CloudCompare's PLY filter loads a
   vertex property as a scalar field when its name contains "scal" (and strips a ``scalar_``
   prefix), and leaves any other unassigned. kbs's readers (:func:`read_result_cloud`) read them,
-  and the plain ``cluster``, ``label``, ``membership`` of results written before, under the plain names.
+  and the plain ``cluster``, ``label``, ``membership`` of results written before, under the plain names;
+  a cloud without the fields a command needs is refused in one way (:func:`require_fields`), by
+  ``kbs render``, ``kbs eval``, ``kbs segcomp`` and the report alike. No module outside ``kbs.io``
+  spells these names or parses a result JSON itself (tests/test_result_owner.py).
 
 - **Writing.** :func:`write_result_pair` writes both files to temporary files beside them and
   moves them into place together (:func:`kbs.io.atomic.replacing`): if anything fails (a full
@@ -26,8 +29,8 @@ format:
 - **Format version.** The JSON's first keys ``"format": "kbs-result"`` and ``"version":
   "MAJOR.MINOR"`` (:data:`RESULT_FORMAT`, :data:`RESULT_VERSION`; :mod:`kbs.formats`): a reader
   reads every minor version of its major one and refuses a newer major version, saying to upgrade
-  kbs (:func:`read_result_json`, through which ``kbs explain``, ``kbs eval``, ``kbs render`` and
-  the report read). Results written before read as version 1.0: those with the integer
+  kbs (:func:`read_result_json`, through which ``kbs explain``, ``kbs eval``, ``kbs render``,
+  the report and ``kbs run``'s read-back of a streamed result read). Results written before read as version 1.0: those with the integer
   ``result_format`` key of kbs 0.1 (its value is the major version), and those without any
   (kbs before run ids), which have no run id to check either. Version 1.1 added the
   explanation's own ``format``/``version`` and its catalogue of the rule base's checks, rules and
@@ -381,21 +384,46 @@ def points_file(js: Path, doc: Mapping[str, Any]) -> Path:
     return js.with_suffix(suffix if suffix in (".ply", ".las", ".laz") else ".ply")
 
 
-def read_result_cloud(path: str | os.PathLike[str]) -> PointCloud:
+def read_result_cloud(path: str | os.PathLike[str], *, require: Iterable[str] = ()) -> PointCloud:
     """A result's points file (PLY, LAS, LAZ) read with :func:`kbs.io.read_cloud`, its result
     fields under their plain names: ``scalar_cluster`` read as ``cluster`` (and so on for
-    :data:`RESULT_FIELDS`) when there is no plain one."""
+    :data:`RESULT_FIELDS`) when there is no plain one.
+
+    ``require``: result fields (of :data:`RESULT_FIELDS`) the file must have
+    (:func:`require_fields`)."""
     cloud = read_cloud(path)
     renamed = {PLY_NAMES[k]: k for k in RESULT_FIELDS if PLY_NAMES[k] in cloud.fields and k not in cloud.fields}
-    if not renamed:
-        return cloud
-    fields = {renamed.get(name, name): values for name, values in cloud.fields.items()}
-    return dataclasses.replace(cloud, fields=fields)
+    if renamed:
+        fields = {renamed.get(name, name): values for name, values in cloud.fields.items()}
+        cloud = dataclasses.replace(cloud, fields=fields)
+    require_fields(cloud, path, require)
+    return cloud
 
 
-def read_result_pair(path: str | os.PathLike[str], *, require: Iterable[str] = ()) -> tuple[dict[str, Any], PointCloud]:
+def require_fields(cloud: PointCloud, path: str | os.PathLike[str], names: Iterable[str]) -> None:
+    """Refuse a result cloud without the result fields ``names`` (per-vertex ``cluster``,
+    ``label``, ``membership``): one CloudFileError naming what is missing."""
+    missing = [n for n in names if n not in cloud.fields]
+    if missing:
+        what = " and ".join(repr(n) for n in missing)
+        raise CloudFileError(os.fspath(path), f"not a kbs result: no per-vertex {what} field"
+                                              f"{'s' if len(missing) > 1 else ''} (write one with kbs run)")
+
+
+def result_label_names(doc: Mapping[str, Any], path: str | os.PathLike[str]) -> list[str]:
+    """A result document's ``label_names`` (index = the per-vertex ``label``), checked to be a
+    list of names."""
+    names = doc.get("label_names")
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise CloudFileError(os.fspath(path), "not a kbs result file ('label_names' is not a list of names)")
+    return names
+
+
+def read_result_pair(path: str | os.PathLike[str], *, require: Iterable[str] = (),
+                     fields: Iterable[str] = ()) -> tuple[dict[str, Any], PointCloud]:
     """Read a result: ``RESULT.json`` and its points file (``RESULT.ply``, or the LAS/LAZ file its
-    ``points`` key names), checked to be one result.
+    ``points`` key names), checked to be one result. ``require``: keys the JSON must have;
+    ``fields``: result fields the points must have.
 
     Returns
     -------
@@ -413,7 +441,7 @@ def read_result_pair(path: str | os.PathLike[str], *, require: Iterable[str] = (
     if not points.is_file():
         raise CloudFileError(str(points), "no such file (the points of the result, written next to its .json)")
     check_pair(points, js, doc)
-    return doc, read_result_cloud(points)
+    return doc, read_result_cloud(points, require=fields)
 
 
 # -- telling kbs's own files from others -----------------------------------------------------------

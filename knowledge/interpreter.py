@@ -14,6 +14,7 @@ import numpy as np
 
 from kbs.errors import FitError, KbsError
 from kbs.inference import UFPONCResult, ufp_onc
+from kbs.knowledge.engine_settings import UFP_ONC_RULE_SETTINGS
 from kbs.knowledge.explain import NO_LABEL
 from kbs.knowledge.predicates import Ground
 from kbs.knowledge.rulebase import RuleBase
@@ -91,10 +92,10 @@ class Interpreter:
     # -- engine --------------------------------------------------------------------------------
 
     def _ufp_kwargs(self, stop: str, min_k: int = 1) -> dict[str, Any]:
+        """ufp_onc's keywords: the rule file's engine settings that are ufp_onc's (the table of
+        kbs.inference.settings says which), and the caller's ``stop`` and ``min_k``."""
         e = self.rb.engine
-        return {"k_max": e["k_max"], "m": e["m"], "tol": e["tol"], "fcm_tol": e["fcm_tol"], "max_iter": e["max_iter"],
-                "min_variance": e["min_variance"], "max_condition": e["max_condition"],
-                "new_prototype": e["new_prototype"], "stop": stop, "min_k": min_k, "max_fit_points": e["max_fit_points"]}
+        return {**{s.name: e[s.name] for s in UFP_ONC_RULE_SETTINGS}, "stop": stop, "min_k": min_k}
 
     def _ufp_onc(self, X: np.ndarray, stop: str, min_k: int = 1) -> UFPONCResult:
         return ufp_onc(X, **self._ufp_kwargs(stop, min_k))

@@ -33,15 +33,15 @@ import yaml.cyaml  # noqa: F401 (libyaml when present)
 from jsonschema import Draft202012Validator
 
 from kbs.errors import ExitCode, KbsError
+from kbs.knowledge.engine_settings import ENGINE_DEFAULTS as _ENGINE_DEFAULTS
 from kbs.knowledge.predicates import Predicate, PredicateRegistry, did_you_mean
 
 SCHEMA_FILE = "rule-base.schema.json"
 ACTIONS = ("split", "split_components", "reject")
 
-ENGINE_DEFAULTS: dict[str, Any] = {
-    "m": 2.0, "k_max": 10, "initial_k": "first_apd_max", "max_fit_points": 6000, "min_variance": 1e-6,
-    "max_condition": 1e4, "tol": 1e-3, "fcm_tol": 1e-3, "max_iter": 100, "new_prototype": "distance", "split_min_k": 1,
-}
+#: The engine section's defaults, its allowed values (the schema's engine part) and docs: the
+#: engine's table of settings (kbs.inference.settings, read by kbs.knowledge.engine_settings).
+ENGINE_DEFAULTS: Mapping[str, Any] = _ENGINE_DEFAULTS
 #: Limits are per cluster. max_clusters (None: absent) is an optional cap on the whole split tree,
 #: which makes a point's result depend on the rest of the file; no shipped rule base sets it.
 LIMIT_DEFAULTS: dict[str, Any] = {"max_depth": 8, "min_points": 30, "max_clusters": None}

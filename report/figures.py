@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from kbs.errors import CloudFileError, require
+from kbs.errors import require
 from kbs.geometry.pca import plane_basis, principal_axes
 from kbs.report.colors import NOISE_RGB, colors_for
 from kbs.report.view import View
@@ -62,11 +62,8 @@ def load_result(path: str | Path) -> Result:
     from kbs.io.result import read_result_pair
 
     path = Path(path)
-    doc, pc = read_result_pair(path, require=("clusters", "label_names"))  # refuses two runs' files
-    ply = path.with_suffix(".ply")
-    missing = [f for f in ("cluster", "label") if f not in pc.fields]
-    if missing:
-        raise CloudFileError(str(ply), f"not a kbs result cloud (no {', '.join(missing)} field)")
+    # refuses two runs' files, and points without their cluster and label
+    doc, pc = read_result_pair(path, require=("clusters", "label_names"), fields=("cluster", "label"))
     n = len(pc)
     return Result(doc=doc, X=np.asarray(pc.xyz, dtype=np.float64),
                   cluster=np.asarray(pc.fields["cluster"]).astype(np.int64),
