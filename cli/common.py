@@ -165,7 +165,7 @@ def setting_type(name: str) -> click.ParamType:
     takes its other kind)."""
     import numbers
 
-    from kbs.inference._validation import Interval, Options
+    from kbs.inference import Interval, Options
     from kbs.inference.settings import SETTINGS
 
     c = SETTINGS[name].allowed[0]

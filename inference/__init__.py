@@ -2,7 +2,7 @@
 cluster geometry. Arrays in, arrays and result objects out; knows nothing of rules or files."""
 from __future__ import annotations
 
-from kbs.inference._validation import Interval, validate_params
+from kbs.inference._validation import Interval, NoneValue, Options, validate_params
 from kbs.inference.engine import DroppedCluster
 from kbs.inference.geometry import ClusterGeometry, angle_between_planes, cluster_geometry
 from kbs.inference.ufp_onc import KPartition, UFPONCResult, first_local_max, ufp_onc
@@ -13,7 +13,8 @@ __all__ = [
     "DroppedCluster", "ClusterGeometry", "cluster_geometry", "angle_between_planes",
     "VoxelReduction", "voxel_reduce", "auto_voxel_size",
     # the declarative parameter checks the engine uses, public for the scene generators (kbs.synth)
-    "Interval", "validate_params",
+    # and the engine-settings table's readers (the rule files, the command line)
+    "Interval", "Options", "NoneValue", "validate_params",
 ]
 
 

@@ -15,7 +15,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from kbs.inference._validation import Interval, NoneValue, Options
+from kbs.inference import Interval, NoneValue, Options
 from kbs.inference.settings import Constraint, Setting, format_default, rule_file_settings
 
 #: The defaults of a rule file's engine section (those of the engine), in the section's order.
