@@ -64,10 +64,14 @@ def machine() -> dict[str, str]:
 
 
 def _strip(o):
+    """The JSON without what differs between runs of the same thing; the repository's folder
+    (in the paths of the examples' rule files) written as <ROOT>."""
     if isinstance(o, dict):
         return {k: _strip(v) for k, v in o.items() if k not in VOLATILE}
     if isinstance(o, list):
         return [_strip(v) for v in o]
+    if isinstance(o, str) and str(ROOT) in o:
+        return o.replace(str(ROOT), "<ROOT>")
     return o
 
 
