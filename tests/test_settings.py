@@ -25,22 +25,11 @@ from kbs.inference.ufp_onc import ENGINE_CONSTRAINTS, ufp_onc
 from kbs.knowledge import PredicateRegistry
 from kbs.knowledge.engine_settings import engine_schema, render_readme, render_schema, schema_path
 from kbs.knowledge.rulebase import parse_rule_base, schema
+from test_knowledge import MINIMAL
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 
-MINIMAL = """\
-kbs_rules: 1
-name: t
-units: m
-strategy: divisive
-checks:
-  planar: {predicate: thickness, max: 0.05}
-rules:
-  - {name: PAh, if: not planar, then: split}
-labels:
-  - {name: plane}
-"""
 
 
 def _settings_of(fn) -> dict[str, inspect.Parameter]:
