@@ -98,12 +98,7 @@ def segcomp_table(
     adjacency = grid_adjacency(gt)
     gt_normals: Mapping[int, np.ndarray] | None = None
     if xyz is not None:
-        X = np.asarray(xyz, dtype=np.float64)
-        where = np.asarray(pixel)
-        if X.ndim != 2 or X.shape[1] != 3 or where.shape != (len(X),) or where.dtype.kind not in "iu":
-            raise ParameterError(f"xyz must be (n, 3) and pixel (n,) integers, got {X.shape} and {where.shape}")
-        if where.size and (where.min() < 0 or where.max() >= gt_flat.size):
-            raise ParameterError(f"pixel indices must be in [0, {gt_flat.size})")
+        X, where = _points_on_image(xyz, pixel, gt_flat.size)
         gt_normals = region_normals(X, gt_flat[where], np.unique(gt_flat[gt_flat >= FIRST_REGION_LABEL]))
         if ms_normals is None:
             ms_normals = region_normals(X, ms_flat[where], np.unique(ms_flat[ms_flat >= FIRST_REGION_LABEL]))
@@ -248,12 +243,7 @@ def image_region_normals(labels_image: np.ndarray, xyz: np.ndarray, pixel: np.nd
         Inconsistent arrays, or a region with fewer than 3 points.
     """
     labels = np.asarray(labels_image)
-    X = np.asarray(xyz, dtype=np.float64)
-    where = np.asarray(pixel)
-    if X.ndim != 2 or X.shape[1] != 3 or where.shape != (len(X),) or where.dtype.kind not in "iu":
-        raise ParameterError(f"xyz must be (n, 3) and pixel (n,) integers, got {X.shape} and {where.shape}")
-    if where.size and (where.min() < 0 or where.max() >= labels.size):
-        raise ParameterError(f"pixel indices must be in [0, {labels.size})")
+    X, where = _points_on_image(xyz, pixel, labels.size)
     point_label = labels.ravel()[where]
     normals: dict[int, np.ndarray] = {}
     for label in np.unique(labels[labels >= FIRST_REGION_LABEL]):
@@ -264,3 +254,15 @@ def image_region_normals(labels_image: np.ndarray, xyz: np.ndarray, pixel: np.nd
         normal = normal / np.linalg.norm(normal)
         normals[int(label)] = -normal if normal[2] < 0 else normal
     return normals
+
+
+def _points_on_image(xyz, pixel, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """``xyz`` (n, 3) as float64 and ``pixel`` (n,) integer indices into an image of ``size``
+    pixels, checked (:class:`ParameterError` otherwise)."""
+    X = np.asarray(xyz, dtype=np.float64)
+    where = np.asarray(pixel)
+    if X.ndim != 2 or X.shape[1] != 3 or where.shape != (len(X),) or where.dtype.kind not in "iu":
+        raise ParameterError(f"xyz must be (n, 3) and pixel (n,) integers, got {X.shape} and {where.shape}")
+    if where.size and (where.min() < 0 or where.max() >= size):
+        raise ParameterError(f"pixel indices must be in [0, {size})")
+    return X, where

@@ -137,7 +137,7 @@ def unpartitioned(ctx: RunContext, root: Node, records: dict[str, ClusterRecord]
         ctx.stop(rec, "unpartitioned", "it cannot be split: the engine could not partition these points")
     else:
         rec.action = action.key
-    leaves = () if rec.action == "reject" or not (action.divides or action.keeps) else (Leaf(child, cl, rec),)
+    leaves = (Leaf(child, cl, rec),) if action.divides or action.keeps else ()  # not kept: noise
     return Judged(ctx.X, leaves, scene, records, info)
 
 

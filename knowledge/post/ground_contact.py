@@ -8,6 +8,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from kbs.knowledge.parts import PostContext, PostStep, SpecContext
+from kbs.knowledge.predicates import Scene
 from kbs.knowledge.post._surface import needs_surface, receive, surface_batches, take
 from kbs.knowledge.rulebase import Condition, SourcePos
 from kbs.knowledge.state import PostState
@@ -68,8 +69,7 @@ class GroundContact(PostStep):
             return state
         gl = surface.spec.label
         unit = ctx.rule_base.length_unit
-        scene = type(state.scene)(state.scene.sensor, state.scene.ground, state.scene.unit,
-                                  ground_model=surface.model)
+        scene = Scene(state.scene.sensor, state.scene.ground, state.scene.unit, ground_model=surface.model)
         leaves = list(state.leaves)
         moved_in: dict[int, list] = {}
         todo = [li for li, lf in enumerate(leaves) if lf.label in self.sources and lf.label != gl and lf.size

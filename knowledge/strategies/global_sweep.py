@@ -131,10 +131,9 @@ class GlobalSweep(Strategy):
                 else:
                     run.stop(rec, "unpartitioned", f"it cannot be split: no partition of the scene beyond K = {k} "
                                                    "(every new prototype died)")
-            elif act is not None and not act.keeps:
+            elif act is not None and not act.keeps:  # reject: its points are noise
                 continue
-            if rec.action != "reject":
-                leaves.append(Leaf(node, cl, rec))
+            leaves.append(Leaf(node, cl, rec))
         return Judged(X, tuple(leaves), scene, records, ground_info, tuple(notes), tuple(steps))
 
     @staticmethod
