@@ -160,7 +160,7 @@ class LocalGround:
         q = d.shape[0]
         if _flags.JIT:  # the same medians, compiled: one pass over the rows, no (q, k) temporaries
             owners = self.owners if self.owners is not None else np.zeros(0, dtype=np.int64)
-            return _compiled.local_medians(np.ascontiguousarray(d), np.ascontiguousarray(i, dtype=np.int64),
+            return _compiled.local_medians_fast(np.ascontiguousarray(d), np.ascontiguousarray(i, dtype=np.int64),
                                            self.heights, np.ascontiguousarray(owners, dtype=np.int64), own,
                                            self.neighbours)
         ground = np.full(q, np.nan)

@@ -1046,3 +1046,54 @@ def slope_lowest(Q, T, heights, owners, own, ny, start, order, lo, side, rise, r
                             best = v
         out[k] = best
     return out
+
+
+# -- the local ground surface's medians, without a sort per row ---------------------------------
+
+
+@njit(cache=True, nogil=True)
+def local_medians_fast(d, idx, heights, owners, own, neighbours):
+    """:func:`local_medians` with the same outputs, without an array allocated per row: the kept
+    heights are insertion-sorted in one buffer as they are found. The only values a sort may
+    place differently are +0.0 and -0.0 (equal, of another sign); a row whose median takes a zero
+    is done again with ``np.sort`` of the heights in found order, as :func:`local_medians` does,
+    so every output is bit for bit its."""
+    q, k = d.shape
+    ground = np.full(q, np.nan)
+    nearest = np.full(q, -1, dtype=np.int64)
+    buf = np.empty(max(neighbours, 1))
+    for r in range(q):
+        m = 0
+        for c in range(k):
+            if m >= neighbours:
+                break
+            if not np.isfinite(d[r, c]):
+                continue
+            i = idx[r, c]
+            if own >= 0 and owners[i] == own:
+                continue
+            if m == 0:
+                nearest[r] = i
+            v = heights[i]
+            j = m
+            while j > 0 and buf[j - 1] > v:  # insertion: the buffer stays sorted
+                buf[j] = buf[j - 1]
+                j -= 1
+            buf[j] = v
+            m += 1
+        if m:
+            a = buf[(m - 1) // 2]
+            b = buf[m // 2]
+            if a == 0.0 or b == 0.0:  # a signed zero: numpy's sort of the found order decides
+                n = 0
+                for c in range(k):
+                    if n >= m:
+                        break
+                    if np.isfinite(d[r, c]) and not (own >= 0 and owners[idx[r, c]] == own):
+                        buf[n] = heights[idx[r, c]]
+                        n += 1
+                s = np.sort(buf[:m])
+                a = s[(m - 1) // 2]
+                b = s[m // 2]
+            ground[r] = 0.5 * (a + b)
+    return ground, nearest

@@ -28,6 +28,8 @@ def warm() -> None:
     idx = rng.integers(0, 100, (50, 16)).astype(np.int64)
     C.local_medians(d, idx, rng.random(100), rng.integers(0, 3, 100).astype(np.int64), 1, 8)
     C.local_medians(d, idx, rng.random(100), np.zeros(0, dtype=np.int64), -1, 8)
+    C.local_medians_fast(d, idx, rng.random(100), rng.integers(0, 3, 100).astype(np.int64), 1, 8)
+    C.local_medians_fast(d, idx, rng.random(100), np.zeros(0, dtype=np.int64), -1, 8)
     U = np.ascontiguousarray(X[:3000, :2])  # the connexity kernels (kbs.geometry.connexity)
     degree = C.connexity_degrees(U, np.ones(len(U), dtype=np.int64), 0.5, 4.0 * len(U) + 4096.0)
     C.connexity_components(U, degree >= np.median(degree) * 0.3, 0.5, True, 4.0 * len(U) + 4096.0)
