@@ -654,6 +654,49 @@ def test_height_bounds_hold_every_answer_of_the_query():
     assert far.height_bounds(P) is None
 
 
+def _bound_surfaces(shared_data):
+    """Surfaces for the bounds' tests: a tilted random one, three points, points on cell edges
+    (a lattice of the fine cells' side), and the SemanticKITTI scan's ground."""
+    rng = np.random.default_rng(31)
+    X = np.column_stack([rng.uniform(0, 60, 8000), rng.uniform(0, 60, 8000), rng.normal(0, 0.3, 8000)])
+    X[:, 2] += 0.05 * X[:, 0]
+    g = np.arange(0.0, 12.0, 0.5)  # on the edges of cells of radius / 6 = 0.5
+    L = np.column_stack([np.repeat(g, g.size), np.tile(g, g.size), rng.choice([-0.0, 0.0, 0.2], g.size ** 2)])
+    K = np.load(shared_data / "semantickitti" / "000001.points.npy")[:, :3].astype(np.float64)
+    labels = np.load(shared_data / "semantickitti" / "000001.labels.npy").ravel()
+    return {"random": X, "three": X[:3] * [0.03, 0.03, 1.0], "lattice": L, "semantickitti": K[np.isin(labels, [9, 10, 11, 12, 17])]}
+
+
+@pytest.mark.parametrize("surface", ["random", "three", "lattice", "semantickitti"])
+def test_compiled_bound_grids_and_bounds_are_the_numpy_ones(shared_data, monkeypatch, surface):
+    """LocalGround.height_bounds compiled (surface_blocks: one pass over the points, no sort;
+    surface_bounds: no temporaries) against the numpy reference: the same block grids and the
+    same bounds, for points inside, on cell edges, outside the grid and NaN."""
+    from kbs.inference import _compiled, _flags
+
+    X = _bound_surfaces(shared_data)[surface]
+    model = LocalGround.build(X, np.arange(len(X)), np.array([0.0, 0.0, 1.0]), np.zeros(3), neighbours=16, radius=3.0)
+    T = model.tree.data
+    assert np.array_equal(model.tree.mins, T.min(axis=0)) and np.array_equal(model.tree.maxes, T.max(axis=0))
+    monkeypatch.setattr(_flags, "JIT", False)
+    for side, reach in ((3.0 * 1.001, 1), (0.5, 3)):
+        ref = model._block_grid(side, reach)
+        got = _compiled.surface_blocks(T, model.heights, ref.origin, side, *ref.shape, reach)
+        for a, b in zip(ref.blocks, got):
+            np.testing.assert_array_equal(a, b)
+    rng = np.random.default_rng(32)
+    lo_xy, hi_xy = X[:, :2].min(axis=0) - 5.0, X[:, :2].max(axis=0) + 5.0
+    P = np.vstack([X[::3], np.column_stack([rng.uniform(lo_xy, hi_xy, (3000, 2)), rng.normal(0, 1, 3000)]),
+                   [[np.nan, 0.0, 0.0], [1e12, 0.0, 0.0], [X[0, 0] + 0.5, X[0, 1], 0.0]]])
+    ref = model.height_bounds(P)
+    monkeypatch.setattr(_flags, "JIT", True)
+    model2 = LocalGround.build(X, np.arange(len(X)), np.array([0.0, 0.0, 1.0]), np.zeros(3), neighbours=16, radius=3.0)
+    got = model2.height_bounds(P)
+    np.testing.assert_array_equal(ref[0], got[0])
+    np.testing.assert_array_equal(ref[1], got[1])
+    assert np.isfinite(got[0]).sum() > len(X[::3]) * 0.9
+
+
 @pytest.mark.parametrize("reach", [1, 3])
 def test_block_reductions_are_those_of_every_block(reach):
     """The separable block minimum, maximum and sum of the bounds' grids equal a direct loop over
