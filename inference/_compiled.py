@@ -1054,16 +1054,17 @@ def slope_lowest(Q, T, heights, owners, own, ny, start, order, lo, side, rise, r
 @njit(cache=True, nogil=True)
 def local_medians_fast(d, idx, heights, owners, own, neighbours):
     """:func:`local_medians` with the same outputs, without an array allocated per row: the kept
-    heights are insertion-sorted in one buffer as they are found. The only values a sort may
-    place differently are +0.0 and -0.0 (equal, of another sign); a row whose median takes a zero
-    is done again with ``np.sort`` of the heights in found order, as :func:`local_medians` does,
-    so every output is bit for bit its."""
+    heights are insertion-sorted in one buffer as they are found. Sorted values are unique bit for
+    bit except for +0.0 and -0.0 (equal, of another sign) and NaN (unordered): a row that keeps a
+    zero or a NaN is done again with ``np.sort`` of the heights in found order, as
+    :func:`local_medians` does, so every output is bit for bit its."""
     q, k = d.shape
     ground = np.full(q, np.nan)
     nearest = np.full(q, -1, dtype=np.int64)
     buf = np.empty(max(neighbours, 1))
     for r in range(q):
         m = 0
+        odd = False  # a zero or a NaN kept
         for c in range(k):
             if m >= neighbours:
                 break
@@ -1075,6 +1076,8 @@ def local_medians_fast(d, idx, heights, owners, own, neighbours):
             if m == 0:
                 nearest[r] = i
             v = heights[i]
+            if not (v < 0.0 or v > 0.0):
+                odd = True
             j = m
             while j > 0 and buf[j - 1] > v:  # insertion: the buffer stays sorted
                 buf[j] = buf[j - 1]
@@ -1084,7 +1087,7 @@ def local_medians_fast(d, idx, heights, owners, own, neighbours):
         if m:
             a = buf[(m - 1) // 2]
             b = buf[m // 2]
-            if a == 0.0 or b == 0.0:  # a signed zero: numpy's sort of the found order decides
+            if odd:  # numpy's sort of the found order decides where each zero (or NaN) goes
                 n = 0
                 for c in range(k):
                     if n >= m:

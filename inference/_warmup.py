@@ -38,9 +38,10 @@ def warm() -> None:
     C.slope_lowest(U[:50].copy(), U, X[:3000, 2].copy(), np.zeros(3000, dtype=np.int64), 0, ny, start, order, lo,
                    1.0, 0.8, 1.0)
     nx, ny = int((U[:, 0].max() - lo[0]) / 0.5) + 5, int((U[:, 1].max() - lo[1]) / 0.5) + 5  # the surface's bounds
-    blocks = C.surface_blocks(U, X[:3000, 2].copy(), lo - 2.0, 0.5, nx, ny, 3)
+    b_lo, b_hi, n3 = C.surface_blocks(U, X[:3000, 2].copy(), lo - 2.0, 0.5, nx, ny, 3)
     for narrow in (False, True):
-        C.surface_bounds(U[:50].copy(), np.full(50, np.inf), np.full(50, -np.inf), lo - 2.0, 0.5, *blocks, 8, narrow)
+        C.surface_bounds(U[:50].copy(), np.full(50, np.inf), np.full(50, -np.inf), lo - 2.0, 0.5, b_lo, b_hi, n3, 8,
+                         narrow)
     _flags.marker().write_text(_flags._stamp())
 
 

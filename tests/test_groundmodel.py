@@ -218,11 +218,12 @@ def _median_rows(d, idx, heights, owners, own, neighbours):
 @pytest.mark.parametrize("own", [-1, 0, 1])
 def test_median_kernel_without_a_sort_per_row_is_the_old_one_at_ties(own):
     """local_medians_fast (insertion into one buffer) against local_medians (np.sort per row), bit
-    for bit: equal heights, +0.0 and -0.0 at the median positions, duplicate positions (equal
+    for bit: equal heights, +0.0 and -0.0 at the median positions, NaN, duplicate positions (equal
     distances), rows with fewer points than neighbours (the radius reached) and none."""
     rng = np.random.default_rng(21)
     m, q, k = 300, 2000, 48
     heights = rng.choice(np.array([-0.0, 0.0, 0.0, -0.0, 0.1, -0.1, 0.2, 1.5, 0.1]), m)  # signed zeros, repeats
+    heights[::37] = np.nan  # never on a surface (its tree refuses them), but the kernels agree there too
     owners = rng.integers(0, 3, m)
     d = np.sort(rng.choice(np.array([0.0, 0.5, 0.5, 1.0, 2.0, 3.0]), (q, k)), axis=1)  # distance ties
     d[rng.random((q, k)) < 0.2] = np.inf
