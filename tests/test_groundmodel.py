@@ -698,34 +698,6 @@ def test_compiled_bound_grids_and_bounds_are_the_numpy_ones(shared_data, monkeyp
     assert np.isfinite(got[0]).sum() > len(X[::3]) * 0.9
 
 
-def test_released_points_nearest_target_is_the_balanced_tree_s(shared_data, monkeypatch):
-    """ground_release's nearest target point (post._surface.Nearest: a cheaper tree, asked for two)
-    is cKDTree(T).query's: on SemanticKITTI (obstacle points the targets, ground points the
-    queries), and at ties: queries halfway between lattice points, duplicate targets, a single
-    target. The tied queries are those asked again on the balanced tree."""
-    from scipy.spatial import cKDTree
-
-    from kbs.knowledge.post import _surface
-
-    X = np.load(shared_data / "semantickitti" / "000001.points.npy")[:, :3].astype(np.float64)
-    ground = np.isin(np.load(shared_data / "semantickitti" / "000001.labels.npy").ravel(), [9, 10, 11, 12, 17])
-    g = np.arange(0.0, 5.0, 0.25)
-    L = np.column_stack([np.repeat(g, g.size), np.tile(g, g.size), np.zeros(g.size ** 2)])
-    rng = np.random.default_rng(41)
-    cases = [(X[~ground], X[ground][::5]),
-             (L, np.vstack([L + [0.125, 0.0, 0.0], L + [0.125, 0.125, 0.0], L[::7] + [0.0, 0.0, 0.3]])),
-             (np.vstack([L, L[::3]]), L[::2] + rng.normal(0, 0.01, (len(L[::2]), 3))),
-             (L[:1], L[::9])]
-    asked = []
-    real = _surface.Nearest._exact_tree
-    monkeypatch.setattr(_surface.Nearest, "_exact_tree", lambda self: asked.append(1) or real(self))
-    for T, x in cases:
-        asked.clear()
-        got = _surface.Nearest(T).query(x)
-        np.testing.assert_array_equal(got, cKDTree(T).query(x)[1])
-        assert asked or T is cases[0][0]  # the ties (and the single target) asked the balanced tree
-
-
 @pytest.mark.parametrize("reach", [1, 3])
 def test_block_reductions_are_those_of_every_block(reach):
     """The separable block minimum, maximum and sum of the bounds' grids equal a direct loop over

@@ -3,7 +3,6 @@ the surface for batches of leaves at once."""
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
-from typing import Any
 
 import numpy as np
 
@@ -77,43 +76,3 @@ def surface_batches(X: np.ndarray, todo: Sequence[Leaf], model,
             start, stop = stop, stop + b.size
             yield h[start:stop], nearest[start:stop]
         batch, size = [], 0
-
-
-class Nearest:
-    """The nearest of points ``T`` (m, d) to queries, as ``cKDTree(T).query(x)[1]`` gives them,
-    on a tree that is cheaper to build (unbalanced, not compacted: 2-3x faster for 40k points).
-    Trees of other shapes may differ only where two points are at the same distance from a query
-    (which one comes first is the tree's choice): the cheaper tree is asked for the two nearest,
-    and a query whose two are not apart by more than a margin (squared: 1e-12 (1 + c^2), c the
-    largest coordinate; the trees' pruning rounds squared distances to their cells by a few
-    units of 2e-16 c^2 per step of a descent) is asked again on ``cKDTree(T)``, built then. On
-    SemanticKITTI 000001 no released point needs it."""
-
-    def __init__(self, T: np.ndarray) -> None:
-        self.T = T
-        self._fast: Any = None
-        self._exact: Any = None
-
-    def query(self, x: np.ndarray, workers: int = 1) -> np.ndarray:
-        """Positions in ``T`` (q,) of the nearest point to each row of ``x`` (q, d)."""
-        from scipy.spatial import cKDTree
-
-        if self.T.shape[0] < 2:
-            return self._exact_tree().query(x, workers=workers)[1]
-        if self._fast is None:
-            self._fast = cKDTree(self.T, balanced_tree=False, compact_nodes=False)
-        d, j = self._fast.query(x, k=2, workers=workers)
-        c = max(float(np.abs(self._fast.mins).max()), float(np.abs(self._fast.maxes).max()),
-                float(np.abs(x).max()) if x.size else 0.0)
-        unsure = ~(d[:, 0] * d[:, 0] < d[:, 1] * d[:, 1] - 1e-12 * (1.0 + c * c))
-        out = j[:, 0].copy()
-        if unsure.any():
-            out[unsure] = self._exact_tree().query(x[unsure], workers=workers)[1]
-        return out
-
-    def _exact_tree(self) -> Any:
-        from scipy.spatial import cKDTree
-
-        if self._exact is None:
-            self._exact = cKDTree(self.T)
-        return self._exact

@@ -8,7 +8,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from kbs.knowledge.parts import PostContext, PostStep, SpecContext
-from kbs.knowledge.post._surface import Nearest, needs_surface, receive, surface_batches, take
+from kbs.knowledge.post._surface import needs_surface, receive, surface_batches, take
 from kbs.knowledge.rulebase import SourcePos
 from kbs.knowledge.state import PostState
 
@@ -48,6 +48,8 @@ class GroundRelease(PostStep):
         return cls(float(tol), raw["to"], ctx.pos(ctx.path, key=True))
 
     def apply(self, state: PostState, ctx: PostContext) -> PostState:
+        from scipy.spatial import cKDTree
+
         surface = state.surface
         if surface is None or not surface.model.n_points:
             return state
@@ -62,7 +64,7 @@ class GroundRelease(PostStep):
         X = ctx.X
         t_idx = np.concatenate([leaves[li].node.idx for li in targets])
         t_owner = np.concatenate([np.full(leaves[li].size, li) for li in targets])
-        tree = Nearest(X[t_idx])  # the nearest target point of each released point
+        tree = cKDTree(X[t_idx])
         moved_in: dict[int, list] = {}
         total = 0
         todo = [li for li, lf in enumerate(leaves) if lf.label == gl and lf.size]
@@ -76,7 +78,7 @@ class GroundRelease(PostStep):
             n_move, size = int(move.sum()), lf.size
             if not n_move:
                 continue
-            j = tree.query(X[lf.node.idx[move]], workers=ctx.jobs if n_move >= 4096 else 1)
+            _, j = tree.query(X[lf.node.idx[move]], workers=ctx.jobs if n_move >= 4096 else 1)
             leaves[li], dest = take(lf, move, t_owner[j], moved_in)
             rec = lf.record
             rec.released = n_move
