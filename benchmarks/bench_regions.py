@@ -26,8 +26,8 @@ from kbs.knowledge import Segmenter
 from kbs.tiles import segment_tiled
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-TUNE = ["samp11", "samp12", "samp51"]                    # benchmarks/splits.yaml, airborne
-VALIDATE = ["samp21", "samp31", "samp61", "4_6_crop"]    # (sample_c is 83 m: no tile would cut it)
+TUNE = ["samp11", "samp12", "samp51", "autzen_trim"]     # benchmarks/splits.yaml, airborne
+VALIDATE = ["samp21", "samp31", "samp61", "4_6_crop"]    # (sample_c is 83 m wide: one 100 m tile)
 
 
 def load(name: str, seg: Segmenter) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
