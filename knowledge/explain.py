@@ -19,7 +19,7 @@ rules and checks without their docs.
 from __future__ import annotations
 
 from collections.abc import Iterator, Mapping
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from typing import TYPE_CHECKING, Any
 
 from kbs.formats import Version, document_version
@@ -243,9 +243,11 @@ class APDCurve:
                          for k, a in zip(self.ks, self.apd))
 
 
-@dataclass
+@dataclass(frozen=True)
 class ClusterRecord:
-    """Everything decided about one cluster.
+    """Everything decided about one cluster (frozen: the run builds a new record with
+    ``dataclasses.replace`` or :meth:`noted` where it decides more; lists given for the sequence
+    fields are kept as tuples).
 
     ``action`` is one of 'accept', 'split' (UFP-ONC), 'split_components', 'reject' (noise),
     'limit' (it should have been split but a limit stopped it; it is kept as it is), 'partition'
@@ -256,24 +258,34 @@ class ClusterRecord:
     parent: str | None
     depth: int
     n_points: int
-    descriptors: dict[str, Any] = field(default_factory=dict)
-    checks: list[CheckRecord] = field(default_factory=list)
+    descriptors: Mapping[str, Any] = field(default_factory=dict)
+    checks: tuple[CheckRecord, ...] = ()
     action: str = "accept"
     rule: str | None = None
     rule_source: str | None = None
-    children: list[str] = field(default_factory=list)
+    children: tuple[str, ...] = ()
     label: str | None = None
     apd: APDCurve | None = None
-    notes: list[str] = field(default_factory=list)
+    notes: tuple[str, ...] = ()
     output_index: int | None = None  #: value of the per-point 'cluster' property, None if none
-    decisive: list[str] = field(default_factory=list)  #: checks of the condition that decided
+    decisive: tuple[str, ...] = ()  #: checks of the condition that decided
     #: set when a post.relabel rule changed the label: {rule, source, from, to, checks}
-    relabel: dict[str, Any] | None = None
+    relabel: Mapping[str, Any] | None = None
     contact: int = 0  #: points that left it for the ground (post.ground_contact)
     released: int = 0  #: points that left this ground cluster, standing above the surface (post.ground_release)
     #: set when action is 'limit': what stopped the split, {kind, setting, value}, e.g.
     #: {'kind': 'max_depth', 'setting': 'limits.max_depth', 'value': 12} (kinds: interpreter.STOP_KINDS)
-    limit: dict[str, Any] | None = None
+    limit: Mapping[str, Any] | None = None
+
+    def __post_init__(self) -> None:
+        for name in _SEQUENCES:
+            value = getattr(self, name)
+            if not isinstance(value, tuple):
+                object.__setattr__(self, name, tuple(value))
+
+    def noted(self, *notes: str) -> ClusterRecord:
+        """This record with ``notes`` added at the end of its notes."""
+        return replace(self, notes=self.notes + notes)
 
     def decisive_checks(self) -> list[CheckRecord]:
         names = set(self.decisive)
@@ -286,6 +298,24 @@ class ClusterRecord:
     def first_label(self) -> str | None:
         """The label its labels' conditions gave it, before any relabel rule."""
         return self.relabel["from"] if self.relabel else self.label
+
+    def to_dict(self) -> dict[str, Any]:
+        """The record as plain data (what ``dataclasses.asdict`` gives, with lists for its
+        sequences, without its deep copies): one of the ``clusters`` of an explanation's
+        dictionary form."""
+        d = dict(vars(self))
+        d["checks"] = [dict(vars(c)) for c in self.checks]
+        d["apd"] = None if self.apd is None else {"ks": list(self.apd.ks), "apd": list(self.apd.apd),
+                                                  "chosen": self.apd.chosen}
+        d["children"], d["notes"], d["decisive"] = list(self.children), list(self.notes), list(self.decisive)
+        d["descriptors"] = dict(self.descriptors)
+        d["relabel"] = None if self.relabel is None else dict(self.relabel)
+        d["limit"] = None if self.limit is None else dict(self.limit)
+        return d
+
+
+#: The fields of a :class:`ClusterRecord` that are sequences (tuples).
+_SEQUENCES = ("checks", "children", "notes", "decisive")
 
 
 #: How many records a tree may have to be printed whole by default (``kbs explain`` without
@@ -342,7 +372,7 @@ class Explanation:
         })
         if self.catalogue is not None:
             d["catalogue"] = self.catalogue.to_dict()
-        d["clusters"] = [_record_dict(r) for r in self.walk()]
+        d["clusters"] = [r.to_dict() for r in self.walk()]
         if self.sweep:
             d["sweep"] = self.sweep
         return d
@@ -813,16 +843,6 @@ def _fmt(v: Any) -> str:
     if isinstance(v, (list, tuple)):
         return "[" + ", ".join(_fmt(x) for x in v) + "]"
     return str(v)
-
-
-def _record_dict(r: ClusterRecord) -> dict[str, Any]:
-    """A record as plain data (what ``dataclasses.asdict`` gives, without its deep copies)."""
-    d = dict(vars(r))
-    d["checks"] = [dict(vars(c)) for c in r.checks]
-    d["apd"] = None if r.apd is None else {"ks": list(r.apd.ks), "apd": list(r.apd.apd), "chosen": r.apd.chosen}
-    d["children"], d["notes"], d["decisive"] = list(r.children), list(r.notes), list(r.decisive)
-    d["limit"] = None if r.limit is None else dict(r.limit)
-    return d
 
 
 #: For each kind of stop (``Segmentation.limits_by_kind``): the words of its summary line.

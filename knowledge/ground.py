@@ -11,11 +11,11 @@ from typing import Any
 import numpy as np
 
 from kbs.geometry.groundplane import robust_plane, supported_points
-from kbs.knowledge.explain import ClusterRecord
 from kbs.knowledge.predicates import Cluster, Ground, Scene
+from kbs.knowledge.state import Draft
 
 
-def find(run: Any, X: np.ndarray, candidates: list[tuple[Cluster, ClusterRecord]], info: dict) -> Ground | None:
+def find(run: Any, X: np.ndarray, candidates: list[tuple[Cluster, Draft]], info: dict) -> Ground | None:
     """The ground plane (scene.ground): fixed, or the closest large plane to the sensor among the
     candidates (the clusters of the initial partition with at least min_points points): a
     candidate passing the candidate check gives the plane of all its points; one that fails it
@@ -113,7 +113,7 @@ def _choose(run: Any, X: np.ndarray, planes: list[tuple]) -> tuple:
         p[7]["supported"] = supported_points(X, p[2], p[3], p[6], support.min_height, support.max_height)
     return min(planes, key=lambda p: (-p[7]["supported"], p[0]))
 
-def _candidate_plane(run: Any, cl: Cluster, rec: ClusterRecord, provisional: Scene) -> dict[str, Any]:
+def _candidate_plane(run: Any, cl: Cluster, rec: Draft, provisional: Scene) -> dict[str, Any]:
     """How a ground candidate gives a plane: ``plane`` (normal, point, its points) or None,
     ``method``, and what was measured."""
     spec = run.rule_base.ground

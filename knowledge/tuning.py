@@ -28,11 +28,10 @@ from collections.abc import Callable, Mapping
 
 import numpy as np
 
-from kbs.knowledge.explain import ClusterRecord
 from kbs.knowledge.interpreter import Interpreter, Segmentation
 from kbs.knowledge.predicates import PredicateRegistry
 from kbs.knowledge.rulebase import RuleBase, Tunable, parse_rule_base
-from kbs.knowledge.state import Judged, Leaf
+from kbs.knowledge.state import Judged
 
 # a plain YAML scalar (a number, as the validation made sure) from its first character: up to a
 # space, a comment, or the end of a flow collection's item
@@ -120,20 +119,10 @@ def registry_of(rule_base: RuleBase) -> PredicateRegistry:
     return reg
 
 
-def _fresh(rec: ClusterRecord) -> ClusterRecord:
-    """A copy of a leaf's record as it was before labelling (its lists copied)."""
-    out = copy.copy(rec)
-    out.checks, out.notes, out.decisive = list(rec.checks), list(rec.notes), list(rec.decisive)
-    return out
-
-
 def _fresh_judged(judged: Judged) -> Judged:
-    """A copy of a strategy's outcome that labelling and the post steps may write to."""
-    leaves = tuple(Leaf(lf.node, lf.cluster, _fresh(lf.record)) for lf in judged.leaves)
-    records = {k: _fresh(r) for k, r in judged.records.items()}
-    records.update({lf.id: lf.record for lf in leaves})
-    return dataclasses.replace(judged, leaves=leaves, records=records, ground_info=copy.deepcopy(judged.ground_info),
-                               notes=tuple(judged.notes))
+    """A strategy's outcome to label again: its records are frozen (labelling and the post steps
+    give the leaves new ones); its ground section is copied, the post steps write to it."""
+    return dataclasses.replace(judged, ground_info=copy.deepcopy(judged.ground_info))
 
 
 class _Recorder(Interpreter):

@@ -302,3 +302,53 @@ def test_the_readme_run_and_explain_block_is_what_kbs_prints(tmp_path):
                 continue
             assert line in got[at:], f"README line not printed (in order) by `{command}`:\n{line}"
             at = got.index(line, at) + 1
+
+
+# -- 7. the records are frozen ------------------------------------------------------------------------
+
+
+def test_the_records_of_a_run_and_of_a_result_file_are_frozen(example):
+    """Nothing writes a cluster's record in place: the run builds new ones, and a record read back
+    from a result file cannot be changed either (its sequences are tuples)."""
+    import dataclasses
+
+    from kbs.knowledge import Explanation
+
+    doc = json.loads(example.read_text())
+    expl = Explanation.from_dict(doc["explanation"])
+    rec = expl["c1"]
+    assert isinstance(rec.checks, tuple) and isinstance(rec.children, tuple) and isinstance(rec.notes, tuple)
+    for field, value in (("label", "ground"), ("notes", ()), ("output_index", 3), ("action", "reject")):
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            setattr(rec, field, value)
+    with pytest.raises(AttributeError):
+        rec.notes.append("x")  # type: ignore[attr-defined]
+    # a new record instead; the explanation's dictionary form is the file's, unchanged
+    assert rec.noted("x").notes == rec.notes + ("x",) and expl["c1"] is rec
+    assert expl.to_dict()["clusters"] == doc["explanation"]["clusters"]
+
+
+def test_a_run_leaves_the_records_it_was_handed_unchanged():
+    """Labelling and the post steps give the leaves new records: the strategy's records (what
+    ``kbs tune`` labels again) are as the strategy left them."""
+    from kbs.knowledge import Interpreter, load_rule_base
+    from scenes import ground_and_rocks
+
+    class Keeping(Interpreter):
+        judged = None
+
+        def finish(self, judged, t0):
+            self.judged = judged  # as the strategy handed it on, not a copy
+            return super().finish(judged, t0)
+
+    X, _ = ground_and_rocks()
+    it = Keeping(load_rule_base("outdoor"))
+    seg = it.run(X)
+    judged = it.judged
+    assert judged is not None and all(lf.record.label is None for lf in judged.leaves)
+    assert all(r.output_index is None for r in judged.records.values())
+    final = seg.explanation.records
+    assert {lf.id for lf in judged.leaves} <= set(final)
+    assert all(final[lf.id].label is not None and final[lf.id].output_index is not None for lf in judged.leaves)
+    again = Interpreter(load_rule_base("outdoor")).finish(judged, 0.0)
+    assert np.array_equal(again.label, seg.label) and again.explanation.to_dict() == seg.explanation.to_dict()

@@ -222,8 +222,9 @@ def _explanation(tiles, results, offsets, roots, out_of_root, shared, stitched, 
         children.append(f"{t.name}/{e.root}")
         for rec in tile_records(t.name, e, int(offsets[k]), roots, out_of_root, shared, stitched):
             records[rec.id] = rec
-    records[ROOT] = ClusterRecord(id=ROOT, parent=None, depth=0, n_points=n, action="partition", children=children,
-                                  notes=[f"{len(tiles)} tiles: " + ", ".join(t.bounds_text() for t in tiles)])
+    records[ROOT] = ClusterRecord(id=ROOT, parent=None, depth=0, n_points=n, action="partition",
+                                  children=tuple(children),
+                                  notes=(f"{len(tiles)} tiles: " + ", ".join(t.bounds_text() for t in tiles),))
     sources = sorted({str(g.get("source", "not used")) for g in grounds.values()})
     if given is not None and given:
         ground = {**given, "tiles": grounds}

@@ -345,8 +345,8 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], summaries: Sequ
     notes = [f"{len(tiles)} tiles; {k_st} output cluster{'s' if k_st != 1 else ''} stitched across tile edges",
              *[f"{t.name}: {note}" for t, s in zip(tiles, summaries) for note in s.notes]]
     root_record = ClusterRecord(id=ROOT, parent=None, depth=0, n_points=n, action="partition",
-                                children=[f"{t.name}/{s.root}" for t, s in zip(tiles, summaries)],
-                                notes=[f"{len(tiles)} tiles: " + ", ".join(t.bounds_text() for t in tiles)])
+                                children=tuple(f"{t.name}/{s.root}" for t, s in zip(tiles, summaries)),
+                                notes=(f"{len(tiles)} tiles: " + ", ".join(t.bounds_text() for t in tiles),))
     ground = {**given, "tiles": grounds} if given else \
         {"source": f"per tile ({', '.join(sorted({str(g.get('source', 'not used')) for g in grounds.values()}))})",
          "tiles": grounds}
@@ -569,9 +569,7 @@ class StreamedResult:
     def records(self) -> Iterator[dict[str, Any]]:
         """The explanation's records in its order, as plain data (``to_dict``'s): the root, then
         each tile's, read from its file (:func:`kbs.tiles.stitch.stitched_record`)."""
-        from kbs.knowledge.explain import _record_dict
-
-        yield _record_dict(self.explanation.records[ROOT])
+        yield self.explanation.records[ROOT].to_dict()
         for k, t in enumerate(self._tiles):
             with np.load(self._store.path(t), allow_pickle=False) as f:
                 doc = json.loads(bytes(f["doc"]).decode("utf-8"))

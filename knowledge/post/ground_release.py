@@ -79,14 +79,13 @@ class GroundRelease(PostStep):
             if not n_move:
                 continue
             _, j = tree.query(X[lf.node.idx[move]], workers=ctx.jobs if n_move >= 4096 else 1)
-            leaves[li], dest = take(lf, move, t_owner[j], moved_in)
-            rec = lf.record
-            rec.released = n_move
+            taken, dest = take(lf, move, t_owner[j], moved_in)
             total += n_move
             ids = [leaves[t].id for t in dest]
-            rec.notes.append(f"{n_move:,} of its {size:,} points stand more than {tol:g} {unit} above the "
-                             f"local ground surface and joined {self.target} cluster{'s' if len(ids) > 1 else ''} "
-                             f"{', '.join(ids[:5])}{' ...' if len(ids) > 5 else ''} [{self.pos.short} ground_release]")
+            leaves[li] = taken.with_record(released=n_move, notes=(
+                f"{n_move:,} of its {size:,} points stand more than {tol:g} {unit} above the "
+                f"local ground surface and joined {self.target} cluster{'s' if len(ids) > 1 else ''} "
+                f"{', '.join(ids[:5])}{' ...' if len(ids) > 5 else ''} [{self.pos.short} ground_release]",))
         local["released"] = total
         receive(leaves, moved_in, "{n} points released by ground clusters joined it (the nearest "
                 f"{self.target} cluster) [{self.pos.short} ground_release]")

@@ -83,16 +83,20 @@ class Relabel(PostStep):
         post_scene = Scene(scene.sensor, scene.ground, scene.unit,
                            ground_model=surface.model if surface is not None else None)
         changed = 0
-        for lf in state.leaves:
-            rec = lf.record
+        leaves = list(state.leaves)
+        for i, lf in enumerate(leaves):
+            fact = ctx.fact(lf.cluster, post_scene, lf.record)
             for r in self.rules:
-                if rec.label != r.source or not r.condition.evaluate(ctx.fact(lf.cluster, post_scene, rec)):
+                if lf.label != r.source or not r.condition.evaluate(fact):
                     continue
-                rec.relabel = {"rule": r.name, "source": r.pos.short, "from": r.source, "to": r.target,
-                               "checks": ctx.names(r.condition)}
-                rec.label = r.target
+                leaves[i] = lf.with_record(fact.record, label=r.target, relabel={
+                    "rule": r.name, "source": r.pos.short, "from": r.source, "to": r.target,
+                    "checks": ctx.names(r.condition)})
                 changed += 1
                 break
+            else:
+                leaves[i] = lf.with_record(fact.record)  # with the checks measured
+        state = replace(state, leaves=tuple(leaves))
         if surface is None:
             return state
         local = ctx.ground_info["local_model"]
