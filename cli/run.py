@@ -410,7 +410,8 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
     if not quiet:
         for w in spacing:
             click.echo(f"kbs: warning: {name}: {w}", err=True)
-        for note in seg.explanation.notes + ([seg.explanation.ground["note"]] if "note" in seg.explanation.ground else []):
+        ground_note = seg.explanation.ground.note
+        for note in seg.explanation.notes + ([ground_note] if ground_note is not None else []):
             click.echo(f"note: {note}", err=True)
     return ScanResult(cloud, len(pc), s["clusters"], t_read, seg.seconds, t_write)
 

@@ -23,6 +23,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from typing import TYPE_CHECKING, Any
 
 from kbs.formats import Version, document_version
+from kbs.knowledge.groundfacts import GroundFacts
 
 if TYPE_CHECKING:
     from kbs.knowledge.rulebase import Condition, RuleBase
@@ -333,7 +334,8 @@ class Explanation:
     label_names: list[str]
     records: dict[str, ClusterRecord]
     root: str
-    ground: dict[str, Any] = field(default_factory=dict)
+    #: how the ground plane was found, and what the steps on the local ground surface did
+    ground: GroundFacts = field(default_factory=GroundFacts)
     notes: list[str] = field(default_factory=list)
     #: the rule base's checks, rules and labels (None: an explanation read from a version 1.0 file)
     catalogue: Catalogue | None = None
@@ -367,7 +369,7 @@ class Explanation:
         d: dict[str, Any] = {"format": EXPLANATION_FORMAT, "version": str(EXPLANATION_VERSION)}
         d.update({
             "rule_base": self.rule_base, "rule_file": self.rule_file, "strategy": self.strategy,
-            "label_names": list(self.label_names), "root": self.root, "ground": self.ground,
+            "label_names": list(self.label_names), "root": self.root, "ground": self.ground.to_dict(),
             "notes": list(self.notes),
         })
         if self.catalogue is not None:
@@ -399,7 +401,7 @@ class Explanation:
             records[r["id"]] = ClusterRecord(**r)
         cat = d.get("catalogue")
         return cls(rule_base=d["rule_base"], rule_file=d["rule_file"], strategy=d["strategy"],
-                   label_names=list(d["label_names"]), records=records, root=d["root"], ground=d.get("ground", {}),
+                   label_names=list(d["label_names"]), records=records, root=d["root"], ground=GroundFacts.from_dict(d.get("ground")),
                    notes=list(d.get("notes", [])), catalogue=None if cat is None else Catalogue.from_dict(cat),
                    sweep=list(d.get("sweep", [])))
 
@@ -677,43 +679,42 @@ class Explanation:
         robust plane (77 % of its 44,197 points within 0.1), 4.09 m from the sensor, normal
         [-0.019, 0.038, 0.999], 2.4 deg from the fallback normal'."""
         g = self.ground
-        if not g or "source" not in g:
+        if g.source is None:
             return "not used"
-        parts = [str(g["source"])]
-        method = g.get("method")
-        if method == "robust plane":
-            parts.append(f"its robust plane ({g['inlier_share']:.0%} of its points, {g['inliers']:,}, on it)")
-        elif method:
-            parts.append(f"it passes {method.removeprefix('check ')}")
-        if g.get("supported") is not None:  # scene.ground.choose supporting: why this cluster won
-            parts.append(f"{g['supported']:,} points standing on it")
-        if g.get("distance") is not None:  # of the nearest point of its plane: why this cluster won
-            unit = f" {g['unit']}" if g.get("unit") else ""
-            parts.append(f"{g['distance']:.2f}{unit} from the sensor")
-        if g.get("normal") is not None:
-            parts.append("normal [" + ", ".join(f"{x:.3f}".replace("-0.000", "0.000") for x in g["normal"]) + "]")
-        if g.get("angle_to_fallback") is not None:
-            parts.append(f"{g['angle_to_fallback']:.1f} deg from the fallback normal")
+        parts = [str(g.source)]
+        if g.method == "robust plane":
+            parts.append(f"its robust plane ({g.inlier_share:.0%} of its points, {g.inliers:,}, on it)")
+        elif g.method:
+            parts.append(f"it passes {g.method.removeprefix('check ')}")
+        if g.supported is not None:  # scene.ground.choose supporting: why this cluster won
+            parts.append(f"{g.supported:,} points standing on it")
+        if g.distance is not None:  # of the nearest point of its plane: why this cluster won
+            unit = f" {g.unit}" if g.unit else ""
+            parts.append(f"{g.distance:.2f}{unit} from the sensor")
+        if g.normal is not None:
+            parts.append("normal [" + ", ".join(f"{x:.3f}".replace("-0.000", "0.000") for x in g.normal) + "]")
+        if g.angle_to_fallback is not None:
+            parts.append(f"{g.angle_to_fallback:.1f} deg from the fallback normal")
         return ", ".join(parts)
 
     def ground_text(self) -> str:
         """The ground plane, then every ground candidate's verdict and the fallback's reason."""
         out = [f"ground: {self.ground_line()}"]
-        unit = f" {self.ground['unit']}" if self.ground.get("unit") else ""
-        for v in self.ground.get("candidates", []):
-            what = [f"{v['points']:,} points"]
-            if v.get("inlier_share") is not None:
-                what.append(f"{v['inlier_share']:.0%} on its robust plane")
-            if v.get("distance") is not None:
-                what.append(f"{v['distance']:.2f}{unit} from the sensor")
-            if v.get("supported") is not None:
-                what.append(f"{v['supported']:,} points standing on it")
-            method = v.get("method")
-            verdict = v["why"] if v.get("why") else "no plane" if not method else \
+        unit = f" {self.ground.unit}" if self.ground.unit else ""
+        for v in self.ground.candidates or ():
+            what = [f"{v.points:,} points"]
+            if v.inlier_share is not None:
+                what.append(f"{v.inlier_share:.0%} on its robust plane")
+            if v.distance is not None:
+                what.append(f"{v.distance:.2f}{unit} from the sensor")
+            if v.supported is not None:
+                what.append(f"{v.supported:,} points standing on it")
+            method = v.method
+            verdict = v.why if v.why else "no plane" if not method else \
                 "a plane: it passes " + method.removeprefix("check ") if method.startswith("check ") else f"a plane: its {method}"
-            out.append(f"  candidate {v['cluster']}: {', '.join(what)}: {verdict}")
-        if "note" in self.ground:
-            out.append(f"  note: {self.ground['note']}")
+            out.append(f"  candidate {v.cluster}: {', '.join(what)}: {verdict}")
+        if self.ground.note is not None:
+            out.append(f"  note: {self.ground.note}")
         return "\n".join(out)
 
     def why(self, cluster_id: str) -> str:

@@ -107,8 +107,6 @@ class PostContext(Protocol):
     rule_base: RuleBase
     #: processes the step may use (k-d tree queries)
     jobs: int
-    #: the explanation's ground section (a step writes what it did under its own key)
-    ground_info: dict[str, Any]
 
     def fact(self, cluster: Cluster, scene: Scene, record: ClusterRecord) -> Facts:
         """The outcome of a check on a cluster, measured once; ``.record`` is ``record`` with the

@@ -27,6 +27,7 @@ from kbs.inference import UFPONCResult
 from kbs.knowledge import ground as ground_search
 from kbs.knowledge.actions import DEFAULT
 from kbs.knowledge.explain import Catalogue, CheckRecord, ClusterRecord, Explanation
+from kbs.knowledge.groundfacts import GroundFacts
 from kbs.knowledge.parts import Action
 from kbs.knowledge.predicates import Cluster, Ground, PredicateError, Scene
 from kbs.knowledge.rulebase import Condition, RuleBase
@@ -62,9 +63,9 @@ def finish(ctx: RunContext, judged: Judged, t0: float) -> Segmentation:
     """3. label the leaves, 4. run the post steps, 5. the result."""
     rb = ctx.rule_base
     leaves = tuple(ctx.label(lf, judged.scene) for lf in judged.leaves)
-    state = PostState(leaves=leaves, scene=judged.scene)
+    state = PostState(leaves=leaves, scene=judged.scene, ground_facts=judged.ground_facts)
     if state.leaves:
-        post = PostContext(judged.X, rb, ctx.jobs, judged.ground_info, ctx.measure, ctx.names)
+        post = PostContext(judged.X, rb, ctx.jobs, ctx.measure, ctx.names)
         for step in rb.post:
             state = step.apply(state, post)
     return result(judged, state, rb, t0)
@@ -104,7 +105,7 @@ def result(judged: Judged, state: PostState, rb: RuleBase, t0: float) -> Segment
     records = dict(judged.records)
     records.update((lf.id, lf.record) for lf in leaves)  # the leaves' records as labelling and the steps left them
     expl = Explanation(rule_base=rb.name, rule_file=rb.path, strategy=rb.strategy, label_names=rb.label_names,
-                       records=records, root="c", ground=judged.ground_info, notes=list(judged.notes),
+                       records=records, root="c", ground=state.ground_facts, notes=list(judged.notes),
                        catalogue=Catalogue.of(rb), sweep=list(judged.sweep))
     return Segmentation(cluster=cluster, label=label, membership=membership, label_names=rb.label_names,
                         explanation=expl, clusters=out_clusters, seconds=time.perf_counter() - t0)
@@ -129,15 +130,15 @@ def unpartitioned(ctx: RunContext, root: Node, records: dict[str, Draft], exc: E
     root_draft.set(children=("c0",))
     cl, draft = ctx.record(child)
     records["c0"] = draft
-    info: dict[str, Any] = {}
-    scene = ctx.scene(ctx.ground([(cl, draft)], info))
+    ground, facts = ctx.ground([(cl, draft)])
+    scene = ctx.scene(ground)
     action, _ = ctx.judge(cl, scene, draft)
     if action.divides:
         ctx.stop(draft, "unpartitioned", "it cannot be split: the engine could not partition these points")
     else:
         draft.set(action=action.key)
     kept = [(child, cl, draft)] if action.divides or action.keeps else []  # not kept: noise
-    return Judged.of(ctx.X, kept, scene, records, info)
+    return Judged.of(ctx.X, kept, scene, records, facts)
 
 
 class Measuring:
@@ -180,7 +181,6 @@ class PostContext:
     X: np.ndarray
     rule_base: RuleBase
     jobs: int
-    ground_info: dict[str, Any]
     measure: Callable[[Cluster, Scene, ClusterRecord], Measuring]
     names: Callable[[Condition | None], list[str]]
 
@@ -217,7 +217,7 @@ class RunContext:
         return self.interpreter.progress
 
     @property
-    def given_ground(self) -> tuple[Ground | None, dict[str, Any]] | None:
+    def given_ground(self) -> tuple[Ground | None, GroundFacts] | None:
         return self.interpreter.given_ground
 
     # -- the engine ----------------------------------------------------------------------------
@@ -296,9 +296,10 @@ class RunContext:
         return cl, Draft(ClusterRecord(id=node.id, parent=node.parent, depth=node.depth, n_points=node.size,
                                        descriptors=descriptors, notes=notes))
 
-    def ground(self, candidates: list[tuple[Cluster, Draft]], info: dict[str, Any]) -> Ground | None:
-        """The ground plane, from the first partition's clusters (:func:`kbs.knowledge.ground.find`)."""
-        return ground_search.find(self, self.X, candidates, info)
+    def ground(self, candidates: list[tuple[Cluster, Draft]]) -> tuple[Ground | None, GroundFacts]:
+        """The ground plane, from the first partition's clusters, and the explanation's facts of it
+        (:func:`kbs.knowledge.ground.find`)."""
+        return ground_search.find(self, self.X, candidates)
 
     def scene(self, ground: Ground | None) -> Scene:
         return Scene(self.sensor, ground, self.rule_base.units)

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from kbs.knowledge.explain import APDCurve, CheckRecord, ClusterRecord
+from kbs.knowledge.groundfacts import GroundFacts
 from kbs.knowledge.predicates import Cluster, Measurement, Scene
 
 
@@ -150,17 +151,17 @@ class Judged:
     leaves: tuple[Leaf, ...]
     scene: Scene
     records: Mapping[str, ClusterRecord]
-    ground_info: dict[str, Any]
+    ground_facts: GroundFacts
     notes: tuple[str, ...] = ()
     sweep: tuple[dict[str, Any], ...] = ()
 
     @classmethod
     def of(cls, X: np.ndarray, kept: list[tuple[Node, Cluster, Draft]], scene: Scene, drafts: Mapping[str, Draft],
-           ground_info: dict[str, Any], notes: tuple[str, ...] = (), sweep: tuple[dict[str, Any], ...] = ()) -> Judged:
+           ground_facts: GroundFacts, notes: tuple[str, ...] = (), sweep: tuple[dict[str, Any], ...] = ()) -> Judged:
         """What a strategy hands on, its records frozen: the leaves ``kept`` (node, cluster, draft
         of its record, in order), the scene, the drafts of the whole tree's records by id."""
         return cls(X, tuple(Leaf(node, cl, d.record) for node, cl, d in kept), scene,
-                   {k: d.record for k, d in drafts.items()}, ground_info, notes, sweep)
+                   {k: d.record for k, d in drafts.items()}, ground_facts, notes, sweep)
 
 
 @dataclass(frozen=True)
@@ -184,5 +185,8 @@ class PostState:
 
     leaves: tuple[Leaf, ...]
     scene: Scene
+    #: the explanation's ground section: the ground search's facts, and what the steps on the
+    #: local ground surface did (:attr:`GroundFacts.local_model`)
+    ground_facts: GroundFacts = GroundFacts()
     surface: Surface | None = None
     groups: tuple[tuple[int, ...], ...] | None = None

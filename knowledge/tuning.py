@@ -17,7 +17,6 @@ full run of that rule base gives (the tests compare both).
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 import re
@@ -119,19 +118,13 @@ def registry_of(rule_base: RuleBase) -> PredicateRegistry:
     return reg
 
 
-def _fresh_judged(judged: Judged) -> Judged:
-    """A strategy's outcome to label again: its records are frozen (labelling and the post steps
-    give the leaves new ones); its ground section is copied, the post steps write to it."""
-    return dataclasses.replace(judged, ground_info=copy.deepcopy(judged.ground_info))
-
-
 class _Recorder(Interpreter):
     """An interpreter that keeps what its last run had before labelling."""
 
     state: Judged | None = None
 
     def finish(self, judged: Judged, t0: float) -> Segmentation:
-        self.state = _fresh_judged(judged)
+        self.state = judged  # frozen: labelling and the post steps give new records and ground facts
         return super().finish(judged, t0)
 
 
@@ -182,7 +175,7 @@ class SplitTree:
             return self.segmentation
         assert self._state is not None
         it = Interpreter(rule_base, sensor=self._sensor, jobs=1)
-        return it.finish(_fresh_judged(self._state), time.perf_counter())
+        return it.finish(self._state, time.perf_counter())
 
 
 def recorder(rule_base: RuleBase, *, sensor: Any = None, jobs: int = 1) -> _Recorder:

@@ -65,6 +65,7 @@ import numpy as np
 from kbs.errors import require
 from kbs.geometry.pca import principal_axes
 from kbs.knowledge.explain import Explanation
+from kbs.knowledge.groundfacts import GroundFacts
 from kbs.report.colors import NOISE_HEX, hex_colors
 from kbs.report.view import view_of
 
@@ -307,7 +308,7 @@ def write_report(path: str | Path, xyz: np.ndarray, cluster: np.ndarray, label: 
     return path
 
 
-def _cah_views(xyz: np.ndarray, cluster: np.ndarray, clusters: Sequence[dict[str, Any]], ground: dict[str, Any],
+def _cah_views(xyz: np.ndarray, cluster: np.ndarray, clusters: Sequence[dict[str, Any]], ground: GroundFacts,
                n_views: int, max_points: int) -> dict[str, Any]:
     """Output cluster index (as a string) -> its CAh view as page data, for the ``n_views``
     largest clusters (see :func:`write_report`)."""
@@ -318,7 +319,7 @@ def _cah_views(xyz: np.ndarray, cluster: np.ndarray, clusters: Sequence[dict[str
     largest = sorted(range(len(clusters)), key=lambda i: (-int(clusters[i].get("n_points", 0)), i))[:n_views]
     order = np.argsort(cluster, kind="stable")
     ids = cluster[order]
-    normal = ground.get("normal") if ground else None
+    normal = ground.normal
     out: dict[str, Any] = {}
     for i in largest:
         a, b = np.searchsorted(ids, [i, i + 1])

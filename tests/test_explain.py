@@ -352,3 +352,35 @@ def test_a_run_leaves_the_records_it_was_handed_unchanged():
     assert all(final[lf.id].label is not None and final[lf.id].output_index is not None for lf in judged.leaves)
     again = Interpreter(load_rule_base("outdoor")).finish(judged, 0.0)
     assert np.array_equal(again.label, seg.label) and again.explanation.to_dict() == seg.explanation.to_dict()
+
+
+def test_the_ground_section_is_typed_and_round_trips_through_json(example):
+    """The explanation's ground section is frozen records (the search's facts, each candidate's
+    verdict, what the local ground surface steps did), written as the same JSON it always was."""
+    import dataclasses
+
+    from kbs.knowledge import Explanation
+    from kbs.knowledge.groundfacts import GroundCandidate, GroundFacts, LocalModel
+
+    doc = json.loads(example.read_text())
+    written = doc["explanation"]["ground"]
+    assert {"source", "cluster", "normal", "point", "method", "candidates", "local_model"} <= set(written)
+    g = Explanation.from_dict(doc["explanation"]).ground
+    assert isinstance(g, GroundFacts) and g.source == written["source"] and g.normal == tuple(written["normal"])
+    assert all(isinstance(c, GroundCandidate) for c in g.candidates) and len(g.candidates) == len(written["candidates"])
+    assert isinstance(g.local_model, LocalModel) and g.local_model.points == written["local_model"]["points"]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        g.source = "x"  # type: ignore[misc]
+    assert g.to_dict() == written and json.loads(json.dumps(g.to_dict())) == written
+    assert GroundFacts.from_dict(g.to_dict()) == g
+    # a section with keys a newer minor version adds reads, and writes what it knows
+    assert GroundFacts.from_dict({**written, "extra": 1}) == g
+    # the fallback's facts, a skipped local model, and a tiled run's sections round-trip too
+    fallback = GroundFacts(source="fallback", normal=(0.0, 0.0, 1.0), point=(0.0, 0.0, -1.5),
+                           note="no cluster ...: the fallback normal [0, 0, 1] is used",
+                           local_model=LocalModel(note="no ground plane: post.ground_model skipped"))
+    tiled = GroundFacts(source="per tile (fallback)", tiles={"t0_0": fallback, "t0_1": GroundFacts()})
+    for facts in (fallback, tiled, GroundFacts()):
+        assert GroundFacts.from_dict(json.loads(json.dumps(facts.to_dict()))) == facts
+    assert fallback.to_dict()["local_model"] == {"note": "no ground plane: post.ground_model skipped"}
+    assert not GroundFacts() and GroundFacts().to_dict() == {}

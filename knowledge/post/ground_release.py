@@ -57,10 +57,9 @@ class GroundRelease(PostStep):
         unit = ctx.rule_base.length_unit
         leaves = list(state.leaves)
         targets = [li for li, lf in enumerate(leaves) if lf.label == self.target and lf.size]
-        local = ctx.ground_info["local_model"]
         if not targets:
-            local["release_note"] = f"no {self.target} cluster to take released points"
-            return state
+            note = f"no {self.target} cluster to take released points"
+            return replace(state, ground_facts=state.ground_facts.with_local_model(release_note=note))
         X = ctx.X
         t_idx = np.concatenate([leaves[li].node.idx for li in targets])
         t_owner = np.concatenate([np.full(leaves[li].size, li) for li in targets])
@@ -86,7 +85,6 @@ class GroundRelease(PostStep):
                 f"{n_move:,} of its {size:,} points stand more than {tol:g} {unit} above the "
                 f"local ground surface and joined {self.target} cluster{'s' if len(ids) > 1 else ''} "
                 f"{', '.join(ids[:5])}{' ...' if len(ids) > 5 else ''} [{self.pos.short} ground_release]",))
-        local["released"] = total
         receive(leaves, moved_in, "{n} points released by ground clusters joined it (the nearest "
                 f"{self.target} cluster) [{self.pos.short} ground_release]")
-        return replace(state, leaves=tuple(leaves))
+        return replace(state, leaves=tuple(leaves), ground_facts=state.ground_facts.with_local_model(released=total))

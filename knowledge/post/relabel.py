@@ -77,7 +77,7 @@ class Relabel(PostStep):
 
     def apply(self, state: PostState, ctx: PostContext) -> PostState:
         surface = state.surface
-        if surface is None and "local_model" in ctx.ground_info:  # a ground_model step was skipped (no ground plane)
+        if surface is None and state.ground_facts.local_model is not None:  # a ground_model step was skipped (no ground plane)
             return state
         scene = state.scene
         post_scene = Scene(scene.sensor, scene.ground, scene.unit,
@@ -99,10 +99,9 @@ class Relabel(PostStep):
         state = replace(state, leaves=tuple(leaves))
         if surface is None:
             return state
-        local = ctx.ground_info["local_model"]
-        local["relabelled"] = changed
+        state = replace(state, ground_facts=state.ground_facts.with_local_model(relabelled=changed))
         if not changed:
             return state
         surface = surface.spec.build(state, ctx)
-        local["points_after_relabel"] = surface.model.n_points
-        return replace(state, surface=surface)
+        return replace(state, surface=surface,
+                       ground_facts=state.ground_facts.with_local_model(points_after_relabel=surface.model.n_points))

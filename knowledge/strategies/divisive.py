@@ -59,8 +59,8 @@ class Divisive(Strategy):
         records["c"].set(children=tuple(c.id for c in children))
         wave = [(c, *run.record(c)) for c in children]
         children.clear()  # the wave holds them now: a node split below is freed with its wave
-        ground_info: dict[str, Any] = {}
-        scene = run.scene(run.ground([(cl, rec) for _, cl, rec in wave], ground_info))
+        ground, ground_facts = run.ground([(cl, rec) for _, cl, rec in wave])
+        scene = run.scene(ground)
         leaves: list[tuple[Node, Any, Draft]] = []
         n_clusters = len(wave)
         with _Splitter(run.interpreter, run.ufp_kwargs("first_max", rb.engine["split_min_k"])) as splitter:
@@ -108,4 +108,4 @@ class Divisive(Strategy):
                     if run.progress:
                         run.progress(f"{node.id} split in {len(kids)}")
             run.splitter = None
-        return Judged.of(X, leaves, scene, records, ground_info, tuple(notes))
+        return Judged.of(X, leaves, scene, records, ground_facts, tuple(notes))

@@ -8,6 +8,7 @@ import numpy as np
 from kbs.inference import first_local_max
 from kbs.inference.incremental import IncrementalSweep
 from kbs.knowledge.explain import APDCurve
+from kbs.knowledge.groundfacts import GroundFacts
 from kbs.knowledge.parts import Strategy
 from kbs.knowledge.state import Draft, Judged, Node
 
@@ -80,7 +81,7 @@ class GlobalSweep(Strategy):
         min_points = rb.limits["min_points"]
         notes: list[str] = []
         steps: list[dict[str, Any]] = []
-        ground_info: dict[str, Any] = {}
+        ground_facts = GroundFacts()
         k0, first = self.first_k(run, sweep, notes)
         scene = None
         seeded: str | None = None
@@ -88,7 +89,8 @@ class GlobalSweep(Strategy):
             kids = self.clusters(X, root, sweep)
             judged = [(node, j, *run.record(node)) for node, j in kids]
             if scene is None:  # the ground plane from the first partition judged, as the divisive strategy does
-                scene = run.scene(run.ground([(cl, rec) for _, _, cl, rec in judged], ground_info))
+                ground, ground_facts = run.ground([(cl, rec) for _, _, cl, rec in judged])
+                scene = run.scene(ground)
             failing = []
             for node, j, cl, rec in judged:
                 action, _rule = run.judge(cl, scene, rec)
@@ -134,7 +136,7 @@ class GlobalSweep(Strategy):
             elif act is not None and not act.keeps:  # reject: its points are noise
                 continue
             leaves.append((node, cl, rec))
-        return Judged.of(X, leaves, scene, records, ground_info, tuple(notes), tuple(steps))
+        return Judged.of(X, leaves, scene, records, ground_facts, tuple(notes), tuple(steps))
 
     @staticmethod
     def step_record(sweep: IncrementalSweep, judged: list, seeded: str | None) -> dict[str, Any]:
