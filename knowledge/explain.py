@@ -22,10 +22,12 @@ from collections.abc import Iterator, Mapping
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import TYPE_CHECKING, Any
 
-from kbs.formats import Version, document_version
+from kbs.errors import CloudFileError
+from kbs.formats import FormatVersionError, Version, document_version
 from kbs.knowledge.groundfacts import GroundFacts
 
 if TYPE_CHECKING:
+    from kbs.io.result import ResultDoc
     from kbs.knowledge.rulebase import Condition, RuleBase
 
 #: The ``format`` of an explanation's dictionary form, and the version this kbs writes.
@@ -404,6 +406,24 @@ class Explanation:
                    label_names=list(d["label_names"]), records=records, root=d["root"], ground=GroundFacts.from_dict(d.get("ground")),
                    notes=list(d.get("notes", [])), catalogue=None if cat is None else Catalogue.from_dict(cat),
                    sweep=list(d.get("sweep", [])))
+
+    @classmethod
+    def from_result(cls, doc: ResultDoc) -> Explanation:
+        """The explanation of a result file read back (:func:`kbs.io.result.read_result`).
+
+        Raises
+        ------
+        kbs.errors.CloudFileError
+            It has none, or not one this kbs reads (a newer major version, at its position).
+        """
+        if doc.explanation is None:
+            raise CloudFileError(str(doc.path), "not a kbs result file (it has no explanation)")
+        try:
+            return cls.from_dict(dict(doc.explanation))
+        except FormatVersionError as exc:
+            raise CloudFileError(doc.position("explanation", "version"), f"its explanation: {exc}") from exc
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CloudFileError(str(doc.path), f"not a kbs result file ({type(exc).__name__}: {exc})") from exc
 
     def to_networkx(self):
         """A ``networkx.DiGraph`` parent -> child with each record's fields as node attributes."""

@@ -186,10 +186,10 @@ def _largest(clusters: Sequence[dict[str, Any]], k: int) -> list[int]:
     return sorted(order[:max(k, 0)])
 
 
-def _camera(explanation_dict: dict[str, Any]) -> dict[str, Any]:
+def _camera(ground: GroundFacts) -> dict[str, Any]:
     """The plotly scene camera: up is the run's up direction; a scan not z up is seen from behind
     and above (a camera's frame from behind the camera); a z-up scan keeps plotly's default eye."""
-    v = view_of(explanation_dict)
+    v = view_of(ground)
     cam: dict[str, Any] = {"up": dict(zip("xyz", np.round(v.up, 6).tolist()))}
     if not (v.level and v.up[2] > 0):
         cam["eye"] = dict(zip("xyz", np.round(-1.6 * v.forward + 0.9 * v.up, 6).tolist()))
@@ -292,7 +292,7 @@ def write_report(path: str | Path, xyz: np.ndarray, cluster: np.ndarray, label: 
         "corners": [None if b is None else np.round(b["corners"], 5).tolist() for b in boxes],
         "records": records, "root": expl.root, "apd": apd,
         "palette": hex_colors(max(n_out, len(label_names), 1)), "noise": NOISE_HEX, "unlabelled": UNLABELLED,
-        "unlabelled_key": _UNLABELLED_KEY, "view": _camera(explanation_dict),
+        "unlabelled_key": _UNLABELLED_KEY, "view": _camera(expl.ground),
         "cah": _cah_views(xyz, cluster, clusters, expl.ground, cah_clusters, cah_points),
         "cah_limit": int(cah_clusters),
         "sweep": _sweep_data(expl.sweep),

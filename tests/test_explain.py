@@ -384,3 +384,70 @@ def test_the_ground_section_is_typed_and_round_trips_through_json(example):
         assert GroundFacts.from_dict(json.loads(json.dumps(facts.to_dict()))) == facts
     assert fallback.to_dict()["local_model"] == {"note": "no ground plane: post.ground_model skipped"}
     assert not GroundFacts() and GroundFacts().to_dict() == {}
+
+
+# -- 8. the result record: read once, versioned, positioned errors ---------------------------------------
+
+
+def _where(text: str, key: str, value: str, after: str | None = None) -> str:
+    """'line:col' (1-based) of ``"key": value`` in ``text`` (the first after the line holding ``after``)."""
+    lines = text.splitlines()
+    start = next(i for i, line in enumerate(lines) if f'"{after}"' in line) + 1 if after else 0
+    pair = f'"{key}": {value}'
+    i = next(i for i in range(start, len(lines)) if pair in lines[i])
+    return f"{i + 1}:{lines[i].index(pair) + len(key) + 5}"
+
+
+@pytest.mark.parametrize("where", ["result", "explanation"])
+def test_a_result_of_a_future_version_is_refused_at_the_position_of_its_version(example, tmp_path, capsys, where):
+    folder = tmp_path / where
+    folder.mkdir()
+    shutil.copy(example.with_suffix(".ply"), folder / "outdoor.ply")
+    doc = json.loads(example.read_text())
+    (doc if where == "result" else doc["explanation"])["version"] = "3.1"
+    js = folder / "outdoor.json"
+    js.write_text(json.dumps(doc, indent=1))  # one key a line: the version is not on line 1
+    at = _where(js.read_text(), "version", '"3.1"', after=None if where == "result" else "explanation")
+    assert int(at.split(":")[0]) > 1
+    code, out, err = _explain(capsys, js)
+    kind = "kbs-result" if where == "result" else "kbs-explanation"
+    assert code == 3 and out == "" and err.count("\n") == 1 and "Traceback" not in err
+    assert f"error: {js}:{at}: " in err, err
+    assert f"written by a newer kbs ({kind} version 3.1; this kbs reads 1.x): upgrade kbs to read it" in err
+
+
+def test_a_result_field_of_the_wrong_type_is_refused_at_its_position(example, tmp_path, capsys):
+    folder = tmp_path / "bad"
+    folder.mkdir()
+    shutil.copy(example.with_suffix(".ply"), folder / "outdoor.ply")
+    doc = json.loads(example.read_text())
+    doc["label_names"] = "ground,obstacle"
+    js = folder / "outdoor.json"
+    js.write_text(json.dumps(doc, indent=1))
+    at = _where(js.read_text(), "label_names", '"ground,obstacle"')
+    code, out, err = _explain(capsys, js)
+    assert code == 3 and out == ""
+    assert f"{js}:{at}: not a kbs result file ('label_names' is not a list of names)" in err
+    assert main(["eval", str(js.with_suffix(".ply")), "field:label_in", "--ground-values", "0", "--no-hoover"]) == 3
+    assert f"{js}:{at}: not a kbs result file ('label_names' is not a list of names)" in capsys.readouterr().err
+
+
+def test_the_result_record_holds_what_readers_use(example):
+    import dataclasses
+
+    from kbs.formats import Version
+    from kbs.io import ResultDoc, read_result
+    from kbs.knowledge import Explanation
+
+    raw = json.loads(example.read_text())
+    doc = read_result(example)
+    assert isinstance(doc, ResultDoc) and doc.version == Version(1, 1) and doc.path == example
+    assert doc.label_names == ("ground", "obstacle") and doc.rule_base == "outdoor" and doc.input == raw["input"]
+    assert doc.run_id == raw["run_id"] and len(doc.clusters) == len(raw["clusters"]) and doc.sensor == (0.0, 0.0, 0.0)
+    assert Explanation.from_result(doc).to_dict() == raw["explanation"]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        doc.label_names = ()  # type: ignore[misc]
+    at = doc.position("explanation", "root")  # compact JSON: on line 1, at the root's id
+    col = int(at.rsplit(":", 1)[1])
+    assert at.startswith(f"{example}:1:") and example.read_text()[col - 1:col + 2] == '"c"'
+    assert doc.position("no such key") == str(example)
