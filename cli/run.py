@@ -783,8 +783,9 @@ def rules_check(files: tuple[str, ...], plugins: tuple[Path, ...]) -> None:
             continue
         n_warn = len(rb.warnings)
         labels = rb.label_names if len(rb.label_names) <= 12 else rb.label_names[:11] + ["...", rb.label_names[-1]]
+        post = f", post {' > '.join(step.key for step in rb.post)}" if rb.post else ""
         click.echo(f"{f}: ok — '{rb.name}', {len(rb.checks)} checks, {len(rb.rules)} rules, "
-                   f"labels {', '.join(labels)}, strategy {rb.strategy}"
+                   f"labels {', '.join(labels)}, strategy {rb.strategy}{post}"
                    + (f"; {n_warn} warning{'s' if n_warn != 1 else ''}" if n_warn else ""))
         for w in rb.warnings:
             click.echo(w.format(), err=True)
