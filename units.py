@@ -322,6 +322,11 @@ def median_spacing(X: np.ndarray, *, seed: int = 0) -> float | None:
     return spacing
 
 
+class CoordinateWarning(UserWarning):
+    """A scan lies so far from the origin, for its size, that float64 no longer holds the
+    precision the engine's sums need (see :func:`kbs.knowledge.segmenter.offset_problem`)."""
+
+
 class SpacingWarning(UserWarning):
     """The median point spacing of a scan is outside the range its rule base expects: the units
     are probably wrong. Carries the numbers (``spacing``, ``expected``, ``unit``: the rule base's)."""

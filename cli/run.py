@@ -30,7 +30,7 @@ from kbs.knowledge.segmenter import coordinate_problem
 from kbs.knowledge.explain import TREE_LINES, limit_lines
 from kbs.knowledge.predicates import UNITS, did_you_mean
 from kbs.knowledge.rulebase import RuleFileError, resolve, shipped_rule_bases
-from kbs.units import UNITS as LENGTH_UNITS, ScanUnits, SpacingWarning
+from kbs.units import UNITS as LENGTH_UNITS, CoordinateWarning, ScanUnits, SpacingWarning
 
 
 def _vector3(ctx, param, value):
@@ -295,11 +295,13 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
     if tiling is None:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", SpacingWarning)
+            warnings.simplefilter("always", CoordinateWarning)
             seg = segmenter.segment(pc.xyz, units=scan_units, sensor=sensor,
                                     progress=ProgressLines(name, _splits, quiet=quiet, start=t0))
         spacing = [w.message for w in caught if isinstance(w.message, SpacingWarning)]
+        far = [w.message for w in caught if isinstance(w.message, CoordinateWarning)]
         for w in caught:
-            if not isinstance(w.message, SpacingWarning):
+            if not isinstance(w.message, (SpacingWarning, CoordinateWarning)):
                 warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     else:
         if sensor is not None or (scan_units is not None and not np.array_equal(segmenter.scale(scan_units), np.ones(3))):
@@ -309,7 +311,7 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
 
         store = TileStore(out_dir / f"{cloud.stem}.tiles", segmenter)
         seg = _segment_tiled(segmenter, pc.xyz, cloud, tiling, quiet=quiet, t0=t0, store=store, spilled=spilled)
-        spacing = []
+        spacing, far = [], []
     t1 = time.perf_counter()
     if not to_stdout:
         check_writable_folder(out_dir, create=True)  # checked by `kbs run` already; here for other callers
@@ -407,7 +409,7 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
             raise CloudFileError(str(html), f"cannot write: {exc.strerror or exc}") from exc
         say(f"wrote {html}")
     if not quiet:
-        for w in spacing:
+        for w in [*far, *spacing]:
             click.echo(f"kbs: warning: {name}: {w}", err=True)
         ground_note = seg.explanation.ground.note
         for note in seg.explanation.notes + ([ground_note] if ground_note is not None else []):

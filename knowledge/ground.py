@@ -88,6 +88,9 @@ def find(run: Any, X: np.ndarray, candidates: list[tuple[Cluster, Draft]]) -> tu
             facts = replace(facts, candidates=_candidates(verdicts), unit=run.rule_base.length_unit)
         return plane_from_normal(X, np.asarray(spec.fallback, float), "fallback", facts)
     dist, cl, n, point, tilt, found, _, verdict = best
+    below = bool(n @ fallback < 0)  # the sensor lies below the ground: its frame is not the scan's (_sensor_note)
+    if below:
+        n = -n
     robust = spec.plane is not None and found["method"] == "robust plane"
     facts = GroundFacts(
         source=f"cluster {cl.id}", cluster=cl.id, normal=tuple(n.tolist()), point=tuple(point.tolist()),
@@ -97,13 +100,48 @@ def find(run: Any, X: np.ndarray, candidates: list[tuple[Cluster, Draft]]) -> tu
         candidates=_candidates(verdicts) if spec.support is not None or spec.plane is not None else None,
         support_band=(spec.support.min_height, spec.support.max_height) if spec.support is not None else None,
         angle_to_fallback=round(tilt, 3) if spec.plane is not None else None,
-        inliers=found["inliers"] if robust else None, inlier_share=found["inlier_share"] if robust else None)
+        inliers=found["inliers"] if robust else None, inlier_share=found["inlier_share"] if robust else None,
+        note=_sensor_note(run, X, fallback, n, point, below) or None)
     return Ground(normal=n, point=np.asarray(point, float).copy(), source=f"cluster {cl.id}"), facts
 
 
 def _candidates(verdicts: list[dict[str, Any]]) -> tuple[GroundCandidate, ...]:
     """The candidates' verdicts, as the search wrote them, as records."""
     return tuple(GroundCandidate(**v) for v in verdicts)
+
+
+#: A sensor farther than this many times the scan's bounding-box diagonal from the box is taken
+#: for a scan not in the sensor's frame (map or survey coordinates with the rule base's sensor).
+FAR_SENSOR = 10.0
+
+
+def _sensor_note(run: Any, X: np.ndarray, fallback: np.ndarray, n: np.ndarray, point: np.ndarray,
+                 below: bool) -> str | None:
+    """What to tell a user whose sensor position does not fit the scan (None when it fits).
+
+    The ground normal points towards the sensor, the ground being below it. A sensor below the
+    plane chosen (on the side opposite the rule base's fallback normal), or far from the scan (a
+    scan in map or survey coordinates read with the rule base's default sensor, the origin), says
+    the scan is not in the sensor's frame: the normal then follows the fallback normal's side
+    (the rule base's up), and the note says so and how to give the sensor's position."""
+    unit = run.rule_base.length_unit
+    u = f" {unit}" if unit else ""
+    vec = lambda v: "[" + ", ".join(f"{x:.6g}" for x in v) + "]"  # noqa: E731
+    said = []
+    lo, hi = X.min(axis=0), X.max(axis=0)
+    diag = max(float(np.linalg.norm(hi - lo)), float(np.finfo(float).tiny))
+    away = float(np.linalg.norm(run.sensor - np.clip(run.sensor, lo, hi)))
+    if away > FAR_SENSOR * diag:
+        said.append(f"the sensor {vec(run.sensor)} is {away:.6g}{u} from the scan's bounding box, {away / diag:.3g} "
+                    "times its diagonal (the ground is the candidate plane closest to it)")
+    if below:
+        depth = float((point - run.sensor) @ n)
+        said.append(f"{'it' if said else f'the sensor {vec(run.sensor)}'} lies {depth:.6g}{u} below the ground plane "
+                    f"found: the plane's normal was turned to the side of the fallback normal {vec(fallback)}")
+    if not said:
+        return None
+    return "; ".join(said) + ("; is the scan in the sensor's frame? kbs run --sensor X,Y,Z (Segmenter(sensor=...)) "
+                              "gives its position")
 
 def _choose(run: Any, X: np.ndarray, planes: list[tuple]) -> tuple:
     """The ground among the candidates that give a plane (distance, cluster, normal, point,
