@@ -3,11 +3,14 @@
 - :class:`Node`: a cluster of the split tree as index arrays into the cloud (its points, their
   membership in it, their membership along the path from the scene).
 - :class:`Leaf`: a node the strategy kept, with its :class:`~kbs.knowledge.predicates.Cluster`
-  (the points and their cached measurements) and its explanation record.
+  (the points and their geometry, computed once) and its explanation record.
 - :class:`Judged`: what a strategy hands to labelling: the leaves, the scene (sensor, ground plane),
   the records of the whole tree, the explanation's ground section and notes, the global sweep.
 - :class:`PostState`: what the post steps pass along: the leaves (points move between them), the
-  local ground surface once built, the groups of leaves a grouping step made.
+  explanation's ground section (:class:`~kbs.knowledge.groundfacts.GroundFacts`), the local
+  ground surface once built, the groups of leaves a grouping step made.
+- :class:`Draft`: a cluster's record while the strategy decides about it, with the measurements
+  of its checks; :class:`Division`: what an action that divides a cluster gives.
 
 None of them is changed in place: a step that moves points returns new leaves
 (:meth:`Leaf.with_points`) in a new state (``dataclasses.replace``), and a step that decides more
