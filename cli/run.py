@@ -19,8 +19,7 @@ import numpy as np
 from kbs import __version__
 from kbs.cli.common import ProgressLines, check_writable_folder, force_option, progress_interval, result_fields
 from kbs.errors import CloudFileError, ExitCode, KbsError, require
-from kbs.formats import FormatVersionError
-from kbs.io import SUPPORTED_EXTENSIONS, PointCloud, read_cloud, read_result_json
+from kbs.io import SUPPORTED_EXTENSIONS, PointCloud, read_cloud, read_result
 from kbs.io.atomic import replacing
 from kbs.io.las import check_classes_fit, class_codes
 from kbs.io.readers import cloud_files_in, why_not_a_scan
@@ -402,8 +401,8 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
         run_id = write_result_pair(points, js, pc.xyz, fields, doc, run_id=new_run_id(), las=las, comments=comments,
                                    pieces=seg.pieces() if spilled is not None else None)
         if spilled is not None and (meshes or report):  # the whole result, read back, for the meshes and the page
-            written = read_result_json(js, require=("clusters", "explanation"))
-            clusters, doc["explanation"] = written["clusters"], written["explanation"]
+            written = read_result(js, require=("clusters", "explanation"))
+            clusters, doc["explanation"] = list(written.clusters or ()), written.explanation
             seg = dataclasses.replace(seg, columns={k: np.asarray(v) for k, v in seg.columns.items()})
     if tiling is not None:
         store.remove()  # the result is written: the finished tiles are no longer needed
@@ -449,7 +448,8 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
     if not quiet:
         for w in [*far, *spacing]:
             click.echo(f"kbs: warning: {name}: {w}", err=True)
-        for note in seg.explanation.notes + ([seg.explanation.ground["note"]] if "note" in seg.explanation.ground else []):
+        ground_note = seg.explanation.ground.note
+        for note in seg.explanation.notes + ([ground_note] if ground_note is not None else []):
             click.echo(f"note: {note}", err=True)
     return ScanResult(cloud, len(pc), s["clusters"], t_read, seg.seconds, t_write)
 
@@ -772,13 +772,7 @@ def explain(result: Path, cluster_id: str | None, depth: int | str | None) -> No
     """Print what a `kbs run` RESULT.json did, grouped (rules, labels by outcome, checks with their
     docs), then its explanation tree; or why one cluster ended as it did (--cluster). Deeper
     parts of a large tree are folded into counts: --depth and --cluster unfold them."""
-    doc = read_result_json(result, require=("explanation",))
-    try:
-        expl = Explanation.from_dict(doc["explanation"])
-    except FormatVersionError as exc:
-        raise CloudFileError(str(result), f"its explanation: {exc}") from exc
-    except (KeyError, TypeError, ValueError) as exc:
-        raise CloudFileError(str(result), f"not a kbs result file ({type(exc).__name__}: {exc})") from exc
+    expl = Explanation.from_result(read_result(result, require=("explanation",)))
     if cluster_id is not None and cluster_id not in expl.records:
         hint = did_you_mean(cluster_id, list(expl.records))
         raise click.BadParameter(f"no cluster {cluster_id!r} in {result}" + (f"; did you mean {hint!r}?" if hint else ""),
@@ -835,8 +829,9 @@ def rules_check(files: tuple[str, ...], plugins: tuple[Path, ...]) -> None:
             continue
         n_warn = len(rb.warnings)
         labels = rb.label_names if len(rb.label_names) <= 12 else rb.label_names[:11] + ["...", rb.label_names[-1]]
+        post = f", post {' > '.join(step.key for step in rb.post)}" if rb.post else ""
         click.echo(f"{f}: ok — '{rb.name}', {len(rb.checks)} checks, {len(rb.rules)} rules, "
-                   f"labels {', '.join(labels)}, strategy {rb.strategy}"
+                   f"labels {', '.join(labels)}, strategy {rb.strategy}{post}"
                    + (f"; {n_warn} warning{'s' if n_warn != 1 else ''}" if n_warn else ""))
         for w in rb.warnings:
             click.echo(w.format(), err=True)

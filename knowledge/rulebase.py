@@ -969,7 +969,8 @@ class _Validator:
             if path and len(path) == 2 and path[0] == "checks":
                 self.add(path, f"check '{path[1]}' needs a threshold: 'max' and/or 'min'")
             else:
-                self.add(path, f"{where} is invalid: {sch.get('description', 'see the schema')}; got {_brief(inst)}")
+                what = str(sch.get("description", "see the schema")).rstrip(". ")  # a sentence: its stop before '; got'
+                self.add(path, f"{where} is invalid: {what}; got {_brief(inst)}")
         elif kind == "pattern":
             self.add(path, f"{where}: {_brief(inst)} is not a valid name (letters, digits, '_', not starting with a "
                      "digit)")
