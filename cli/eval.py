@@ -26,16 +26,15 @@ from kbs.evaluation import (
 )
 from kbs.evaluation.hoover import check_tolerance
 from kbs.evaluation.segcomp import DEFAULT_TOLERANCES, segcomp_table
-from kbs.io import read_result_json
 from kbs.io.segcomp import FIRST_REGION_LABEL, NON_REGION_VALUES, read_gt_seg, read_ms_nor, read_range, read_sunraster
 from kbs.io.atomic import replacing
 from kbs.io.result import (
     InputFiles,
     check_output,
     check_pair,
+    read_result,
     read_result_cloud,
     require_fields,
-    result_label_names,
 )
 
 
@@ -77,9 +76,9 @@ def _label_names(result: Path) -> tuple[Path, list[str] | None]:
     js = result.with_suffix(".json")
     if not js.is_file():
         return js, None
-    doc = read_result_json(js, require=("label_names",))
+    doc = read_result(js, require=("label_names",))
     check_pair(result, js, doc)
-    return js, result_label_names(doc, js)
+    return js, list(doc.label_names or ())
 
 
 def _nan_none(x: float) -> float | None:

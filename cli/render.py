@@ -83,7 +83,7 @@ def render(result: Path, out: Path | None, kind: str, cluster_id: str | None, ma
             fig = figures.obstacle_map_figure(res.X, res.label, res.label_names, sensor=res.sensor,
                                               ground_label=ground_label, title=f"{stem}: obstacle map", view=view)
         else:
-            fig = figures.clusters_figure(res.X, res.cluster, res.doc["clusters"], membership=res.membership,
+            fig = figures.clusters_figure(res.X, res.cluster, res.clusters, membership=res.membership,
                                           max_points=max_points, title=f"{stem}: output clusters", view=view)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
@@ -100,7 +100,7 @@ def _view(res, outputs: dict[str, Path]):
     the scan's z: a camera's frame is drawn upright, its map on the plane perpendicular to up."""
     from kbs.report.view import view_of
 
-    view = view_of(res.doc)
+    view = view_of(res.explanation.ground if res.explanation is not None else None)
     if not (view.level and view.up[2] > 0):
         what = [f"{k}: up vertical, seen from behind the camera" if k == "clusters" and view.camera_frame else
                 f"{k}: up vertical" if k == "clusters" else f"{k}: the plane perpendicular to up" for k in outputs]
@@ -118,7 +118,7 @@ def _series(res, stem: str, max_points: int, view):
 
     turn = None if (view.level and view.up[2] > 0) else view.rotation
     X = res.X if turn is None else res.X @ turn.T
-    sweep = (res.doc.get("explanation") or {}).get("sweep") or []
+    sweep = res.explanation.sweep if res.explanation is not None else []
     if sweep:
         panels = figures.panels_from_sweep(sweep)
         if turn is not None:
@@ -148,19 +148,19 @@ def _cah_points(res, cluster_id: str, result: Path):
     from kbs.geometry.pca import principal_axes
     from kbs.knowledge.predicates import did_you_mean
 
-    records = {r["id"]: r for r in (res.doc.get("explanation") or {}).get("clusters", [])}
-    n_out = len(res.doc["clusters"])
+    records = res.explanation.records if res.explanation is not None else {}
+    n_out = len(res.clusters)
     if cluster_id in records:
         below, stack = [], [cluster_id]
         while stack:
             r = records[stack.pop()]
-            stack.extend(r.get("children") or [])
-            if not r.get("children") and r.get("output_index") is not None:
-                below.append(int(r["output_index"]))
+            stack.extend(r.children)
+            if not r.children and r.output_index is not None:
+                below.append(int(r.output_index))
         what = f"cluster {cluster_id}"
         if not below:
             raise click.BadParameter(f"cluster {cluster_id!r} of {result} has no points in an output cluster "
-                                     f"(action {records[cluster_id].get('action')}: rejected as noise)",
+                                     f"(action {records[cluster_id].action}: rejected as noise)",
                                      param_hint="--cluster")
     elif cluster_id.isdigit() and int(cluster_id) < n_out:
         below, what = [int(cluster_id)], f"output cluster {cluster_id}"
@@ -174,7 +174,7 @@ def _cah_points(res, cluster_id: str, result: Path):
         raise click.BadParameter(f"{what} of {result} has {sel.size} points: too few to project", param_hint="--cluster")
     P = res.X[sel]
     center = P.mean(axis=0)
-    ground = (res.doc.get("explanation") or {}).get("ground") or {}
-    if ground.get("normal") is not None:
-        return sel, np.asarray(ground["normal"], float), center, "the ground plane", what
+    normal = res.explanation.ground.normal if res.explanation is not None else None
+    if normal is not None:
+        return sel, np.asarray(normal, float), center, "the ground plane", what
     return sel, principal_axes(P).normal, center, "its best approximating plane (no ground plane in this run)", what

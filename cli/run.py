@@ -19,8 +19,7 @@ import numpy as np
 from kbs import __version__
 from kbs.cli.common import ProgressLines, check_writable_folder, force_option, progress_interval, result_fields
 from kbs.errors import CloudFileError, ExitCode, KbsError, require
-from kbs.formats import FormatVersionError
-from kbs.io import SUPPORTED_EXTENSIONS, PointCloud, read_cloud, read_result_json
+from kbs.io import SUPPORTED_EXTENSIONS, PointCloud, read_cloud, read_result
 from kbs.io.atomic import replacing
 from kbs.io.las import check_classes_fit, class_codes
 from kbs.io.readers import cloud_files_in, why_not_a_scan
@@ -219,11 +218,14 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
              report: bool = False, quiet: bool = False, t0: float | None = None,
              inputs: InputFiles | tuple[Path, ...] = (),
              force: bool = False, out_format: str | None = None, in_format: str | None = None,
-             units: str | None = None, sensor=None, tiling: Tiling | None = None) -> ScanResult:
+             units: str | None = None, sensor=None, tiling: Tiling | None = None,
+             auto_tile: bool = True) -> ScanResult:
     """Read one scan, segment it, write DIR/<stem>.ply (or .las/.laz) and DIR/<stem>.json (and the
     meshes and the report when asked) and print what was done (nothing on stdout when ``quiet``);
     ``t0`` is when its clock started (default: now). ``out_dir`` None: the points go to standard
-    output (``--out -``), no JSON, and the summary to stderr.
+    output (``--out -``), no JSON, and the summary to stderr. Without ``tiling``, a cloud wider than
+    the rule base's ``limits.tile.wider_than`` is segmented in its tiles (:func:`_auto_tiling`)
+    unless ``auto_tile`` is False (``--no-tile``).
 
     Before reading, each output is checked (:func:`kbs.io.result.check_output`): never ``cloud``
     or one of ``inputs``; an existing file kbs did not write only with ``force``."""
@@ -260,11 +262,40 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
         return _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, stdin=stdin, stem=stem, fmt=fmt,
                                   points=points, js=js, html=html, to_stdout=to_stdout, color_by=color_by,
                                   meshes=meshes, report=report, quiet=quiet, units=units, sensor=sensor,
-                                  tiling=tiling, say=say)
+                                  tiling=tiling, auto_tile=auto_tile, say=say)
     finally:
         if spilled is not None:
             spilled.remove()
             shutil.rmtree(spilled.folder, ignore_errors=True)
+
+
+def _auto_tiling(segmenter: Segmenter, xyz: np.ndarray, scan_units: ScanUnits | None, sensor,
+                 to_stdout: bool) -> tuple[Tiling | None, str | None]:
+    """The rule base's ``limits.tile`` for a scan read whole: its tiling when the cloud is wider
+    than ``wider_than`` along either ground axis (the rule base's fixed ground normal, else x-y), with
+    the words that say why; (None, why not) when it is wider but cannot be tiled (another unit,
+    --sensor, --out -: as for --tile); (None, None) when it is not wider."""
+    from kbs.tiles import ground_axes
+
+    spec = segmenter.rule_base.tile
+    f = segmenter.scale(scan_units)
+    if spec is None or not len(xyz):
+        return None, None
+    uv = (xyz * f) @ ground_axes(segmenter.rule_base.ground.normal).T
+    width = float((uv.max(axis=0) - uv.min(axis=0)).max())
+    if not width > spec.wider_than:
+        return None, None
+    unit = segmenter.rule_base.length_unit
+    u = f" {unit}" if unit else ""
+    src = f"{Path(segmenter.rule_base.path).name} limits.tile"
+    if sensor is not None or not np.array_equal(f, np.ones(3)) or to_stdout:
+        why = ("--sensor" if sensor is not None else "--out -" if to_stdout else
+               f"its unit ({scan_units.name if scan_units else '?'}) is not the rule base's")
+        return None, (f"the cloud is {width:.6g}{u} wide, more than {src}.wider_than ({spec.wider_than:g}{u}), but it "
+                      f"runs whole: tiles need the rule base's own units and sensor and a result folder ({why}); "
+                      f"give --tile {spec.size:g} after converting it, or --no-tile to silence this")
+    return (Tiling(size=spec.size, chunk_points=0),
+            f"{src}: the cloud is {width:.6g}{u} wide, more than {spec.wider_than:g}{u}; --no-tile runs it whole")
 
 
 def _streams(tiling: Tiling | None, cloud: Path, in_format: str | None, fmt: str) -> bool:
@@ -282,7 +313,7 @@ def _buffer(segmenter: Segmenter, tiling: Tiling) -> float:
 
 
 def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, stem, fmt, points, js, html, to_stdout,
-                       color_by, meshes, report, quiet, units, sensor, tiling, say) -> ScanResult:
+                       color_by, meshes, report, quiet, units, sensor, tiling, auto_tile, say) -> ScanResult:
     rb = segmenter.rule_base
     name = "<stdin>" if stdin else str(cloud)
     if fmt != "ply":
@@ -293,6 +324,11 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
     too_big = coordinate_problem(pc.xyz * segmenter.scale(scan_units)) if spilled is None else None
     if too_big is not None:
         raise CloudFileError(name, too_big)
+    why_tiled = None
+    if tiling is None and auto_tile and rb.tile is not None:
+        tiling, why_tiled = _auto_tiling(segmenter, pc.xyz, scan_units, sensor, to_stdout)
+        if tiling is None and why_tiled and not quiet:
+            click.echo(f"note: {name}: {why_tiled}", err=True)
     if tiling is None:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", SpacingWarning)
@@ -365,8 +401,8 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
         run_id = write_result_pair(points, js, pc.xyz, fields, doc, run_id=new_run_id(), las=las, comments=comments,
                                    pieces=seg.pieces() if spilled is not None else None)
         if spilled is not None and (meshes or report):  # the whole result, read back, for the meshes and the page
-            written = read_result_json(js, require=("clusters", "explanation"))
-            clusters, doc["explanation"] = written["clusters"], written["explanation"]
+            written = read_result(js, require=("clusters", "explanation"))
+            clusters, doc["explanation"] = list(written.clusters or ()), written.explanation
             seg = dataclasses.replace(seg, columns={k: np.asarray(v) for k, v in seg.columns.items()})
     if tiling is not None:
         store.remove()  # the result is written: the finished tiles are no longer needed
@@ -384,7 +420,7 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
     if tiling is not None:
         t = seg.tiling
         say(f"  tiles: {len(t['tiles'])} of {t['size']:g} x {t['size']:g} with a {t['buffer']:g} buffer; "
-            f"{t['stitched']} clusters stitched across tile edges")
+            f"{t['stitched']} clusters stitched across tile edges" + (f" ({why_tiled})" if why_tiled else ""))
     say(f"  time: {time.perf_counter() - t0:.2f} s (read {t_read:.2f}, segment {seg.seconds:.2f}, "
         f"write {t_write:.2f})")
     say(f"wrote {points} and {js}" if not to_stdout else f"wrote the {fmt.upper()} result to standard output")
@@ -412,7 +448,8 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
     if not quiet:
         for w in [*far, *spacing]:
             click.echo(f"kbs: warning: {name}: {w}", err=True)
-        for note in seg.explanation.notes + ([seg.explanation.ground["note"]] if "note" in seg.explanation.ground else []):
+        ground_note = seg.explanation.ground.note
+        for note in seg.explanation.notes + ([ground_note] if ground_note is not None else []):
             click.echo(f"note: {note}", err=True)
     return ScanResult(cloud, len(pc), s["clusters"], t_read, seg.seconds, t_write)
 
@@ -515,6 +552,9 @@ def time_table(results: list[ScanResult | ScanFailure], t_load: float, t_total: 
 @click.option("--tile", "tile", type=click.FloatRange(min=0, min_open=True), metavar="SIZE",
               help="Segment in square tiles of SIZE (cloud units) in the ground plane, each with a buffer, and "
               "stitch them: clusters crossing a tile edge become one.")
+@click.option("--no-tile", "no_tile", is_flag=True,
+              help="Run the whole cloud at once even when it is wider than the rule base's limits.tile.wider_than "
+              "(which otherwise segments it in tiles of limits.tile.size, as --tile does).")
 @click.option("--buffer", "buffer", type=click.FloatRange(min=0), metavar="B",
               help="How far each tile reaches beyond its core (default: a tenth of --tile, at least twice the "
               "local ground surface's radius).")
@@ -533,7 +573,8 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
         color_by: str = "cluster", meshes: bool = False, report: bool = False, jobs: int = -1,
         force: bool = False, out_format: str | None = None, in_format: str | None = None,
         units: str | None = None, tile: float | None = None, buffer: float | None = None,
-        scheduler: str | None = None, resume: bool = False, chunk_points: int | None = None) -> None:
+        scheduler: str | None = None, resume: bool = False, chunk_points: int | None = None,
+        no_tile: bool = False) -> None:
     """Segment each CLOUD with a rule base; write DIR/<stem>.ply (per-vertex scalar_cluster,
     scalar_label, scalar_membership) or, with --out-format las|laz (the default for LAS/LAZ input),
     DIR/<stem>.las|.laz (ASPRS classification, cluster, label, membership), and DIR/<stem>.json
@@ -574,6 +615,8 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
     if tile is None and scheduler is not None and many:  # the scans themselves as Dask tasks
         _check_scheduler(scheduler)
         scan_scheduler, scheduler = (scheduler, None if jobs == -1 else jobs), None
+    if no_tile and tile is not None:
+        raise click.UsageError("--no-tile and --tile contradict each other: give one")
     tiling = _tiling(tile, buffer, scheduler, jobs, resume, chunk_points)
     if to_stdout and len(scans) != 1:
         raise click.UsageError(f"--out - writes one scan to standard output; {len(scans)} scans given")
@@ -588,7 +631,8 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
             check_writable_folder(out_dir, create=True)  # before any segmentation
         _run_scans(segmenter, scans, None if to_stdout else out_dir, t0, color_by=color_by, meshes=meshes,
                    report=report, quiet=quiet, inputs=InputFiles(scans), force=force, out_format=out_format,
-                   in_format=in_format, units=units, sensor=sensor, tiling=tiling, scheduler=scan_scheduler)
+                   in_format=in_format, units=units, sensor=sensor, tiling=tiling, scheduler=scan_scheduler,
+                   auto_tile=not no_tile)
 
 
 def _tiling(tile: float | None, buffer: float | None, scheduler: str | None, jobs: int,
@@ -728,13 +772,7 @@ def explain(result: Path, cluster_id: str | None, depth: int | str | None) -> No
     """Print what a `kbs run` RESULT.json did, grouped (rules, labels by outcome, checks with their
     docs), then its explanation tree; or why one cluster ended as it did (--cluster). Deeper
     parts of a large tree are folded into counts: --depth and --cluster unfold them."""
-    doc = read_result_json(result, require=("explanation",))
-    try:
-        expl = Explanation.from_dict(doc["explanation"])
-    except FormatVersionError as exc:
-        raise CloudFileError(str(result), f"its explanation: {exc}") from exc
-    except (KeyError, TypeError, ValueError) as exc:
-        raise CloudFileError(str(result), f"not a kbs result file ({type(exc).__name__}: {exc})") from exc
+    expl = Explanation.from_result(read_result(result, require=("explanation",)))
     if cluster_id is not None and cluster_id not in expl.records:
         hint = did_you_mean(cluster_id, list(expl.records))
         raise click.BadParameter(f"no cluster {cluster_id!r} in {result}" + (f"; did you mean {hint!r}?" if hint else ""),
@@ -791,8 +829,9 @@ def rules_check(files: tuple[str, ...], plugins: tuple[Path, ...]) -> None:
             continue
         n_warn = len(rb.warnings)
         labels = rb.label_names if len(rb.label_names) <= 12 else rb.label_names[:11] + ["...", rb.label_names[-1]]
+        post = f", post {' > '.join(step.key for step in rb.post)}" if rb.post else ""
         click.echo(f"{f}: ok — '{rb.name}', {len(rb.checks)} checks, {len(rb.rules)} rules, "
-                   f"labels {', '.join(labels)}, strategy {rb.strategy}"
+                   f"labels {', '.join(labels)}, strategy {rb.strategy}{post}"
                    + (f"; {n_warn} warning{'s' if n_warn != 1 else ''}" if n_warn else ""))
         for w in rb.warnings:
             click.echo(w.format(), err=True)

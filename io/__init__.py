@@ -21,6 +21,6 @@ from __future__ import annotations
 from kbs.io.cloud import PointCloud
 from kbs.io.ply import write_ply
 from kbs.io.readers import SUPPORTED_EXTENSIONS, read_cloud
-from kbs.io.result import read_result_json
+from kbs.io.result import ResultDoc, read_result, read_result_json
 
-__all__ = ["PointCloud", "read_cloud", "write_ply", "read_result_json", "SUPPORTED_EXTENSIONS"]
+__all__ = ["PointCloud", "read_cloud", "write_ply", "read_result", "read_result_json", "ResultDoc", "SUPPORTED_EXTENSIONS"]

@@ -29,8 +29,12 @@ format:
 - **Format version.** The JSON's first keys ``"format": "kbs-result"`` and ``"version":
   "MAJOR.MINOR"`` (:data:`RESULT_FORMAT`, :data:`RESULT_VERSION`; :mod:`kbs.formats`): a reader
   reads every minor version of its major one and refuses a newer major version, saying to upgrade
-  kbs (:func:`read_result_json`, through which ``kbs explain``, ``kbs eval``, ``kbs render``,
-  the report and ``kbs run``'s read-back of a streamed result read). Results written before read as version 1.0: those with the integer
+  kbs, at the position of its version in the file (``file:line:col``).
+- **Reading.** :func:`read_result` gives a frozen :class:`ResultDoc`: the format version and the
+  fields readers use (run id, input, rule base, label names, clusters, summary, the explanation's
+  dictionary form) as attributes, each checked for its type (a wrong one is an error at its
+  position). ``kbs explain``, ``kbs eval``, ``kbs render``, the report and ``kbs run``'s read-back
+  of a streamed result read it; none of them indexes the JSON's keys. Results written before read as version 1.0: those with the integer
   ``result_format`` key of kbs 0.1 (its value is the major version), and those without any
   (kbs before run ids), which have no run id to check either. Version 1.1 added the
   explanation's own ``format``/``version`` and its catalogue of the rule base's checks, rules and
@@ -44,7 +48,8 @@ import json
 import math
 import os
 import uuid
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -321,8 +326,10 @@ def cloud_run_id(path: str | os.PathLike[str]) -> str | None:
     return ply_run_id(path)
 
 
-def read_result_json(path: str | Path, *, require: Iterable[str] = ()) -> dict[str, Any]:
-    """The parsed result document; every way it can be unreadable is a one-line CloudFileError.
+def read_result_json(path: str | os.PathLike[str], *, require: Iterable[str] = ()) -> dict[str, Any]:
+    """The parsed result document, as raw JSON; every way it can be unreadable is a one-line
+    CloudFileError (a bad ``format`` or ``version`` names its position, ``file:line:col``).
+    Commands read :func:`read_result` (a :class:`ResultDoc`) instead.
 
     Parameters
     ----------
@@ -341,21 +348,183 @@ def read_result_json(path: str | Path, *, require: Iterable[str] = ()) -> dict[s
     except OSError as exc:
         raise CloudFileError(str(path), _os_problem(exc, "a result file")) from exc
     except NewerVersionError as exc:
-        raise CloudFileError(str(path), str(exc)) from exc
+        raise CloudFileError(json_position(path, _version_key(doc)), str(exc)) from exc
     except FormatVersionError as exc:
-        raise CloudFileError(str(path), f"not a kbs result file ({exc})") from exc
+        raise CloudFileError(json_position(path, _version_key(doc)), f"not a kbs result file ({exc})") from exc
     except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as exc:
         raise CloudFileError(str(path), f"not a kbs result file ({type(exc).__name__}: {exc})") from exc
     return doc
 
 
-def check_pair(ply: str | os.PathLike[str], js: str | os.PathLike[str], doc: Mapping[str, Any]) -> None:
+def _version_key(doc: Mapping[str, Any]) -> str:
+    """The key of a result document that :func:`kbs.formats.document_version` refused."""
+    if doc.get("format", RESULT_FORMAT) != RESULT_FORMAT:
+        return "format"
+    return "version" if "version" in doc or LEGACY_VERSION_KEY not in doc else LEGACY_VERSION_KEY
+
+
+def json_position(path: str | os.PathLike[str], *keys: str) -> str:
+    """``'file:line:col'`` (1-based) of the value at ``keys`` (object keys from the top) in the
+    JSON file ``path``; the file's name alone when it cannot be found there (only read when a
+    problem is reported)."""
+    where = os.fspath(path)
+    try:
+        text = Path(where).read_text(encoding="utf-8")
+        at = _value_at(text, keys)
+    except (OSError, UnicodeDecodeError, ValueError, IndexError):
+        return where
+    if at is None:
+        return where
+    line = text.count("\n", 0, at) + 1
+    return f"{where}:{line}:{at - (text.rfind(chr(10), 0, at) + 1) + 1}"
+
+
+def _value_at(text: str, keys: Sequence[str]) -> int | None:
+    """The offset in the JSON ``text`` of the value at ``keys``, None when there is none."""
+    decoder = json.JSONDecoder()
+    ws = " \t\n\r"
+
+    def skip(i: int) -> int:
+        while i < len(text) and text[i] in ws:
+            i += 1
+        return i
+
+    i = skip(0)
+    for key in keys:
+        if text[i] != "{":
+            return None
+        i = skip(i + 1)
+        while text[i] != "}":
+            name, i = decoder.raw_decode(text, i)
+            i = skip(i)
+            if text[i] != ":":
+                return None
+            i = skip(i + 1)
+            if name == key:
+                break
+            _, i = decoder.raw_decode(text, i)
+            i = skip(i)
+            if text[i] == ",":
+                i = skip(i + 1)
+        else:
+            return None
+    return i
+
+
+@dataclass(frozen=True)
+class ResultDoc:
+    """A result JSON (format ``kbs-result``) read back: what its readers use, as attributes.
+
+    Every field is None when the file does not have it (a result of an older kbs; ``kbs run
+    --tile`` with a streamed output writes the explanation by pieces, but writes it). ``raw`` is
+    the whole document, for what has no attribute here.
+
+    Attributes
+    ----------
+    path : Path
+        The JSON file.
+    version : Version
+        Its format version (files without one read as 1.0).
+    run_id, kbs_version, input, points : str or None
+        The run id (the same in the points file: :func:`check_pair`), the kbs that wrote it, the
+        input cloud's name, the points file's name.
+    rule_base, rule_file, units : str or None
+    n_points : int or None
+    sensor : tuple of 3 floats, or None
+    label_names : tuple of str, or None
+        Index = the per-point ``label``.
+    clusters : tuple of dict, or None
+        The output clusters (index, ids, label, n_points, descriptors, ...).
+    summary : dict or None
+    explanation : dict or None
+        The explanation's dictionary form (:meth:`kbs.knowledge.Explanation.from_result` reads it).
+    """
+
+    path: Path
+    version: Version
+    raw: Mapping[str, Any] = field(repr=False)
+    run_id: str | None = None
+    kbs_version: str | None = None
+    input: str | None = None
+    points: str | None = None
+    rule_base: str | None = None
+    rule_file: str | None = None
+    units: str | None = None
+    n_points: int | None = None
+    sensor: tuple[float, ...] | None = None
+    label_names: tuple[str, ...] | None = None
+    clusters: tuple[dict[str, Any], ...] | None = None
+    summary: Mapping[str, Any] | None = None
+    explanation: Mapping[str, Any] | None = None
+
+    @classmethod
+    def of(cls, doc: Mapping[str, Any], path: str | os.PathLike[str]) -> ResultDoc:
+        """The record of a parsed result document (:func:`read_result_json`'s), its fields
+        checked: a field of the wrong type is a CloudFileError naming it and its position."""
+        path = Path(os.fspath(path))
+        version = document_version(doc, format=RESULT_FORMAT, reads=RESULT_VERSION, legacy_key=LEGACY_VERSION_KEY)
+
+        def bad(key: str, what: str) -> CloudFileError:
+            return CloudFileError(json_position(path, key), f"not a kbs result file ({key!r} is not {what})")
+
+        def text(key: str) -> str | None:
+            v = doc.get(key)
+            if v is not None and not isinstance(v, str):
+                raise bad(key, "a string")
+            return v
+
+        def mapping(key: str) -> Mapping[str, Any] | None:
+            v = doc.get(key)
+            if v is not None and not isinstance(v, Mapping):
+                raise bad(key, "an object")
+            return v
+
+        names = doc.get("label_names")
+        if names is not None and (not isinstance(names, list) or not all(isinstance(n, str) for n in names)):
+            raise bad("label_names", "a list of names")
+        clusters = doc.get("clusters")
+        if clusters is not None and (not isinstance(clusters, list) or not all(isinstance(c, dict) for c in clusters)):
+            raise bad("clusters", "a list of objects")
+        sensor = doc.get("sensor")
+        if sensor is not None and (not isinstance(sensor, list) or len(sensor) != 3
+                                   or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in sensor)):
+            raise bad("sensor", "3 numbers")
+        n = doc.get("n_points")
+        if n is not None and (not isinstance(n, int) or isinstance(n, bool)):
+            raise bad("n_points", "a number of points")
+        return cls(path=path, version=version, raw=doc, run_id=text("run_id"), kbs_version=text("kbs_version"),
+                   input=text("input"), points=text("points"), rule_base=text("rule_base"),
+                   rule_file=text("rule_file"), units=text("units"), n_points=n,
+                   sensor=None if sensor is None else tuple(float(v) for v in sensor),
+                   label_names=None if names is None else tuple(names),
+                   clusters=None if clusters is None else tuple(clusters), summary=mapping("summary"),
+                   explanation=mapping("explanation"))
+
+    def position(self, *keys: str) -> str:
+        """``'file:line:col'`` of the value at ``keys`` in the file (the file alone when not found)."""
+        return json_position(self.path, *keys)
+
+
+def read_result(path: str | os.PathLike[str], *, require: Iterable[str] = ()) -> ResultDoc:
+    """A result JSON read and checked (:func:`read_result_json`; ``require``: keys it must have),
+    as a :class:`ResultDoc`.
+
+    Raises
+    ------
+    CloudFileError
+        Unreadable, not a result, a newer major version (at the position of its version), or a
+        field of the wrong type.
+    """
+    return ResultDoc.of(read_result_json(path, require=require), path)
+
+
+def check_pair(ply: str | os.PathLike[str], js: str | os.PathLike[str], doc: ResultDoc | Mapping[str, Any]) -> None:
     """Refuse a points file (PLY, LAS, LAZ) and a JSON that are not the two files of one result.
 
     Parameters
     ----------
     ply, js : path
-        The two files (``ply``: the points, whatever their format); ``doc`` is the parsed ``js``.
+        The two files (``ply``: the points, whatever their format); ``doc`` is ``js`` read.
 
     Raises
     ------
@@ -363,7 +532,7 @@ def check_pair(ply: str | os.PathLike[str], js: str | os.PathLike[str], doc: Map
         Their run ids differ, or one has a run id and the other none. Two files without a run id
         (written by kbs before run ids) pass: there is nothing to compare.
     """
-    json_id = doc.get("run_id")
+    json_id = doc.run_id if isinstance(doc, ResultDoc) else doc.get("run_id")
     ply_id = cloud_run_id(ply)
     if json_id is None and ply_id is None:
         return
@@ -376,10 +545,10 @@ def check_pair(ply: str | os.PathLike[str], js: str | os.PathLike[str], doc: Map
                      f"runs were put together); run kbs run again to write a matching pair")
 
 
-def points_file(js: Path, doc: Mapping[str, Any]) -> Path:
+def points_file(js: Path, doc: ResultDoc) -> Path:
     """The points file of a result JSON: ``<stem>.ply``, or ``.las``/``.laz`` when its ``points``
     key names a file of that format (the stem is the JSON's: a pair renamed together stays a pair)."""
-    name = doc.get("points")
+    name = doc.points
     suffix = Path(name).suffix.lower() if isinstance(name, str) else ""
     return js.with_suffix(suffix if suffix in (".ply", ".las", ".laz") else ".ply")
 
@@ -410,24 +579,15 @@ def require_fields(cloud: PointCloud, path: str | os.PathLike[str], names: Itera
                                               f"{'s' if len(missing) > 1 else ''} (write one with kbs run)")
 
 
-def result_label_names(doc: Mapping[str, Any], path: str | os.PathLike[str]) -> list[str]:
-    """A result document's ``label_names`` (index = the per-vertex ``label``), checked to be a
-    list of names."""
-    names = doc.get("label_names")
-    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
-        raise CloudFileError(os.fspath(path), "not a kbs result file ('label_names' is not a list of names)")
-    return names
-
-
 def read_result_pair(path: str | os.PathLike[str], *, require: Iterable[str] = (),
-                     fields: Iterable[str] = ()) -> tuple[dict[str, Any], PointCloud]:
+                     fields: Iterable[str] = ()) -> tuple[ResultDoc, PointCloud]:
     """Read a result: ``RESULT.json`` and its points file (``RESULT.ply``, or the LAS/LAZ file its
     ``points`` key names), checked to be one result. ``require``: keys the JSON must have;
     ``fields``: result fields the points must have.
 
     Returns
     -------
-    (dict, PointCloud)
+    (ResultDoc, PointCloud)
         The JSON document and the points with their fields (:func:`read_result_cloud`).
 
     Raises
@@ -436,7 +596,7 @@ def read_result_pair(path: str | os.PathLike[str], *, require: Iterable[str] = (
         Either file is missing or unreadable, or they are not the same run's (:func:`check_pair`).
     """
     js = Path(os.fspath(path))
-    doc = read_result_json(js, require=require)
+    doc = read_result(js, require=require)
     points = points_file(js, doc)
     if not points.is_file():
         raise CloudFileError(str(points), "no such file (the points of the result, written next to its .json)")

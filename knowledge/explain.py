@@ -19,12 +19,15 @@ rules and checks without their docs.
 from __future__ import annotations
 
 from collections.abc import Iterator, Mapping
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from typing import TYPE_CHECKING, Any
 
-from kbs.formats import Version, document_version
+from kbs.errors import CloudFileError
+from kbs.formats import FormatVersionError, Version, document_version
+from kbs.knowledge.groundfacts import GroundFacts
 
 if TYPE_CHECKING:
+    from kbs.io.result import ResultDoc
     from kbs.knowledge.rulebase import Condition, RuleBase
 
 #: The ``format`` of an explanation's dictionary form, and the version this kbs writes.
@@ -243,9 +246,11 @@ class APDCurve:
                          for k, a in zip(self.ks, self.apd))
 
 
-@dataclass
+@dataclass(frozen=True)
 class ClusterRecord:
-    """Everything decided about one cluster.
+    """Everything decided about one cluster (frozen: the run builds a new record with
+    ``dataclasses.replace`` or :meth:`noted` where it decides more; lists given for the sequence
+    fields are kept as tuples).
 
     ``action`` is one of 'accept', 'split' (UFP-ONC), 'split_components', 'reject' (noise),
     'limit' (it should have been split but a limit stopped it; it is kept as it is), 'partition'
@@ -256,24 +261,34 @@ class ClusterRecord:
     parent: str | None
     depth: int
     n_points: int
-    descriptors: dict[str, Any] = field(default_factory=dict)
-    checks: list[CheckRecord] = field(default_factory=list)
+    descriptors: Mapping[str, Any] = field(default_factory=dict)
+    checks: tuple[CheckRecord, ...] = ()
     action: str = "accept"
     rule: str | None = None
     rule_source: str | None = None
-    children: list[str] = field(default_factory=list)
+    children: tuple[str, ...] = ()
     label: str | None = None
     apd: APDCurve | None = None
-    notes: list[str] = field(default_factory=list)
+    notes: tuple[str, ...] = ()
     output_index: int | None = None  #: value of the per-point 'cluster' property, None if none
-    decisive: list[str] = field(default_factory=list)  #: checks of the condition that decided
+    decisive: tuple[str, ...] = ()  #: checks of the condition that decided
     #: set when a post.relabel rule changed the label: {rule, source, from, to, checks}
-    relabel: dict[str, Any] | None = None
+    relabel: Mapping[str, Any] | None = None
     contact: int = 0  #: points that left it for the ground (post.ground_contact)
     released: int = 0  #: points that left this ground cluster, standing above the surface (post.ground_release)
     #: set when action is 'limit': what stopped the split, {kind, setting, value}, e.g.
     #: {'kind': 'max_depth', 'setting': 'limits.max_depth', 'value': 12} (kinds: interpreter.STOP_KINDS)
-    limit: dict[str, Any] | None = None
+    limit: Mapping[str, Any] | None = None
+
+    def __post_init__(self) -> None:
+        for name in _SEQUENCES:
+            value = getattr(self, name)
+            if not isinstance(value, tuple):
+                object.__setattr__(self, name, tuple(value))
+
+    def noted(self, *notes: str) -> ClusterRecord:
+        """This record with ``notes`` added at the end of its notes."""
+        return replace(self, notes=self.notes + notes)
 
     def decisive_checks(self) -> list[CheckRecord]:
         names = set(self.decisive)
@@ -286,6 +301,24 @@ class ClusterRecord:
     def first_label(self) -> str | None:
         """The label its labels' conditions gave it, before any relabel rule."""
         return self.relabel["from"] if self.relabel else self.label
+
+    def to_dict(self) -> dict[str, Any]:
+        """The record as plain data (what ``dataclasses.asdict`` gives, with lists for its
+        sequences, without its deep copies): one of the ``clusters`` of an explanation's
+        dictionary form."""
+        d = dict(vars(self))
+        d["checks"] = [dict(vars(c)) for c in self.checks]
+        d["apd"] = None if self.apd is None else {"ks": list(self.apd.ks), "apd": list(self.apd.apd),
+                                                  "chosen": self.apd.chosen}
+        d["children"], d["notes"], d["decisive"] = list(self.children), list(self.notes), list(self.decisive)
+        d["descriptors"] = dict(self.descriptors)
+        d["relabel"] = None if self.relabel is None else dict(self.relabel)
+        d["limit"] = None if self.limit is None else dict(self.limit)
+        return d
+
+
+#: The fields of a :class:`ClusterRecord` that are sequences (tuples).
+_SEQUENCES = ("checks", "children", "notes", "decisive")
 
 
 #: How many records a tree may have to be printed whole by default (``kbs explain`` without
@@ -303,7 +336,8 @@ class Explanation:
     label_names: list[str]
     records: dict[str, ClusterRecord]
     root: str
-    ground: dict[str, Any] = field(default_factory=dict)
+    #: how the ground plane was found, and what the steps on the local ground surface did
+    ground: GroundFacts = field(default_factory=GroundFacts)
     notes: list[str] = field(default_factory=list)
     #: the rule base's checks, rules and labels (None: an explanation read from a version 1.0 file)
     catalogue: Catalogue | None = None
@@ -337,12 +371,12 @@ class Explanation:
         d: dict[str, Any] = {"format": EXPLANATION_FORMAT, "version": str(EXPLANATION_VERSION)}
         d.update({
             "rule_base": self.rule_base, "rule_file": self.rule_file, "strategy": self.strategy,
-            "label_names": list(self.label_names), "root": self.root, "ground": self.ground,
+            "label_names": list(self.label_names), "root": self.root, "ground": self.ground.to_dict(),
             "notes": list(self.notes),
         })
         if self.catalogue is not None:
             d["catalogue"] = self.catalogue.to_dict()
-        d["clusters"] = [_record_dict(r) for r in self.walk()]
+        d["clusters"] = [r.to_dict() for r in self.walk()]
         if self.sweep:
             d["sweep"] = self.sweep
         return d
@@ -369,9 +403,27 @@ class Explanation:
             records[r["id"]] = ClusterRecord(**r)
         cat = d.get("catalogue")
         return cls(rule_base=d["rule_base"], rule_file=d["rule_file"], strategy=d["strategy"],
-                   label_names=list(d["label_names"]), records=records, root=d["root"], ground=d.get("ground", {}),
+                   label_names=list(d["label_names"]), records=records, root=d["root"], ground=GroundFacts.from_dict(d.get("ground")),
                    notes=list(d.get("notes", [])), catalogue=None if cat is None else Catalogue.from_dict(cat),
                    sweep=list(d.get("sweep", [])))
+
+    @classmethod
+    def from_result(cls, doc: ResultDoc) -> Explanation:
+        """The explanation of a result file read back (:func:`kbs.io.result.read_result`).
+
+        Raises
+        ------
+        kbs.errors.CloudFileError
+            It has none, or not one this kbs reads (a newer major version, at its position).
+        """
+        if doc.explanation is None:
+            raise CloudFileError(str(doc.path), "not a kbs result file (it has no explanation)")
+        try:
+            return cls.from_dict(dict(doc.explanation))
+        except FormatVersionError as exc:
+            raise CloudFileError(doc.position("explanation", "version"), f"its explanation: {exc}") from exc
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CloudFileError(str(doc.path), f"not a kbs result file ({type(exc).__name__}: {exc})") from exc
 
     def to_networkx(self):
         """A ``networkx.DiGraph`` parent -> child with each record's fields as node attributes."""
@@ -647,43 +699,42 @@ class Explanation:
         robust plane (77 % of its 44,197 points within 0.1), 4.09 m from the sensor, normal
         [-0.019, 0.038, 0.999], 2.4 deg from the fallback normal'."""
         g = self.ground
-        if not g or "source" not in g:
+        if g.source is None:
             return "not used"
-        parts = [str(g["source"])]
-        method = g.get("method")
-        if method == "robust plane":
-            parts.append(f"its robust plane ({g['inlier_share']:.0%} of its points, {g['inliers']:,}, on it)")
-        elif method:
-            parts.append(f"it passes {method.removeprefix('check ')}")
-        if g.get("supported") is not None:  # scene.ground.choose supporting: why this cluster won
-            parts.append(f"{g['supported']:,} points standing on it")
-        if g.get("distance") is not None:  # of the nearest point of its plane: why this cluster won
-            unit = f" {g['unit']}" if g.get("unit") else ""
-            parts.append(f"{g['distance']:.2f}{unit} from the sensor")
-        if g.get("normal") is not None:
-            parts.append("normal [" + ", ".join(f"{x:.3f}".replace("-0.000", "0.000") for x in g["normal"]) + "]")
-        if g.get("angle_to_fallback") is not None:
-            parts.append(f"{g['angle_to_fallback']:.1f} deg from the fallback normal")
+        parts = [str(g.source)]
+        if g.method == "robust plane":
+            parts.append(f"its robust plane ({g.inlier_share:.0%} of its points, {g.inliers:,}, on it)")
+        elif g.method:
+            parts.append(f"it passes {g.method.removeprefix('check ')}")
+        if g.supported is not None:  # scene.ground.choose supporting: why this cluster won
+            parts.append(f"{g.supported:,} points standing on it")
+        if g.distance is not None:  # of the nearest point of its plane: why this cluster won
+            unit = f" {g.unit}" if g.unit else ""
+            parts.append(f"{g.distance:.2f}{unit} from the sensor")
+        if g.normal is not None:
+            parts.append("normal [" + ", ".join(f"{x:.3f}".replace("-0.000", "0.000") for x in g.normal) + "]")
+        if g.angle_to_fallback is not None:
+            parts.append(f"{g.angle_to_fallback:.1f} deg from the fallback normal")
         return ", ".join(parts)
 
     def ground_text(self) -> str:
         """The ground plane, then every ground candidate's verdict and the fallback's reason."""
         out = [f"ground: {self.ground_line()}"]
-        unit = f" {self.ground['unit']}" if self.ground.get("unit") else ""
-        for v in self.ground.get("candidates", []):
-            what = [f"{v['points']:,} points"]
-            if v.get("inlier_share") is not None:
-                what.append(f"{v['inlier_share']:.0%} on its robust plane")
-            if v.get("distance") is not None:
-                what.append(f"{v['distance']:.2f}{unit} from the sensor")
-            if v.get("supported") is not None:
-                what.append(f"{v['supported']:,} points standing on it")
-            method = v.get("method")
-            verdict = v["why"] if v.get("why") else "no plane" if not method else \
+        unit = f" {self.ground.unit}" if self.ground.unit else ""
+        for v in self.ground.candidates or ():
+            what = [f"{v.points:,} points"]
+            if v.inlier_share is not None:
+                what.append(f"{v.inlier_share:.0%} on its robust plane")
+            if v.distance is not None:
+                what.append(f"{v.distance:.2f}{unit} from the sensor")
+            if v.supported is not None:
+                what.append(f"{v.supported:,} points standing on it")
+            method = v.method
+            verdict = v.why if v.why else "no plane" if not method else \
                 "a plane: it passes " + method.removeprefix("check ") if method.startswith("check ") else f"a plane: its {method}"
-            out.append(f"  candidate {v['cluster']}: {', '.join(what)}: {verdict}")
-        if "note" in self.ground:
-            out.append(f"  note: {self.ground['note']}")
+            out.append(f"  candidate {v.cluster}: {', '.join(what)}: {verdict}")
+        if self.ground.note is not None:
+            out.append(f"  note: {self.ground.note}")
         return "\n".join(out)
 
     def why(self, cluster_id: str) -> str:
@@ -813,16 +864,6 @@ def _fmt(v: Any) -> str:
     if isinstance(v, (list, tuple)):
         return "[" + ", ".join(_fmt(x) for x in v) + "]"
     return str(v)
-
-
-def _record_dict(r: ClusterRecord) -> dict[str, Any]:
-    """A record as plain data (what ``dataclasses.asdict`` gives, without its deep copies)."""
-    d = dict(vars(r))
-    d["checks"] = [dict(vars(c)) for c in r.checks]
-    d["apd"] = None if r.apd is None else {"ks": list(r.apd.ks), "apd": list(r.apd.apd), "chosen": r.apd.chosen}
-    d["children"], d["notes"], d["decisive"] = list(r.children), list(r.notes), list(r.decisive)
-    d["limit"] = None if r.limit is None else dict(r.limit)
-    return d
 
 
 #: For each kind of stop (``Segmentation.limits_by_kind``): the words of its summary line.

@@ -5,34 +5,34 @@ normal only when no candidate gives a plane. The explanation's ``ground`` sectio
 cluster, how it was found, and every candidate's verdict."""
 from __future__ import annotations
 
-import copy
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
 from kbs.geometry.groundplane import robust_plane, supported_points
-from kbs.knowledge.explain import ClusterRecord
+from kbs.knowledge.groundfacts import GroundCandidate, GroundFacts
 from kbs.knowledge.predicates import Cluster, Ground, Scene
+from kbs.knowledge.state import Draft
 
 
-def find(run: Any, X: np.ndarray, candidates: list[tuple[Cluster, ClusterRecord]], info: dict) -> Ground | None:
+def find(run: Any, X: np.ndarray, candidates: list[tuple[Cluster, Draft]]) -> tuple[Ground | None, GroundFacts]:
     """The ground plane (scene.ground): fixed, or the closest large plane to the sensor among the
     candidates (the clusters of the initial partition with at least min_points points): a
     candidate passing the candidate check gives the plane of all its points; one that fails it
     but whose robust plane (scene.ground.plane) holds enough of its points within the inlier
     distance, and lies within its max_tilt of the fallback normal, gives that plane. The
-    fallback only when no candidate gives a plane. ``info`` (the explanation's ``ground``)
-    records which cluster, how it was found, and every candidate's verdict."""
+    fallback only when no candidate gives a plane. Returns the plane (None: the rule base uses
+    none) and the explanation's ``ground`` facts: which cluster, how it was found, and every
+    candidate's verdict."""
     spec = run.rule_base.ground
     if not run.rule_base.needs_ground and spec.normal is None and spec.candidate is None and spec.plane is None \
             and run.rule_base.ground_model is None:
-        return None
+        return None, GroundFacts()
     if run.given_ground is not None:  # found once on the whole cloud this one is a tile of
-        ground, given = run.given_ground
-        info.update(copy.deepcopy(given))
-        return ground
+        return run.given_ground
     if spec.normal is not None:
-        return plane_from_normal(X, np.asarray(spec.normal, float), "fixed", info)
+        return plane_from_normal(X, np.asarray(spec.normal, float), "fixed", GroundFacts())
     fallback = np.asarray(spec.fallback, float)
     fallback = fallback / np.linalg.norm(fallback)
     best, no_plane, verdicts, tilted, planes = None, [], [], [], []
@@ -83,29 +83,31 @@ def find(run: Any, X: np.ndarray, candidates: list[tuple[Cluster, ClusterRecord]
                   if v.get("inlier_share") is not None and v["cluster"] not in tilted]
         if shares:
             why += f" (the share of their points on their robust planes: {', '.join(shares[:5])})"
-        info["note"] = f"{why}: the fallback normal {list(spec.fallback)} is used"
+        facts = GroundFacts(note=f"{why}: the fallback normal {list(spec.fallback)} is used")
         if verdicts and spec.plane is not None:
-            info.update(candidates=verdicts, unit=run.rule_base.length_unit)
-        return plane_from_normal(X, np.asarray(spec.fallback, float), "fallback", info)
+            facts = replace(facts, candidates=_candidates(verdicts), unit=run.rule_base.length_unit)
+        return plane_from_normal(X, np.asarray(spec.fallback, float), "fallback", facts)
     dist, cl, n, point, tilt, found, _, verdict = best
     below = bool(n @ fallback < 0)  # the sensor lies below the ground: its frame is not the scan's (_sensor_note)
     if below:
         n = -n
-    info.update(source=f"cluster {cl.id}", cluster=cl.id, normal=n.tolist(), point=point.tolist(),
-                distance_to_sensor=dist, thickness=found.get("plane_thickness", found["thickness"]),
-                distance=dist, unit=run.rule_base.length_unit, method=found["method"])
-    if spec.support is not None:
-        info.update(supported=verdict["supported"], candidates=verdicts,
-                    support_band=[spec.support.min_height, spec.support.max_height])
-    if spec.plane is not None:
-        info.update(method=found["method"], angle_to_fallback=round(tilt, 3), candidates=verdicts,
-                    unit=run.rule_base.length_unit)
-        if found["method"] == "robust plane":
-            info.update(inliers=found["inliers"], inlier_share=found["inlier_share"])
-    note = _sensor_note(run, X, fallback, n, point, below)
-    if note:
-        info["note"] = note
-    return Ground(normal=n, point=np.asarray(point, float).copy(), source=f"cluster {cl.id}")
+    robust = spec.plane is not None and found["method"] == "robust plane"
+    facts = GroundFacts(
+        source=f"cluster {cl.id}", cluster=cl.id, normal=tuple(n.tolist()), point=tuple(point.tolist()),
+        distance_to_sensor=dist, thickness=found.get("plane_thickness", found["thickness"]), distance=dist,
+        unit=run.rule_base.length_unit, method=found["method"],
+        supported=verdict["supported"] if spec.support is not None else None,
+        candidates=_candidates(verdicts) if spec.support is not None or spec.plane is not None else None,
+        support_band=(spec.support.min_height, spec.support.max_height) if spec.support is not None else None,
+        angle_to_fallback=round(tilt, 3) if spec.plane is not None else None,
+        inliers=found["inliers"] if robust else None, inlier_share=found["inlier_share"] if robust else None,
+        note=_sensor_note(run, X, fallback, n, point, below) or None)
+    return Ground(normal=n, point=np.asarray(point, float).copy(), source=f"cluster {cl.id}"), facts
+
+
+def _candidates(verdicts: list[dict[str, Any]]) -> tuple[GroundCandidate, ...]:
+    """The candidates' verdicts, as the search wrote them, as records."""
+    return tuple(GroundCandidate(**v) for v in verdicts)
 
 
 #: A sensor farther than this many times the scan's bounding-box diagonal from the box is taken
@@ -153,7 +155,7 @@ def _choose(run: Any, X: np.ndarray, planes: list[tuple]) -> tuple:
         p[7]["supported"] = supported_points(X, p[2], p[3], p[6], support.min_height, support.max_height)
     return min(planes, key=lambda p: (-p[7]["supported"], p[0]))
 
-def _candidate_plane(run: Any, cl: Cluster, rec: ClusterRecord, provisional: Scene) -> dict[str, Any]:
+def _candidate_plane(run: Any, cl: Cluster, rec: Draft, provisional: Scene) -> dict[str, Any]:
     """How a ground candidate gives a plane: ``plane`` (normal, point, its points) or None,
     ``method``, and what was measured."""
     spec = run.rule_base.ground
@@ -183,9 +185,12 @@ def _candidate_plane(run: Any, cl: Cluster, rec: ClusterRecord, provisional: Sce
         out.pop("why", None)
     return out
 
-def plane_from_normal(X: np.ndarray, n: np.ndarray, source: str, info: dict) -> Ground:
+def plane_from_normal(X: np.ndarray, n: np.ndarray, source: str,
+                      facts: GroundFacts) -> tuple[Ground, GroundFacts]:
+    """The plane of normal ``n`` under the cloud (through the 5 % quantile of the heights along
+    it), and ``facts`` with its source, normal and point."""
     n = n / np.linalg.norm(n)
     q = float(np.quantile(X @ n, 0.05))
-    info.update(source=source, normal=n.tolist(), point=(q * n).tolist())
-    return Ground(normal=n, point=q * n, source=source)
+    facts = replace(facts, source=source, normal=tuple(n.tolist()), point=tuple((q * n).tolist()))
+    return Ground(normal=n, point=q * n, source=source), facts
 

@@ -16,6 +16,7 @@ from kbs.errors import FitError, KbsError
 from kbs.inference import UFPONCResult, ufp_onc
 from kbs.knowledge.engine_settings import UFP_ONC_RULE_SETTINGS
 from kbs.knowledge.explain import NO_LABEL
+from kbs.knowledge.groundfacts import GroundFacts
 from kbs.knowledge.predicates import Ground
 from kbs.knowledge.rulebase import RuleBase
 from kbs.knowledge.segmentation import STOP_KINDS, Segmentation
@@ -42,7 +43,7 @@ class Interpreter:
 
     #: A ground plane found beforehand, with its explanation (:meth:`find_ground`): when set, every
     #: run takes it instead of finding its own (a tile takes the whole cloud's).
-    given_ground: tuple[Ground | None, dict[str, Any]] | None = None
+    given_ground: tuple[Ground | None, GroundFacts] | None = None
 
     def __init__(self, rule_base: RuleBase, *, sensor: Any = None,
                  progress: Callable[[str], None] | None = None, jobs: int = 1) -> None:
@@ -115,7 +116,7 @@ class Interpreter:
 
         return run.finish(run.RunContext(self, judged.X), judged, t0)
 
-    def find_ground(self, X: np.ndarray) -> tuple[Ground | None, dict[str, Any]]:
+    def find_ground(self, X: np.ndarray) -> tuple[Ground | None, GroundFacts]:
         """The ground plane a run on ``X`` (n, 3) finds, and its explanation's ``ground``, without
         the rest of the run: the root's UFP-ONC partition and the ground among its clusters (as
         :meth:`run` does). A tiled run finds it once on the whole cloud and gives it to every tile
@@ -125,17 +126,16 @@ class Interpreter:
         X = np.ascontiguousarray(X, dtype=np.float64)
         ctx = RunContext(self, X)
         root = Node.root(X.shape[0])
-        info: dict[str, Any] = {}
         try:
             fixed_k = isinstance(self.rb.engine["initial_k"], int)
             res = self._ufp_onc(X, "k_max" if self.rb.strategy == "global" or fixed_k else "first_max")
         except FitError:
             child = Node("c0", "c", 1, root.idx, root.weight, root.path)
-            return ctx.ground([ctx.record(child)], info), info
+            return ctx.ground([ctx.record(child)])
         k0 = ctx.initial_k(res, [])
         u = res.memberships if k0 == res.chosen_k else res.partition(k0).predict_proba(X)
         del res
-        return ctx.ground([ctx.record(c) for c in root.children(u)], info), info
+        return ctx.ground([ctx.record(c) for c in root.children(u)])
 
 
 def segment(X: np.ndarray, rule_base: RuleBase, *, sensor: Any = None, jobs: int = 1) -> Segmentation:

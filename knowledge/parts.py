@@ -15,23 +15,30 @@ same checks (:func:`check_part`).
 - ``parse(raw, ctx)``: a frozen spec from the rule file's mapping, every problem reported with its
   position through ``ctx`` (:class:`SpecContext`); None when it cannot be built;
 - ``apply(state, ctx)``: a new :class:`~kbs.knowledge.state.PostState` from the old one
-  (:class:`PostContext` gives the cloud, the rule base and the measuring of checks).
+  (:class:`PostContext` gives the cloud, the rule base and the measuring of checks). The leaves'
+  records are frozen: a step that decides more about a leaf gives it a new record
+  (``leaf.with_record(label=..., notes=(...,))``) in the new state's leaves.
 
 **An action** (``then:`` of a rule): ``divides`` (it wants the cluster split: the divisive
 strategy calls ``divide`` for its children; the global strategy goes on to the next K), or not:
 ``keeps`` (the cluster is a leaf) or not (its points are noise). ``validate(rule, ctx)`` checks a
 rule that uses it; ``prepare`` may start work when the cluster is judged (the UFP-ONC split runs
-in a worker while the rest of the wave is judged).
+in a worker while the rest of the wave is judged); ``divide(engine, node, cluster, facts, rule,
+prepared)`` gets the measurements of the checks judged on the cluster (``facts``, a read-only
+mapping by check name, e.g. the components of a failed connexity check) and returns the children
+(or a :class:`~kbs.knowledge.state.Division`, with the APD curve that chose their number);
+``inherit`` gives the checks the children know without measuring.
 
 **A strategy** (``strategy:``): ``partition(engine, X)`` the scene's first partition, then
 ``run(engine, X, root, records, first)`` gives the leaves and the scene
-(:class:`~kbs.knowledge.state.Judged`).
+(:class:`~kbs.knowledge.state.Judged`); ``records`` are the drafts of the tree's records
+(:class:`~kbs.knowledge.state.Draft`), frozen into the ``Judged``.
 """
 from __future__ import annotations
 
 import inspect
 import re
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
 from kbs.knowledge.predicates import PredicateError
@@ -39,10 +46,10 @@ from kbs.knowledge.predicates import PredicateError
 if TYPE_CHECKING:
     import numpy as np
 
-    from kbs.knowledge.explain import ClusterRecord
-    from kbs.knowledge.predicates import Cluster, Scene
+    from kbs.knowledge.explain import CheckRecord, ClusterRecord
+    from kbs.knowledge.predicates import Cluster, Measurement, Scene
     from kbs.knowledge.rulebase import Check, Condition, RuleBase, SourcePos
-    from kbs.knowledge.state import Judged, Node, PostState
+    from kbs.knowledge.state import Division, Draft, Judged, Node, PostState
 
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
@@ -83,6 +90,16 @@ class SpecContext(Protocol):
         """``value`` as a number (the schema checked its type), ``default`` when absent."""
 
 
+class Facts(Protocol):
+    """The outcome of the checks on one cluster (``facts(name) -> bool``, each measured once), and
+    its record with the checks measured so far."""
+
+    record: ClusterRecord
+
+    def __call__(self, name: str) -> bool:
+        """Whether the check ``name`` holds on the cluster."""
+
+
 class PostContext(Protocol):
     """What a post step's ``apply`` may use."""
 
@@ -90,11 +107,10 @@ class PostContext(Protocol):
     rule_base: RuleBase
     #: processes the step may use (k-d tree queries)
     jobs: int
-    #: the explanation's ground section (a step writes what it did under its own key)
-    ground_info: dict[str, Any]
 
-    def fact(self, cluster: Cluster, scene: Scene, record: ClusterRecord) -> Callable[[str], bool]:
-        """The outcome of a check on a cluster (measured once, recorded in ``record``)."""
+    def fact(self, cluster: Cluster, scene: Scene, record: ClusterRecord) -> Facts:
+        """The outcome of a check on a cluster, measured once; ``.record`` is ``record`` with the
+        checks measured so far (give it to the leaf: ``leaf.with_record(fact.record, ...)``)."""
 
     def names(self, cond: Condition | None) -> list[str]:
         """The checks a condition names, in order, once each."""
@@ -138,14 +154,17 @@ class Action:
         """Work to start as soon as the cluster is judged (None: nothing)."""
         return None
 
-    def divide(self, engine: Any, node: Node, cluster: Cluster, record: ClusterRecord, rule: Any,
-               prepared: Any) -> list[Node]:
+    def divide(self, engine: Any, node: Node, cluster: Cluster, facts: Mapping[str, Measurement], rule: Any,
+               prepared: Any) -> list[Node] | Division:
         """The children of ``node`` (two or more; raise :class:`~kbs.errors.FitError` when it
-        cannot be divided: the cluster is kept, the explanation says why)."""
+        cannot be divided: the cluster is kept, the explanation says why). ``facts``: the
+        measurements of the checks judged on the cluster, by check name (read-only)."""
         raise NotImplementedError
 
-    def inherit(self, engine: Any, rule: Any, children: list[tuple[Node, Cluster, ClusterRecord]]) -> None:
-        """Facts the children of a division know without measuring (recorded in their records)."""
+    def inherit(self, engine: Any, rule: Any, parent: Node) -> list[tuple[CheckRecord, Measurement]]:
+        """Checks the children of a division of ``parent`` know without measuring (each recorded
+        in every child's record, as if measured)."""
+        return []
 
     @classmethod
     def doc(cls) -> str:
@@ -162,7 +181,7 @@ class Strategy:
         partition it: the run makes the scene one cluster)."""
         raise NotImplementedError
 
-    def run(self, engine: Any, X: np.ndarray, root: Node, records: dict[str, ClusterRecord], first: Any) -> Judged:
+    def run(self, engine: Any, X: np.ndarray, root: Node, records: dict[str, Draft], first: Any) -> Judged:
         """Judge and divide from the first partition: the leaves, the scene, the records."""
         raise NotImplementedError
 

@@ -17,7 +17,7 @@ import inspect
 import math
 import sys
 import traceback
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
 from importlib.metadata import entry_points
 from pathlib import Path
@@ -86,7 +86,6 @@ class Cluster:
     id: str
     X: np.ndarray
     weights: np.ndarray
-    cache: dict[str, Any] = field(default_factory=dict, repr=False)
 
     @property
     def n_points(self) -> int:

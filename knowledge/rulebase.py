@@ -335,6 +335,16 @@ class Tunable:
 
 
 @dataclass(frozen=True)
+class TileSpec:
+    """``limits.tile``: ``kbs run`` segments a cloud wider than ``wider_than`` (along either axis of
+    the ground plane, in the rule base's unit) in square tiles of ``size`` with the default buffer,
+    as ``--tile size`` does."""
+
+    size: float
+    wider_than: float
+
+
+@dataclass(frozen=True)
 class RuleBase:
     """A validated rule base."""
 
@@ -366,6 +376,12 @@ class RuleBase:
     @property
     def label_names(self) -> list[str]:
         return [lb.name for lb in self.labels]
+
+    @property
+    def tile(self) -> TileSpec | None:
+        """``limits.tile``: the tiles ``kbs run`` cuts a cloud wider than ``wider_than`` into, or None."""
+        t = self.limits.get("tile")
+        return None if t is None else TileSpec(float(t["size"]), float(t["wider_than"]))
 
     def step(self, key: str) -> Any:
         """The first post step named ``key``, or None."""
@@ -953,7 +969,8 @@ class _Validator:
             if path and len(path) == 2 and path[0] == "checks":
                 self.add(path, f"check '{path[1]}' needs a threshold: 'max' and/or 'min'")
             else:
-                self.add(path, f"{where} is invalid: {sch.get('description', 'see the schema')}; got {_brief(inst)}")
+                what = str(sch.get("description", "see the schema")).rstrip(". ")  # a sentence: its stop before '; got'
+                self.add(path, f"{where} is invalid: {what}; got {_brief(inst)}")
         elif kind == "pattern":
             self.add(path, f"{where}: {_brief(inst)} is not a valid name (letters, digits, '_', not starting with a "
                      "digit)")
@@ -972,6 +989,11 @@ class _Validator:
         labels = self._labels(d.get("labels"), checks)
         engine = {**ENGINE_DEFAULTS, **(d.get("engine") if isinstance(d.get("engine"), dict) else {})}
         limits = {**LIMIT_DEFAULTS, **(d.get("limits") if isinstance(d.get("limits"), dict) else {})}
+        tile = limits.get("tile")
+        if isinstance(tile, dict) and all(isinstance(tile.get(k), (int, float)) and not isinstance(tile.get(k), bool)
+                                          for k in ("size", "wider_than")) and tile["wider_than"] < tile["size"]:
+            self.add(("limits", "tile", "wider_than"), f"wider_than {tile['wider_than']!r} is below the tile size "
+                     f"{tile['size']!r}: a cloud narrower than one tile would be cut into tiles")
         if isinstance(engine.get("initial_k"), int) and isinstance(engine.get("k_max"), int) \
                 and engine["initial_k"] > engine["k_max"]:
             self.add(("engine", "initial_k"), f"initial_k = {engine['initial_k']} contradicts k_max = {engine['k_max']}")

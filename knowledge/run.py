@@ -27,11 +27,12 @@ from kbs.inference import UFPONCResult
 from kbs.knowledge import ground as ground_search
 from kbs.knowledge.actions import DEFAULT
 from kbs.knowledge.explain import Catalogue, CheckRecord, ClusterRecord, Explanation
+from kbs.knowledge.groundfacts import GroundFacts
 from kbs.knowledge.parts import Action
 from kbs.knowledge.predicates import Cluster, Ground, PredicateError, Scene
 from kbs.knowledge.rulebase import Condition, RuleBase
 from kbs.knowledge.segmentation import STOP_KINDS, Segmentation
-from kbs.knowledge.state import Judged, Leaf, Node, PostState
+from kbs.knowledge.state import Draft, Judged, Leaf, Node, PostState
 from kbs.knowledge.strategies import STRATEGIES
 
 _ACCEPT = DEFAULT()
@@ -45,9 +46,9 @@ def run(interpreter: Any, X: np.ndarray) -> Segmentation:
         raise FitError(f"expected a non-empty (n, 3) cloud, got shape {X.shape}")
     ctx = RunContext(interpreter, X)
     root = Node.root(X.shape[0])
-    _, root_rec = ctx.record(root)  # its descriptors; the cluster itself (a copy of X) is not kept
-    root_rec.action = "partition"
-    records: dict[str, ClusterRecord] = {"c": root_rec}
+    _, root_draft = ctx.record(root)  # its descriptors; the cluster itself (a copy of X) is not kept
+    root_draft.set(action="partition")
+    records: dict[str, Draft] = {"c": root_draft}
     strategy = STRATEGIES[ctx.rule_base.strategy]()
     try:
         first = strategy.partition(ctx, X)  # 1. partition
@@ -61,11 +62,10 @@ def run(interpreter: Any, X: np.ndarray) -> Segmentation:
 def finish(ctx: RunContext, judged: Judged, t0: float) -> Segmentation:
     """3. label the leaves, 4. run the post steps, 5. the result."""
     rb = ctx.rule_base
-    for lf in judged.leaves:
-        ctx.label(lf.cluster, judged.scene, lf.record)
-    state = PostState(leaves=judged.leaves, scene=judged.scene)
+    leaves = tuple(ctx.label(lf, judged.scene) for lf in judged.leaves)
+    state = PostState(leaves=leaves, scene=judged.scene, ground_facts=judged.ground_facts)
     if state.leaves:
-        post = PostContext(judged.X, rb, ctx.jobs, judged.ground_info, ctx.fact, ctx.names)
+        post = PostContext(judged.X, rb, ctx.jobs, ctx.measure, ctx.names)
         for step in rb.post:
             state = step.apply(state, post)
     return result(judged, state, rb, t0)
@@ -74,10 +74,9 @@ def finish(ctx: RunContext, judged: Judged, t0: float) -> Segmentation:
 def result(judged: Judged, state: PostState, rb: RuleBase, t0: float) -> Segmentation:
     """The per-point arrays, the output clusters (groups of leaves, the largest first) and the
     explanation."""
-    X, leaves = judged.X, state.leaves
-    for lf in leaves:
-        if not lf.size:
-            lf.record.notes.append("every point of it left for other clusters: no output cluster")
+    X = judged.X
+    leaves = [lf if lf.size else lf.with_record(notes=("every point of it left for other clusters: no output cluster",))
+              for lf in state.leaves]
     groups = [[i for i in g if leaves[i].size] for g in (state.groups or [(i,) for i in range(len(leaves))])]
     groups = [g for g in groups if g]
     n = X.shape[0]
@@ -92,20 +91,21 @@ def result(judged: Judged, state: PostState, rb: RuleBase, t0: float) -> Segment
         li = rb.label_names.index(lab) if lab in rb.label_names else -1
         size = 0
         for i in members:
-            node, rec = leaves[i].node, leaves[i].record
+            node = leaves[i].node
             cluster[node.idx] = gi
             label[node.idx] = li
             membership[node.idx] = node.path
-            rec.output_index = gi
             size += node.size
-            if len(members) > 1:
-                rec.notes.append(f"merged with {len(members) - 1} other coplanar {lab} cluster"
-                                 f"{'s' if len(members) > 2 else ''} into output cluster {gi}")
+            merged = (f"merged with {len(members) - 1} other coplanar {lab} cluster"
+                      f"{'s' if len(members) > 2 else ''} into output cluster {gi}",) if len(members) > 1 else ()
+            leaves[i] = leaves[i].with_record(output_index=gi, notes=merged)
         out_clusters.append({"index": gi, "ids": ids, "label": lab, "n_points": int(size),
                              "descriptors": leaves[members[0]].record.descriptors if len(members) == 1 else
                              group_descriptors(X, [leaves[i].node for i in members])})
+    records = dict(judged.records)
+    records.update((lf.id, lf.record) for lf in leaves)  # the leaves' records as labelling and the steps left them
     expl = Explanation(rule_base=rb.name, rule_file=rb.path, strategy=rb.strategy, label_names=rb.label_names,
-                       records=judged.records, root="c", ground=judged.ground_info, notes=list(judged.notes),
+                       records=records, root="c", ground=state.ground_facts, notes=list(judged.notes),
                        catalogue=Catalogue.of(rb), sweep=list(judged.sweep))
     return Segmentation(cluster=cluster, label=label, membership=membership, label_names=rb.label_names,
                         explanation=expl, clusters=out_clusters, seconds=time.perf_counter() - t0)
@@ -121,24 +121,57 @@ def group_descriptors(X: np.ndarray, nodes: list[Node]) -> dict[str, Any]:
             "eigenvalues": geo.eigenvalues.tolist(), "mass": geo.mass}
 
 
-def unpartitioned(ctx: RunContext, root: Node, records: dict[str, ClusterRecord], exc: Exception) -> Judged:
+def unpartitioned(ctx: RunContext, root: Node, records: dict[str, Draft], exc: Exception) -> Judged:
     """A scene the engine could not partition: one cluster, judged, and kept whatever the rules
     say (unless rejected)."""
-    root_rec = records["c"]
-    root_rec.notes.append(f"the scene was not partitioned: {exc}")
+    root_draft = records["c"]
+    root_draft.note(f"the scene was not partitioned: {exc}")
     child = Node("c0", "c", 1, root.idx, root.weight, root.path)
-    root_rec.children = ["c0"]
-    cl, rec = ctx.record(child)
-    records["c0"] = rec
-    info: dict[str, Any] = {}
-    scene = ctx.scene(ctx.ground([(cl, rec)], info))
-    action, _ = ctx.judge(cl, scene, rec)
+    root_draft.set(children=("c0",))
+    cl, draft = ctx.record(child)
+    records["c0"] = draft
+    ground, facts = ctx.ground([(cl, draft)])
+    scene = ctx.scene(ground)
+    action, _ = ctx.judge(cl, scene, draft)
     if action.divides:
-        ctx.stop(rec, "unpartitioned", "it cannot be split: the engine could not partition these points")
+        ctx.stop(draft, "unpartitioned", "it cannot be split: the engine could not partition these points")
     else:
-        rec.action = action.key
-    leaves = (Leaf(child, cl, rec),) if action.divides or action.keeps else ()  # not kept: noise
-    return Judged(ctx.X, leaves, scene, records, info)
+        draft.set(action=action.key)
+    kept = [(child, cl, draft)] if action.divides or action.keeps else []  # not kept: noise
+    return Judged.of(ctx.X, kept, scene, records, facts)
+
+
+class Measuring:
+    """The outcome of the checks on one cluster, each measured once and recorded in its draft
+    (``Measuring(name) -> bool``; :attr:`record`: the record with the checks measured so far)."""
+
+    def __init__(self, rule_base: RuleBase, cluster: Cluster, scene: Scene, draft: Draft) -> None:
+        self.rule_base, self.cluster, self.scene, self.draft = rule_base, cluster, scene, draft
+        self.done: dict[str, bool] = {c.check: c.passed for c in draft.record.checks}  # measured before: reuse
+
+    @property
+    def record(self) -> ClusterRecord:
+        return self.draft.record
+
+    def __call__(self, name: str) -> bool:
+        if name not in self.done:
+            rb, cluster, scene = self.rule_base, self.cluster, self.scene
+            check = rb.checks[name]
+            if check.predicate.needs_ground and scene.ground is None:
+                raise FitError(f"check '{name}' needs the ground plane, which is not known yet")
+            try:
+                m = check.predicate.measure(cluster, scene, check.params)
+            except KbsError:
+                raise
+            except Exception as exc:  # a predicate's bug must name the predicate and cluster
+                raise PredicateError(f"predicate '{check.predicate.name}' failed on cluster {cluster.id} "
+                                     f"({cluster.n_points} points): {type(exc).__name__}: {exc}") from exc
+            self.done[name] = m.defined and check.passes(m.value)  # an undefined value fails its check
+            self.draft.check(CheckRecord(
+                check=name, predicate=check.predicate.name, value=m.value if m.defined else None,
+                unit=check.predicate.unit_label(rb.length_unit), min=check.min, max=check.max,
+                passed=self.done[name], source=check.pos.short, note=m.undefined or ""), m)
+        return self.done[name]
 
 
 @dataclass(frozen=True)
@@ -148,9 +181,14 @@ class PostContext:
     X: np.ndarray
     rule_base: RuleBase
     jobs: int
-    ground_info: dict[str, Any]
-    fact: Callable[[Cluster, Scene, ClusterRecord], Callable[[str], bool]]
+    measure: Callable[[Cluster, Scene, ClusterRecord], Measuring]
     names: Callable[[Condition | None], list[str]]
+
+    def fact(self, cluster: Cluster, scene: Scene, record: ClusterRecord) -> Measuring:
+        """The outcome of the checks on a leaf's cluster: ``fact(name) -> bool``, each measured
+        once; ``fact.record`` is ``record`` with the checks measured so far (the step gives it to
+        the leaf: :meth:`~kbs.knowledge.state.Leaf.with_record`)."""
+        return self.measure(cluster, scene, record)
 
 
 @dataclass
@@ -179,7 +217,7 @@ class RunContext:
         return self.interpreter.progress
 
     @property
-    def given_ground(self) -> tuple[Ground | None, dict[str, Any]] | None:
+    def given_ground(self) -> tuple[Ground | None, GroundFacts] | None:
         return self.interpreter.given_ground
 
     # -- the engine ----------------------------------------------------------------------------
@@ -208,78 +246,60 @@ class RunContext:
 
     # -- facts and rules -----------------------------------------------------------------------
 
-    def fact(self, cluster: Cluster, scene: Scene, rec: ClusterRecord) -> Callable[[str], bool]:
-        """The outcome of a check on ``cluster``, measured once (recorded in ``rec``)."""
-        rb = self.rule_base
-        done: dict[str, bool] = {c.check: c.passed for c in rec.checks}  # measured before: reuse
+    def fact(self, cluster: Cluster, scene: Scene, draft: Draft) -> Measuring:
+        """The outcome of a check on ``cluster``, measured once (recorded in ``draft``)."""
+        return Measuring(self.rule_base, cluster, scene, draft)
 
-        def fact(name: str) -> bool:
-            if name not in done:
-                check = rb.checks[name]
-                if check.predicate.needs_ground and scene.ground is None:
-                    raise FitError(f"check '{name}' needs the ground plane, which is not known yet")
-                try:
-                    m = check.predicate.measure(cluster, scene, check.params)
-                except KbsError:
-                    raise
-                except Exception as exc:  # a predicate's bug must name the predicate and cluster
-                    raise PredicateError(f"predicate '{check.predicate.name}' failed on cluster {cluster.id} "
-                                         f"({cluster.n_points} points): {type(exc).__name__}: {exc}") from exc
-                done[name] = m.defined and check.passes(m.value)  # an undefined value fails its check
-                cluster.cache[name] = m
-                rec.checks.append(CheckRecord(
-                    check=name, predicate=check.predicate.name, value=m.value if m.defined else None,
-                    unit=check.predicate.unit_label(rb.length_unit), min=check.min, max=check.max,
-                    passed=done[name], source=check.pos.short, note=m.undefined or ""))
-            return done[name]
-
-        return fact
+    def measure(self, cluster: Cluster, scene: Scene, record: ClusterRecord) -> Measuring:
+        """:meth:`fact` on a frozen record (labelling, the post steps): ``.record`` gives it back
+        with the checks measured."""
+        return Measuring(self.rule_base, cluster, scene, Draft(record))
 
     @staticmethod
     def names(cond: Condition | None) -> list[str]:
         return [] if cond is None else list(dict.fromkeys(f.name for f in cond.facts()))
 
-    def judge(self, cluster: Cluster, scene: Scene, rec: ClusterRecord) -> tuple[Action, Any]:
+    def judge(self, cluster: Cluster, scene: Scene, draft: Draft) -> tuple[Action, Any]:
         """The first rule whose condition holds: its action and the rule (accept and None when no
         rule acts)."""
-        fact = self.fact(cluster, scene, rec)
+        fact = self.fact(cluster, scene, draft)
         for rule in self.rule_base.rules:
             if rule.condition.evaluate(fact):
-                rec.rule, rec.rule_source = rule.name, rule.pos.short
-                rec.decisive = self.names(rule.condition)
+                draft.set(rule=rule.name, rule_source=rule.pos.short, decisive=tuple(self.names(rule.condition)))
                 return rule.part, rule
         return _ACCEPT, None
 
-    def label(self, cluster: Cluster, scene: Scene, rec: ClusterRecord) -> None:
-        """The first label whose condition holds."""
-        fact = self.fact(cluster, scene, rec)
+    def label(self, leaf: Leaf, scene: Scene) -> Leaf:
+        """The leaf with the first label whose condition holds."""
+        fact = self.measure(leaf.cluster, scene, leaf.record)
         for lab in self.rule_base.labels:
             if lab.condition is None or lab.condition.evaluate(fact):
-                rec.label = lab.name
-                if rec.action == "accept":
-                    rec.decisive = self.names(lab.condition)
-                return
-        rec.notes.append("no label's condition holds")
+                decisive = tuple(self.names(lab.condition)) if fact.record.action == "accept" else fact.record.decisive
+                return leaf.with_record(fact.record, label=lab.name, decisive=decisive)
+        return leaf.with_record(fact.record, notes=("no label's condition holds",))
 
     # -- clusters, the scene, limits -------------------------------------------------------------
 
-    def record(self, node: Node) -> tuple[Cluster, ClusterRecord]:
-        """The cluster of a node and its new record (with its descriptors)."""
+    def record(self, node: Node) -> tuple[Cluster, Draft]:
+        """The cluster of a node and the draft of its new record (with its descriptors)."""
         cl = Cluster(node.id, self.X[node.idx], node.weight)
-        rec = ClusterRecord(id=node.id, parent=node.parent, depth=node.depth, n_points=node.size)
+        descriptors: dict[str, Any] = {}
+        notes: tuple[str, ...] = ()
         if node.size:
             geo = cl.geometry
-            rec.descriptors = {
+            descriptors = {
                 "center": geo.center.tolist(), "normal": None if geo.degenerate else geo.normal.tolist(),
                 "thickness": geo.thickness, "eigenvalues": geo.eigenvalues.tolist(), "mass": geo.mass,
             }
             if geo.degenerate:
-                rec.notes.append(f"degenerate: {geo.degeneracy}, no plane: normal/ground angle undefined")
-        return cl, rec
+                notes = (f"degenerate: {geo.degeneracy}, no plane: normal/ground angle undefined",)
+        return cl, Draft(ClusterRecord(id=node.id, parent=node.parent, depth=node.depth, n_points=node.size,
+                                       descriptors=descriptors, notes=notes))
 
-    def ground(self, candidates: list[tuple[Cluster, ClusterRecord]], info: dict[str, Any]) -> Ground | None:
-        """The ground plane, from the first partition's clusters (:func:`kbs.knowledge.ground.find`)."""
-        return ground_search.find(self, self.X, candidates, info)
+    def ground(self, candidates: list[tuple[Cluster, Draft]]) -> tuple[Ground | None, GroundFacts]:
+        """The ground plane, from the first partition's clusters, and the explanation's facts of it
+        (:func:`kbs.knowledge.ground.find`)."""
+        return ground_search.find(self, self.X, candidates)
 
     def scene(self, ground: Ground | None) -> Scene:
         return Scene(self.sensor, ground, self.rule_base.units)
@@ -297,13 +317,12 @@ class RunContext:
             return "max_clusters", f"limit reached: max_clusters = {cap}"
         return None
 
-    def stop(self, rec: ClusterRecord, kind: str, note: str) -> None:
+    def stop(self, draft: Draft, kind: str, note: str) -> None:
         """Keep a cluster a rule wanted divided, saying what stopped it."""
         setting = STOP_KINDS[kind]
         value = None
         if setting is not None:
             section, key = setting.split(".")
             value = (self.rule_base.limits if section == "limits" else self.rule_base.engine).get(key)
-        rec.action = "limit"
-        rec.limit = {"kind": kind, "setting": setting, "value": value}
-        rec.notes.append(note)
+        draft.set(action="limit", limit={"kind": kind, "setting": setting, "value": value},
+                  notes=draft.record.notes + (note,))

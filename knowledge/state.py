@@ -3,26 +3,33 @@
 - :class:`Node`: a cluster of the split tree as index arrays into the cloud (its points, their
   membership in it, their membership along the path from the scene).
 - :class:`Leaf`: a node the strategy kept, with its :class:`~kbs.knowledge.predicates.Cluster`
-  (the points and their cached measurements) and its explanation record.
+  (the points and their geometry, computed once) and its explanation record.
 - :class:`Judged`: what a strategy hands to labelling: the leaves, the scene (sensor, ground plane),
   the records of the whole tree, the explanation's ground section and notes, the global sweep.
 - :class:`PostState`: what the post steps pass along: the leaves (points move between them), the
-  local ground surface once built, the groups of leaves a grouping step made.
+  explanation's ground section (:class:`~kbs.knowledge.groundfacts.GroundFacts`), the local
+  ground surface once built, the groups of leaves a grouping step made.
+- :class:`Draft`: a cluster's record while the strategy decides about it, with the measurements
+  of its checks; :class:`Division`: what an action that divides a cluster gives.
 
 None of them is changed in place: a step that moves points returns new leaves
-(:meth:`Leaf.with_points`) in a new state (``dataclasses.replace``). What is written as the run
-goes is the explanation: each leaf's :class:`~kbs.knowledge.explain.ClusterRecord` (an
-append-only log of what was decided about it) and the explanation's ``ground`` section.
+(:meth:`Leaf.with_points`) in a new state (``dataclasses.replace``), and a step that decides more
+about a leaf gives it a new frozen :class:`~kbs.knowledge.explain.ClusterRecord`
+(:meth:`Leaf.with_record`). While a strategy decides about a cluster, its record is built by a
+:class:`Draft` and frozen once into the ``records`` of :class:`Judged`.
 """
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 
-from kbs.knowledge.explain import ClusterRecord
-from kbs.knowledge.predicates import Cluster, Scene
+from kbs.knowledge.explain import APDCurve, CheckRecord, ClusterRecord
+from kbs.knowledge.groundfacts import GroundFacts
+from kbs.knowledge.predicates import Cluster, Measurement, Scene
 
 
 @dataclass(frozen=True)
@@ -58,6 +65,20 @@ class Node:
 
 
 @dataclass(frozen=True)
+class Division:
+    """What an action that divides a cluster gives (:meth:`kbs.knowledge.parts.Action.divide`):
+    its children, and the APD curve of the sweep that chose their number when one did."""
+
+    children: tuple[Node, ...]
+    apd: APDCurve | None = None
+
+    @classmethod
+    def of(cls, out: Division | Sequence[Node]) -> Division:
+        """An action's ``divide`` may return a :class:`Division` or its children alone."""
+        return out if isinstance(out, Division) else cls(tuple(out))
+
+
+@dataclass(frozen=True)
 class Leaf:
     """A cluster the strategy kept (accepted, or stopped by a limit), with its measurements
     (``cluster``, as judged: post steps that move points do not measure it again) and its
@@ -83,6 +104,45 @@ class Leaf:
         """This leaf holding other points (a post step moved some in or out)."""
         return replace(self, node=replace(self.node, idx=idx, weight=weight, path=path))
 
+    def with_record(self, record: ClusterRecord | None = None, *, notes: tuple[str, ...] = (),
+                    **changes: Any) -> Leaf:
+        """This leaf with a new record: ``record`` (default: its own) with ``changes`` to its
+        fields (``dataclasses.replace``) and ``notes`` added to its notes."""
+        rec = record if record is not None else self.record
+        if notes:
+            changes["notes"] = rec.notes + tuple(notes)
+        return replace(self, record=replace(rec, **changes) if changes else rec)
+
+
+class Draft:
+    """The record of a cluster while the strategy decides about it: each change makes a new
+    frozen :class:`ClusterRecord` (:attr:`record`), and the measurements of its checks are kept
+    beside it (:attr:`facts`: what an action that divides it may use, e.g. the components of a
+    failed connexity check). Labelling and the post steps start one from a leaf's record."""
+
+    __slots__ = ("record", "_facts")
+
+    def __init__(self, record: ClusterRecord) -> None:
+        self.record = record
+        self._facts: dict[str, Measurement] = {}
+
+    def set(self, **changes: Any) -> None:
+        """Fields of the record decided (``dataclasses.replace``)."""
+        self.record = replace(self.record, **changes)
+
+    def note(self, text: str) -> None:
+        self.record = self.record.noted(text)
+
+    def check(self, check: CheckRecord, measured: Measurement) -> None:
+        """A check measured (or known without measuring) on the cluster."""
+        self.record = replace(self.record, checks=self.record.checks + (check,))
+        self._facts[check.check] = measured
+
+    @property
+    def facts(self) -> Mapping[str, Measurement]:
+        """The measurements of the checks judged on the cluster so far, by check name (a read-only copy)."""
+        return MappingProxyType(dict(self._facts))
+
 
 @dataclass(frozen=True)
 class Judged:
@@ -93,10 +153,18 @@ class Judged:
     X: np.ndarray
     leaves: tuple[Leaf, ...]
     scene: Scene
-    records: dict[str, ClusterRecord]
-    ground_info: dict[str, Any]
+    records: Mapping[str, ClusterRecord]
+    ground_facts: GroundFacts
     notes: tuple[str, ...] = ()
     sweep: tuple[dict[str, Any], ...] = ()
+
+    @classmethod
+    def of(cls, X: np.ndarray, kept: list[tuple[Node, Cluster, Draft]], scene: Scene, drafts: Mapping[str, Draft],
+           ground_facts: GroundFacts, notes: tuple[str, ...] = (), sweep: tuple[dict[str, Any], ...] = ()) -> Judged:
+        """What a strategy hands on, its records frozen: the leaves ``kept`` (node, cluster, draft
+        of its record, in order), the scene, the drafts of the whole tree's records by id."""
+        return cls(X, tuple(Leaf(node, cl, d.record) for node, cl, d in kept), scene,
+                   {k: d.record for k, d in drafts.items()}, ground_facts, notes, sweep)
 
 
 @dataclass(frozen=True)
@@ -120,5 +188,8 @@ class PostState:
 
     leaves: tuple[Leaf, ...]
     scene: Scene
+    #: the explanation's ground section: the ground search's facts, and what the steps on the
+    #: local ground surface did (:attr:`GroundFacts.local_model`)
+    ground_facts: GroundFacts = GroundFacts()
     surface: Surface | None = None
     groups: tuple[tuple[int, ...], ...] | None = None

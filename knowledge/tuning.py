@@ -17,7 +17,6 @@ full run of that rule base gives (the tests compare both).
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 import re
@@ -28,11 +27,10 @@ from collections.abc import Callable, Mapping
 
 import numpy as np
 
-from kbs.knowledge.explain import ClusterRecord
 from kbs.knowledge.interpreter import Interpreter, Segmentation
 from kbs.knowledge.predicates import PredicateRegistry
 from kbs.knowledge.rulebase import RuleBase, Tunable, parse_rule_base
-from kbs.knowledge.state import Judged, Leaf
+from kbs.knowledge.state import Judged
 
 # a plain YAML scalar (a number, as the validation made sure) from its first character: up to a
 # space, a comment, or the end of a flow collection's item
@@ -120,29 +118,13 @@ def registry_of(rule_base: RuleBase) -> PredicateRegistry:
     return reg
 
 
-def _fresh(rec: ClusterRecord) -> ClusterRecord:
-    """A copy of a leaf's record as it was before labelling (its lists copied)."""
-    out = copy.copy(rec)
-    out.checks, out.notes, out.decisive = list(rec.checks), list(rec.notes), list(rec.decisive)
-    return out
-
-
-def _fresh_judged(judged: Judged) -> Judged:
-    """A copy of a strategy's outcome that labelling and the post steps may write to."""
-    leaves = tuple(Leaf(lf.node, lf.cluster, _fresh(lf.record)) for lf in judged.leaves)
-    records = {k: _fresh(r) for k, r in judged.records.items()}
-    records.update({lf.id: lf.record for lf in leaves})
-    return dataclasses.replace(judged, leaves=leaves, records=records, ground_info=copy.deepcopy(judged.ground_info),
-                               notes=tuple(judged.notes))
-
-
 class _Recorder(Interpreter):
     """An interpreter that keeps what its last run had before labelling."""
 
     state: Judged | None = None
 
     def finish(self, judged: Judged, t0: float) -> Segmentation:
-        self.state = _fresh_judged(judged)
+        self.state = judged  # frozen: labelling and the post steps give new records and ground facts
         return super().finish(judged, t0)
 
 
@@ -193,7 +175,7 @@ class SplitTree:
             return self.segmentation
         assert self._state is not None
         it = Interpreter(rule_base, sensor=self._sensor, jobs=1)
-        return it.finish(_fresh_judged(self._state), time.perf_counter())
+        return it.finish(self._state, time.perf_counter())
 
 
 def recorder(rule_base: RuleBase, *, sensor: Any = None, jobs: int = 1) -> _Recorder:

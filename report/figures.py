@@ -15,16 +15,21 @@ state, no display needed; ``fig.savefig`` renders with Agg):
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from kbs.errors import require
+from kbs.io.result import ResultDoc
 from kbs.geometry.pca import plane_basis, principal_axes
 from kbs.report.colors import NOISE_RGB, colors_for
 from kbs.report.view import View
+
+if TYPE_CHECKING:
+    from kbs.knowledge.explain import Explanation
 
 #: The K of the seed paper's figure 2.
 SERIES_K = (2, 4, 5, 6, 8, 10)
@@ -32,9 +37,10 @@ SERIES_K = (2, 4, 5, 6, 8, 10)
 
 @dataclass(frozen=True)
 class Result:
-    """A ``kbs run`` result read back: the JSON document and the per-point arrays of the PLY."""
+    """A ``kbs run`` result read back: the JSON document (:class:`kbs.io.result.ResultDoc`) and the
+    per-point arrays of the PLY."""
 
-    doc: dict[str, Any]
+    doc: ResultDoc
     X: np.ndarray  # (n, 3)
     cluster: np.ndarray  # (n,) int
     label: np.ndarray  # (n,) int
@@ -42,12 +48,24 @@ class Result:
 
     @property
     def label_names(self) -> list[str]:
-        return list(self.doc.get("label_names", []))
+        return list(self.doc.label_names or ())
+
+    @property
+    def clusters(self) -> list[dict[str, Any]]:
+        return list(self.doc.clusters or ())
 
     @property
     def sensor(self) -> np.ndarray | None:
-        s = self.doc.get("sensor")
+        s = self.doc.sensor
         return None if s is None else np.asarray(s, dtype=float)
+
+    @functools.cached_property
+    def explanation(self) -> Explanation | None:
+        """The run's explanation (None: the file has none). Raises CloudFileError for one this kbs
+        does not read (a newer major version)."""
+        from kbs.knowledge.explain import Explanation
+
+        return None if self.doc.explanation is None else Explanation.from_result(self.doc)
 
 
 def load_result(path: str | Path) -> Result:

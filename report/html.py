@@ -65,6 +65,7 @@ import numpy as np
 from kbs.errors import require
 from kbs.geometry.pca import principal_axes
 from kbs.knowledge.explain import Explanation
+from kbs.knowledge.groundfacts import GroundFacts
 from kbs.report.colors import NOISE_HEX, hex_colors
 from kbs.report.view import view_of
 
@@ -185,10 +186,10 @@ def _largest(clusters: Sequence[dict[str, Any]], k: int) -> list[int]:
     return sorted(order[:max(k, 0)])
 
 
-def _camera(explanation_dict: dict[str, Any]) -> dict[str, Any]:
+def _camera(ground: GroundFacts) -> dict[str, Any]:
     """The plotly scene camera: up is the run's up direction; a scan not z up is seen from behind
     and above (a camera's frame from behind the camera); a z-up scan keeps plotly's default eye."""
-    v = view_of(explanation_dict)
+    v = view_of(ground)
     cam: dict[str, Any] = {"up": dict(zip("xyz", np.round(v.up, 6).tolist()))}
     if not (v.level and v.up[2] > 0):
         cam["eye"] = dict(zip("xyz", np.round(-1.6 * v.forward + 0.9 * v.up, 6).tolist()))
@@ -291,7 +292,7 @@ def write_report(path: str | Path, xyz: np.ndarray, cluster: np.ndarray, label: 
         "corners": [None if b is None else np.round(b["corners"], 5).tolist() for b in boxes],
         "records": records, "root": expl.root, "apd": apd,
         "palette": hex_colors(max(n_out, len(label_names), 1)), "noise": NOISE_HEX, "unlabelled": UNLABELLED,
-        "unlabelled_key": _UNLABELLED_KEY, "view": _camera(explanation_dict),
+        "unlabelled_key": _UNLABELLED_KEY, "view": _camera(expl.ground),
         "cah": _cah_views(xyz, cluster, clusters, expl.ground, cah_clusters, cah_points),
         "cah_limit": int(cah_clusters),
         "sweep": _sweep_data(expl.sweep),
@@ -307,7 +308,7 @@ def write_report(path: str | Path, xyz: np.ndarray, cluster: np.ndarray, label: 
     return path
 
 
-def _cah_views(xyz: np.ndarray, cluster: np.ndarray, clusters: Sequence[dict[str, Any]], ground: dict[str, Any],
+def _cah_views(xyz: np.ndarray, cluster: np.ndarray, clusters: Sequence[dict[str, Any]], ground: GroundFacts,
                n_views: int, max_points: int) -> dict[str, Any]:
     """Output cluster index (as a string) -> its CAh view as page data, for the ``n_views``
     largest clusters (see :func:`write_report`)."""
@@ -318,7 +319,7 @@ def _cah_views(xyz: np.ndarray, cluster: np.ndarray, clusters: Sequence[dict[str
     largest = sorted(range(len(clusters)), key=lambda i: (-int(clusters[i].get("n_points", 0)), i))[:n_views]
     order = np.argsort(cluster, kind="stable")
     ids = cluster[order]
-    normal = ground.get("normal") if ground else None
+    normal = ground.normal
     out: dict[str, Any] = {}
     for i in largest:
         a, b = np.searchsorted(ids, [i, i + 1])

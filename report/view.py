@@ -18,9 +18,12 @@ from behind the camera.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from kbs.knowledge.groundfacts import GroundFacts
 
 #: Up within this angle of +z (or -z): the scan's own x-y plane is the map (axes named x and y).
 LEVEL_DEGREES = 10.0
@@ -100,15 +103,13 @@ def _name(v: np.ndarray, what: str) -> str:
     return what
 
 
-def view_of(doc: dict[str, Any]) -> View:
-    """The view of a result JSON document (or of its ``explanation``): up is the ground normal
-    the run recorded, else z."""
-    expl = doc.get("explanation", doc)
-    ground = expl.get("ground") or {} if isinstance(expl, dict) else {}
-    normal = ground.get("normal")
-    if normal is None:
+def view_of(ground: GroundFacts | None) -> View:
+    """The view of a result from its explanation's ground section: up is the ground normal the
+    run recorded, else z."""
+    normal = ground.normal if ground is not None else None
+    if ground is None or normal is None:
         return View.from_up([0.0, 0.0, 1.0], "z: the run used no ground plane")
-    src = ground.get("source", "")
+    src = ground.source or ""
     what = ("the rule base's fixed ground normal" if src == "fixed" else
             "the rule base's fallback ground normal" if src == "fallback" else f"the ground plane the run found, {src}")
     return View.from_up(normal, what)

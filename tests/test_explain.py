@@ -302,3 +302,152 @@ def test_the_readme_run_and_explain_block_is_what_kbs_prints(tmp_path):
                 continue
             assert line in got[at:], f"README line not printed (in order) by `{command}`:\n{line}"
             at = got.index(line, at) + 1
+
+
+# -- 7. the records are frozen ------------------------------------------------------------------------
+
+
+def test_the_records_of_a_run_and_of_a_result_file_are_frozen(example):
+    """Nothing writes a cluster's record in place: the run builds new ones, and a record read back
+    from a result file cannot be changed either (its sequences are tuples)."""
+    import dataclasses
+
+    from kbs.knowledge import Explanation
+
+    doc = json.loads(example.read_text())
+    expl = Explanation.from_dict(doc["explanation"])
+    rec = expl["c1"]
+    assert isinstance(rec.checks, tuple) and isinstance(rec.children, tuple) and isinstance(rec.notes, tuple)
+    for field, value in (("label", "ground"), ("notes", ()), ("output_index", 3), ("action", "reject")):
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            setattr(rec, field, value)
+    with pytest.raises(AttributeError):
+        rec.notes.append("x")  # type: ignore[attr-defined]
+    # a new record instead; the explanation's dictionary form is the file's, unchanged
+    assert rec.noted("x").notes == rec.notes + ("x",) and expl["c1"] is rec
+    assert expl.to_dict()["clusters"] == doc["explanation"]["clusters"]
+
+
+def test_a_run_leaves_the_records_it_was_handed_unchanged():
+    """Labelling and the post steps give the leaves new records: the strategy's records (what
+    ``kbs tune`` labels again) are as the strategy left them."""
+    from kbs.knowledge import Interpreter, load_rule_base
+    from scenes import ground_and_rocks
+
+    class Keeping(Interpreter):
+        judged = None
+
+        def finish(self, judged, t0):
+            self.judged = judged  # as the strategy handed it on, not a copy
+            return super().finish(judged, t0)
+
+    X, _ = ground_and_rocks()
+    it = Keeping(load_rule_base("outdoor"))
+    seg = it.run(X)
+    judged = it.judged
+    assert judged is not None and all(lf.record.label is None for lf in judged.leaves)
+    assert all(r.output_index is None for r in judged.records.values())
+    final = seg.explanation.records
+    assert {lf.id for lf in judged.leaves} <= set(final)
+    assert all(final[lf.id].label is not None and final[lf.id].output_index is not None for lf in judged.leaves)
+    again = Interpreter(load_rule_base("outdoor")).finish(judged, 0.0)
+    assert np.array_equal(again.label, seg.label) and again.explanation.to_dict() == seg.explanation.to_dict()
+
+
+def test_the_ground_section_is_typed_and_round_trips_through_json(example):
+    """The explanation's ground section is frozen records (the search's facts, each candidate's
+    verdict, what the local ground surface steps did), written as the same JSON it always was."""
+    import dataclasses
+
+    from kbs.knowledge import Explanation
+    from kbs.knowledge.groundfacts import GroundCandidate, GroundFacts, LocalModel
+
+    doc = json.loads(example.read_text())
+    written = doc["explanation"]["ground"]
+    assert {"source", "cluster", "normal", "point", "method", "candidates", "local_model"} <= set(written)
+    g = Explanation.from_dict(doc["explanation"]).ground
+    assert isinstance(g, GroundFacts) and g.source == written["source"] and g.normal == tuple(written["normal"])
+    assert all(isinstance(c, GroundCandidate) for c in g.candidates) and len(g.candidates) == len(written["candidates"])
+    assert isinstance(g.local_model, LocalModel) and g.local_model.points == written["local_model"]["points"]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        g.source = "x"  # type: ignore[misc]
+    assert g.to_dict() == written and json.loads(json.dumps(g.to_dict())) == written
+    assert GroundFacts.from_dict(g.to_dict()) == g
+    # a section with keys a newer minor version adds reads, and writes what it knows
+    assert GroundFacts.from_dict({**written, "extra": 1}) == g
+    # the fallback's facts, a skipped local model, and a tiled run's sections round-trip too
+    fallback = GroundFacts(source="fallback", normal=(0.0, 0.0, 1.0), point=(0.0, 0.0, -1.5),
+                           note="no cluster ...: the fallback normal [0, 0, 1] is used",
+                           local_model=LocalModel(note="no ground plane: post.ground_model skipped"))
+    tiled = GroundFacts(source="per tile (fallback)", tiles={"t0_0": fallback, "t0_1": GroundFacts()})
+    for facts in (fallback, tiled, GroundFacts()):
+        assert GroundFacts.from_dict(json.loads(json.dumps(facts.to_dict()))) == facts
+    assert fallback.to_dict()["local_model"] == {"note": "no ground plane: post.ground_model skipped"}
+    assert not GroundFacts() and GroundFacts().to_dict() == {}
+
+
+# -- 8. the result record: read once, versioned, positioned errors ---------------------------------------
+
+
+def _where(text: str, key: str, value: str, after: str | None = None) -> str:
+    """'line:col' (1-based) of ``"key": value`` in ``text`` (the first after the line holding ``after``)."""
+    lines = text.splitlines()
+    start = next(i for i, line in enumerate(lines) if f'"{after}"' in line) + 1 if after else 0
+    pair = f'"{key}": {value}'
+    i = next(i for i in range(start, len(lines)) if pair in lines[i])
+    return f"{i + 1}:{lines[i].index(pair) + len(key) + 5}"
+
+
+@pytest.mark.parametrize("where", ["result", "explanation"])
+def test_a_result_of_a_future_version_is_refused_at_the_position_of_its_version(example, tmp_path, capsys, where):
+    folder = tmp_path / where
+    folder.mkdir()
+    shutil.copy(example.with_suffix(".ply"), folder / "outdoor.ply")
+    doc = json.loads(example.read_text())
+    (doc if where == "result" else doc["explanation"])["version"] = "3.1"
+    js = folder / "outdoor.json"
+    js.write_text(json.dumps(doc, indent=1))  # one key a line: the version is not on line 1
+    at = _where(js.read_text(), "version", '"3.1"', after=None if where == "result" else "explanation")
+    assert int(at.split(":")[0]) > 1
+    code, out, err = _explain(capsys, js)
+    kind = "kbs-result" if where == "result" else "kbs-explanation"
+    assert code == 3 and out == "" and err.count("\n") == 1 and "Traceback" not in err
+    assert f"error: {js}:{at}: " in err, err
+    assert f"written by a newer kbs ({kind} version 3.1; this kbs reads 1.x): upgrade kbs to read it" in err
+
+
+def test_a_result_field_of_the_wrong_type_is_refused_at_its_position(example, tmp_path, capsys):
+    folder = tmp_path / "bad"
+    folder.mkdir()
+    shutil.copy(example.with_suffix(".ply"), folder / "outdoor.ply")
+    doc = json.loads(example.read_text())
+    doc["label_names"] = "ground,obstacle"
+    js = folder / "outdoor.json"
+    js.write_text(json.dumps(doc, indent=1))
+    at = _where(js.read_text(), "label_names", '"ground,obstacle"')
+    code, out, err = _explain(capsys, js)
+    assert code == 3 and out == ""
+    assert f"{js}:{at}: not a kbs result file ('label_names' is not a list of names)" in err
+    assert main(["eval", str(js.with_suffix(".ply")), "field:label_in", "--ground-values", "0", "--no-hoover"]) == 3
+    assert f"{js}:{at}: not a kbs result file ('label_names' is not a list of names)" in capsys.readouterr().err
+
+
+def test_the_result_record_holds_what_readers_use(example):
+    import dataclasses
+
+    from kbs.formats import Version
+    from kbs.io import ResultDoc, read_result
+    from kbs.knowledge import Explanation
+
+    raw = json.loads(example.read_text())
+    doc = read_result(example)
+    assert isinstance(doc, ResultDoc) and doc.version == Version(1, 1) and doc.path == example
+    assert doc.label_names == ("ground", "obstacle") and doc.rule_base == "outdoor" and doc.input == raw["input"]
+    assert doc.run_id == raw["run_id"] and len(doc.clusters) == len(raw["clusters"]) and doc.sensor == (0.0, 0.0, 0.0)
+    assert Explanation.from_result(doc).to_dict() == raw["explanation"]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        doc.label_names = ()  # type: ignore[misc]
+    at = doc.position("explanation", "root")  # compact JSON: on line 1, at the root's id
+    col = int(at.rsplit(":", 1)[1])
+    assert at.startswith(f"{example}:1:") and example.read_text()[col - 1:col + 2] == '"c"'
+    assert doc.position("no such key") == str(example)

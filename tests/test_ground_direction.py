@@ -204,9 +204,9 @@ def test_a_tilted_vehicle_scan_finds_its_ground(shared_data, level_f1, name, deg
     R = rotation_x(degrees)
     seg = Interpreter(load_rule_base("outdoor")).run(X @ R.T)
     g = seg.explanation.ground
-    assert g["source"].startswith("cluster ") and g["method"] == "robust plane", g.get("note")
-    assert angle(g["normal"], R @ _true_ground_normal(X, truth)) < 1.0
-    assert abs(g["angle_to_fallback"] - degrees) < 3.0
+    assert g.source.startswith("cluster ") and g.method == "robust plane", g.note
+    assert angle(g.normal, R @ _true_ground_normal(X, truth)) < 1.0
+    assert abs(g.angle_to_fallback - degrees) < 3.0
     f1 = ground_metrics((seg.label == 0)[valid], truth[valid].astype(int), ground_values=(1,)).f1
     assert f1 > level_f1[name] - 0.01, (f1, level_f1[name])
 

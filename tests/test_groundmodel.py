@@ -323,7 +323,7 @@ def test_ground_contact_moves_only_points_on_the_surface_and_says_so():
     assert moved > 0 and changed.sum() == moved
     assert np.all(seg.label[changed] == 0) and np.all(seg_off.label[changed] == 1)
     g = seg.explanation.ground
-    surface = LocalGround.build(X, np.flatnonzero(seg_off.label == 0), np.array(g["normal"]), np.array(g["point"]),
+    surface = LocalGround.build(X, np.flatnonzero(seg_off.label == 0), np.array(g.normal), np.array(g.point),
                                 neighbours=rb.ground_model.neighbours, radius=rb.ground_model.radius)
     assert np.all(np.abs(surface.height(X[changed])) <= rb.contact.tolerance)
     assert np.all(np.abs(X[changed, 2] + 1.5) < 0.12)  # the rocks' feet, not their tops (0.6 m)
@@ -334,7 +334,7 @@ def test_ground_contact_moves_only_points_on_the_surface_and_says_so():
         assert c["n_points"] == (seg.cluster == c["index"]).sum()
     assert sum(c["n_points"] for c in seg.clusters) == (seg.cluster >= 0).sum() == (seg_off.cluster >= 0).sum()
     # the surface was built from the ground clusters before they received the contact points
-    assert seg.explanation.ground["local_model"]["points"] == (seg.label == 0).sum() - moved
+    assert seg.explanation.ground.local_model.points == (seg.label == 0).sum() - moved
 
 
 @pytest.mark.slow  # whole real scans / a browser: pytest --runslow (CI) runs it
@@ -402,13 +402,13 @@ def test_no_ground_cluster_leaves_the_surface_empty_and_the_run_whole():
         "  relabel:\n    - {name: low_obstacles, from: obstacle, to: ground, if: low}\n", ""))
     assert not rb.relabel and rb.contact is not None
     seg = Interpreter(rb).run(X)
-    assert seg.explanation.ground["local_model"]["points"] == 0
+    assert seg.explanation.ground.local_model.points == 0
     assert sum(r.contact for r in seg.explanation.records.values()) == 0 and not (seg.label == 0).any()
     seg = Interpreter(_parse(label_if=never, post=POST_OK)).run(X)
-    model = seg.explanation.ground["local_model"]
+    model = seg.explanation.ground.local_model
     low = [c for r in seg.explanation.records.values() for c in r.checks if c.check == "low"]
-    assert model["points"] == 0 and low and model["relabelled"] == sum(c.passed for c in low) > 0
-    assert model["points_after_relabel"] > 0
+    assert model.points == 0 and low and model.relabelled == sum(c.passed for c in low) > 0
+    assert model.points_after_relabel > 0
 
 
 def test_a_worker_that_dies_does_not_lose_the_split(monkeypatch):
@@ -483,7 +483,7 @@ def test_ground_release_moves_raised_ground_points_to_the_nearest_obstacle(share
     assert rb_off.release is None and rb.release.tolerance == 0.10 and rb.release.target == "obstacle"
     seg, seg_off = Interpreter(rb, jobs=2).run(X), Interpreter(rb_off, jobs=2).run(X)
     released = sum(r.released for r in seg.explanation.records.values())
-    assert released > 0 and seg.explanation.ground["local_model"]["released"] == released
+    assert released > 0 and seg.explanation.ground.local_model.released == released
     changed = seg.label != seg_off.label
     # released points went ground -> obstacle; contact may differ only through them
     to_obstacle = (seg_off.label == 0) & (seg.label == 1)
@@ -498,7 +498,7 @@ def test_ground_release_moves_raised_ground_points_to_the_nearest_obstacle(share
     assert rb_none.release is None and rb_none.contact is None
     before = Interpreter(rb_none, jobs=2).run(X)
     g = seg.explanation.ground
-    surface = LocalGround.build(X, np.flatnonzero(before.label == 0), np.array(g["normal"]), np.array(g["point"]),
+    surface = LocalGround.build(X, np.flatnonzero(before.label == 0), np.array(g.normal), np.array(g.point),
                                 neighbours=rb.ground_model.neighbours, radius=rb.ground_model.radius)
     assert np.all(surface.height(X[to_obstacle]) > rb.release.tolerance)
     valid = gt != 0

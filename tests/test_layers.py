@@ -64,8 +64,6 @@ PRIVATE_EXCEPTIONS: dict[tuple[str, str], str] = {
                                    "compiled module, one warm-up, one KBS_JIT for the whole library",
     ("tiles", "kbs.inference"): "as above (_flags: the streamed sums take the compiled path as the engine does)",
     ("cli", "kbs.inference"): "kbs warmup runs the compiled kernels' warm-up (_flags, _warmup)",
-    ("tiles", "kbs.knowledge.explain"): "the streamed stitch writes explanation records as the interpreter does "
-                                        "(_record_dict; the explanation record is being reworked in knowledge)",
 }
 
 THIRD_PARTY = {"yaml": {"knowledge", "cli"}, "click": {"cli"}}

@@ -194,7 +194,7 @@ def test_a_pair_written_before_run_ids_still_reads(good_pair, tmp_path):
     cloud = read_cloud(good_pair / "outdoor.ply")
     write_ply(tmp_path / "outdoor.ply", cloud.xyz, dict(cloud.fields))  # no kbs comment
     doc2, pc = read_result_pair(old)
-    assert doc2["label_names"] == doc["label_names"] and len(pc) == len(cloud)
+    assert list(doc2.label_names) == doc["label_names"] and len(pc) == len(cloud)
 
 
 # -- 2. never over an input; over another program's file only with --force -------------------------

@@ -55,11 +55,10 @@ class SmallToNoise(PostStep):
                    ctx.pos(ctx.path, key=True))
 
     def apply(self, state, ctx):
-        for lf in state.leaves:
-            if lf.label == self.label and lf.size < self.min_points:
-                lf.record.label = self.to
-                lf.record.notes.append(f"fewer than {self.min_points} points: {self.to} [{self.pos.short} small_to]")
-        return state
+        note = f"fewer than {self.min_points} points: {self.to} [{self.pos.short} small_to]"
+        return replace(state, leaves=tuple(
+            lf.with_record(label=self.to, notes=(note,)) if lf.label == self.label and lf.size < self.min_points
+            else lf for lf in state.leaves))
 
 
 class Halve(Action):

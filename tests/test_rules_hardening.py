@@ -499,3 +499,27 @@ def test_a_folder_named_as_a_shipped_rule_base_does_not_hide_it(tmp_path, monkey
     monkeypatch.chdir(tmp_path)
     assert main(["rules", "check", "abw"]) == 0
     assert main(["rules", "check", "mine"]) == 4
+
+
+def test_rules_check_summary_lists_the_post_steps_in_order(tmp_path, capsys):
+    from kbs.knowledge import load_rule_base
+
+    code, out, _ = check(capsys, "outdoor", "planar_contest")
+    assert code == 0
+    lines = out.splitlines()
+    steps = [s.key for s in load_rule_base("outdoor").post]
+    assert len(steps) >= 2 and lines[0].endswith(f", strategy divisive, post {' > '.join(steps)}"), lines[0]
+    assert lines[1].endswith(", strategy divisive") and "post" not in lines[1]  # a file without post steps
+    path = write(tmp_path, MINIMAL + "post:\n  - merge_coplanar: {label: plane}\n  - merge_coplanar: {label: plane}\n")
+    code, out, _ = check(capsys, path)
+    assert code == 0 and out.rstrip().endswith("strategy divisive, post merge_coplanar > merge_coplanar"), out
+
+
+def test_a_setting_with_two_forms_says_what_it_takes_in_one_sentence(tmp_path, capsys):
+    text = MINIMAL.replace("strategy: divisive", "strategy: divisive\nengine: {initial_k: 0}")
+    path = write(tmp_path, text)
+    code, _, err = check(capsys, path)
+    at = line_col(text, "0}")
+    assert code == 4
+    assert (f"{path}:{at}: engine.initial_k is invalid: K of the first partition: 'first_apd_max' (APD's first "
+            "local maximum, the seed paper) or a fixed K; got 0\n") in err, err

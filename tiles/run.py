@@ -11,6 +11,7 @@ byte for byte, in process and on any number of Dask workers.
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import os
@@ -22,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from kbs.errors import ExitCode, KbsError, ParameterError
+from kbs.knowledge.groundfacts import GroundFacts
 from kbs.knowledge.interpreter import Segmentation
 from kbs.knowledge.segmenter import Segmenter, as_points
 from kbs.tiles.grid import Tile, TileGrid
@@ -94,7 +96,7 @@ def plan_tiles(segmenter: Segmenter, X: np.ndarray, size: float,
     return grid, grid.tiles(X)
 
 
-def scene_ground(segmenter: Segmenter, X: np.ndarray) -> tuple[Any, dict[str, Any]]:
+def scene_ground(segmenter: Segmenter, X: np.ndarray) -> tuple[Any, GroundFacts]:
     """The ground plane of the whole cloud ``X`` and its explanation (``ground`` of a result), as an
     untiled run finds it (:meth:`~kbs.knowledge.interpreter.Interpreter.find_ground`); on every k-th
     point when ``X`` holds more than :data:`GROUND_SAMPLE_POINTS`. Every tile takes it."""
@@ -108,17 +110,16 @@ def ground_step(n: int) -> int:
     return max(1, -(-n // GROUND_SAMPLE_POINTS))
 
 
-def sample_ground(segmenter: Segmenter, sample: np.ndarray, n: int) -> tuple[Any, dict[str, Any]]:
+def sample_ground(segmenter: Segmenter, sample: np.ndarray, n: int) -> tuple[Any, GroundFacts]:
     """:func:`scene_ground` of a cloud of ``n`` points from its ``sample`` (every
     :func:`ground_step`-th point of it)."""
     step = ground_step(n)
-    ground, info = segmenter._interpreter.find_ground(sample)
-    if "source" in info:
-        info["source"] = f"whole cloud: {info['source']}"
-    info["scope"] = (f"found once on the whole cloud ({n:,} points)" if step == 1 else
-                     f"found once on every {step}th point of the whole cloud ({-(-n // step):,} of {n:,})") + \
+    ground, facts = segmenter._interpreter.find_ground(sample)
+    scope = (f"found once on the whole cloud ({n:,} points)" if step == 1 else
+             f"found once on every {step}th point of the whole cloud ({-(-n // step):,} of {n:,})") + \
         ", the same for every tile"
-    return ground, info
+    source = f"whole cloud: {facts.source}" if facts.source is not None else None
+    return ground, dataclasses.replace(facts, source=source, scope=scope)
 
 
 def segment_tiled(segmenter: Segmenter, points: Any, size: float, buffer: float | None = None, *,
@@ -215,7 +216,7 @@ def worker_segmenter(rules: str, sensor: tuple[float, float, float], plugins: tu
     return Segmenter(rules, jobs=1, sensor=sensor, plugins=plugins)
 
 
-def _segment_tile(segmenter: Segmenter, points: np.ndarray, given: tuple[Any, dict[str, Any]]) -> Segmentation:
+def _segment_tile(segmenter: Segmenter, points: np.ndarray, given: tuple[Any, GroundFacts]) -> Segmentation:
     """One tile, with the whole cloud's ground plane ``given`` (:func:`scene_ground`)."""
     interpreter = segmenter._interpreter
     interpreter.given_ground = given
@@ -226,7 +227,7 @@ def _segment_tile(segmenter: Segmenter, points: np.ndarray, given: tuple[Any, di
 
 
 def segment_task(rules: str, sensor: tuple[float, float, float], plugins: tuple[str, ...],
-                 points: np.ndarray, given: tuple[Any, dict[str, Any]]) -> Segmentation | KbsError:
+                 points: np.ndarray, given: tuple[Any, GroundFacts]) -> Segmentation | KbsError:
     """One tile on a Dask worker. A KbsError is returned, not raised: Dask retries what raises
     (a worker lost), and a bad tile would fail the same way again."""
     try:
@@ -268,7 +269,7 @@ def dask_client(scheduler: str, workers: int | None = None):
 
 def _segment_on_dask(segmenter: Segmenter, X: np.ndarray, tiles: Sequence[Tile], todo: Sequence[int],
                      scheduler: str, workers: int | None, progress: Callable[[str], None] | None,
-                     finished: Callable[[int, Any, int], None], given: tuple[Any, dict[str, Any]]) -> None:
+                     finished: Callable[[int, Any, int], None], given: tuple[Any, GroundFacts]) -> None:
     spec = (segmenter.rule_base.path, segmenter.sensor, segmenter.plugins)
     submit_all(scheduler, workers, progress, finished, todo,
                 lambda k: (segment_task, *spec, X[tiles[k].index], given), [t.name for t in tiles])

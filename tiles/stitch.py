@@ -12,6 +12,7 @@ note.
 """
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -19,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from kbs.knowledge.explain import ClusterRecord, Explanation
+from kbs.knowledge.groundfacts import GroundFacts
 from kbs.knowledge.interpreter import Segmentation
 from kbs.tiles.grid import Tile, TileGrid
 
@@ -101,7 +103,7 @@ NEIGHBOURS = ((0, 1), (1, -1), (1, 0), (1, 1))
 
 
 def stitch(X: np.ndarray, grid: TileGrid, tiles: Sequence[Tile], results: Sequence[Segmentation], *,
-           seconds: float, notes: Sequence[str] = (), ground: dict[str, Any] | None = None) -> TiledSegmentation:
+           seconds: float, notes: Sequence[str] = (), ground: GroundFacts | None = None) -> TiledSegmentation:
     """One result for the cloud ``X`` from the results of its tiles.
 
     Parameters
@@ -118,7 +120,7 @@ def stitch(X: np.ndarray, grid: TileGrid, tiles: Sequence[Tile], results: Sequen
         The wall time of the whole run (the result's ``seconds``).
     notes : sequence of str
         Added to the explanation's notes.
-    ground : dict, optional
+    ground : GroundFacts, optional
         The whole cloud's ground plane every tile was given (its explanation, as
         :func:`kbs.tiles.run.scene_ground` returns it): the explanation's ``ground``, with each
         tile's own (its local ground surface) under ``tiles``. None: the tiles found their own.
@@ -222,13 +224,14 @@ def _explanation(tiles, results, offsets, roots, out_of_root, shared, stitched, 
         children.append(f"{t.name}/{e.root}")
         for rec in tile_records(t.name, e, int(offsets[k]), roots, out_of_root, shared, stitched):
             records[rec.id] = rec
-    records[ROOT] = ClusterRecord(id=ROOT, parent=None, depth=0, n_points=n, action="partition", children=children,
-                                  notes=[f"{len(tiles)} tiles: " + ", ".join(t.bounds_text() for t in tiles)])
-    sources = sorted({str(g.get("source", "not used")) for g in grounds.values()})
+    records[ROOT] = ClusterRecord(id=ROOT, parent=None, depth=0, n_points=n, action="partition",
+                                  children=tuple(children),
+                                  notes=(f"{len(tiles)} tiles: " + ", ".join(t.bounds_text() for t in tiles),))
+    sources = sorted({str(g.source or "not used") for g in grounds.values()})
     if given is not None and given:
-        ground = {**given, "tiles": grounds}
+        ground = dataclasses.replace(given, tiles=grounds)
     else:
-        ground = {"source": f"per tile ({', '.join(sources)})", "tiles": grounds}
+        ground = GroundFacts(source=f"per tile ({', '.join(sources)})", tiles=grounds)
     tile_notes = [f"{t.name}: {note}" for t, r in zip(tiles, results) for note in r.explanation.notes]
     k = len(stitched)
     summary = f"{len(tiles)} tiles; {k} output cluster{'s' if k != 1 else ''} stitched across tile edges"

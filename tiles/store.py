@@ -67,7 +67,7 @@ class TileStore:
             ground, info = given
             if ground is not None:
                 h.update(np.concatenate([ground.normal, ground.point]).astype(np.float64).tobytes())
-            h.update(json.dumps(info, sort_keys=True, default=str).encode("utf-8"))
+            h.update(json.dumps(info.to_dict(), sort_keys=True, default=str).encode("utf-8"))
         h.update(np.ascontiguousarray(index, dtype=np.int64).tobytes())
         h.update(np.ascontiguousarray(points, dtype=np.float64).tobytes())
         return h.hexdigest()

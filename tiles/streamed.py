@@ -38,6 +38,7 @@ import numpy as np
 
 from kbs.errors import KbsError, ParameterError
 from kbs.knowledge.explain import ClusterRecord, Explanation
+from kbs.knowledge.groundfacts import GroundFacts
 from kbs.knowledge.interpreter import NO_LABEL, Segmentation
 from kbs.tiles.grid import Tile, TileGrid
 from kbs.tiles.stitch import NEIGHBOURS, ROOT, _Union, pair_links, stitched_record
@@ -79,7 +80,7 @@ class TileSummary:
     n_splits: int
     limits: list[tuple[int, str, Any]]
     root: str
-    ground: dict[str, Any]
+    ground: GroundFacts
     notes: list[str]
     head: dict[str, Any] = field(default_factory=dict)
 
@@ -152,7 +153,7 @@ def read_rows(path: str | os.PathLike[str], index: np.ndarray) -> np.ndarray:
 
 
 def run_job(segment: Callable[[np.ndarray], Segmentation], job: TileJob,
-            given: tuple[Any, dict[str, Any]]) -> tuple[TileSummary, bool]:
+            given: tuple[Any, GroundFacts]) -> tuple[TileSummary, bool]:
     """Segment ``job``'s tile with ``segment`` (points -> result), or take its file when resuming
     and the file is this tile's; save it, return its summary and whether it was resumed."""
     try:
@@ -197,7 +198,7 @@ class _Edges:
 
 
 def _task(rules: str, sensor: tuple[float, float, float], plugins: tuple[str, ...], job: TileJob,
-          given: tuple[Any, dict[str, Any]]) -> tuple[TileSummary, bool] | KbsError:
+          given: tuple[Any, GroundFacts]) -> tuple[TileSummary, bool] | KbsError:
     """One tile on a Dask worker (:func:`run_job`); a KbsError is returned, not raised (see
     :func:`kbs.tiles.run.segment_task`)."""
     from kbs.tiles.run import _segment_tile, worker_segmenter
@@ -265,7 +266,7 @@ def _n_points(tile: Tile) -> int:
     return int(getattr(tile, "n_points", None) or tile.index.size)
 
 
-def _ground(segmenter: Any, xyz_path: str, n: int) -> tuple[Any, dict[str, Any]]:
+def _ground(segmenter: Any, xyz_path: str, n: int) -> tuple[Any, GroundFacts]:
     """:func:`kbs.tiles.run.scene_ground` of the spilled cloud: its sample read from the file (at
     most :data:`kbs.tiles.run.GROUND_SAMPLE_POINTS` points in memory)."""
     from kbs.tiles.run import ground_step, sample_ground
@@ -282,7 +283,7 @@ def _ground(segmenter: Any, xyz_path: str, n: int) -> tuple[Any, dict[str, Any]]
 
 
 def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], summaries: Sequence[TileSummary], edges: _Edges,
-            store: TileStore, given: dict[str, Any], t0: float) -> StreamedResult:
+            store: TileStore, given: GroundFacts, t0: float) -> StreamedResult:
     offsets = np.concatenate([[0], np.cumsum([len(s.sizes) for s in summaries])]).astype(np.int64)
     total = int(offsets[-1])
     uf = _Union(total)
@@ -345,11 +346,11 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], summaries: Sequ
     notes = [f"{len(tiles)} tiles; {k_st} output cluster{'s' if k_st != 1 else ''} stitched across tile edges",
              *[f"{t.name}: {note}" for t, s in zip(tiles, summaries) for note in s.notes]]
     root_record = ClusterRecord(id=ROOT, parent=None, depth=0, n_points=n, action="partition",
-                                children=[f"{t.name}/{s.root}" for t, s in zip(tiles, summaries)],
-                                notes=[f"{len(tiles)} tiles: " + ", ".join(t.bounds_text() for t in tiles)])
-    ground = {**given, "tiles": grounds} if given else \
-        {"source": f"per tile ({', '.join(sorted({str(g.get('source', 'not used')) for g in grounds.values()}))})",
-         "tiles": grounds}
+                                children=tuple(f"{t.name}/{s.root}" for t, s in zip(tiles, summaries)),
+                                notes=(f"{len(tiles)} tiles: " + ", ".join(t.bounds_text() for t in tiles),))
+    ground = dataclasses.replace(given, tiles=grounds) if given else \
+        GroundFacts(source=f"per tile ({', '.join(sorted({str(g.source or 'not used') for g in grounds.values()}))})",
+                    tiles=grounds)
     explanation = Explanation(rule_base=head["rule_base"], rule_file=head["rule_file"], strategy=head["strategy"],
                               label_names=label_names, records={ROOT: root_record}, root=ROOT, ground=ground,
                               notes=notes, catalogue=head["catalogue"])
@@ -569,9 +570,7 @@ class StreamedResult:
     def records(self) -> Iterator[dict[str, Any]]:
         """The explanation's records in its order, as plain data (``to_dict``'s): the root, then
         each tile's, read from its file (:func:`kbs.tiles.stitch.stitched_record`)."""
-        from kbs.knowledge.explain import _record_dict
-
-        yield _record_dict(self.explanation.records[ROOT])
+        yield self.explanation.records[ROOT].to_dict()
         for k, t in enumerate(self._tiles):
             with np.load(self._store.path(t), allow_pickle=False) as f:
                 doc = json.loads(bytes(f["doc"]).decode("utf-8"))

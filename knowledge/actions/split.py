@@ -4,10 +4,12 @@ from __future__ import annotations
 from typing import Any, ClassVar
 
 from kbs.errors import FitError
-from kbs.knowledge.explain import APDCurve, ClusterRecord
+from collections.abc import Mapping
+
+from kbs.knowledge.explain import APDCurve
 from kbs.knowledge.parts import Action
-from kbs.knowledge.predicates import Cluster
-from kbs.knowledge.state import Node
+from kbs.knowledge.predicates import Cluster, Measurement
+from kbs.knowledge.state import Division, Node
 
 
 class Split(Action):
@@ -21,8 +23,8 @@ class Split(Action):
         """The split starts as soon as the cluster is judged (in a worker when jobs > 1)."""
         return engine.submit_split(cluster.X)  # the cluster's points, X[node.idx]: no second copy
 
-    def divide(self, engine: Any, node: Node, cluster: Cluster, record: ClusterRecord, rule: Any,
-               prepared: Any) -> list[Node]:
+    def divide(self, engine: Any, node: Node, cluster: Cluster, facts: Mapping[str, Measurement], rule: Any,
+               prepared: Any) -> Division:
         X = engine.X
         res = prepared.result() if prepared is not None else \
             engine.ufp_onc(X[node.idx], "first_max", min_k=engine.rule_base.engine["split_min_k"])
@@ -31,6 +33,6 @@ class Split(Action):
             if len(res.partitions) < 2:
                 raise FitError("UFP-ONC found no second cluster")
             k = 2
-        record.apd = APDCurve(tuple(p.k for p in res.partitions), tuple(p.apd for p in res.partitions), k)
+        apd = APDCurve(tuple(p.k for p in res.partitions), tuple(p.apd for p in res.partitions), k)
         u = res.memberships if k == res.chosen_k else res.partition(k).predict_proba(X[node.idx])
-        return node.children(u)
+        return Division(tuple(node.children(u)), apd)

@@ -2,12 +2,13 @@
 alpha-complex, found by the connexity check that failed."""
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import numpy as np
 
 from kbs.errors import FitError
-from kbs.knowledge.explain import CheckRecord, ClusterRecord
+from kbs.knowledge.explain import CheckRecord
 from kbs.knowledge.parts import Action, SpecContext
 from kbs.knowledge.predicates import Cluster, Measurement
 from kbs.knowledge.state import Node
@@ -28,13 +29,13 @@ class SplitComponents(Action):
             ctx.add(path + ("then",), f"rule '{rule.name}': split_components needs a failed connexity "
                     "check in its condition (e.g. 'if: not connected'), to know the components")
 
-    def divide(self, engine: Any, node: Node, cluster: Cluster, record: ClusterRecord, rule: Any,
+    def divide(self, engine: Any, node: Node, cluster: Cluster, facts: Mapping[str, Measurement], rule: Any,
                prepared: Any) -> list[Node]:
         from kbs.geometry.connexity import Connexity, assign_to_nearest, project_on_plane
 
         conn: Connexity | None = None
         for f in rule.condition.facts():  # reuse the components of the failed connexity check
-            m = cluster.cache.get(f.name)
+            m = facts.get(f.name)
             if m is not None and isinstance(m.details, Connexity):
                 conn = m.details
                 break
@@ -51,18 +52,17 @@ class SplitComponents(Action):
                                  np.ones(sel.size), node.path[sel]))
         return kids
 
-    def inherit(self, engine: Any, rule: Any, children: list[tuple[Node, Cluster, ClusterRecord]]) -> None:
+    def inherit(self, engine: Any, rule: Any, parent: Node) -> list[tuple[CheckRecord, Measurement]]:
         """A child is one component of its parent's alpha-complex: its connexity checks hold at the
         parent's alpha, and are recorded so rather than measured again with a smaller alpha of its
         own (which would cut it again and again along the sampling pattern, e.g. LiDAR rings)."""
         rb = engine.rule_base
         names = {f.name for f in rule.condition.facts() if rb.checks[f.name].predicate.name == "connexity"}
-        for _, cl, rec in children:
-            for name in names:
-                check = rb.checks[name]
-                passed = check.passes(1.0)
-                cl.cache[name] = Measurement(1.0)
-                rec.checks.append(CheckRecord(
-                    check=name, predicate="connexity", value=1.0, unit=check.predicate.unit_label(rb.length_unit),
-                    min=check.min, max=check.max, passed=passed, source=check.pos.short,
-                    note=f"one component of {rec.parent}, at its alpha"))
+        known = []
+        for name in names:
+            check = rb.checks[name]
+            known.append((CheckRecord(
+                check=name, predicate="connexity", value=1.0, unit=check.predicate.unit_label(rb.length_unit),
+                min=check.min, max=check.max, passed=check.passes(1.0), source=check.pos.short,
+                note=f"one component of {parent.id}, at its alpha"), Measurement(1.0)))
+        return known

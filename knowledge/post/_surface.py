@@ -39,7 +39,7 @@ def receive(leaves: list[Leaf], moved_in: dict, note: str) -> None:
         leaves[t] = lf.with_points(np.concatenate([lf.node.idx] + [p[0] for p in parts]),
                                    np.concatenate([lf.node.weight] + [p[1] for p in parts]),
                                    np.concatenate([lf.node.path] + [p[2] for p in parts]))
-        lf.record.notes.append(note.format(n=f"{n_in:,}"))
+        leaves[t] = leaves[t].with_record(notes=(note.format(n=f"{n_in:,}"),))
 
 
 def surface_batches(X: np.ndarray, todo: Sequence[Leaf], model,

@@ -72,8 +72,17 @@ class GroundContact(PostStep):
         scene = Scene(state.scene.sensor, state.scene.ground, state.scene.unit, ground_model=surface.model)
         leaves = list(state.leaves)
         moved_in: dict[int, list] = {}
-        todo = [li for li, lf in enumerate(leaves) if lf.label in self.sources and lf.label != gl and lf.size
-                and (self.condition is None or self.condition.evaluate(ctx.fact(lf.cluster, scene, lf.record)))]
+        todo = []
+        for li, lf in enumerate(leaves):
+            if lf.label not in self.sources or lf.label == gl or not lf.size:
+                continue
+            if self.condition is not None:
+                fact = ctx.fact(lf.cluster, scene, lf.record)
+                holds = self.condition.evaluate(fact)
+                leaves[li] = lf.with_record(fact.record)  # with the checks measured
+                if not holds:
+                    continue
+            todo.append(li)
         # queries for batches of clusters (the surface does not change while points move: they
         # are received after the loop)
         tol = self.tolerance
@@ -87,13 +96,12 @@ class GroundContact(PostStep):
             n_move, size = int(move.sum()), lf.size
             if not n_move:
                 continue
-            leaves[li], dest = take(lf, move, surface.owner[nearest[move]], moved_in)
-            rec = lf.record
-            rec.contact = n_move
+            taken, dest = take(lf, move, surface.owner[nearest[move]], moved_in)
             ids = [leaves[t].id for t in dest]
-            rec.notes.append(f"{n_move:,} of its {size:,} points lie within {tol:g} {unit} of the local "
-                             f"ground surface and joined {gl} cluster{'s' if len(ids) > 1 else ''} "
-                             f"{', '.join(ids[:5])}{' ...' if len(ids) > 5 else ''} [{self.pos.short} ground_contact]")
+            leaves[li] = taken.with_record(contact=n_move, notes=(
+                f"{n_move:,} of its {size:,} points lie within {tol:g} {unit} of the local "
+                f"ground surface and joined {gl} cluster{'s' if len(ids) > 1 else ''} "
+                f"{', '.join(ids[:5])}{' ...' if len(ids) > 5 else ''} [{self.pos.short} ground_contact]",))
         receive(leaves, moved_in, "{n} points of other clusters in contact with it joined it "
                 f"[{self.pos.short} ground_contact]")
         return replace(state, leaves=tuple(leaves))

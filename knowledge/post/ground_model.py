@@ -6,6 +6,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from kbs.knowledge.groundfacts import LocalModel
 from kbs.knowledge.parts import PostContext, PostStep, SpecContext
 from kbs.knowledge.rulebase import SourcePos
 from kbs.knowledge.state import PostState, Surface
@@ -65,10 +66,9 @@ class GroundModel(PostStep):
 
     def apply(self, state: PostState, ctx: PostContext) -> PostState:
         if state.scene.ground is None:  # the rule base has no way to orient the ground: say so, do nothing
-            ctx.ground_info["local_model"] = {"note": "no ground plane: post.ground_model skipped"}
-            return replace(state, surface=None)
+            skipped = LocalModel(note="no ground plane: post.ground_model skipped")
+            return replace(state, surface=None, ground_facts=replace(state.ground_facts, local_model=skipped))
         surface = self.build(state, ctx)
-        ctx.ground_info["local_model"] = {"label": self.label, "points": surface.model.n_points,
-                                          "neighbours": self.neighbours, "radius": self.radius,
-                                          "source": self.pos.short}
-        return replace(state, surface=surface)
+        built = LocalModel(label=self.label, points=surface.model.n_points, neighbours=self.neighbours,
+                           radius=self.radius, source=self.pos.short)
+        return replace(state, surface=surface, ground_facts=replace(state.ground_facts, local_model=built))

@@ -57,10 +57,9 @@ class GroundRelease(PostStep):
         unit = ctx.rule_base.length_unit
         leaves = list(state.leaves)
         targets = [li for li, lf in enumerate(leaves) if lf.label == self.target and lf.size]
-        local = ctx.ground_info["local_model"]
         if not targets:
-            local["release_note"] = f"no {self.target} cluster to take released points"
-            return state
+            note = f"no {self.target} cluster to take released points"
+            return replace(state, ground_facts=state.ground_facts.with_local_model(release_note=note))
         X = ctx.X
         t_idx = np.concatenate([leaves[li].node.idx for li in targets])
         t_owner = np.concatenate([np.full(leaves[li].size, li) for li in targets])
@@ -79,15 +78,13 @@ class GroundRelease(PostStep):
             if not n_move:
                 continue
             _, j = tree.query(X[lf.node.idx[move]], workers=ctx.jobs if n_move >= 4096 else 1)
-            leaves[li], dest = take(lf, move, t_owner[j], moved_in)
-            rec = lf.record
-            rec.released = n_move
+            taken, dest = take(lf, move, t_owner[j], moved_in)
             total += n_move
             ids = [leaves[t].id for t in dest]
-            rec.notes.append(f"{n_move:,} of its {size:,} points stand more than {tol:g} {unit} above the "
-                             f"local ground surface and joined {self.target} cluster{'s' if len(ids) > 1 else ''} "
-                             f"{', '.join(ids[:5])}{' ...' if len(ids) > 5 else ''} [{self.pos.short} ground_release]")
-        local["released"] = total
+            leaves[li] = taken.with_record(released=n_move, notes=(
+                f"{n_move:,} of its {size:,} points stand more than {tol:g} {unit} above the "
+                f"local ground surface and joined {self.target} cluster{'s' if len(ids) > 1 else ''} "
+                f"{', '.join(ids[:5])}{' ...' if len(ids) > 5 else ''} [{self.pos.short} ground_release]",))
         receive(leaves, moved_in, "{n} points released by ground clusters joined it (the nearest "
                 f"{self.target} cluster) [{self.pos.short} ground_release]")
-        return replace(state, leaves=tuple(leaves))
+        return replace(state, leaves=tuple(leaves), ground_facts=state.ground_facts.with_local_model(released=total))

@@ -77,28 +77,31 @@ class Relabel(PostStep):
 
     def apply(self, state: PostState, ctx: PostContext) -> PostState:
         surface = state.surface
-        if surface is None and "local_model" in ctx.ground_info:  # a ground_model step was skipped (no ground plane)
+        if surface is None and state.ground_facts.local_model is not None:  # a ground_model step was skipped (no ground plane)
             return state
         scene = state.scene
         post_scene = Scene(scene.sensor, scene.ground, scene.unit,
                            ground_model=surface.model if surface is not None else None)
         changed = 0
-        for lf in state.leaves:
-            rec = lf.record
+        leaves = list(state.leaves)
+        for i, lf in enumerate(leaves):
+            fact = ctx.fact(lf.cluster, post_scene, lf.record)
             for r in self.rules:
-                if rec.label != r.source or not r.condition.evaluate(ctx.fact(lf.cluster, post_scene, rec)):
+                if lf.label != r.source or not r.condition.evaluate(fact):
                     continue
-                rec.relabel = {"rule": r.name, "source": r.pos.short, "from": r.source, "to": r.target,
-                               "checks": ctx.names(r.condition)}
-                rec.label = r.target
+                leaves[i] = lf.with_record(fact.record, label=r.target, relabel={
+                    "rule": r.name, "source": r.pos.short, "from": r.source, "to": r.target,
+                    "checks": ctx.names(r.condition)})
                 changed += 1
                 break
+            else:
+                leaves[i] = lf.with_record(fact.record)  # with the checks measured
+        state = replace(state, leaves=tuple(leaves))
         if surface is None:
             return state
-        local = ctx.ground_info["local_model"]
-        local["relabelled"] = changed
+        state = replace(state, ground_facts=state.ground_facts.with_local_model(relabelled=changed))
         if not changed:
             return state
         surface = surface.spec.build(state, ctx)
-        local["points_after_relabel"] = surface.model.n_points
-        return replace(state, surface=surface)
+        return replace(state, surface=surface,
+                       ground_facts=state.ground_facts.with_local_model(points_after_relabel=surface.model.n_points))

@@ -8,9 +8,9 @@ import numpy as np
 
 from kbs.errors import FitError
 from kbs.inference import UFPONCResult
-from kbs.knowledge.explain import APDCurve, ClusterRecord
+from kbs.knowledge.explain import APDCurve
 from kbs.knowledge.parts import Strategy
-from kbs.knowledge.state import Judged, Leaf, Node
+from kbs.knowledge.state import Division, Draft, Judged, Node
 
 
 class Divisive(Strategy):
@@ -37,16 +37,16 @@ class Divisive(Strategy):
         u = res.memberships if k == res.chosen_k else res.partition(k).predict_proba(X)
         return k, root.children(u)
 
-    def run(self, run: Any, X: np.ndarray, root: Node, records: dict[str, ClusterRecord],
+    def run(self, run: Any, X: np.ndarray, root: Node, records: dict[str, Draft],
             res: UFPONCResult) -> Judged:
         notes = list(res.notes)
         k0, children = self.first_children(run, X, root, res, notes)
-        records["c"].apd = APDCurve(tuple(p.k for p in res.partitions), tuple(p.apd for p in res.partitions), k0)
+        records["c"].set(apd=APDCurve(tuple(p.k for p in res.partitions), tuple(p.apd for p in res.partitions), k0))
         del res, root  # the (n, K) memberships: the children hold copies of their part
         return self.divide(run, X, children, records, notes)
 
     @staticmethod
-    def divide(run: Any, X: np.ndarray, children: list[Node], records: dict[str, ClusterRecord],
+    def divide(run: Any, X: np.ndarray, children: list[Node], records: dict[str, Draft],
                notes: list[str]) -> Judged:
         """Breadth first, one level of the split tree (a wave) at a time: every cluster of the wave
         is judged, the divisions it asks for are started (the UFP-ONC splits side by side when
@@ -56,12 +56,12 @@ class Divisive(Strategy):
         from kbs.knowledge.interpreter import _Splitter
 
         rb = run.rule_base
-        records["c"].children = [c.id for c in children]
+        records["c"].set(children=tuple(c.id for c in children))
         wave = [(c, *run.record(c)) for c in children]
         children.clear()  # the wave holds them now: a node split below is freed with its wave
-        ground_info: dict[str, Any] = {}
-        scene = run.scene(run.ground([(cl, rec) for _, cl, rec in wave], ground_info))
-        leaves: list[Leaf] = []
+        ground, ground_facts = run.ground([(cl, rec) for _, cl, rec in wave])
+        scene = run.scene(ground)
+        leaves: list[tuple[Node, Any, Draft]] = []
         n_clusters = len(wave)
         with _Splitter(run.interpreter, run.ufp_kwargs("first_max", rb.engine["split_min_k"])) as splitter:
             run.splitter = splitter
@@ -77,30 +77,35 @@ class Divisive(Strategy):
                 wave = []
                 for node, cl, rec, action, rule, prepared in judged:
                     if not action.divides:
-                        rec.action = action.key
+                        rec.set(action=action.key)
                         if action.keeps:
-                            leaves.append(Leaf(node, cl, rec))
+                            leaves.append((node, cl, rec))
                         continue
                     why_not = run.cannot_split(node, n_clusters)
-                    kids: list[Node] = []
+                    division = Division(())
                     if why_not is None:
                         try:
-                            kids = action.divide(run, node, cl, rec, rule, prepared)
+                            division = Division.of(action.divide(run, node, cl, rec.facts, rule, prepared))
                         except FitError as exc:
                             why_not = "split_failed", f"the split failed: {exc}"
-                        if why_not is None and len(kids) < 2:
+                        if division.apd is not None:
+                            rec.set(apd=division.apd)
+                        if why_not is None and len(division.children) < 2:
                             why_not = "single_cluster", "the split gave a single cluster"
                     if why_not is not None:
                         run.stop(rec, *why_not)
-                        leaves.append(Leaf(node, cl, rec))
+                        leaves.append((node, cl, rec))
                         continue
-                    rec.action = action.key
-                    rec.children = [k.id for k in kids]
+                    kids = division.children
+                    rec.set(action=action.key, children=tuple(k.id for k in kids))
                     n_clusters += len(kids) - 1
                     kid_records = [(k, *run.record(k)) for k in kids]
-                    action.inherit(run, rule, kid_records)
+                    known = action.inherit(run, rule, node)
+                    for _, _, kid in kid_records:
+                        for check, measured in known:
+                            kid.check(check, measured)
                     wave.extend(kid_records)
                     if run.progress:
                         run.progress(f"{node.id} split in {len(kids)}")
             run.splitter = None
-        return Judged(X, tuple(leaves), scene, records, ground_info, tuple(notes))
+        return Judged.of(X, leaves, scene, records, ground_facts, tuple(notes))

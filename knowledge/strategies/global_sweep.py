@@ -7,9 +7,10 @@ import numpy as np
 
 from kbs.inference import first_local_max
 from kbs.inference.incremental import IncrementalSweep
-from kbs.knowledge.explain import APDCurve, ClusterRecord
+from kbs.knowledge.explain import APDCurve
+from kbs.knowledge.groundfacts import GroundFacts
 from kbs.knowledge.parts import Strategy
-from kbs.knowledge.state import Judged, Leaf, Node
+from kbs.knowledge.state import Draft, Judged, Node
 
 
 class GlobalSweep(Strategy):
@@ -73,14 +74,14 @@ class GlobalSweep(Strategy):
         return [(Node(f"c{i}", root.id, 1, root.idx[parts[j]], u[parts[j], j], u[parts[j], j]), j)
                 for i, j in enumerate(order)]
 
-    def run(self, run: Any, X: np.ndarray, root: Node, records: dict[str, ClusterRecord],
+    def run(self, run: Any, X: np.ndarray, root: Node, records: dict[str, Draft],
             sweep: IncrementalSweep) -> Judged:
         rb = run.rule_base
         k_max = rb.engine["k_max"]
         min_points = rb.limits["min_points"]
         notes: list[str] = []
         steps: list[dict[str, Any]] = []
-        ground_info: dict[str, Any] = {}
+        ground_facts = GroundFacts()
         k0, first = self.first_k(run, sweep, notes)
         scene = None
         seeded: str | None = None
@@ -88,11 +89,12 @@ class GlobalSweep(Strategy):
             kids = self.clusters(X, root, sweep)
             judged = [(node, j, *run.record(node)) for node, j in kids]
             if scene is None:  # the ground plane from the first partition judged, as the divisive strategy does
-                scene = run.scene(run.ground([(cl, rec) for _, _, cl, rec in judged], ground_info))
+                ground, ground_facts = run.ground([(cl, rec) for _, _, cl, rec in judged])
+                scene = run.scene(ground)
             failing = []
             for node, j, cl, rec in judged:
                 action, _rule = run.judge(cl, scene, rec)
-                rec.action = action.key
+                rec.set(action=action.key)
                 if action.divides:
                     if node.size < min_points:
                         run.stop(rec, "min_points", f"limit reached: {node.size} points < min_points = {min_points}")
@@ -113,17 +115,17 @@ class GlobalSweep(Strategy):
         k = sweep.k
         for st in steps:
             st["kept"] = st["k"] == k
-        records["c"].children = [node.id for node, _, _, _ in judged]
         curve = sorted(dict(first + [(p.k, p.apd) for p in sweep.partitions]).items())  # every K computed
-        records["c"].apd = APDCurve(tuple(kk for kk, _ in curve), tuple(a for _, a in curve), chosen=k)
-        records["c"].notes.append(f"global strategy: K = {k0} (APD's first local maximum) to K = {k} "
-                                  f"({len(steps)} partitions judged); K = {k} kept")
+        records["c"].set(children=tuple(node.id for node, _, _, _ in judged),
+                         apd=APDCurve(tuple(kk for kk, _ in curve), tuple(a for _, a in curve), chosen=k))
+        records["c"].note(f"global strategy: K = {k0} (APD's first local maximum) to K = {k} "
+                          f"({len(steps)} partitions judged); K = {k} kept")
         notes.extend(sweep.notes)
         actions = {r.part.key: r.part for r in rb.rules}
         leaves = []
         for node, _, cl, rec in judged:
             records[node.id] = rec
-            act = actions.get(rec.action)
+            act = actions.get(rec.record.action)
             if act is not None and act.divides:
                 if k >= k_max:
                     run.stop(rec, "k_max", f"limit reached: no partition of the scene beyond K = {k} "
@@ -133,8 +135,8 @@ class GlobalSweep(Strategy):
                                                    "(every new prototype died)")
             elif act is not None and not act.keeps:  # reject: its points are noise
                 continue
-            leaves.append(Leaf(node, cl, rec))
-        return Judged(X, tuple(leaves), scene, records, ground_info, tuple(notes), tuple(steps))
+            leaves.append((node, cl, rec))
+        return Judged.of(X, leaves, scene, records, ground_facts, tuple(notes), tuple(steps))
 
     @staticmethod
     def step_record(sweep: IncrementalSweep, judged: list, seeded: str | None) -> dict[str, Any]:
@@ -142,8 +144,8 @@ class GlobalSweep(Strategy):
         and the checks that failed)."""
         part = sweep.partitions[-1]
         clusters = []
-        for node, j, cl, rec in judged:
-            geo = cl.geometry
+        for node, j, cl, draft in judged:
+            geo, rec = cl.geometry, draft.record
             decisive = [{"check": c.check, "predicate": c.predicate, "value": c.value, "unit": c.unit, "min": c.min,
                          "max": c.max, "passed": c.passed, "source": c.source} for c in rec.decisive_checks()]
             clusters.append({"id": node.id, "column": int(j), "points": int(node.size),
