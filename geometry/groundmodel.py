@@ -160,7 +160,7 @@ class LocalGround:
         q = d.shape[0]
         if _flags.JIT:  # the same medians, compiled: one pass over the rows, no (q, k) temporaries
             owners = self.owners if self.owners is not None else np.zeros(0, dtype=np.int64)
-            return _compiled.local_medians(np.ascontiguousarray(d), np.ascontiguousarray(i, dtype=np.int64),
+            return _compiled.local_medians_fast(np.ascontiguousarray(d), np.ascontiguousarray(i, dtype=np.int64),
                                            self.heights, np.ascontiguousarray(owners, dtype=np.int64), own,
                                            self.neighbours)
         ground = np.full(q, np.nan)
@@ -293,13 +293,21 @@ class LocalGround:
             return None
         q = P.shape[0]
         lo, hi = np.full(q, np.inf), np.full(q, -np.inf)
+        need = min(self.neighbours, self.n_points)
         for s in range(0, q, 1 << 16):  # plane coordinates as query() computes them
             Q = (P[s:s + (1 << 16)] - self.point) @ self.basis.T
+            if _flags.JIT:  # the same bounds, compiled: no (q,) temporaries per grid
+                lo_s, hi_s = lo[s:s + (1 << 16)], hi[s:s + (1 << 16)]
+                for grid, narrow in ((coarse, False), (fine, True)):
+                    if grid is not None:
+                        _compiled.surface_bounds(np.ascontiguousarray(Q), lo_s, hi_s, grid.origin, grid.side,
+                                                 *grid.blocks, need, narrow)
+                continue
             at, (lo_b, hi_b, _) = coarse.cells_of(Q), coarse.blocks
             lo[s + at[0]], hi[s + at[0]] = lo_b[at[1], at[2]], hi_b[at[1], at[2]]
             if fine is not None:
                 at, (lo_b, hi_b, n3) = fine.cells_of(Q), fine.blocks
-                ok = n3[at[1], at[2]] >= min(self.neighbours, self.n_points)
+                ok = n3[at[1], at[2]] >= need
                 j, a, b = at[0][ok], at[1][ok], at[2][ok]
                 lo[s + j] = np.maximum(lo[s + j], lo_b[a, b])
                 hi[s + j] = np.minimum(hi[s + j], hi_b[a, b])
@@ -319,11 +327,16 @@ class LocalGround:
         pad = reach + 1  # empty rings of cells around the surface
         if not side > 0.0:
             return None
-        origin = T.min(axis=0) - pad * side
-        cells = np.floor((T.max(axis=0) - origin) / side) + pad + 1  # as floats: a huge extent would not fit int64
+        # the tree's mins and maxes are T.min(axis=0) and T.max(axis=0), without two more passes
+        origin = self.tree.mins - pad * side  # type: ignore[attr-defined]
+        cells = np.floor((self.tree.maxes - origin) / side) + pad + 1  # type: ignore[attr-defined]  # floats: may be huge
         if float(cells[0]) * float(cells[1]) > self.BOUND_CELLS_PER_POINT * T.shape[0] + 4096:
             return None
         shape = cells.astype(np.int64)
+        shape2 = (int(shape[0]), int(shape[1]))
+        if _flags.JIT:  # the same arrays, compiled: one pass over the points, no sort
+            blocks = _compiled.surface_blocks(T, self.heights, origin, float(side), shape2[0], shape2[1], reach)
+            return _BlockGrid(origin, side, shape2, blocks)
         ij = np.floor((T - origin) / side).astype(np.int64)
         cell = ij[:, 0] * shape[1] + ij[:, 1]
         size = int(shape[0] * shape[1])
@@ -334,7 +347,6 @@ class LocalGround:
         lo_c[cs[starts]] = np.minimum.reduceat(hs, starts)
         hi_c[cs[starts]] = np.maximum.reduceat(hs, starts)
         n_c = np.bincount(cell, minlength=size).astype(np.float64)
-        shape2 = (int(shape[0]), int(shape[1]))
         blocks = (_slide(lo_c.reshape(shape2), reach, np.minimum), _slide(hi_c.reshape(shape2), reach, np.maximum),
                   _slide(n_c.reshape(shape2), 1, np.add))
         return _BlockGrid(origin, side, shape2, blocks)

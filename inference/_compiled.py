@@ -1046,3 +1046,138 @@ def slope_lowest(Q, T, heights, owners, own, ny, start, order, lo, side, rise, r
                             best = v
         out[k] = best
     return out
+
+
+# -- the local ground surface's medians, without a sort per row ---------------------------------
+
+
+@njit(cache=True, nogil=True)
+def local_medians_fast(d, idx, heights, owners, own, neighbours):
+    """:func:`local_medians` with the same outputs, without an array allocated per row: the kept
+    heights are insertion-sorted in one buffer as they are found. Sorted values are unique bit for
+    bit except for +0.0 and -0.0 (equal, of another sign) and NaN (unordered): a row that keeps a
+    zero or a NaN is done again with ``np.sort`` of the heights in found order, as
+    :func:`local_medians` does, so every output is bit for bit its."""
+    q, k = d.shape
+    ground = np.full(q, np.nan)
+    nearest = np.full(q, -1, dtype=np.int64)
+    buf = np.empty(max(neighbours, 1))
+    for r in range(q):
+        m = 0
+        odd = False  # a zero or a NaN kept
+        for c in range(k):
+            if m >= neighbours:
+                break
+            if not np.isfinite(d[r, c]):
+                continue
+            i = idx[r, c]
+            if own >= 0 and owners[i] == own:
+                continue
+            if m == 0:
+                nearest[r] = i
+            v = heights[i]
+            if not (v < 0.0 or v > 0.0):
+                odd = True
+            j = m
+            while j > 0 and buf[j - 1] > v:  # insertion: the buffer stays sorted
+                buf[j] = buf[j - 1]
+                j -= 1
+            buf[j] = v
+            m += 1
+        if m:
+            a = buf[(m - 1) // 2]
+            b = buf[m // 2]
+            if odd:  # numpy's sort of the found order decides where each zero (or NaN) goes
+                n = 0
+                for c in range(k):
+                    if n >= m:
+                        break
+                    if np.isfinite(d[r, c]) and not (own >= 0 and owners[idx[r, c]] == own):
+                        buf[n] = heights[idx[r, c]]
+                        n += 1
+                s = np.sort(buf[:m])
+                a = s[(m - 1) // 2]
+                b = s[m // 2]
+            ground[r] = 0.5 * (a + b)
+    return ground, nearest
+
+
+# -- the bounds of the local ground surface (``LocalGround.height_bounds``) ---------------------
+
+
+@njit(nogil=True)
+def _block_reduce(A, reach, op):
+    """``op`` (0 minimum, 1 maximum, 2 sum) of ``A`` (nx, ny) over the (2 reach + 1)^2 block of
+    cells around each cell (cells beyond the edges do not count), one axis after the other."""
+    nx, ny = A.shape
+    B = A.copy()
+    for a in range(nx):  # along the first axis: rows of cells at once
+        for x in range(max(a - reach, 0), min(a + reach, nx - 1) + 1):
+            if x != a:
+                _fold_row(B[a], A[x], op)
+    C = B.copy()
+    for a in range(nx):  # along the second axis: within each row, shifted by d both ways
+        for d in range(1, min(reach, ny - 1) + 1):
+            _fold_row(C[a, :ny - d], B[a, d:], op)
+            _fold_row(C[a, d:], B[a, :ny - d], op)
+    return C
+
+
+@njit(nogil=True, inline="always")
+def _fold_row(dst, src, op):
+    if op == 0:
+        for j in range(dst.shape[0]):
+            if src[j] < dst[j]:
+                dst[j] = src[j]
+    elif op == 1:
+        for j in range(dst.shape[0]):
+            if src[j] > dst[j]:
+                dst[j] = src[j]
+    else:
+        for j in range(dst.shape[0]):
+            dst[j] += src[j]
+
+
+@njit(cache=True, nogil=True)
+def surface_blocks(T, heights, origin, side, nx, ny, reach):
+    """The block grid of the local ground surface's bounds: points ``T`` (m, 2) with ``heights``
+    (m,) in cells ``floor((T - origin) / side)`` of an (nx, ny) grid that holds them all; per
+    cell, the lowest and highest height over the (2 reach + 1)^2 block around it (+inf / -inf
+    where empty) and the number of points of its 3 x 3 block (as floats). The same arrays as the
+    numpy reference (``LocalGround._block_grid``): minima, maxima and sums of whole numbers do not
+    depend on the order they are taken in."""
+    lo = np.full((nx, ny), np.inf)
+    hi = np.full((nx, ny), -np.inf)
+    n = np.zeros((nx, ny))
+    for i in range(T.shape[0]):
+        a = int(math.floor((T[i, 0] - origin[0]) / side))
+        b = int(math.floor((T[i, 1] - origin[1]) / side))
+        h = heights[i]
+        if h < lo[a, b]:
+            lo[a, b] = h
+        if h > hi[a, b]:
+            hi[a, b] = h
+        n[a, b] += 1.0
+    return _block_reduce(lo, reach, 0), _block_reduce(hi, reach, 1), _block_reduce(n, 1, 2)
+
+
+@njit(cache=True, nogil=True)
+def surface_bounds(Q, lo, hi, origin, side, lo_b, hi_b, n3, need, narrow):
+    """Write the bounds of one block grid (see :func:`surface_blocks`) for the plane points ``Q``
+    (q, 2) into ``lo``, ``hi`` (q,): the block's lowest and highest height where the point's cell
+    ``floor((Q - origin) / side)`` is inside the grid; with ``narrow`` (the fine grid), only where
+    the 3 x 3 block holds at least ``need`` points, and only to narrow the bounds already there."""
+    nx, ny = lo_b.shape
+    for k in range(Q.shape[0]):
+        fa = math.floor((Q[k, 0] - origin[0]) / side)
+        fb = math.floor((Q[k, 1] - origin[1]) / side)
+        if not (fa >= 0.0 and fb >= 0.0 and fa < nx and fb < ny):  # NaN fails too
+            continue
+        a = int(fa)
+        b = int(fb)
+        if not narrow:
+            lo[k] = lo_b[a, b]
+            hi[k] = hi_b[a, b]
+        elif n3[a, b] >= need:
+            lo[k] = max(lo[k], lo_b[a, b])
+            hi[k] = min(hi[k], hi_b[a, b])

@@ -28,6 +28,8 @@ def warm() -> None:
     idx = rng.integers(0, 100, (50, 16)).astype(np.int64)
     C.local_medians(d, idx, rng.random(100), rng.integers(0, 3, 100).astype(np.int64), 1, 8)
     C.local_medians(d, idx, rng.random(100), np.zeros(0, dtype=np.int64), -1, 8)
+    C.local_medians_fast(d, idx, rng.random(100), rng.integers(0, 3, 100).astype(np.int64), 1, 8)
+    C.local_medians_fast(d, idx, rng.random(100), np.zeros(0, dtype=np.int64), -1, 8)
     U = np.ascontiguousarray(X[:3000, :2])  # the connexity kernels (kbs.geometry.connexity)
     degree = C.connexity_degrees(U, np.ones(len(U), dtype=np.int64), 0.5, 4.0 * len(U) + 4096.0)
     C.connexity_components(U, degree >= np.median(degree) * 0.3, 0.5, True, 4.0 * len(U) + 4096.0)
@@ -35,6 +37,11 @@ def warm() -> None:
     ny, start, order, lo = C.surface_grid(U, 1.0, 4.0 * len(U) + 4096.0)  # the slope surface
     C.slope_lowest(U[:50].copy(), U, X[:3000, 2].copy(), np.zeros(3000, dtype=np.int64), 0, ny, start, order, lo,
                    1.0, 0.8, 1.0)
+    nx, ny = int((U[:, 0].max() - lo[0]) / 0.5) + 5, int((U[:, 1].max() - lo[1]) / 0.5) + 5  # the surface's bounds
+    b_lo, b_hi, n3 = C.surface_blocks(U, X[:3000, 2].copy(), lo - 2.0, 0.5, nx, ny, 3)
+    for narrow in (False, True):
+        C.surface_bounds(U[:50].copy(), np.full(50, np.inf), np.full(50, -np.inf), lo - 2.0, 0.5, b_lo, b_hi, n3, 8,
+                         narrow)
     _flags.marker().write_text(_flags._stamp())
 
 

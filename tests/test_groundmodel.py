@@ -205,6 +205,70 @@ def test_queries_in_chunks_give_the_answers_of_one_query(monkeypatch, jit, exclu
     np.testing.assert_array_equal(n1, n2)
 
 
+def _median_rows(d, idx, heights, owners, own, neighbours):
+    """Both compiled median kernels on one query; their outputs, bit for bit."""
+    from kbs.inference import _compiled as C
+
+    args = (np.ascontiguousarray(d), np.ascontiguousarray(idx, dtype=np.int64), heights,
+            np.ascontiguousarray(owners, dtype=np.int64), own, neighbours)
+    (g0, n0), (g1, n1) = C.local_medians(*args), C.local_medians_fast(*args)
+    return g0.view(np.int64), g1.view(np.int64), n0, n1
+
+
+@pytest.mark.parametrize("own", [-1, 0, 1])
+def test_median_kernel_without_a_sort_per_row_is_the_old_one_at_ties(own):
+    """local_medians_fast (insertion into one buffer) against local_medians (np.sort per row), bit
+    for bit: equal heights, +0.0 and -0.0 at the median positions, NaN, duplicate positions (equal
+    distances), rows with fewer points than neighbours (the radius reached) and none."""
+    rng = np.random.default_rng(21)
+    m, q, k = 300, 2000, 48
+    heights = rng.choice(np.array([-0.0, 0.0, 0.0, -0.0, 0.1, -0.1, 0.2, 1.5, 0.1]), m)  # signed zeros, repeats
+    heights[::37] = np.nan  # never on a surface (its tree refuses them), but the kernels agree there too
+    owners = rng.integers(0, 3, m)
+    d = np.sort(rng.choice(np.array([0.0, 0.5, 0.5, 1.0, 2.0, 3.0]), (q, k)), axis=1)  # distance ties
+    d[rng.random((q, k)) < 0.2] = np.inf
+    d.sort(axis=1)  # the missing ones last, as the tree gives them
+    idx = np.where(np.isfinite(d), rng.integers(0, m, (q, k)), m)
+    for nb in (1, 2, 7, 16):
+        g0, g1, n0, n1 = _median_rows(d, idx, heights, owners if own >= 0 else np.zeros(0), own, nb)
+        np.testing.assert_array_equal(g0, g1)
+        np.testing.assert_array_equal(n0, n1)
+    zero_rows = np.isin(np.abs(heights[np.minimum(idx[:, :2], m - 1)]), [0.0]).all(axis=1)
+    assert zero_rows.any()  # the signed-zero case was met
+
+
+@pytest.mark.parametrize("exclude", [None, True])
+def test_surface_medians_on_a_semantickitti_piece_are_the_old_kernel_s(shared_data, monkeypatch, exclude):
+    """The surface's queries on the real scan's ground (owners: 5 m strips, as clusters), with
+    and without a cluster left out, through LocalGround.query: the compiled path (the new kernel)
+    gives the numpy reference's answers and the old kernel's, bit for bit."""
+    from kbs.inference import _flags
+
+    X = np.load(shared_data / "semantickitti" / "000001.points.npy")[:, :3].astype(np.float64)
+    labels = np.load(shared_data / "semantickitti" / "000001.labels.npy").ravel()
+    ground = np.flatnonzero(np.isin(labels, [9, 10, 11, 12, 17]))  # road, parking, sidewalk, other-ground, terrain
+    owners = np.floor(X[ground, 0] / 5.0).astype(np.int64)
+    owners -= owners.min()
+    ids = tuple(f"c{i}" for i in range(owners.max() + 1))
+    model = LocalGround.build(X, ground, np.array([0.0, 0.0, 1.0]), np.zeros(3), neighbours=16, radius=3.0,
+                              owners=owners, owner_ids=ids)
+    P = X[::9]
+    ex = ids[int(np.bincount(owners).argmax())] if exclude else None  # the strip with most ground
+    monkeypatch.setattr(_flags, "JIT", True)
+    g1, n1 = model.query(P, ex)
+    monkeypatch.setattr(_flags, "JIT", False)
+    g0, n0 = model.query(P, ex)
+    assert np.isfinite(g1).mean() > 0.5
+    np.testing.assert_array_equal(g1, g0)
+    np.testing.assert_array_equal(n1, n0)
+    Q = (P - model.point) @ model.basis.T
+    k = 128 if exclude else 16
+    d, i = model.tree.query(Q, k=k, distance_upper_bound=model.radius)
+    g0, g1, n0, n1 = _median_rows(d, i, model.heights, owners, ids.index(ex) if ex else -1, 16)
+    np.testing.assert_array_equal(g0, g1)
+    np.testing.assert_array_equal(n0, n1)
+
+
 def test_post_steps_parse_with_defaults():
     rb = _parse(post=POST_OK)
     assert rb.ground_model.label == "ground" and rb.ground_model.neighbours == 8 and rb.ground_model.radius == 3.0
@@ -589,6 +653,49 @@ def test_height_bounds_hold_every_answer_of_the_query():
     far = LocalGround.build(np.array([[0.0, 0, 0], [1e7, 0, 0], [0, 1e7, 0]]), np.arange(3), np.array([0.0, 0, 1]),
                             np.zeros(3), radius=1.0)
     assert far.height_bounds(P) is None
+
+
+def _bound_surfaces(shared_data):
+    """Surfaces for the bounds' tests: a tilted random one, three points, points on cell edges
+    (a lattice of the fine cells' side), and the SemanticKITTI scan's ground."""
+    rng = np.random.default_rng(31)
+    X = np.column_stack([rng.uniform(0, 60, 8000), rng.uniform(0, 60, 8000), rng.normal(0, 0.3, 8000)])
+    X[:, 2] += 0.05 * X[:, 0]
+    g = np.arange(0.0, 12.0, 0.5)  # on the edges of cells of radius / 6 = 0.5
+    L = np.column_stack([np.repeat(g, g.size), np.tile(g, g.size), rng.choice([-0.0, 0.0, 0.2], g.size ** 2)])
+    K = np.load(shared_data / "semantickitti" / "000001.points.npy")[:, :3].astype(np.float64)
+    labels = np.load(shared_data / "semantickitti" / "000001.labels.npy").ravel()
+    return {"random": X, "three": X[:3] * [0.03, 0.03, 1.0], "lattice": L, "semantickitti": K[np.isin(labels, [9, 10, 11, 12, 17])]}
+
+
+@pytest.mark.parametrize("surface", ["random", "three", "lattice", "semantickitti"])
+def test_compiled_bound_grids_and_bounds_are_the_numpy_ones(shared_data, monkeypatch, surface):
+    """LocalGround.height_bounds compiled (surface_blocks: one pass over the points, no sort;
+    surface_bounds: no temporaries) against the numpy reference: the same block grids and the
+    same bounds, for points inside, on cell edges, outside the grid and NaN."""
+    from kbs.inference import _compiled, _flags
+
+    X = _bound_surfaces(shared_data)[surface]
+    model = LocalGround.build(X, np.arange(len(X)), np.array([0.0, 0.0, 1.0]), np.zeros(3), neighbours=16, radius=3.0)
+    T = model.tree.data
+    assert np.array_equal(model.tree.mins, T.min(axis=0)) and np.array_equal(model.tree.maxes, T.max(axis=0))
+    monkeypatch.setattr(_flags, "JIT", False)
+    for side, reach in ((3.0 * 1.001, 1), (0.5, 3)):
+        ref = model._block_grid(side, reach)
+        got = _compiled.surface_blocks(T, model.heights, ref.origin, side, *ref.shape, reach)
+        for a, b in zip(ref.blocks, got):
+            np.testing.assert_array_equal(a, b)
+    rng = np.random.default_rng(32)
+    lo_xy, hi_xy = X[:, :2].min(axis=0) - 5.0, X[:, :2].max(axis=0) + 5.0
+    P = np.vstack([X[::3], np.column_stack([rng.uniform(lo_xy, hi_xy, (3000, 2)), rng.normal(0, 1, 3000)]),
+                   [[np.nan, 0.0, 0.0], [1e12, 0.0, 0.0], [X[0, 0] + 0.5, X[0, 1], 0.0]]])
+    ref = model.height_bounds(P)
+    monkeypatch.setattr(_flags, "JIT", True)
+    model2 = LocalGround.build(X, np.arange(len(X)), np.array([0.0, 0.0, 1.0]), np.zeros(3), neighbours=16, radius=3.0)
+    got = model2.height_bounds(P)
+    np.testing.assert_array_equal(ref[0], got[0])
+    np.testing.assert_array_equal(ref[1], got[1])
+    assert np.isfinite(got[0]).sum() > len(X[::3]) * 0.9
 
 
 @pytest.mark.parametrize("reach", [1, 3])
