@@ -120,22 +120,40 @@ class Draft:
     beside it (:attr:`facts`: what an action that divides it may use, e.g. the components of a
     failed connexity check). Labelling and the post steps start one from a leaf's record."""
 
-    __slots__ = ("record", "_facts")
+    __slots__ = ("_record", "_changes", "_checks", "_facts")
 
     def __init__(self, record: ClusterRecord) -> None:
-        self.record = record
+        self._record = record
+        self._changes: dict[str, Any] = {}  # decided since the record was last made
+        self._checks: list[CheckRecord] = []  # measured since then, in order
         self._facts: dict[str, Measurement] = {}
 
+    @property
+    def record(self) -> ClusterRecord:
+        """The frozen record with every change so far: made when asked for (one
+        ``dataclasses.replace`` for the changes since the last time, not one per check)."""
+        if self._changes or self._checks:
+            changes = self._changes
+            if self._checks:
+                changes["checks"] = self._record.checks + tuple(self._checks)
+            self._record = replace(self._record, **changes)
+            self._changes, self._checks = {}, []
+        return self._record
+
     def set(self, **changes: Any) -> None:
-        """Fields of the record decided (``dataclasses.replace``)."""
-        self.record = replace(self.record, **changes)
+        """Fields of the record decided (as ``dataclasses.replace``, in order)."""
+        if "checks" in changes and self._checks:
+            self.record  # noqa: B018 (the checks measured before these come first)
+        self._changes.update(changes)
 
     def note(self, text: str) -> None:
-        self.record = self.record.noted(text)
+        self._record = self.record.noted(text)
 
     def check(self, check: CheckRecord, measured: Measurement) -> None:
         """A check measured (or known without measuring) on the cluster."""
-        self.record = replace(self.record, checks=self.record.checks + (check,))
+        if "checks" in self._changes:
+            self.record  # noqa: B018 (a set(checks=...) before it comes first)
+        self._checks.append(check)
         self._facts[check.check] = measured
 
     @property
