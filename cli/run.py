@@ -324,7 +324,7 @@ def _header_tiling(segmenter: Segmenter, cloud: Path, in_format: str | None, fmt
     from kbs.tiles.stream import DEFAULT_CHUNK_POINTS, las_header
 
     spec = segmenter.rule_base.tile
-    if spec is None or not _streams(Tiling(size=1.0, chunk_points=1), cloud, in_format, fmt):
+    if spec is None or not _las_in_and_out(cloud, in_format, fmt):
         return None, None
     if not np.array_equal(ground_axes(segmenter.rule_base.ground.normal), np.eye(3)[:2]):
         return None, None  # the bounds of x and y do not give the width across another normal
@@ -352,9 +352,13 @@ def _header_tiling(segmenter: Segmenter, cloud: Path, in_format: str | None, fmt
 def _streams(tiling: Tiling | None, cloud: Path, in_format: str | None, fmt: str) -> bool:
     """Whether a tiled run reads (and writes) the LAS/LAZ file in chunks: LAS/LAZ in and out, a
     file (not standard input), --chunk-points not 0."""
+    return tiling is not None and tiling.chunk_points > 0 and _las_in_and_out(cloud, in_format, fmt)
+
+
+def _las_in_and_out(cloud: Path, in_format: str | None, fmt: str) -> bool:
+    """A LAS/LAZ file (not standard input) whose result is LAS/LAZ: what can be read in chunks."""
     ext = (in_format or cloud.suffix).lower().lstrip(".")
-    return (tiling is not None and tiling.chunk_points > 0 and str(cloud) != "-" and ext in ("las", "laz")
-            and fmt in ("las", "laz"))
+    return str(cloud) != "-" and ext in ("las", "laz") and fmt in ("las", "laz")
 
 
 def _buffer(segmenter: Segmenter, tiling: Tiling) -> float:
