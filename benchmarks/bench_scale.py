@@ -7,7 +7,10 @@ end). Each size runs as ``kbs run --rules airborne --tile SIZE --scheduler local
 process, for W = 1 and 2 workers; the LAS is read in chunks (the default ``--chunk-points``).
 
 Prints markdown: points, tiles, workers, wall time, peak RSS of the client (the kbs process) and
-of the largest worker (sampled every 0.2 s over the process tree), points per second. A size and worker
+of the largest worker (sampled every 0.2 s over the process tree), points per second, kbs's own
+split of its time (read, segment, write: the summary's time line), the speed-up
+against one worker (when it ran) and the machine's 1-minute load average at the run's start and
+end (the machine may be shared: the other processes' load is part of the measure). A size and worker
 count whose estimated time (from the largest size measured with as many workers) exceeds
 ``--budget`` minutes is printed as "not run: estimated N minutes".
 
@@ -123,8 +126,9 @@ def main() -> None:
     print(f"kbs run --rules airborne --tile {args.tile:g} --scheduler local -j W, LAS read in chunks; "
           f"{os.cpu_count()} cores")
     print()
-    print("| points | tiles | workers | wall s | client peak RSS MB | largest worker peak RSS MB | points/s |")
-    print("|---:|---:|---:|---:|---:|---:|---:|")
+    print("| points | tiles | workers | wall s | kbs's read / segment / write s | client peak RSS MB | "
+          "largest worker peak RSS MB | points/s | speed-up vs 1 worker | load avg start / end |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     rate: dict[int, float] = {}
     with tempfile.TemporaryDirectory(prefix="kbs-scale-") as tmp:
         folder = args.keep or Path(tmp)
@@ -135,32 +139,37 @@ def main() -> None:
             run = [w for w in args.workers if estimates.get(w, 0.0) <= args.budget]
             for w in args.workers:
                 if w not in run:
-                    print(f"| {n:,} | | {w} | not run: estimated {estimates[w]:.0f} minutes | | | |", flush=True)
+                    print(f"| {n:,} | | {w} | not run: estimated {estimates[w]:.0f} minutes | | | | | | |", flush=True)
             if not run:
                 continue
             cloud = folder / f"isprs-{n}.las"
             n = write_cloud(cloud, n)
+            walls: dict[int, float] = {}
             for w in run:
                 out = folder / f"out-{n}-{w}"
+                load0 = os.getloadavg()[0]
                 wall, client, worker, code, tail = run_measured(
                     [kbs, "run", "--rules", "airborne", "--tile", f"{args.tile:g}", "--scheduler", "local",
                      "-j", str(w), str(cloud), "--out", str(out), "--force"],
                     timeout=None if args.timeout is None else args.timeout * 60)
                 if code is None:  # stopped: how far it got, from its progress lines ('N tiles done')
                     done = [int(m.replace(",", "")) for m in re.findall(r"([\d,]+) tiles? done", tail)]
-                    print(f"| {n:,} | | {w} | stopped after {wall:.0f} s, {max(done, default=0):,} tiles done | "
-                          f"{client:,.0f} | {worker:,.0f} | |", flush=True)
+                    print(f"| {n:,} | | {w} | stopped after {wall:.0f} s, {max(done, default=0):,} tiles done | | "
+                          f"{client:,.0f} | {worker:,.0f} | | | |", flush=True)
                     shutil.rmtree(out, ignore_errors=True)
                     continue
                 if code != 0:
-                    print(f"| {n:,} | | {w} | failed (exit {code}): {tail.strip().splitlines()[-1] if tail.strip() else ''} | | | |",
+                    print(f"| {n:,} | | {w} | failed (exit {code}): {tail.strip().splitlines()[-1] if tail.strip() else ''} | | | | | | |",
                           flush=True)
                     continue
                 tiles = next((line.split("tiles: ")[1].split(" of ")[0] for line in tail.splitlines()
                               if "tiles: " in line), "?")
-                rate[w] = n / wall
-                print(f"| {n:,} | {tiles} | {w} | {wall:.0f} | {client:,.0f} | {worker:,.0f} | {n / wall:,.0f} |",
-                      flush=True)
+                rate[w], walls[w] = n / wall, wall
+                speedup = f"{walls[1] / wall:.2f}" if 1 in walls else ""
+                split = re.search(r"time: [\d.]+ s \(read ([\d.]+), segment ([\d.]+), write ([\d.]+)\)", tail)
+                parts = " / ".join(f"{float(v):.0f}" for v in split.groups()) if split else "?"
+                print(f"| {n:,} | {tiles} | {w} | {wall:.0f} | {parts} | {client:,.0f} | {worker:,.0f} | {n / wall:,.0f} | "
+                      f"{speedup} | {load0:.1f} / {os.getloadavg()[0]:.1f} |", flush=True)
                 shutil.rmtree(out, ignore_errors=True)
             if args.keep is None:
                 cloud.unlink()

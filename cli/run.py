@@ -219,13 +219,15 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
              inputs: InputFiles | tuple[Path, ...] = (),
              force: bool = False, out_format: str | None = None, in_format: str | None = None,
              units: str | None = None, sensor=None, tiling: Tiling | None = None,
-             auto_tile: bool = True) -> ScanResult:
+             auto_tile: bool = True, auto_scheduler: tuple[str, int | None] | None = None) -> ScanResult:
     """Read one scan, segment it, write DIR/<stem>.ply (or .las/.laz) and DIR/<stem>.json (and the
     meshes and the report when asked) and print what was done (nothing on stdout when ``quiet``);
     ``t0`` is when its clock started (default: now). ``out_dir`` None: the points go to standard
     output (``--out -``), no JSON, and the summary to stderr. Without ``tiling``, a cloud wider than
     the rule base's ``limits.tile.wider_than`` is segmented in its tiles (:func:`_auto_tiling`)
-    unless ``auto_tile`` is False (``--no-tile``).
+    unless ``auto_tile`` is False (``--no-tile``): on Dask when ``auto_scheduler`` is given (the
+    scheduler and the number of workers, as :class:`Tiling`'s); a LAS/LAZ written as LAS/LAZ whose
+    header's bounds say it is wider is read in chunks, as ``--tile`` reads it (:func:`_header_tiling`).
 
     Before reading, each output is checked (:func:`kbs.io.result.check_output`): never ``cloud``
     or one of ``inputs``; an existing file kbs did not write only with ``force``."""
@@ -242,7 +244,9 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
         sources = inputs if isinstance(inputs, InputFiles) else InputFiles((cloud, *inputs))
         for target in (points, js, *([html] if report else [])):
             check_output(target, inputs=sources, force=force)
-    spilled = None
+    spilled, why_tiled = None, None
+    if tiling is None and auto_tile and not stdin and not to_stdout and sensor is None:
+        tiling, why_tiled = _header_tiling(segmenter, cloud, in_format, fmt, units, auto_scheduler)
     if _streams(tiling, cloud, in_format, fmt):
         from kbs.tiles.stream import spill_las, streamed_cloud
 
@@ -255,14 +259,19 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
         except BaseException:
             shutil.rmtree(spill_folder, ignore_errors=True)
             raise
-        pc = streamed_cloud(spilled, cloud)
-    else:
-        pc = read_scan(cloud, in_format)
+        spec = segmenter.rule_base.tile
+        if why_tiled is not None and spec is not None and not spilled.width > spec.wider_than:
+            # the header's bounds said wider, the points do not: read whole, as without the header
+            spilled.remove()
+            shutil.rmtree(spilled.folder, ignore_errors=True)
+            spilled, tiling, why_tiled = None, None, None
+    pc = read_scan(cloud, in_format) if spilled is None else streamed_cloud(spilled, cloud)
     try:
         return _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, stdin=stdin, stem=stem, fmt=fmt,
                                   points=points, js=js, html=html, to_stdout=to_stdout, color_by=color_by,
                                   meshes=meshes, report=report, quiet=quiet, units=units, sensor=sensor,
-                                  tiling=tiling, auto_tile=auto_tile, say=say)
+                                  tiling=tiling, auto_tile=auto_tile, auto_scheduler=auto_scheduler,
+                                  why_tiled=why_tiled, say=say)
     finally:
         if spilled is not None:
             spilled.remove()
@@ -270,11 +279,12 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
 
 
 def _auto_tiling(segmenter: Segmenter, xyz: np.ndarray, scan_units: ScanUnits | None, sensor,
-                 to_stdout: bool) -> tuple[Tiling | None, str | None]:
+                 to_stdout: bool, scheduler: tuple[str, int | None] | None = None) -> tuple[Tiling | None, str | None]:
     """The rule base's ``limits.tile`` for a scan read whole: its tiling when the cloud is wider
     than ``wider_than`` along either ground axis (the rule base's fixed ground normal, else x-y), with
-    the words that say why; (None, why not) when it is wider but cannot be tiled (another unit,
-    --sensor, --out -: as for --tile); (None, None) when it is not wider."""
+    the words that say why, its tiles on Dask with ``scheduler`` (address, workers); (None, why not)
+    when it is wider but cannot be tiled (another unit, --sensor, --out -: as for --tile); when it is
+    not wider, (None, None), or (None, a note that it runs whole) with a ``scheduler`` (not used)."""
     from kbs.tiles import ground_axes
 
     spec = segmenter.rule_base.tile
@@ -283,27 +293,72 @@ def _auto_tiling(segmenter: Segmenter, xyz: np.ndarray, scan_units: ScanUnits | 
         return None, None
     uv = (xyz * f) @ ground_axes(segmenter.rule_base.ground.normal).T
     width = float((uv.max(axis=0) - uv.min(axis=0)).max())
-    if not width > spec.wider_than:
-        return None, None
     unit = segmenter.rule_base.length_unit
     u = f" {unit}" if unit else ""
     src = f"{Path(segmenter.rule_base.path).name} limits.tile"
+    unused = "; --scheduler is not used" if scheduler is not None else ""
+    if not width > spec.wider_than:
+        return None, (None if scheduler is None else
+                      f"the cloud is {width:.6g}{u} wide, not more than {src}.wider_than ({spec.wider_than:g}{u}): "
+                      f"it runs whole, in this process{unused}")
     if sensor is not None or not np.array_equal(f, np.ones(3)) or to_stdout:
         why = ("--sensor" if sensor is not None else "--out -" if to_stdout else
                f"its unit ({scan_units.name if scan_units else '?'}) is not the rule base's")
         return None, (f"the cloud is {width:.6g}{u} wide, more than {src}.wider_than ({spec.wider_than:g}{u}), but it "
                       f"runs whole: tiles need the rule base's own units and sensor and a result folder ({why}); "
-                      f"give --tile {spec.size:g} after converting it, or --no-tile to silence this")
-    return (Tiling(size=spec.size, chunk_points=0),
+                      f"give --tile {spec.size:g} after converting it, or --no-tile to silence this{unused}")
+    address, workers = scheduler if scheduler is not None else (None, None)
+    return (Tiling(size=spec.size, scheduler=address, workers=workers, chunk_points=0),
             f"{src}: the cloud is {width:.6g}{u} wide, more than {spec.wider_than:g}{u}; --no-tile runs it whole")
+
+
+def _header_tiling(segmenter: Segmenter, cloud: Path, in_format: str | None, fmt: str, units: str | None,
+                   scheduler: tuple[str, int | None] | None) -> tuple[Tiling | None, str | None]:
+    """The rule base's ``limits.tile`` for a LAS/LAZ file written as LAS/LAZ, decided from its
+    header's bounds before any point is read: a tiling read in chunks (as ``--tile``'s) and the words
+    that say why when they are wider than ``wider_than``; (None, None) when the header cannot
+    decide (no ``limits.tile``, another format, a ground plane other than x-y, a unit other than
+    the rule base's, a header kbs cannot read: the points then decide, read whole, as
+    :func:`_auto_tiling` does) or says it is not wider."""
+    from kbs.tiles import ground_axes
+    from kbs.tiles.stream import DEFAULT_CHUNK_POINTS, las_header
+
+    spec = segmenter.rule_base.tile
+    if spec is None or not _las_in_and_out(cloud, in_format, fmt):
+        return None, None
+    if not np.array_equal(ground_axes(segmenter.rule_base.ground.normal), np.eye(3)[:2]):
+        return None, None  # the bounds of x and y do not give the width across another normal
+    try:
+        header = las_header(cloud)
+    except CloudFileError:
+        return None, None  # the reader says what is wrong with the file
+    from kbs.io.readers import las_crs
+
+    scan_units = ScanUnits.uniform(units, source="--units") if units is not None else las_crs(header)[0]
+    if not np.array_equal(segmenter.scale(scan_units), np.ones(3)) or not int(header.point_count):
+        return None, None
+    lo, hi = np.asarray(header.mins, dtype=float)[:2], np.asarray(header.maxs, dtype=float)[:2]
+    width = float((hi - lo).max())
+    if not np.isfinite(width) or not width > spec.wider_than:
+        return None, None
+    unit = segmenter.rule_base.length_unit
+    u = f" {unit}" if unit else ""
+    address, workers = scheduler if scheduler is not None else (None, None)
+    return (Tiling(size=spec.size, scheduler=address, workers=workers, chunk_points=DEFAULT_CHUNK_POINTS),
+            f"{Path(segmenter.rule_base.path).name} limits.tile: the cloud is {width:.6g}{u} wide by its LAS header, "
+            f"more than {spec.wider_than:g}{u}, read in chunks; --no-tile runs it whole")
 
 
 def _streams(tiling: Tiling | None, cloud: Path, in_format: str | None, fmt: str) -> bool:
     """Whether a tiled run reads (and writes) the LAS/LAZ file in chunks: LAS/LAZ in and out, a
     file (not standard input), --chunk-points not 0."""
+    return tiling is not None and tiling.chunk_points > 0 and _las_in_and_out(cloud, in_format, fmt)
+
+
+def _las_in_and_out(cloud: Path, in_format: str | None, fmt: str) -> bool:
+    """A LAS/LAZ file (not standard input) whose result is LAS/LAZ: what can be read in chunks."""
     ext = (in_format or cloud.suffix).lower().lstrip(".")
-    return (tiling is not None and tiling.chunk_points > 0 and str(cloud) != "-" and ext in ("las", "laz")
-            and fmt in ("las", "laz"))
+    return str(cloud) != "-" and ext in ("las", "laz") and fmt in ("las", "laz")
 
 
 def _buffer(segmenter: Segmenter, tiling: Tiling) -> float:
@@ -313,7 +368,8 @@ def _buffer(segmenter: Segmenter, tiling: Tiling) -> float:
 
 
 def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, stem, fmt, points, js, html, to_stdout,
-                       color_by, meshes, report, quiet, units, sensor, tiling, auto_tile, say) -> ScanResult:
+                       color_by, meshes, report, quiet, units, sensor, tiling, auto_tile, auto_scheduler, why_tiled,
+                       say) -> ScanResult:
     rb = segmenter.rule_base
     name = "<stdin>" if stdin else str(cloud)
     if fmt != "ply":
@@ -324,9 +380,8 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
     too_big = coordinate_problem(pc.xyz * segmenter.scale(scan_units)) if spilled is None else None
     if too_big is not None:
         raise CloudFileError(name, too_big)
-    why_tiled = None
     if tiling is None and auto_tile and rb.tile is not None:
-        tiling, why_tiled = _auto_tiling(segmenter, pc.xyz, scan_units, sensor, to_stdout)
+        tiling, why_tiled = _auto_tiling(segmenter, pc.xyz, scan_units, sensor, to_stdout, auto_scheduler)
         if tiling is None and why_tiled and not quiet:
             click.echo(f"note: {name}: {why_tiled}", err=True)
     if tiling is None:
@@ -559,7 +614,8 @@ def time_table(results: list[ScanResult | ScanFailure], t_load: float, t_total: 
               help="How far each tile reaches beyond its core (default: a tenth of --tile, at least twice the "
               "local ground surface's radius).")
 @click.option("--scheduler", "scheduler", metavar="ADDRESS|local",
-              help="Run the tiles (with --tile) or the scans (a folder, several scans) as Dask tasks: on the "
+              help="Run the tiles (with --tile, or of the rule base's limits.tile when the cloud is wider than its "
+              "wider_than) or the scans (a folder, several scans) as Dask tasks: on the "
               "scheduler at ADDRESS (tcp://host:8786), or on a LocalCluster of -j workers ('local'; -1: one per "
               "core). Needs pip install 'kbs[dask]'. Without it they run one after the other in this process. The "
               "result is the same.")
@@ -611,12 +667,21 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
 
     scans = scan_paths(clouds, on_skip=skipped)
     many = len(scans) > 1 or any(Path(c).is_dir() for c in clouds)
-    scan_scheduler = None
+    scan_scheduler = auto_scheduler = None
     if tile is None and scheduler is not None and many:  # the scans themselves as Dask tasks
         _check_scheduler(scheduler)
         scan_scheduler, scheduler = (scheduler, None if jobs == -1 else jobs), None
     if no_tile and tile is not None:
         raise click.UsageError("--no-tile and --tile contradict each other: give one")
+    if tile is None and scheduler is not None:  # one scan: the tiles of its rule base's limits.tile on Dask
+        if no_tile:
+            raise click.UsageError("--scheduler runs the tiles of one scan (or several scans) on Dask; --no-tile runs "
+                                   "the scan whole in this process: give one")
+        if to_stdout:
+            raise click.UsageError("--out - runs the scan whole (tiles write a result folder): --scheduler is not "
+                                   "used with --out -")
+        _check_scheduler(scheduler)
+        auto_scheduler, scheduler = (scheduler, None if jobs == -1 else jobs), None
     tiling = _tiling(tile, buffer, scheduler, jobs, resume, chunk_points)
     if to_stdout and len(scans) != 1:
         raise click.UsageError(f"--out - writes one scan to standard output; {len(scans)} scans given")
@@ -624,6 +689,10 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
         raise click.UsageError("--tile writes a result folder: --out - is not supported with --tile")
     split_jobs = 1 if (tiling is not None and tiling.scheduler is not None) or scan_scheduler else jobs  # Dask does the work
     with Segmenter(rules, jobs=split_jobs, plugins=plugins) as segmenter:  # workers kept for all scans
+        if auto_scheduler is not None and segmenter.rule_base.tile is None:
+            raise click.UsageError(f"--scheduler only applies to a tiled run: give --tile SIZE too (or several scans: a "
+                                   f"folder's scans run as Dask tasks); rule base '{segmenter.rule_base.name}' has no "
+                                   f"limits.tile to tile a wide cloud by itself")
         if not quiet:
             for w in segmenter.rule_base.warnings:  # `kbs rules check` quotes the line
                 click.echo(f"kbs: warning: {w.pos}: {w.message}", err=True)
@@ -632,7 +701,7 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
         _run_scans(segmenter, scans, None if to_stdout else out_dir, t0, color_by=color_by, meshes=meshes,
                    report=report, quiet=quiet, inputs=InputFiles(scans), force=force, out_format=out_format,
                    in_format=in_format, units=units, sensor=sensor, tiling=tiling, scheduler=scan_scheduler,
-                   auto_tile=not no_tile)
+                   auto_tile=not no_tile, auto_scheduler=auto_scheduler)
 
 
 def _tiling(tile: float | None, buffer: float | None, scheduler: str | None, jobs: int,

@@ -4,6 +4,7 @@ much else the file holds; ``--no-tile`` runs it whole. Through ``kbs run`` on a 
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -106,3 +107,157 @@ def test_a_bad_limits_tile_is_refused_at_its_position(tmp_path, tile, at, messag
 def test_no_tile_with_tile_is_a_usage_error(tmp_path):
     r = kbs("run", "--rules", "airborne", "--tile", "100", "--no-tile", str(tmp_path / "x.ply"))
     assert r.returncode == 2 and "--no-tile and --tile contradict each other" in r.stderr, r.stderr
+
+
+# -- issue 16: automatic tiles on Dask, and an automatically tiled LAS read in chunks --------------
+
+def _normalised(path: Path) -> bytes:
+    """A result file's bytes with its run id (32 hex digits) and the JSON's timing blanked."""
+    data = re.sub(rb"[0-9a-f]{32}", b"0" * 32, path.read_bytes())
+    return re.sub(rb'"seconds":[0-9.e+-]+', b'"seconds":0', data)
+
+
+def _same_files(a: Path, b: Path, *names: str) -> None:
+    for name in names:
+        assert _normalised(a / name) == _normalised(b / name), name
+
+
+def _invoke(*args: str, monkeypatch=None, forbid_whole_read: bool = False):
+    """``kbs ARGS`` in this process (click's CliRunner), so that a spy can watch the reader:
+    with ``forbid_whole_read``, reading the scan whole (:func:`kbs.cli.run.read_scan`) fails."""
+    from click.testing import CliRunner
+
+    from kbs.cli import run as run_module
+    from kbs.cli.main import cli
+
+    read = []
+    if monkeypatch is not None:
+        original = run_module.read_scan
+
+        def spy(cloud, in_format=None):
+            read.append(cloud)
+            assert not forbid_whole_read, f"{cloud} was read whole"
+            return original(cloud, in_format)
+
+        monkeypatch.setattr(run_module, "read_scan", spy)
+    r = CliRunner().invoke(cli, list(args))
+    assert r.exception is None or isinstance(r.exception, SystemExit), r.exception
+    return r, read
+
+
+@pytest.mark.slow  # a LocalCluster of 2 workers started for the run
+def test_automatic_tiles_on_a_local_dask_cluster_give_the_bytes_of_the_in_process_run(shared_data, tmp_path):
+    """--scheduler local -j 2 without --tile: the tiles limits.tile makes run as Dask tasks, and the
+    result is the in-process automatic run's, byte for byte (run id and timing apart)."""
+    pytest.importorskip("distributed", reason="Dask is not installed: pip install 'kbs[dask]' (it is in [test])")
+    scan = shared_data / "isprs" / "samp21-utm.pcd"
+    tiled = rules_with_tile(tmp_path, "  tile: {size: 60, wider_than: 100}")
+    here = run("--rules", str(tiled), str(scan), "--out", str(tmp_path / "here"))
+    dask = kbs("run", "-j", "2", "--scheduler", "local", "--rules", str(tiled), str(scan), "--out",
+               str(tmp_path / "dask"))
+    assert dask.returncode == 0, dask.stderr
+    assert "kbs: Dask dashboard: http" in dask.stderr and "kbs: Dask dashboard" not in here.stderr
+    tiles = [ln for ln in dask.stdout.splitlines() if ln.startswith("  tiles: ")]
+    assert len(tiles) == 1 and tiles[0].startswith("  tiles: 6 of 60 x 60") and "limits.tile" in tiles[0], dask.stdout
+    _same_files(tmp_path / "here", tmp_path / "dask", "samp21-utm.ply", "samp21-utm.json")
+    assert len(json.loads((tmp_path / "dask" / "samp21-utm.json").read_text())["tiling"]["tiles"]) == 6
+
+
+@pytest.mark.slow  # the scan three times, once on a LocalCluster of 2 workers
+def test_an_automatically_tiled_las_is_read_in_chunks_as_tile_reads_it(shared_data, tmp_path, monkeypatch):
+    """A LAS whose header's bounds are wider than limits.tile.wider_than is never read whole: it is
+    spilled in chunks, as --tile SIZE spills it, and its result is --tile SIZE's, byte for byte; in
+    process and with its tiles on Dask."""
+    pytest.importorskip("distributed", reason="Dask is not installed: pip install 'kbs[dask]' (it is in [test])")
+    scan = shared_data / "las" / "sample_c.las"  # 83 m x 75 m, no CRS: the rule base's metres
+    tiled = rules_with_tile(tmp_path, "  tile: {size: 30, wider_than: 50}")
+    r, read = _invoke("run", "-j", "1", "--rules", str(tiled), str(scan), "--out", str(tmp_path / "auto"),
+                      monkeypatch=monkeypatch, forbid_whole_read=True)
+    assert r.exit_code == 0, r.output
+    assert read == []
+    line = next(ln for ln in r.stdout.splitlines() if ln.startswith("  tiles: "))
+    assert line.startswith("  tiles: 8 of 30 x 30 with a 10 buffer; ") and line.endswith(
+        "(airborne_tiled.yaml limits.tile: the cloud is 83.4 m wide by its LAS header, more than 50 m, read in chunks; "
+        "--no-tile runs it whole)"), line
+    assert sorted(p.name for p in (tmp_path / "auto").iterdir()) == ["sample_c.json", "sample_c.las"]  # spill gone
+    run("--rules", str(tiled), "--tile", "30", str(scan), "--out", str(tmp_path / "explicit"))
+    _same_files(tmp_path / "auto", tmp_path / "explicit", "sample_c.las", "sample_c.json")
+    dask = kbs("run", "-j", "2", "--scheduler", "local", "--rules", str(tiled), str(scan), "--out",
+               str(tmp_path / "dask"))
+    assert dask.returncode == 0, dask.stderr
+    assert "kbs: Dask dashboard: http" in dask.stderr and "by its LAS header" in dask.stdout
+    _same_files(tmp_path / "auto", tmp_path / "dask", "sample_c.las", "sample_c.json")
+
+
+def _tilted(tmp_path: Path, normal: str) -> Path:
+    """airborne_tiled.yaml (tiles of 30 beyond 50 m) with its fixed ground normal replaced."""
+    path = rules_with_tile(tmp_path, "  tile: {size: 30, wider_than: 50}")
+    text = path.read_text(encoding="utf-8")
+    assert text.count("normal: [0, 0, 1]") == 1
+    path.write_text(text.replace("normal: [0, 0, 1]", f"normal: {normal}"), encoding="utf-8")
+    return path
+
+
+def test_a_las_whose_header_cannot_decide_is_read_whole_as_before(shared_data, tmp_path, monkeypatch):
+    """The header's x and y bounds do not give the width across a ground normal other than z: the
+    scan is read whole and its points decide, as before."""
+    scan = shared_data / "las" / "sample_c.las"
+    tilted = _tilted(tmp_path, "[0, 0.6, 0.8]")
+    r, read = _invoke("run", "-j", "1", "--rules", str(tilted), str(scan), "--out", str(tmp_path / "o"),
+                      monkeypatch=monkeypatch)
+    assert r.exit_code == 0, r.output
+    assert read == [scan]  # read whole
+    line = next(ln for ln in r.stdout.splitlines() if ln.startswith("  tiles: "))
+    assert "by its LAS header" not in line and "limits.tile: the cloud is" in line, line
+
+
+def test_a_las_header_wider_than_its_points_does_not_tile_them(shared_data, tmp_path, monkeypatch):
+    """A header whose bounds say wider than the points are (written by a careless tool): the spill's
+    own extent overrules it; the scan is read whole and runs whole, as its points say."""
+    import laspy
+
+    scan = tmp_path / "stale.las"
+    las = laspy.read(shared_data / "las" / "sample_c.las")
+    las.write(str(scan))
+    with laspy.open(str(scan)) as reader:
+        lo = float(reader.header.mins[0])
+    data = bytearray(scan.read_bytes())
+    data[179:187] = np.float64(lo + 1000.0).tobytes()  # the header's max x (LAS 1.x, offset 179)
+    scan.write_bytes(bytes(data))
+    with laspy.open(str(scan)) as reader:
+        assert float(reader.header.maxs[0]) == lo + 1000.0
+    narrow = rules_with_tile(tmp_path, "  tile: {size: 30, wider_than: 100}")  # the points: 83.4 m
+    r, read = _invoke("run", "-j", "1", "--rules", str(narrow), str(scan), "--out", str(tmp_path / "o"),
+                      monkeypatch=monkeypatch)
+    assert r.exit_code == 0, r.output
+    assert read == [scan] and "tiles:" not in r.stdout, r.stdout
+    assert "tiling" not in json.loads((tmp_path / "o" / "stale.json").read_text())
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["stale.json", "stale.las"]  # no spill left
+
+
+def test_scheduler_on_a_cloud_narrower_than_limits_tile_runs_it_whole_with_a_note(shared_data, tmp_path):
+    """--scheduler with a cloud not wider than limits.tile.wider_than: one note says it runs whole
+    in this process (no Dask started), and the result is the plain run's."""
+    scan = shared_data / "isprs" / "samp21-utm.pcd"  # 124 m
+    narrow = rules_with_tile(tmp_path, "  tile: {size: 60, wider_than: 200}")
+    r = kbs("run", "-j", "1", "--scheduler", "local", "--rules", str(narrow), str(scan), "--out", str(tmp_path / "s"))
+    assert r.returncode == 0, r.stderr
+    notes = [ln for ln in r.stderr.splitlines() if "limits.tile" in ln]
+    assert notes == [f"note: {scan}: the cloud is 123.781 m wide, not more than airborne_tiled.yaml "
+                     f"limits.tile.wider_than (200 m): it runs whole, in this process; --scheduler is not used"], r.stderr
+    assert "Dask dashboard" not in r.stderr and "tiles:" not in r.stdout
+    run("--rules", str(narrow), str(scan), "--out", str(tmp_path / "plain"))
+    _same_files(tmp_path / "s", tmp_path / "plain", "samp21-utm.ply", "samp21-utm.json")
+
+
+@pytest.mark.parametrize("rules, extra, message", [
+    ("outdoor", (), "rule base 'outdoor' has no limits.tile to tile a wide cloud by itself"),
+    ("airborne", ("--no-tile",), "--no-tile runs the scan whole in this process: give one"),
+    ("airborne", ("--out", "-"), "--scheduler is not used with --out -"),
+])
+def test_scheduler_with_one_scan_that_cannot_tile_is_a_usage_error(shared_data, tmp_path, rules, extra, message):
+    scan = shared_data / "las" / "sample_c.las"
+    out = () if "--out" in extra else ("--out", str(tmp_path / "o"))
+    r = kbs("run", "--rules", rules, "--scheduler", "local", str(scan), *extra, *out)
+    assert r.returncode == 2 and message in r.stderr, r.stderr
+    assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())

@@ -178,4 +178,4 @@ def test_scheduler_for_one_untiled_scan_is_a_usage_error(rocks_las, tmp_path):
     r = kbs_cmd("run", "--rules", "outdoor", "--scheduler", "local", str(rocks_las), "--out", str(tmp_path))
     assert r.returncode == 2
     assert "--scheduler only applies to a tiled run: give --tile SIZE too (or several scans: a folder's scans run " \
-           "as Dask tasks)" in r.stderr
+           "as Dask tasks); rule base 'outdoor' has no limits.tile" in r.stderr

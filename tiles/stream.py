@@ -59,6 +59,9 @@ class SpilledCloud:
         The input's header (point format, VLRs, CRS).
     folder : Path
         The spill folder (removed by :meth:`remove`).
+    width : float
+        The points' widest extent along the ground axes (``kbs run`` checks ``limits.tile`` with
+        it after deciding from the header's bounds).
     """
 
     xyz: np.ndarray
@@ -67,6 +70,7 @@ class SpilledCloud:
     tiles: list[Tile]
     header: Any
     folder: Path
+    width: float = math.nan
 
     def remove(self) -> None:
         """Delete the spill files (and the folder if nothing else is in it)."""
@@ -178,7 +182,8 @@ def spill_las(path: str | os.PathLike[str], folder: str | os.PathLike[str], size
             u0, v0 = grid.origin[0] + i * grid.size, grid.origin[1] + j * grid.size
             tiles.append(SpilledTile(f"t{i}_{j}", i, j, (u0, v0, u0 + grid.size, v0 + grid.size), folder,
                                      int(tile_count[i, j]), int(core_count[i, j])))
-    return SpilledCloud(xyz=xyz, index=index, grid=grid, tiles=tiles, header=header, folder=folder)
+    return SpilledCloud(xyz=xyz, index=index, grid=grid, tiles=tiles, header=header, folder=folder,
+                        width=float((hi - lo).max()))
 
 
 class SpilledTile(Tile):
