@@ -81,8 +81,8 @@ class Relabel(PostStep):
             path = ctx.path + (i,)
             if not isinstance(spec, dict) or not isinstance(spec.get("name"), str):
                 continue  # the schema reported it
-            undone = cls._undone(spec, out, path, ctx)
-            if undone is False:
+            ok, undone = cls._undone(spec, out, path, ctx)
+            if not ok:
                 continue
             if undone is None and not all(isinstance(spec.get(k), str) for k in ("from", "to")):
                 if not all(k in spec for k in ("from", "to")):
@@ -120,34 +120,35 @@ class Relabel(PostStep):
         return cls(rules=tuple(out), pos=ctx.pos(ctx.path, key=True))
 
     @staticmethod
-    def _undone(spec: dict, earlier: list[RelabelRule], path: tuple, ctx: SpecContext) -> RelabelRule | None | bool:
-        """The rule ``spec`` undoes (None: it undoes none; False: a problem was reported)."""
+    def _undone(spec: dict, earlier: list[RelabelRule], path: tuple,
+                ctx: SpecContext) -> tuple[bool, RelabelRule | None]:
+        """(False when a problem was reported, the rule ``spec`` undoes or None)."""
         name = spec["name"]
         if "undoes" not in spec:
             if "passes" in spec:
                 ctx.add(path + ("passes",), f"relabel rule '{name}': 'passes' counts the passes of a rule that "
                         "undoes another ('undoes'), and this one undoes none", key=True)
-                return False
-            return None
+                return False, None
+            return True, None
         target = spec["undoes"]
         if not isinstance(target, str):
-            return False  # the schema reported it
+            return False, None  # the schema reported it
         undone = next((r for r in earlier if r.name == target), None)
         if undone is None:
             where = "itself" if target == name else f"'{target}', which is not an earlier rule of this step"
             ctx.add(path + ("undoes",), f"relabel rule '{name}' undoes {where} (it can undo only a rule listed "
                     f"before it in the same relabel step: {', '.join(r.name for r in earlier) or 'none'})")
-            return False
+            return False, None
         if undone.undoes is not None:
             ctx.add(path + ("undoes",), f"relabel rule '{name}' undoes '{target}', which itself undoes "
                     f"'{undone.undoes}': undo the rule that relabels")
-            return False
+            return False, None
         for key, want in (("from", undone.target), ("to", undone.source)):
             if key in spec and spec[key] != want:
                 ctx.add(path + (key,), f"relabel rule '{name}' undoes '{target}' ({undone.source} -> "
                         f"{undone.target}): its '{key}' is '{want}', not '{spec[key]}' (or leave it out)")
-                return False
-        return undone
+                return False, None
+        return True, undone
 
     def apply(self, state: PostState, ctx: PostContext) -> PostState:
         surface = state.surface
