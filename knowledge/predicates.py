@@ -696,12 +696,16 @@ def extent(cluster: Cluster, scene: Scene, *, axis: str = "largest") -> float:
     return float(proj.max() - proj.min())
 
 
-@predicate(unit="length", needs_ground=True, choices={"stat": ("max", "mean", "median", "min")})
+_STATS = {"max": np.max, "p90": lambda h: np.percentile(h, 90), "mean": np.mean, "median": np.median,
+          "p10": lambda h: np.percentile(h, 10), "min": np.min}
+
+
+@predicate(unit="length", needs_ground=True, choices={"stat": tuple(_STATS)})
 def height_above_ground(cluster: Cluster, scene: Scene, *, stat: str = "max") -> float:
     """Height of the cluster's points above the ground plane (signed, along the ground normal):
-    their max, mean, median or min."""
+    their max, 90th percentile, mean, median, 10th percentile or min."""
     h = scene.ground.height(cluster.X)
-    return float({"max": np.max, "mean": np.mean, "median": np.median, "min": np.min}[stat](h))
+    return float(_STATS[stat](h))
 
 
 @predicate(unit="length", value_range=(0.0, None), choices={"to": ("center", "nearest")})
@@ -712,9 +716,6 @@ def distance_to_sensor(cluster: Cluster, scene: Scene, *, to: str = "center") ->
         return float(np.linalg.norm(cluster.geometry.center - scene.sensor))
     return float(np.sqrt(((cluster.X - scene.sensor) ** 2).sum(axis=1).min()))
 
-
-_STATS = {"max": np.max, "p90": lambda h: np.percentile(h, 90), "mean": np.mean, "median": np.median,
-          "p10": lambda h: np.percentile(h, 10), "min": np.min}
 
 
 @predicate(unit="length", needs_ground_model=True, choices={"stat": tuple(_STATS)}, bounds={"max_points": (0, None)})

@@ -164,6 +164,11 @@ def test_builtin_predicates_measure_what_they_say():
     assert m("extent", axis="largest") == pytest.approx(4.0, rel=0.02)
     assert m("flatness") == pytest.approx(0.02 / (2 / np.sqrt(12)), rel=0.1)  # mu2: 2 m wide
     assert m("height_above_ground", stat="max") == pytest.approx(1.0 + np.sin(tilt) * 1.0, abs=0.06)
+    h = cl.X[:, 2]  # the ground is z = 0: heights are z
+    for stat, q in (("p90", 90), ("median", 50), ("p10", 10)):
+        assert m("height_above_ground", stat=stat) == np.percentile(h, q)
+    assert m("height_above_ground", stat="p10") < m("height_above_ground", stat="median") < \
+        m("height_above_ground", stat="p90")
     assert m("distance_to_sensor") == pytest.approx(1.0, abs=0.05)
     assert m("connexity") == 1
     X, labels = ground_and_rocks()
