@@ -856,7 +856,7 @@ class Explanation:
             out.append(f"  post.relabel, judged again (relabelled by {again[0][0]}) against the surface rebuilt from the "
                        "labels the passes before left:")
             for _, step in again:
-                checks = tuple(CheckRecord(**_known(CheckRecord, c)) for c in step.get("measured", step.get("checks", [])))
+                checks = tuple(CheckRecord(**_known(CheckRecord, c)) for c in step.get("measured", []))
                 why = "; ".join(c.sentence() for c in checks)
                 verdict = "holds, its label given back" if step.get("holds", True) else "does not hold"
                 out.append(f"    {step['rule']} [{step['source']}] pass {step['pass']} "

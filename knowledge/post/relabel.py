@@ -215,7 +215,7 @@ class Relabel(PostStep):
                 lf = leaves[i]
                 holds, measured = self._judge(rule, lf, post_scene, ctx, fresh)
                 step = {"rule": rule.name, "source": rule.pos.short, "pass": passes + 1, "holds": holds,
-                        "surface_points": surface.model.n_points, "checks": measured}
+                        "surface_points": surface.model.n_points, "measured": measured}
                 if holds:
                     leaves[i] = lf.with_record(label=rule.target, relabel={
                         "rule": rule.name, "source": rule.pos.short, "from": rule.source, "to": rule.target,
