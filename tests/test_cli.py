@@ -122,3 +122,39 @@ def test_commands_that_do_not_segment_load_neither_numba_nor_scipy(tmp_path):
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     assert "'scipy'" in r.stdout.strip().splitlines()[-1]  # numba too when the compiled kernels are on
+
+
+def test_help_lists_the_commands_without_importing_them():
+    """`kbs --help` writes the commands' table from cli.main.SHORT_HELP: the same text click writes
+    from the commands' own docstrings (at any width), without importing the commands' modules."""
+    import click
+    from click.testing import CliRunner
+
+    from kbs.cli.main import COMMANDS, SHORT_HELP, cli
+
+    ctx = click.Context(cli)
+    assert list(SHORT_HELP) == list(COMMANDS)
+    for name in COMMANDS:
+        cmd = cli.get_command(ctx, name)
+        for limit in (30, 45, 60, 120, 400):
+            assert click.Command(name, help=SHORT_HELP[name]).get_short_help_str(limit) == \
+                cmd.get_short_help_str(limit), (name, limit)
+    # the table as click's own Group writes it from the imported commands
+    class Imported(click.Group):  # click's own table, in kbs's order
+        def list_commands(self, ctx):
+            return list(COMMANDS)
+
+    group = Imported("kbs", commands={name: cli.get_command(ctx, name) for name in COMMANDS})
+    for width in (60, 80, 120):
+        expected = click.HelpFormatter(width=width)
+        group.format_commands(ctx, expected)
+        got = click.HelpFormatter(width=width)
+        cli.format_commands(ctx, got)
+        assert got.getvalue() == expected.getvalue()
+    assert "run " in CliRunner().invoke(cli, ["--help"]).output
+    code = ("import sys; from kbs.cli.main import main; sys.argv = ['kbs', '--help']\n"
+            "try:\n    main()\nexcept SystemExit:\n    pass\n"
+            "print(sorted(m for m in sys.modules if m.startswith('kbs.cli.') or m in ('scipy', 'numba')))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip().splitlines()[-1] == "['kbs.cli.main']", r.stdout
