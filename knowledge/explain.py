@@ -299,8 +299,12 @@ class ClusterRecord:
 
     @property
     def first_label(self) -> str | None:
-        """The label its labels' conditions gave it, before any relabel rule."""
-        return self.relabel["from"] if self.relabel else self.label
+        """The label its labels' conditions gave it, before any relabel rule (a rule that undid
+        another gave back the label that rule took: ``relabel['undid']``)."""
+        r = self.relabel
+        while r and r.get("undid"):
+            r = r["undid"]
+        return r["from"] if r else self.label
 
     def to_dict(self) -> dict[str, Any]:
         """The record as plain data (what ``dataclasses.asdict`` gives, with lists for its
@@ -490,12 +494,25 @@ class Explanation:
             return ""
         r = rec.relabel
         info = next((x for x in self.catalogue.relabel if x.name == r["rule"]), None) if self.catalogue else None
+        if r.get("measured") is not None:  # judged again by a rule that undoes another: its own measurements
+            rec = replace(rec, checks=tuple(CheckRecord(**_known(CheckRecord, c)) for c in r["measured"])
+                          + tuple(c for c in rec.checks if c.check not in {m["check"] for m in r["measured"]}))
         if info is None:
             names = set(r["checks"])
             why = "; ".join(c.sentence() for c in rec.checks if c.check in names)
         else:
             why = self._terms_text(rec, evaluate(info.condition, {c.check: c.passed for c in rec.checks})[1])
-        return f", relabelled {r['to']} by {r['rule']} [{r['source']}]: {why}"
+        text = f", relabelled {r['to']} by {r['rule']} [{r['source']}]"
+        if r.get("undid"):
+            u = r["undid"]
+            text = (f", relabelled {u['to']} by {u['rule']} [{u['source']}], given back {r['to']} by {r['rule']} "
+                    f"[{r['source']}] in pass {r['pass']} (against the surface rebuilt without the clusters "
+                    f"{u['rule']} relabelled)")
+        elif r.get("judged_again"):
+            last = r["judged_again"][-1]
+            text += (f"; judged again by {last['rule']} [{last['source']}] in pass {last['pass']}, which did "
+                     "not give it back")
+        return f"{text}: {why}"
 
     # -- renderers -------------------------------------------------------------------------
 
@@ -632,7 +649,10 @@ class Explanation:
         groups: dict[tuple[str, str], list[ClusterRecord]] = {}
         for r in leaves:
             how = "accepted" if r.action == "accept" else f"kept by a limit ({(r.limit or {}).get('kind', 'limit')})"
-            if r.relabel:
+            if r.relabel and r.relabel.get("undid"):
+                how += (f", relabelled {r.relabel['undid']['to']} by {r.relabel['undid']['rule']} and given back by "
+                        f"{r.relabel['rule']}")
+            elif r.relabel:
                 how += f", relabelled from {r.relabel['from']} by {r.relabel['rule']}"
             groups.setdefault((r.label or NO_LABEL, how), []).append(r)
         order = {name: i for i, name in enumerate(self.label_names)}
@@ -654,7 +674,14 @@ class Explanation:
             out.append("post.relabel:")
             for rl in cat.relabel:
                 n = sum(1 for r in leaves if r.relabel and r.relabel["rule"] == rl.name)
-                out.append(f"  {rl.name} [{rl.source}] {rl.action} if {rl.condition_text()}: {n:,} relabelled")
+                back = [r.relabel for r in leaves if r.relabel and (r.relabel.get("undid") or {}).get("rule") == rl.name]
+                undoes = {r.relabel["undid"]["rule"] for r in leaves
+                          if r.relabel and r.relabel["rule"] == rl.name and r.relabel.get("undid")}
+                what = (f"{n:,} given back (undoing {', '.join(sorted(undoes))}, in passes "
+                        f"{', '.join(str(p) for p in sorted({r.relabel['pass'] for r in leaves if r.relabel and r.relabel['rule'] == rl.name}))})"
+                        if undoes else f"{n:,} relabelled" + (f", {len(back):,} more given back by "
+                                                              f"{', '.join(sorted({b['rule'] for b in back}))}" if back else ""))
+                out.append(f"  {rl.name} [{rl.source}] {rl.action} if {rl.condition_text()}: {what}")
                 if rl.doc:
                     out.append(f"      {rl.doc}")
         if cat is not None and cat.checks:
@@ -824,7 +851,29 @@ class Explanation:
                     out.append(f"        {rl.doc}")
                 if holds:
                     break
+        again = _judged_again(rec)
+        if again:
+            out.append(f"  post.relabel, judged again (relabelled by {again[0][0]}) against the surface rebuilt from the "
+                       "labels the passes before left:")
+            for _, step in again:
+                checks = tuple(CheckRecord(**_known(CheckRecord, c)) for c in step.get("measured", []))
+                why = "; ".join(c.sentence() for c in checks)
+                verdict = "holds, its label given back" if step.get("holds", True) else "does not hold"
+                out.append(f"    {step['rule']} [{step['source']}] pass {step['pass']} "
+                           f"({step.get('surface_points', 0):,} surface points): {verdict}: {why}")
         return out
+
+
+def _judged_again(rec: ClusterRecord) -> list[tuple[str, Mapping[str, Any]]]:
+    """The passes of a rule that undoes another on ``rec``: (the undone rule, the pass's record),
+    in order (empty for a cluster no such rule judged)."""
+    r = rec.relabel
+    if not r:
+        return []
+    if r.get("undid"):
+        u = r["undid"]
+        return [(u["rule"], s) for s in u.get("judged_again", [])] + [(u["rule"], r)]
+    return [(r["rule"], s) for s in r.get("judged_again", [])]
 
 
 #: What an accepted cluster no label's condition holds for is called (its points have label -1,

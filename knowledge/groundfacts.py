@@ -58,7 +58,8 @@ class GroundCandidate:
 class LocalModel:
     """What the steps on the local ground surface did: ``post.ground_model`` built it (``label``,
     ``points``, ``neighbours``, ``radius``, ``source``) or was skipped (``note``); a relabel step
-    after it counted the labels it changed (``relabelled``) and built it again
+    after it counted the labels it changed (``relabelled``), the labels a rule that undoes another
+    gave back (``undone``) in how many passes (``undo_passes``), and built it again
     (``points_after_relabel``); ``ground_release`` counted the points it released (``released``)
     or said why none could be (``release_note``)."""
 
@@ -72,6 +73,8 @@ class LocalModel:
     points_after_relabel: int | None = None
     released: int | None = None
     release_note: str | None = None
+    undone: int | None = None
+    undo_passes: int | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return _set(self)

@@ -1,19 +1,28 @@
 """``relabel``: rules applied after labelling: a cluster with label ``from`` whose condition
-holds takes label ``to``."""
+holds takes label ``to``; a rule that ``undoes`` an earlier one judges again, against the surface
+rebuilt without them, the clusters that rule relabelled."""
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from typing import Any, ClassVar
 
+from kbs.knowledge.explain import ClusterRecord
 from kbs.knowledge.parts import PostContext, PostStep, SpecContext
 from kbs.knowledge.predicates import Scene
 from kbs.knowledge.rulebase import Condition, SourcePos
-from kbs.knowledge.state import PostState
+from kbs.knowledge.state import Leaf, PostState
+
+#: the most passes an undoing rule may ask for (each rebuilds the surface)
+MAX_PASSES = 64
 
 
 @dataclass(frozen=True)
 class RelabelRule:
-    """A relabel rule: a cluster labelled ``source`` whose condition holds takes label ``target``."""
+    """A relabel rule: a cluster labelled ``source`` whose condition holds takes label ``target``.
+    With ``undoes`` (the name of an earlier rule of the same step), it judges only the clusters
+    that rule relabelled, against the surface rebuilt from the labels left, and gives them their
+    label back (``source``/``target`` are that rule's ``target``/``source``), for up to ``passes``
+    passes."""
 
     name: str
     source: str
@@ -21,12 +30,22 @@ class RelabelRule:
     condition: Condition
     doc: str
     pos: SourcePos
+    undoes: str | None = None
+    passes: int = 1
 
 
 @dataclass(frozen=True)
 class Relabel(PostStep):
     """Rules applied after labelling, in order: a cluster with label 'from' whose condition holds
     takes label 'to' (the first such rule acts). Conditions may use the local ground surface.
+
+    A rule with 'undoes: NAME' (an earlier rule of the step) runs after the others: the surface
+    is built again from the labels they left, and each cluster NAME relabelled is judged against
+    it (its checks on the surface measured anew): where the condition holds it takes its label
+    back. Each pass that gives some back builds the surface again, with them, and judges the
+    others again, until a pass gives none back or after 'passes' passes (default 1): a patch is
+    judged against the patches that are not themselves relabelled (e.g. a terrace above a
+    terrain step against the terrain left once the roofs are out).
 
     When a rule changed a label and a ground_model step came before, the surface is built again
     from the new labels for the steps after this one.
@@ -35,10 +54,19 @@ class Relabel(PostStep):
     key: ClassVar[str] = "relabel"
     schema: ClassVar[dict[str, Any]] = {
         "type": "array",
-        "items": {"type": "object", "additionalProperties": False, "required": ["name", "from", "to", "if"],
+        "items": {"type": "object", "additionalProperties": False, "required": ["name", "if"],
                   "properties": {"name": {"$ref": "#/$defs/name"}, "doc": {"type": "string"},
                                  "from": {"$ref": "#/$defs/name"}, "to": {"$ref": "#/$defs/name"},
-                                 "if": {"$ref": "#/$defs/condition"}}},
+                                 "if": {"$ref": "#/$defs/condition"},
+                                 "undoes": {"description": "an earlier rule of this step: the clusters it relabelled "
+                                                           "are judged again against the surface rebuilt without "
+                                                           "them, and take their label back where the condition "
+                                                           "holds ('from'/'to' are that rule's 'to'/'from')",
+                                            "$ref": "#/$defs/name"},
+                                 "passes": {"description": "with 'undoes': at most this many passes, each after "
+                                                           "the surface was rebuilt with the labels given back "
+                                                           "(the passes stop when one gives none back)",
+                                            "type": "integer", "minimum": 1, "maximum": MAX_PASSES}}},
     }
 
     rules: tuple[RelabelRule, ...]
@@ -51,16 +79,27 @@ class Relabel(PostStep):
         surface = any(s.key == "ground_model" for s in ctx.earlier)
         for i, spec in enumerate(raw if isinstance(raw, list) else []):
             path = ctx.path + (i,)
-            if not isinstance(spec, dict) or not all(isinstance(spec.get(k), str) for k in ("name", "from", "to")):
+            if not isinstance(spec, dict) or not isinstance(spec.get("name"), str):
                 continue  # the schema reported it
+            ok, undone = cls._undone(spec, out, path, ctx)
+            if not ok:
+                continue
+            if undone is None and not all(isinstance(spec.get(k), str) for k in ("from", "to")):
+                if not all(k in spec for k in ("from", "to")):
+                    ctx.add(path, f"relabel rule '{spec['name']}' needs 'from' and 'to' (or 'undoes', an earlier "
+                            "rule of this step)")
+                continue  # the schema reported a wrong type
             if spec["name"] in seen:
                 ctx.add(path + ("name",), f"relabel rule '{spec['name']}' is defined twice")
             seen.add(spec["name"])
-            ctx.label_ref(path + ("from",), spec["from"])
-            ctx.label_ref(path + ("to",), spec["to"])
-            if spec["from"] == spec["to"]:
+            source = undone.target if undone is not None else spec["from"]
+            target = undone.source if undone is not None else spec["to"]
+            if undone is None:
+                ctx.label_ref(path + ("from",), source)
+                ctx.label_ref(path + ("to",), target)
+            if source == target:
                 ctx.add(path + ("to",), f"relabel rule '{spec['name']}' changes nothing: from and to are both "
-                        f"'{spec['to']}'")
+                        f"'{target}'")
             cond = ctx.condition(spec.get("if"), path + ("if",)) if "if" in spec else None
             if cond is None:
                 continue
@@ -71,9 +110,45 @@ class Relabel(PostStep):
                 if uses:
                     ctx.add(path + ("if",), f"relabel rule '{spec['name']}': check '{uses[0]}' needs the local "
                             "ground surface, but post.ground_model does not declare it")
-            out.append(RelabelRule(spec["name"], spec["from"], spec["to"], cond, str(spec.get("doc", "")),
-                                   ctx.pos(path)))
+                elif undone is not None:
+                    ctx.add(path + ("undoes",), f"relabel rule '{spec['name']}' undoes '{undone.name}' against the "
+                            "surface rebuilt without its clusters, but post.ground_model does not declare it",
+                            key=True)
+            out.append(RelabelRule(spec["name"], source, target, cond, str(spec.get("doc", "")), ctx.pos(path),
+                                   undoes=undone.name if undone is not None else None,
+                                   passes=int(spec.get("passes", 1)) if isinstance(spec.get("passes"), int) else 1))
         return cls(rules=tuple(out), pos=ctx.pos(ctx.path, key=True))
+
+    @staticmethod
+    def _undone(spec: dict, earlier: list[RelabelRule], path: tuple,
+                ctx: SpecContext) -> tuple[bool, RelabelRule | None]:
+        """(False when a problem was reported, the rule ``spec`` undoes or None)."""
+        name = spec["name"]
+        if "undoes" not in spec:
+            if "passes" in spec:
+                ctx.add(path + ("passes",), f"relabel rule '{name}': 'passes' counts the passes of a rule that "
+                        "undoes another ('undoes'), and this one undoes none", key=True)
+                return False, None
+            return True, None
+        target = spec["undoes"]
+        if not isinstance(target, str):
+            return False, None  # the schema reported it
+        undone = next((r for r in earlier if r.name == target), None)
+        if undone is None:
+            where = "itself" if target == name else f"'{target}', which is not an earlier rule of this step"
+            ctx.add(path + ("undoes",), f"relabel rule '{name}' undoes {where} (it can undo only a rule listed "
+                    f"before it in the same relabel step: {', '.join(r.name for r in earlier) or 'none'})")
+            return False, None
+        if undone.undoes is not None:
+            ctx.add(path + ("undoes",), f"relabel rule '{name}' undoes '{target}', which itself undoes "
+                    f"'{undone.undoes}': undo the rule that relabels")
+            return False, None
+        for key, want in (("from", undone.target), ("to", undone.source)):
+            if key in spec and spec[key] != want:
+                ctx.add(path + (key,), f"relabel rule '{name}' undoes '{target}' ({undone.source} -> "
+                        f"{undone.target}): its '{key}' is '{want}', not '{spec[key]}' (or leave it out)")
+                return False, None
+        return True, undone
 
     def apply(self, state: PostState, ctx: PostContext) -> PostState:
         surface = state.surface
@@ -84,9 +159,10 @@ class Relabel(PostStep):
                            ground_model=surface.model if surface is not None else None)
         changed = 0
         leaves = list(state.leaves)
+        first = [r for r in self.rules if r.undoes is None]
         for i, lf in enumerate(leaves):
             fact = ctx.fact(lf.cluster, post_scene, lf.record)
-            for r in self.rules:
+            for r in first:
                 if lf.label != r.source or not r.condition.evaluate(fact):
                     continue
                 leaves[i] = lf.with_record(fact.record, label=r.target, relabel={
@@ -100,8 +176,72 @@ class Relabel(PostStep):
         if surface is None:
             return state
         state = replace(state, ground_facts=state.ground_facts.with_local_model(relabelled=changed))
-        if not changed:
+        built = False  # the surface in the state was built again from labels this step changed
+        for r in self.rules:
+            if r.undoes is not None:
+                state, changed, passes = self._undo(r, state, ctx, changed)
+                built = built or passes > 0
+        if changed:
+            state = replace(state, surface=surface.spec.build(state, ctx))
+        elif not built:
             return state
-        surface = surface.spec.build(state, ctx)
-        return replace(state, surface=surface,
-                       ground_facts=state.ground_facts.with_local_model(points_after_relabel=surface.model.n_points))
+        assert state.surface is not None
+        return replace(state, ground_facts=state.ground_facts.with_local_model(
+            points_after_relabel=state.surface.model.n_points))
+
+    def _undo(self, rule: RelabelRule, state: PostState, ctx: PostContext,
+              changed: int) -> tuple[PostState, int, int]:
+        """``rule`` (it undoes another) on the clusters that rule relabelled: pass after pass, each
+        against the surface built from the labels the passes before left (``changed``: labels
+        changed since the state's surface was built). Returns the state, the labels changed since
+        its surface was built, and the passes run."""
+        assert state.surface is not None
+        checks = ctx.rule_base.checks
+        fresh = {n for n in ctx.names(rule.condition) if checks[n].predicate.needs_ground_model}
+        leaves = list(state.leaves)
+        given_back = 0
+        passes = 0
+        while passes < rule.passes:
+            todo = [i for i, lf in enumerate(leaves) if lf.record.relabel and lf.record.relabel["rule"] == rule.undoes
+                    and lf.label == rule.source]
+            if not todo:
+                break
+            surface = state.surface.spec.build(replace(state, leaves=tuple(leaves)), ctx) if changed else state.surface
+            state, changed = replace(state, surface=surface), 0
+            passes += 1
+            scene = state.scene
+            post_scene = Scene(scene.sensor, scene.ground, scene.unit, ground_model=surface.model)
+            for i in todo:
+                lf = leaves[i]
+                holds, measured = self._judge(rule, lf, post_scene, ctx, fresh)
+                step = {"rule": rule.name, "source": rule.pos.short, "pass": passes + 1, "holds": holds,
+                        "surface_points": surface.model.n_points, "measured": measured}
+                if holds:
+                    leaves[i] = lf.with_record(label=rule.target, relabel={
+                        "rule": rule.name, "source": rule.pos.short, "from": rule.source, "to": rule.target,
+                        "checks": ctx.names(rule.condition), "pass": passes + 1, "measured": measured,
+                        "surface_points": surface.model.n_points, "undid": dict(lf.record.relabel or {})})
+                    changed += 1
+                    given_back += 1
+                else:  # still relabelled: the record says it was judged again, and how
+                    old = dict(lf.record.relabel or {})
+                    old["judged_again"] = [*old.get("judged_again", []), step]
+                    leaves[i] = lf.with_record(relabel=old)
+            if not changed:
+                break
+        state = replace(state, leaves=tuple(leaves))
+        model = state.ground_facts.local_model
+        state = replace(state, ground_facts=state.ground_facts.with_local_model(
+            undone=(model.undone or 0) + given_back if model is not None else given_back,
+            undo_passes=passes))
+        return state, changed, passes
+
+    @staticmethod
+    def _judge(rule: RelabelRule, lf: Leaf, scene: Scene, ctx: PostContext,
+               fresh: set[str]) -> tuple[bool, list[dict[str, Any]]]:
+        """Whether ``rule``'s condition holds on ``lf``, its checks on the surface measured anew
+        against ``scene``'s (the others as measured before); the checks measured, as plain data."""
+        kept = tuple(c for c in lf.record.checks if c.check not in fresh)
+        fact = ctx.fact(lf.cluster, scene, ClusterRecord(lf.id, None, 0, lf.size, checks=kept))
+        holds = rule.condition.evaluate(fact)
+        return bool(holds), [dict(vars(c)) for c in fact.record.checks[len(kept):]]
