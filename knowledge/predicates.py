@@ -696,25 +696,14 @@ def extent(cluster: Cluster, scene: Scene, *, axis: str = "largest") -> float:
     return float(proj.max() - proj.min())
 
 
-#: arrays up to this size take the compiled order statistics (a sort), larger ones numpy's (a partition)
-_FAST_STAT_MAX = 1 << 16
-
-
 def _order_stat(q: float, median: bool, reference: Callable[[np.ndarray], Any]) -> Callable[[np.ndarray], Any]:
-    """``reference`` (``np.percentile`` at ``100 q`` or ``np.median``), the same value bit for bit
-    from the compiled :func:`~kbs.inference._compiled.quantile_linear` where it can say so (numpy's
-    per-call overhead was about 0.1 ms, a tenth of an airborne frame's post steps)."""
+    """``reference``, computed by :func:`kbs.geometry.groundmodel.order_statistic` (the same value,
+    compiled where it can be; imported when first used: the commands that do not segment load no
+    numba)."""
     def stat(h: np.ndarray) -> Any:
-        from kbs.inference import _flags
+        from kbs.geometry.groundmodel import order_statistic
 
-        if _flags.JIT and isinstance(h, np.ndarray) and h.ndim == 1 and h.dtype == np.float64 \
-                and 0 < h.size <= _FAST_STAT_MAX:
-            from kbs.inference import _compiled
-
-            v, ok = _compiled.quantile_linear(h, q, median)
-            if ok:
-                return v
-        return reference(h)
+        return order_statistic(h, q, median, reference)
     return stat
 
 

@@ -294,12 +294,13 @@ def test_compiled_order_statistics_are_numpys_bit_for_bit():
 def test_the_predicates_statistics_are_numpys_with_and_without_compiled_kernels(monkeypatch):
     """The statistics of height_above_local_ground / height_above_slope_surface: the compiled path
     (and its fallback to numpy on zeros, NaN and large arrays) gives numpy's values bit for bit."""
+    from kbs.geometry.groundmodel import FAST_STAT_MAX
     from kbs.knowledge import predicates as P
 
     rng = np.random.default_rng(3)
     arrays = [rng.normal(size=n) for n in (1, 2, 3, 10, 64, 1001)]
     arrays += [np.round(rng.normal(size=50), 1), np.array([0.0, -0.0, 2.0, -1.0]), np.array([np.nan, 1.0, 2.0]),
-               rng.normal(size=P._FAST_STAT_MAX + 3)]
+               rng.normal(size=FAST_STAT_MAX + 3)]
     ref = {"p90": lambda a: np.percentile(a, 90), "p10": lambda a: np.percentile(a, 10), "median": np.median}
     for jit in (True, False):
         monkeypatch.setattr(_flags, "JIT", jit)
