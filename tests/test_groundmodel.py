@@ -627,6 +627,7 @@ def test_compiled_slope_surface_equals_the_k_d_tree_reference(monkeypatch, exclu
     from kbs.inference import _flags
 
     monkeypatch.setattr(_flags, "JIT", True)
+    monkeypatch.setattr(LocalGround, "PRUNE", False)  # the plain grid (the pruned one: the test below)
     rng = np.random.default_rng(21)
     g = np.arange(0.0, 40.0, 1.0)
     xy = np.array([(a, b) for a in g for b in g])
