@@ -14,7 +14,12 @@ there (``PYTHONPATH``), with this venv's packages. Both sides run the compiled k
 (``KBS_JIT=1``); the base's are cached separately, so its warm-up frame of the first round
 compiles them (without ``KBS_JIT=1`` it would run the numpy reference, its cache being cold).
 
+The post steps column is the time of ``Interpreter.finish`` in each frame (labels, the post
+steps, the result), median of the same frames.
+
 Usage: python benchmarks/bench_compare.py [--base REV] [--repeats 5] [--rounds 2] [--scan NAME ...]
+(scans: the five defaults, and the airborne samp11, samp61 and isprs-tile, 131,951 points of the
+ISPRS samples side by side, run in tiles by the rules' limits.tile)
 """
 from __future__ import annotations
 
@@ -37,7 +42,13 @@ SCANS = {
     "seq00-0": (DATA / "semantickitti-seq00" / "seq00_000000.bin", "outdoor", None),
     "isprs21": (DATA / "isprs" / "samp21-utm.pcd", "airborne", None),
     "mosd0": (DATA / "mosd" / "learn0.pcd", "planar_contest", None),
+    "samp11": (DATA / "isprs" / "samp11.txt", "airborne", None),
+    "samp61": (DATA / "isprs" / "samp61-utm.pcd", "airborne", None),
+    # ISPRS samples side by side (benchmarks/profile_run.py: make_isprs_tile), made once in the temp folder
+    "isprs-tile": (Path(tempfile.gettempdir()) / "kbs-bench" / "isprs-tile-130000.npy", "airborne", None),
 }
+#: the scans run by default (the others on demand with --scan)
+DEFAULT = ["semantickitti", "gndnet0", "seq00-0", "isprs21", "mosd0"]
 
 CHILD = r"""
 import hashlib, json, sys, time
@@ -47,22 +58,39 @@ from kbs.io import read_cloud
 path, rules, sensor, repeats, out = sys.argv[1], sys.argv[2], json.loads(sys.argv[3]), int(sys.argv[4]), sys.argv[5]
 X = read_cloud(path).xyz
 seg = kbs.Segmenter(rules, jobs=1, sensor=sensor)
+from kbs.knowledge.interpreter import Interpreter
+post = [0.0]
+_finish = Interpreter.finish
+def finish(self, *a, **k):  # the post steps' share: labels, post steps, the result
+    t = time.perf_counter()
+    try:
+        return _finish(self, *a, **k)
+    finally:
+        post[0] += time.perf_counter() - t
+Interpreter.finish = finish
 res = seg.segment(X)
-times = []
+times, posts = [], []
 for _ in range(repeats):
+    post[0] = 0.0
     t = time.perf_counter()
     res = seg.segment(X)
     times.append(time.perf_counter() - t)
+    posts.append(post[0])
 names = np.asarray(res.label_names, dtype=object)
 label = names[res.label] if len(names) else res.label
 np.save(out, np.stack([res.cluster.astype(np.int64), np.unique(label, return_inverse=True)[1].ravel()]))
-print(json.dumps({"times": times, "kbs": kbs.__file__, "clusters": int(res.cluster.max()) + 1,
+print(json.dumps({"times": times, "posts": posts, "kbs": kbs.__file__, "clusters": int(res.cluster.max()) + 1,
                   "labels": sorted(set(map(str, names)))}))
 """
 
 
 def run_side(pythonpath: str | None, scan: str, repeats: int, out: Path) -> dict:
     path, rules, sensor = SCANS[scan]
+    if scan == "isprs-tile" and not path.exists():
+        sys.path.insert(0, str(REPO / "benchmarks"))
+        from profile_run import make_isprs_tile
+
+        make_isprs_tile(130000, path)
     env = dict(os.environ, KBS_JIT="1")  # compiled on both sides (the base's cache is cold: its warm-up compiles)
     if pythonpath:
         env["PYTHONPATH"] = pythonpath
@@ -78,7 +106,7 @@ def main() -> None:
     ap.add_argument("--base", default="HEAD", help="git revision to compare with (default: HEAD)")
     ap.add_argument("--repeats", type=int, default=5, help="timed frames per side and round")
     ap.add_argument("--rounds", type=int, default=2, help="alternating rounds per scan")
-    ap.add_argument("--scan", nargs="*", default=list(SCANS), choices=list(SCANS))
+    ap.add_argument("--scan", nargs="*", default=DEFAULT, choices=list(SCANS))
     a = ap.parse_args()
     import numpy as np
 
@@ -95,16 +123,18 @@ def main() -> None:
         sides = {"base": tmp, "this": None}
         print(f"base: {a.base} ({rev}); this: the working tree at {head}{' with uncommitted changes' if dirty else ''}; "
               f"{a.repeats} frames x {a.rounds} rounds per side, load average {os.getloadavg()[0]:.2f} at the start\n")
-        print("| scan | rules | points | base ms | this ms | base / this | result |")
-        print("|---|---|---:|---:|---:|---:|---|")
+        print("| scan | rules | points | base ms | this ms | base / this | post steps, base ms | this ms | result |")
+        print("|---|---|---:|---:|---:|---:|---:|---:|---|")
         for scan in a.scan:
-            times = {"base": [], "this": []}
+            times: dict[str, list[float]] = {"base": [], "this": []}
+            posts: dict[str, list[float]] = {"base": [], "this": []}
             info = {}
             for _ in range(a.rounds):
                 for side in ("base", "this"):
                     out = Path(tmp) / f"{scan}-{side}.npy"
                     r = run_side(sides[side], scan, a.repeats, out)
                     times[side] += r["times"]
+                    posts[side] += r.get("posts", [])
                     info[side] = r
             if Path(info["base"]["kbs"]).resolve().is_relative_to(REPO):
                 raise SystemExit("the base side imported this working tree: check PYTHONPATH handling")
@@ -116,7 +146,9 @@ def main() -> None:
                 verdict = f"differs: {diff:.2%} of labels, clusters {info['base']['clusters']} -> {info['this']['clusters']}"
             mb, mt = statistics.median(times["base"]) * 1e3, statistics.median(times["this"]) * 1e3
             path, rules, _ = SCANS[scan]
-            print(f"| {scan} | {rules} | {A.shape[1]:,} | {mb:.0f} | {mt:.0f} | {mb / mt:.2f}x | {verdict} |", flush=True)
+            pb, pt = (statistics.median(posts[k]) * 1e3 if posts[k] else float("nan") for k in ("base", "this"))
+            print(f"| {scan} | {rules} | {A.shape[1]:,} | {mb:.0f} | {mt:.0f} | {mb / mt:.2f}x | {pb:.0f} | {pt:.0f} | "
+                  f"{verdict} |", flush=True)
         print(f"\nload average at the end {os.getloadavg()[0]:.2f}")
 
 

@@ -1048,6 +1048,166 @@ def slope_lowest(Q, T, heights, owners, own, ny, start, order, lo, side, rise, r
     return out
 
 
+@njit(cache=True, nogil=True)
+def slope_cells(T, heights, side, max_cells):
+    """The points ``T`` (m, 2) in square cells of ``side`` for :func:`slope_lowest_pruned`:
+    ``(ny, start, order, lo, hmin, box)`` as :func:`surface_grid`, with per cell the lowest of its
+    points' ``heights`` (-inf when one is NaN) and its points' bounding box ``box`` (cells, 4):
+    ``x0, x1, y0, y1`` (empty cells: +inf, -inf); ``ny = -1`` when the grid would have more than
+    ``max_cells`` cells."""
+    ny, start, order, lo = surface_grid(T, side, max_cells)
+    if ny < 0:
+        return ny, start, order, lo, np.zeros(0), np.zeros((0, 4))
+    n = start.shape[0] - 1
+    hmin = np.full(n, np.inf)
+    box = np.empty((n, 4))
+    for c in range(n):
+        box[c, 0] = np.inf
+        box[c, 1] = -np.inf
+        box[c, 2] = np.inf
+        box[c, 3] = -np.inf
+        for p in range(start[c], start[c + 1]):
+            j = order[p]
+            h = heights[j]
+            if math.isnan(h):
+                hmin[c] = -np.inf
+            elif h < hmin[c]:
+                hmin[c] = h
+            box[c, 0] = min(box[c, 0], T[j, 0])
+            box[c, 1] = max(box[c, 1], T[j, 0])
+            box[c, 2] = min(box[c, 2], T[j, 1])
+            box[c, 3] = max(box[c, 3], T[j, 1])
+    return ny, start, order, lo, hmin, box
+
+
+@njit(cache=True, nogil=True)
+def slope_lowest_pruned(Q, T, heights, owners, own, ny, start, order, lo, side, hmin, box, rise, r, r2):
+    """:func:`slope_lowest` on the finer cells of :func:`slope_cells`, with the same outputs, bit
+    for bit, visiting fewer points: the cells that may hold a point within ``r`` of a query are
+    visited lowest bound first, and the visit stops at the first cell whose bound exceeds the
+    lowest value found. A cell's bound is ``hmin + rise * sqrt(ex * ex + ey * ey)``, ``ex``/``ey``
+    the query's distances to the cell's bounding box along each axis: computed with the same
+    rounded operations as a point's value, each monotone, it is at most the value of any point of
+    the cell, so a skipped cell holds no point whose value is at most the minimum (and a cell whose
+    box is farther than ``r`` holds no point within it). The minimum is the same value whatever
+    the order of the visit: a value ``h + rise * sqrt(d2)`` is never -0.0, so equal values are
+    equal bit for bit."""
+    q = Q.shape[0]
+    n = start.shape[0] - 1
+    nx = n // ny
+    out = np.full(q, np.inf)
+    reach = int(math.ceil(r / side)) + 1
+    w = 2 * reach + 1
+    lbs = np.empty(w * w)
+    cells = np.empty(w * w, dtype=np.int64)
+    for k in range(q):
+        qx = Q[k, 0]
+        qy = Q[k, 1]
+        if not (math.isfinite(qx) and math.isfinite(qy)):
+            continue
+        fa = math.floor((qx - lo[0]) / side)
+        fb = math.floor((qy - lo[1]) / side)
+        if not (fa >= -reach - 1.0 and fa <= nx + reach and fb >= -reach - 1.0 and fb <= ny + reach):
+            continue
+        a0 = max(int(fa) - reach, 0)
+        a1 = min(int(fa) + reach, nx - 1)
+        b0 = max(int(fb) - reach, 0)
+        b1 = min(int(fb) + reach, ny - 1)
+        m = 0
+        for a in range(a0, a1 + 1):
+            for b in range(b0, b1 + 1):
+                c = a * ny + b
+                if start[c] == start[c + 1]:
+                    continue
+                ex = 0.0
+                if qx < box[c, 0]:
+                    ex = box[c, 0] - qx
+                elif qx > box[c, 1]:
+                    ex = qx - box[c, 1]
+                ey = 0.0
+                if qy < box[c, 2]:
+                    ey = box[c, 2] - qy
+                elif qy > box[c, 3]:
+                    ey = qy - box[c, 3]
+                d2 = ex * ex + ey * ey
+                if d2 > r2:
+                    continue
+                lb = hmin[c] + rise * math.sqrt(d2)
+                i = m
+                while i > 0 and lbs[i - 1] > lb:
+                    lbs[i] = lbs[i - 1]
+                    cells[i] = cells[i - 1]
+                    i -= 1
+                lbs[i] = lb
+                cells[i] = c
+                m += 1
+        best = np.inf
+        for t in range(m):
+            if lbs[t] > best:
+                break
+            c = cells[t]
+            for p in range(start[c], start[c + 1]):
+                j = order[p]
+                if own >= 0 and owners[j] == own:
+                    continue
+                dx = T[j, 0] - qx
+                dy = T[j, 1] - qy
+                d2 = dx * dx + dy * dy
+                if d2 <= r2:
+                    v = heights[j] + rise * math.sqrt(d2)
+                    if v < best:
+                        best = v
+        out[k] = best
+    return out
+
+
+# -- order statistics of a cluster's heights (the predicates' p90, p10, median) ---------------
+
+
+@njit(cache=True, nogil=True)
+def quantile_linear(h, q, median):
+    """``np.percentile(h, 100 q)`` (method 'linear') or, with ``median``, ``np.median(h)``, of a
+    1D float64 array, bit for bit, without numpy's per-call overhead: ``(value, ok)``. The two
+    order statistics are taken from a sorted copy (they are unique bit for bit, as numpy's
+    partition finds them, unless they are zeros of either sign) and combined with numpy's
+    operations in its order (the interpolation of ``_lerp``: ``a + (b - a) t``, or ``b - (b - a)
+    (1 - t)`` for ``t >= 0.5``; the median: ``(a + b) / 2`` or the middle value). ``ok`` is False,
+    and the value to be ignored, when the array is empty, holds a NaN, or a picked value is a
+    zero (whose sign the partition decides): the caller asks numpy then."""
+    n = h.shape[0]
+    if n == 0:
+        return np.nan, False
+    s = np.empty(n)
+    for i in range(n):
+        if math.isnan(h[i]):
+            return np.nan, False
+        s[i] = h[i]
+    s.sort()
+    if median:
+        if n % 2 == 1:
+            a = s[(n - 1) // 2]
+            return a / 1.0, a != 0.0
+        a = s[n // 2 - 1]
+        b = s[n // 2]
+        return (a + b) / 2.0, a != 0.0 and b != 0.0
+    vi = (n - 1) * q
+    if vi >= n - 1:  # numpy takes the last value at both ends (index -1), gamma = vi + 1
+        a = s[n - 1]
+        b = a
+        t = vi - (-1.0)
+    else:
+        lo = math.floor(vi)
+        a = s[int(lo)]
+        b = s[int(lo) + 1]
+        t = vi - lo
+    diff = b - a
+    if t >= 0.5:
+        v = b - diff * (1.0 - t)
+    else:
+        v = a + diff * t
+    return v, a != 0.0 and b != 0.0
+
+
 # -- the local ground surface's medians, without a sort per row ---------------------------------
 
 

@@ -37,6 +37,11 @@ def warm() -> None:
     ny, start, order, lo = C.surface_grid(U, 1.0, 4.0 * len(U) + 4096.0)  # the slope surface
     C.slope_lowest(U[:50].copy(), U, X[:3000, 2].copy(), np.zeros(3000, dtype=np.int64), 0, ny, start, order, lo,
                    1.0, 0.8, 1.0)
+    ny, start, order, lo, hmin, box = C.slope_cells(U, X[:3000, 2].copy(), 0.25, 4.0 * len(U) + 4096.0)
+    C.slope_lowest_pruned(U[:50].copy(), U, X[:3000, 2].copy(), np.zeros(3000, dtype=np.int64), 0, ny, start, order,
+                          lo, 0.25, hmin, box, 0.8, 1.0, 1.0)
+    for q, median in ((0.9, False), (0.5, True)):  # the predicates' order statistics
+        C.quantile_linear(X[:100, 2].copy(), q, median)
     nx, ny = int((U[:, 0].max() - lo[0]) / 0.5) + 5, int((U[:, 1].max() - lo[1]) / 0.5) + 5  # the surface's bounds
     b_lo, b_hi, n3 = C.surface_blocks(U, X[:3000, 2].copy(), lo - 2.0, 0.5, nx, ny, 3)
     for narrow in (False, True):

@@ -696,8 +696,20 @@ def extent(cluster: Cluster, scene: Scene, *, axis: str = "largest") -> float:
     return float(proj.max() - proj.min())
 
 
-_STATS = {"max": np.max, "p90": lambda h: np.percentile(h, 90), "mean": np.mean, "median": np.median,
-          "p10": lambda h: np.percentile(h, 10), "min": np.min}
+def _order_stat(q: float, median: bool, reference: Callable[[np.ndarray], Any]) -> Callable[[np.ndarray], Any]:
+    """``reference``, computed by :func:`kbs.geometry.groundmodel.order_statistic` (the same value,
+    compiled where it can be; imported when first used: the commands that do not segment load no
+    numba)."""
+    def stat(h: np.ndarray) -> Any:
+        from kbs.geometry.groundmodel import order_statistic
+
+        return order_statistic(h, q, median, reference)
+    return stat
+
+
+_STATS = {"max": np.max, "p90": _order_stat(90 / 100, False, lambda h: np.percentile(h, 90)), "mean": np.mean,
+          "median": _order_stat(0.5, True, np.median),
+          "p10": _order_stat(10 / 100, False, lambda h: np.percentile(h, 10)), "min": np.min}
 
 
 @predicate(unit="length", needs_ground=True, choices={"stat": tuple(_STATS)})

@@ -627,6 +627,7 @@ def test_compiled_slope_surface_equals_the_k_d_tree_reference(monkeypatch, exclu
     from kbs.inference import _flags
 
     monkeypatch.setattr(_flags, "JIT", True)
+    monkeypatch.setattr(LocalGround, "PRUNE", False)  # the plain grid (the pruned one: the test below)
     rng = np.random.default_rng(21)
     g = np.arange(0.0, 40.0, 1.0)
     xy = np.array([(a, b) for a in g for b in g])
@@ -650,6 +651,75 @@ def test_compiled_slope_surface_equals_the_k_d_tree_reference(monkeypatch, exclu
                             np.zeros(3), radius=1.0)
     assert far._slope_grid(1.0) is None
     assert far.height_above_slope(np.array([[0.5, 0.0, 2.0]]), 40.0, 1.0)[0] == pytest.approx(2.0 - np.tan(np.radians(40)) * 0.5)
+
+
+@pytest.mark.parametrize("exclude", [None, "c1"])
+def test_pruned_slope_surface_equals_the_plain_grid_and_the_k_d_tree(monkeypatch, exclude):
+    """LocalGround.height_above_slope visiting finer cells lowest bound first (the default, the
+    airborne rules' above_terrain/on_terrain/bank) against the plain grid and against the k-d
+    tree reference: equal bit for bit, on a lattice with points exactly at the radius,
+    duplicated positions of other heights, equal heights and zeros of either sign, queries far
+    outside and on the edges, a steep and a zero slope."""
+    from kbs.inference import _flags
+
+    monkeypatch.setattr(_flags, "JIT", True)
+    rng = np.random.default_rng(5)
+    g = np.arange(0.0, 60.0, 1.0)
+    xy = np.array([(a, b) for a in g for b in g])
+    xy = np.vstack([xy, xy[::5], rng.random((500, 2)) * 60.0])
+    z = np.round(rng.normal(0, 2.0, len(xy)), 1)  # equal heights, zeros
+    z[::11] = -0.0
+    X = np.column_stack([xy, z])
+    owners = (X[:, 0] // 15).astype(int)
+    model = LocalGround.build(X, np.arange(len(X)), np.array([0.0, 0.0, 1.0]), np.zeros(3), owners=owners,
+                              owner_ids=("c0", "c1", "c2", "c3"))
+    P = np.vstack([X[::4] + [0.3, -0.2, 4.0], rng.random((300, 3)) * [100, 100, 10] - [20, 20, 0],
+                   [[500.0, 500.0, 0.0], [-31.0, 10.0, 0.0]]])
+    visited = 0
+    for radius in (30.0, 10.0, 2.5, 1.0):
+        for slope in (40.0, 65.0, 0.0):
+            got = model.height_above_slope(P, slope, radius, exclude)
+            visited += model._slope_cells(radius) is not None
+            monkeypatch.setattr(LocalGround, "PRUNE", False)
+            plain = model.height_above_slope(P, slope, radius, exclude)
+            monkeypatch.setattr(_flags, "JIT", False)
+            want = model.height_above_slope(P, slope, radius, exclude)
+            monkeypatch.setattr(_flags, "JIT", True)
+            monkeypatch.setattr(LocalGround, "PRUNE", True)
+            assert got.tobytes() == plain.tobytes() == want.tobytes(), (radius, slope)
+            assert np.isfinite(got).mean() > 0.3
+    assert visited >= 9  # the pruned kernel ran (the finest grid may be refused as too large)
+
+
+def test_pruned_slope_kernel_equals_the_plain_kernel_on_random_surfaces():
+    """_compiled.slope_lowest_pruned against slope_lowest: the same minimum bit for bit, on
+    random surfaces (continuous and rounded positions, zero heights), radii, slopes and owners."""
+    from kbs.inference import _compiled as C
+
+    rng = np.random.default_rng(1)
+    checked = 0
+    for trial in range(24):
+        m = int(rng.integers(1, 4000))
+        T = rng.random((m, 2)) * rng.choice([10.0, 100.0, 400.0])
+        if trial % 3 == 0:
+            T = np.round(T)
+        h = rng.normal(size=m) * rng.choice([0.1, 3.0, 30.0])
+        h[:: 1 + trial % 7] = 0.0
+        owners = rng.integers(0, 20, m).astype(np.int64)
+        Q = np.vstack([T[rng.integers(0, m, 200)] + rng.normal(size=(200, 2)), rng.random((50, 2)) * 500 - 50])
+        for r in (3.0, 10.0, 30.0):
+            ny2, st2, o2, lo2, hm, box = C.slope_cells(T, h, r / 4, 4.0 * m + 4096)
+            if ny2 < 0:
+                continue
+            ny, st, o, lo = C.surface_grid(T, r * 1.001, 4.0 * m + 4096)
+            for rise in (0.0, 0.84, 2.14):
+                for own in (-1, 3):
+                    ow = owners if own >= 0 else np.zeros(0, np.int64)
+                    a = C.slope_lowest(Q, T, h, ow, own, ny, st, o, lo, r * 1.001, rise, r * r)
+                    b = C.slope_lowest_pruned(Q, T, h, ow, own, ny2, st2, o2, lo2, r / 4, hm, box, rise, r, r * r)
+                    assert a.tobytes() == b.tobytes(), (trial, r, rise, own)
+                    checked += 1
+    assert checked > 200
 
 
 def test_height_bounds_hold_every_answer_of_the_query():
