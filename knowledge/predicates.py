@@ -729,7 +729,6 @@ def distance_to_sensor(cluster: Cluster, scene: Scene, *, to: str = "center") ->
     return float(np.sqrt(((cluster.X - scene.sensor) ** 2).sum(axis=1).min()))
 
 
-
 @predicate(unit="length", needs_ground_model=True, choices={"stat": tuple(_STATS)}, bounds={"max_points": (0, None)})
 def height_above_local_ground(cluster: Cluster, scene: Scene, *, stat: str = "p90", exclude_self: bool = False,
                               max_points: int = 0) -> float:
