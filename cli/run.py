@@ -474,7 +474,8 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
     }
     if tiling is not None:
         doc["tiling"] = seg.tiling
-        doc["tiled_by"] = {"option": "--tile" if why_tiled is None else "limits.tile", "why": why_tiled,
+        # where the tiling came from (the tiles: line says why): --tile, or the rule base's limits.tile
+        doc["tiled_by"] = {"from": "--tile" if why_tiled is None else "limits.tile",
                            "buffer_from": "--buffer" if tiling.buffer is not None else "default"}
     if scan_units is not None or pc.crs is not None:
         doc["scan_units"] = {**(scan_units.to_dict() if scan_units is not None else {}),
