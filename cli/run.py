@@ -337,7 +337,7 @@ def _auto_tiling(segmenter: Segmenter, xyz: np.ndarray, scan_units: ScanUnits | 
     if not width > spec.wider_than:
         return None, (None if not names else
                       f"the cloud is {width:.6g}{u} wide, not more than {src}.wider_than ({spec.wider_than:g}{u}): "
-                      f"it runs whole, in this process{unused}")
+                      f"it runs whole{', in this process' if scheduler is not None else ''}{unused}")
     if sensor is not None or not np.array_equal(f, np.ones(3)) or to_stdout:
         why = ("--sensor" if sensor is not None else "--out -" if to_stdout else
                f"its unit ({scan_units.name if scan_units else '?'}) is not the rule base's")

@@ -288,7 +288,7 @@ def test_the_tiles_line_and_the_json_say_where_the_tiling_and_its_buffer_came_fr
     seg = Segmenter("airborne", jobs=1)  # the shipped rules: tiles of 100 m beyond 600 m
     tiling, why = _auto_tiling(seg, xyz, None, None, False, None, TileOptions(buffer=5.0))
     assert tiling is None and why == ("the cloud is 130 m wide, not more than airborne.yaml limits.tile.wider_than "
-                                      "(600 m): it runs whole, in this process; --buffer is not used"), why
+                                      "(600 m): it runs whole; --buffer is not used"), why
     tiling, why = _auto_tiling(seg, xyz, None, None, False, ("local", 2), TileOptions(resume=True, chunk_points=9))
     assert tiling is None and why.endswith("; --scheduler, --resume and --chunk-points are not used"), why
     assert _auto_tiling(seg, xyz, None, None, False, None, TileOptions()) == (None, None)  # nothing given: no word
@@ -353,7 +353,7 @@ def test_buffer_sets_the_buffer_of_the_automatic_tiles_as_it_does_for_tile(share
     assert "tiles:" not in r.stdout
     notes = [ln for ln in r.stderr.splitlines() if "limits.tile" in ln]
     assert notes == [f"note: {scan}: the cloud is 123.781 m wide, not more than airborne_tiled.yaml "
-                     f"limits.tile.wider_than (200 m): it runs whole, in this process; --buffer is not used"], r.stderr
+                     f"limits.tile.wider_than (200 m): it runs whole; --buffer is not used"], r.stderr
 
 
 @pytest.mark.slow  # sample_c three times, and once on a LocalCluster of 2 workers
