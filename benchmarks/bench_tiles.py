@@ -6,8 +6,8 @@ and the F1 difference near the inner tile edges (within a buffer) and inside the
 
 With --auto, the tiles are those the rule base's ``limits.tile`` makes of a cloud wider than its
 ``wider_than`` (tiles of ``limits.tile.size``, the default buffer or --buffer), whatever the scan's
-width, and the ground total error (%) is printed beside F1 (the ISPRS measure); a LAS scan in feet is
-scaled to metres first (as it must be converted for limits.tile to tile it).
+width, and the ground total error (%) is printed beside F1 (the ISPRS measure). The LAS scans in feet
+are in metres (bench_ground.scans converts them as ``kbs run`` does).
 
 Usage: python benchmarks/bench_tiles.py [--sets kitti isprs las] [--scans samp11] [--sizes 60 80] [--buffer B] [--auto]
 Every run is in process with jobs=1 (the result does not depend on jobs).
@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_ground import DATA, scans  # noqa: E402
+from bench_ground import scans  # noqa: E402
 
 from kbs.evaluation import ground_metrics  # noqa: E402
 from kbs.knowledge import Segmenter  # noqa: E402
@@ -39,23 +39,6 @@ def metrics(scan, seg, where=None):
 
 def f1(scan, seg, where=None) -> float:
     return metrics(scan, seg, where).f1
-
-
-def in_metres(scan):
-    """A LAS scan whose file declares feet (4_6_crop, autzen_trim), scaled to metres as ``kbs run``
-    would need it converted before limits.tile can tile it (tiles run in the rule base's unit); the
-    other scans as they are. Returns the scan and a note for its name."""
-    import dataclasses
-
-    from kbs.io import read_cloud
-
-    if scan.dataset != "LAS":
-        return scan, ""
-    units = read_cloud(DATA / "las" / f"{scan.name}.las").units
-    if units is None or units.horizontal.metres == 1.0:
-        return scan, ""
-    f = units.horizontal.metres
-    return dataclasses.replace(scan, xyz=scan.xyz * f, sensor=scan.sensor * f), f" ({units.horizontal.name} -> m)"
 
 
 def near_edge(seg, X, size, buffer) -> np.ndarray:
@@ -87,8 +70,6 @@ def main() -> None:
         if args.scans and scan.name not in args.scans:
             continue
         note = ""
-        if args.auto:
-            scan, note = in_metres(scan)
         seg = Segmenter(RULES[scan.dataset], jobs=1, sensor=scan.sensor)
         t0 = time.perf_counter()
         base = seg.segment(scan.xyz)
