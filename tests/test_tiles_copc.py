@@ -124,7 +124,7 @@ def test_a_copc_file_is_never_spilled_nor_routed_by_a_pass_over_its_chunks(copc_
 
 
 @pytest.mark.slow  # subprocesses
-@pytest.mark.parametrize("damage", ["truncated", "hierarchy cut", "count"])
+@pytest.mark.parametrize("damage", ["truncated", "hierarchy cut", "count", "garbled node"])
 def test_a_damaged_copc_file_is_a_positioned_file_error(copc_file, tmp_path, damage):
     data = bytearray(copc_file.read_bytes())
     bad = tmp_path / "bad.copc.laz"
@@ -134,6 +134,10 @@ def test_a_damaged_copc_file_is_a_positioned_file_error(copc_file, tmp_path, dam
     elif damage == "hierarchy cut":  # the last bytes cut: the last entry of the hierarchy is gone
         bad.write_bytes(bytes(data[:-10]))
         expected = r"is truncated: its COPC hierarchy"
+    elif damage == "garbled node":  # bytes of the points (after the header and VLRs) overwritten
+        data[5000:9000] = np.random.default_rng(1).integers(0, 256, 4000, dtype=np.uint8).tobytes()
+        bad.write_bytes(bytes(data))
+        expected = r"cannot decompress COPC octree node \d+-\d+-\d+-\d+ \(bytes [\d,]+ to [\d,]+\): "
     else:  # the header's point count changed (LAS 1.4: 64 bits at byte 247)
         data[247:255] = (int.from_bytes(data[247:255], "little") + 5).to_bytes(8, "little")
         bad.write_bytes(bytes(data))

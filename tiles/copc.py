@@ -158,6 +158,9 @@ def decompress(path: str, table: np.ndarray, reader: Any = None) -> np.ndarray:
         return np.column_stack([np.asarray(points.x, dtype=np.float64), np.asarray(points.y, dtype=np.float64),
                                 np.asarray(points.z, dtype=np.float64)])
     except (OSError, ValueError, RuntimeError, struct_error(), laspy.errors.LaspyException) as exc:
+        if len(table) > 1:  # the node at fault, named alone
+            for k in range(len(table)):
+                decompress(path, table[k:k + 1], reader)
         first, last = table[0], table[-1]
         raise CloudFileError(path, f"cannot decompress COPC octree node{'s' if len(table) > 1 else ''} "
                                    f"{_key(first)}{' .. ' + _key(last) if len(table) > 1 else ''} (bytes "
