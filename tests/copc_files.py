@@ -10,8 +10,9 @@ from pathlib import Path
 import numpy as np
 
 
-def write_copc(source: Path, target: Path, levels: int = 4, seed: int = 0) -> int:
-    """Write the points of the LAS ``source`` to the COPC ``target``; returns the nodes written."""
+def write_copc(source: Path, target: Path, levels: int = 4, seed: int = 0, per_node: int = 256) -> int:
+    """Write the points of the LAS ``source`` to the COPC ``target``; returns the nodes written.
+    Each node above the deepest level keeps ``per_node`` of its cell's points at most."""
     import copclib
     import laspy
 
@@ -22,8 +23,8 @@ def write_copc(source: Path, target: Path, levels: int = 4, seed: int = 0) -> in
     lo, hi = xyz.min(axis=0), xyz.max(axis=0)
     centre = (lo + hi) / 2.0
     half = float((hi - lo).max()) / 2.0 * 1.001 + 1e-6
-    # top down: each occupied cell of a level keeps an eighth of its points (one at least), at
-    # random; the deepest level the rest (so every node's parent holds points: a real octree)
+    # top down: each occupied cell of a level keeps an eighth of its points (one at least, per_node
+    # at most), at random; the deepest level the rest (every node's parent holds points: a real octree)
     rng = np.random.default_rng(seed)
     level = np.full(len(xyz), levels - 1)
     left = np.ones(len(xyz), dtype=bool)
@@ -34,7 +35,8 @@ def write_copc(source: Path, target: Path, levels: int = 4, seed: int = 0) -> in
         rows = np.flatnonzero(left)
         by_cell = rows[np.lexsort((rank[rows], ids[rows]))]
         head = np.concatenate([[True], ids[by_cell][1:] != ids[by_cell][:-1]])
-        take = by_cell[head | (rank[by_cell] < 0.125)]
+        place = np.arange(len(by_cell)) - np.maximum.accumulate(np.where(head, np.arange(len(by_cell)), 0))
+        take = by_cell[head | ((rank[by_cell] < 0.125) & (place < per_node))]
         level[take] = d
         left[take] = False
         rank = rng.random(len(xyz))
