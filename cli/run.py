@@ -12,6 +12,7 @@ import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 import numpy as np
@@ -31,6 +32,9 @@ from kbs.knowledge.explain import TREE_LINES, limit_lines
 from kbs.knowledge.predicates import UNITS, did_you_mean
 from kbs.knowledge.rulebase import RuleFileError, resolve, shipped_rule_bases
 from kbs.units import UNITS as LENGTH_UNITS, CoordinateWarning, ScanUnits, SpacingWarning
+
+if TYPE_CHECKING:
+    from kbs.tiles.stream import SpilledCloud
 
 
 def _vector3(ctx, param, value):
@@ -272,7 +276,8 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
         sources = inputs if isinstance(inputs, InputFiles) else InputFiles((cloud, *inputs))
         for target in (points, js, *([html] if report else [])):
             check_output(target, inputs=sources, force=force)
-    spilled, why_tiled = None, None
+    spilled: SpilledCloud | None = None  # a LAS/LAZ file read in chunks, or a COPC file by its octree
+    why_tiled = None
     if tiling is None and auto_tile and not stdin and not to_stdout and sensor is None:
         tiling, why_tiled = _header_tiling(segmenter, cloud, in_format, fmt, units, auto_scheduler, tile_options)
     if _streams(tiling, cloud, in_format, fmt):

@@ -192,7 +192,7 @@ class _Edges:
     """The tiles' edge points read from their files, two rows of the grid at a time (the links of
     row i are with rows i and i + 1): what stitching holds is bounded by two rows of tiles."""
 
-    def __init__(self, jobs: Sequence[TileJob]) -> None:
+    def __init__(self, jobs: Sequence[Any]) -> None:  # TileJob or kbs.tiles.copc.CopcJob
         self.jobs = jobs
         self.cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
