@@ -146,3 +146,15 @@ def test_a_damaged_copc_file_is_a_positioned_file_error(copc_file, tmp_path, dam
     assert r.returncode == 3, r.stderr
     assert re.search(expected, r.stderr) and str(bad) in r.stderr, r.stderr
     assert "Traceback" not in r.stderr
+
+
+@pytest.mark.slow  # a whole run
+def test_a_copc_file_run_whole_is_written_as_plain_laz_without_its_copc_records(copc_file, tmp_path):
+    """laspy cannot write a COPC file's records: the result drops them (it is not ordered by an octree)."""
+    import laspy
+
+    r = kbs_cmd("-q", "run", "--rules", "airborne", "-j", "1", str(copc_file), "--out", str(tmp_path / "out"))
+    assert r.returncode == 0, r.stderr
+    out = laspy.read(str(tmp_path / "out" / copc_file.name))
+    assert len(out.points) == 14408 and "cluster" in out.point_format.extra_dimension_names
+    assert not [v for v in [*out.header.vlrs, *(out.header.evlrs or [])] if v.user_id == "copc"]
