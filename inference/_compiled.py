@@ -654,6 +654,41 @@ def voxel_sums(X, origin, size, inv, w, M):
 
 
 @njit(cache=True, nogil=True)
+def voxel_finish(X, origin, size, weights, s1, s2, first):
+    """The end of :func:`kbs.inference.voxel.voxel_reduce` from :func:`voxel_sums`'s sums, for
+    the voxels of positive weight: centroid ``corner + s1 / w`` (corner ``origin + c size``, ``c``
+    the first member's cell) and scatter ``s2_ab - (w m_a) m_b`` (``m = s1 / w``). The same
+    operations in the same order as numpy's there, each rounded alone: identical arrays."""
+    M, D = s1.shape
+    keep = 0
+    for g in range(M):
+        if weights[g] > 0:
+            keep += 1
+    cent = np.empty((keep, D))
+    wout = np.empty(keep)
+    scat = np.empty((keep, D, D))
+    mean = np.empty(D)
+    i = 0
+    for g in range(M):
+        wg = weights[g]
+        if not wg > 0:
+            continue
+        wout[i] = wg
+        j = first[g]
+        for a in range(D):
+            mean[a] = s1[g, a] / wg
+            c = np.int64(math.floor((X[j, a] - origin[a]) / size))
+            cent[i, a] = (origin[a] + c * size) + mean[a]
+        for a in range(D):
+            for b in range(a, D):
+                v = s2[g, a, b] - wg * mean[a] * mean[b]
+                scat[i, a, b] = v
+                scat[i, b, a] = v
+        i += 1
+    return cent, wout, scat
+
+
+@njit(cache=True, nogil=True)
 def count_coarse_cells(cells, factor, expect):
     """Number of distinct rows of ``floor(cells / factor)`` (cells (n, D <= 3) non-negative
     int64), the 20-bit-per-axis keys of :mod:`kbs.inference.voxel`. ``expect``: about how many
@@ -672,6 +707,70 @@ def count_coarse_cells(cells, factor, expect):
                 table, group = _grow(table, group, shift)
                 shift -= 1
     return m
+
+
+@njit(cache=True, nogil=True)
+def count_coarse_keys(keys, D, factor, expect):
+    """:func:`count_coarse_cells` of the cells of the distinct 20-bit-per-axis ``keys`` (D <= 3
+    axes), read from the keys themselves: no decoded (n, D) array. Each axis's
+    ``floor(c / factor)`` is the same expression as there, computed once per cell index into a
+    table (the indices run to the fine grid's 4,096 or so), and the set of coarse keys is a hash
+    table of keys alone. The same count."""
+    n = keys.shape[0]
+    mask = np.int64((1 << 20) - 1)
+    top = np.zeros(3, dtype=np.int64)
+    for j in range(n):
+        key = keys[j]
+        for d in range(D):
+            c = (key >> np.int64(20 * (D - 1 - d))) & mask
+            if c > top[d]:
+                top[d] = c
+    width = max(top[0], max(top[1], top[2])) + 1
+    coarse = np.empty((D, width), dtype=np.int64)
+    for d in range(D):
+        for c in range(top[d] + 1):
+            coarse[d, c] = np.int64(math.floor(np.int64(c) / factor))
+    table, _group, shift = _new_table(expect)
+    tmask = table.shape[0] - 1
+    m = 0
+    for j in range(n):
+        fkey = keys[j]
+        key = np.int64(0)
+        for d in range(D):
+            key = (key << 20) | coarse[d, (fkey >> np.int64(20 * (D - 1 - d))) & mask]
+        s = _slot(key, shift)
+        while True:
+            t = table[s]
+            if t == key:
+                break
+            if t == _EMPTY:
+                table[s] = key
+                m += 1
+                if 2 * m > table.shape[0]:
+                    table, _group = _grow(table, _group, shift)
+                    shift -= 1
+                    tmask = table.shape[0] - 1
+                break
+            s = (s + 1) & tmask
+    return m
+
+
+@njit(cache=True, nogil=True)
+def turn_to_frame(X, origin, c, s):
+    """:meth:`kbs.inference.voxel.HorizontalFrame.to_frame` in one pass: ``y = x - origin``, then
+    ``(y0 c + y1 s, y1 c - y0 s)`` in the first two columns. The same operations, each rounded as
+    numpy rounds them (no fused multiply-adds): identical coordinates, no temporaries."""
+    n, D = X.shape
+    Y = np.empty((n, D))
+    for j in range(n):
+        for a in range(D):
+            Y[j, a] = X[j, a] - origin[a]
+        if D >= 2:
+            y0 = Y[j, 0]
+            y1 = Y[j, 1]
+            Y[j, 0] = y0 * c + y1 * s
+            Y[j, 1] = y1 * c - y0 * s
+    return Y
 
 
 @njit(cache=True, nogil=True)
