@@ -689,34 +689,14 @@ def voxel_finish(X, origin, size, weights, s1, s2, first):
 
 
 @njit(cache=True, nogil=True)
-def count_coarse_cells(cells, factor, expect):
-    """Number of distinct rows of ``floor(cells / factor)`` (cells (n, D <= 3) non-negative
-    int64), the 20-bit-per-axis keys of :mod:`kbs.inference.voxel`. ``expect``: about how many
-    there will be (the table starts at least twice that, so it rarely grows)."""
-    n, D = cells.shape
-    table, group, shift = _new_table(expect)
-    m = 0
-    for j in range(n):
-        key = np.int64(0)
-        for d in range(D):
-            key = (key << 20) | np.int64(math.floor(cells[j, d] / factor))
-        g, new = _insert(table, group, key, m, shift)
-        if new:
-            m += 1
-            if 2 * m > table.shape[0]:
-                table, group = _grow(table, group, shift)
-                shift -= 1
-    return m
-
-
-@njit(cache=True, nogil=True)
 def count_coarse_keys(keys, D, factor):
-    """:func:`count_coarse_cells` of the cells of the distinct 20-bit-per-axis ``keys`` (D <= 3
-    axes), read from the keys themselves: no decoded (n, D) array. Each axis's
-    ``floor(c / factor)`` is the same expression as there, computed once per cell index into a
-    table (the indices run to the fine grid's 4,096 or so), and the set of coarse keys is a hash
-    table of keys alone, sized once for the most there can be. The same count; a search's
-    counts (SemanticKITTI 000001's 21 searches) 162 -> 77 ms with the table sized for ``n``."""
+    """Number of distinct rows of ``floor(cells / factor)``, the cells (non-negative) those of the
+    distinct 20-bit-per-axis ``keys`` of :mod:`kbs.inference.voxel` (D <= 3 axes), read from the
+    keys themselves: no decoded (n, D) array. Each axis's ``floor(c / factor)`` is computed once
+    per cell index into a table (the indices run to the fine grid's 4,096 or so), and the set of
+    coarse keys is a hash table of keys alone, sized once for the most there can be (n, or the
+    coarse grid's size when smaller): it never grows, and stays in cache for the coarse grids.
+    The 21 searches of a SemanticKITTI 000001 frame: 178 -> 91 ms (docs/PERFORMANCE.md, session 11)."""
     n = keys.shape[0]
     mask = np.int64((1 << 20) - 1)
     top = np.zeros(3, dtype=np.int64)

@@ -307,3 +307,37 @@ def test_the_predicates_statistics_are_numpys_with_and_without_compiled_kernels(
         for a in arrays:
             for name, want in ref.items():
                 assert np.float64(P._STATS[name](a)).tobytes() == np.float64(want(a)).tobytes(), (jit, name, a.size)
+
+
+@pytest.mark.parametrize("D", [2, 3])
+def test_coarse_counts_from_the_fine_keys_are_numpys(D):
+    """The voxel-size search's count of coarse cells, read from the fine keys, is the number of
+    distinct rows numpy finds, for grids from as fine as the keys to a handful of cells."""
+    from kbs.inference.voxel import _decode, _distinct, _keys
+
+    rng = np.random.default_rng(11 + D)
+    X = (_blobs(D, 9000) * 4.0)[:, :D]
+    lo = X.min(axis=0)
+    keys = C.distinct_keys(C.cell_keys(np.ascontiguousarray(X), lo, float((X.max(axis=0) - lo).max()) / 4096.0))
+    cells = _decode(keys, D)
+    for factor in [1.0, 1.37, 2.5, *rng.uniform(1.0, 400.0, 12), 5000.0]:
+        ref = _distinct(_keys(np.floor(cells / factor).astype(np.int64))).size
+        assert C.count_coarse_keys(keys, D, float(factor)) == ref, factor
+
+
+@pytest.mark.parametrize("D", [2, 3])
+def test_compiled_frame_and_reduction_are_numpys_bit_for_bit(monkeypatch, D):
+    """HorizontalFrame.to_frame and voxel_reduce compiled: the very same floats as numpy's (no
+    fused multiply-adds), zero weights included."""
+    from kbs.inference.voxel import HorizontalFrame
+
+    rng = np.random.default_rng(5)
+    X = (_blobs(4, 6000) * 3.0 + [2e3, -7e2, 30.0])[:, :D]
+    w = rng.integers(0, 3, size=len(X)).astype(float)  # some points weigh nothing
+    frame = HorizontalFrame.of(X, w)
+    a_frame, a_red = frame.to_frame(X), voxel_reduce(X, 0.37, w)
+    monkeypatch.setattr(_flags, "JIT", False)
+    b_frame, b_red = frame.to_frame(X), voxel_reduce(X, 0.37, w)
+    assert a_frame.tobytes() == b_frame.tobytes()
+    for a, b in [(a_red.centroids, b_red.centroids), (a_red.weights, b_red.weights), (a_red.scatter, b_red.scatter)]:
+        assert a.shape == b.shape and a.tobytes() == b.tobytes()
