@@ -565,12 +565,14 @@ def _insert(table, group, key, m, shift):
 
 
 @njit(nogil=True)
-def _first_appearance(keys, want_inverse):
+def _first_appearance(keys, want_inverse, expect):
     """The distinct keys (non-negative int64) in order of first appearance, by a hash table, and
-    (when ``want_inverse``, else an empty array) each key's group: its distinct key's position."""
+    (when ``want_inverse``, else an empty array) each key's group: its distinct key's position.
+    The table starts sized for ``expect`` distinct keys (a negative ``expect``: as many as keys,
+    up to ``_PRESIZE``) and doubles when half full: the answer does not depend on it."""
     n = keys.shape[0]
     # most keys are distinct in the fine grids: sized for them, the table seldom grows
-    table, group, shift = _new_table(min(n, _PRESIZE))
+    table, group, shift = _new_table(min(n, _PRESIZE) if expect < 0 else min(n, expect))
     first_keys = np.empty(n, dtype=np.int64)
     inv = np.empty(n if want_inverse else 0, dtype=np.int64)
     m = 0
@@ -588,11 +590,12 @@ def _first_appearance(keys, want_inverse):
 
 
 @njit(cache=True, nogil=True)
-def unique_inverse(keys):
+def unique_inverse(keys, expect=-1):
     """``(distinct keys sorted, inverse)`` as ``np.unique(keys, return_inverse=True)`` for
     non-negative int64 keys: a hash table gives each key a group in order of first appearance,
-    then only the distinct keys are sorted."""
-    distinct, inv = _first_appearance(keys, True)
+    then only the distinct keys are sorted. ``expect``: about how many distinct keys there are
+    (-1: as many as keys); a table sized for the few voxels of a fitting set stays in cache."""
+    distinct, inv = _first_appearance(keys, True, expect)
     m = distinct.shape[0]
     order = np.argsort(distinct)
     rank = np.empty(m, dtype=np.int64)
@@ -606,7 +609,7 @@ def unique_inverse(keys):
 @njit(cache=True, nogil=True)
 def distinct_keys(keys):
     """The distinct keys (non-negative int64) in order of first appearance: a hash table, no sort."""
-    return _first_appearance(keys, False)[0]
+    return _first_appearance(keys, False, -1)[0]
 
 
 @njit(cache=True, nogil=True)

@@ -285,8 +285,11 @@ def auto_voxel_size(X: np.ndarray, target: int) -> float:
     return fine * f
 
 
-def voxel_reduce(X: np.ndarray, size: float, sample_weight: np.ndarray | None = None) -> VoxelReduction:
-    """Reduce ``X`` (n, D<=3) to voxel centroids with weights and within-voxel scatter."""
+def voxel_reduce(X: np.ndarray, size: float, sample_weight: np.ndarray | None = None, *,
+                 expect: int | None = None) -> VoxelReduction:
+    """Reduce ``X`` (n, D<=3) to voxel centroids with weights and within-voxel scatter.
+    ``expect``: about how many voxels there will be, when known (the compiled hash table starts
+    at that size; the result does not depend on it)."""
     n, D = X.shape
     size = max(float(size), _min_size(X))
     origin = bounds(X)[0]
@@ -294,7 +297,7 @@ def voxel_reduce(X: np.ndarray, size: float, sample_weight: np.ndarray | None = 
     w = np.ones(n) if sample_weight is None else sample_weight
     if jit is not None and X.dtype == np.float64 and D <= 3:  # the same arrays, compiled, no (n, D) temporaries
         Xc = np.ascontiguousarray(X)
-        keys, inverse = jit.unique_inverse(jit.cell_keys(Xc, origin, float(size)))
+        keys, inverse = jit.unique_inverse(jit.cell_keys(Xc, origin, float(size)), -1 if expect is None else int(expect))
         M = keys.size
         weights, s1, s2, first = jit.voxel_sums(Xc, origin, float(size), inverse,
                                                 np.ascontiguousarray(w, dtype=np.float64), M)

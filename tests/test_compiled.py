@@ -341,3 +341,16 @@ def test_compiled_frame_and_reduction_are_numpys_bit_for_bit(monkeypatch, D):
     assert a_frame.tobytes() == b_frame.tobytes()
     for a, b in [(a_red.centroids, b_red.centroids), (a_red.weights, b_red.weights), (a_red.scatter, b_red.scatter)]:
         assert a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+@pytest.mark.parametrize("jit", [True, False])
+def test_a_single_cluster_s_memberships_are_the_predicted_ones(monkeypatch, jit):
+    """ufp_onc gives the memberships of a chosen K = 1 without predicting them: exactly the ones
+    the prediction gives, far from the origin too."""
+    monkeypatch.setattr(_flags, "JIT", jit)
+    rng = np.random.default_rng(9)
+    for shift in (0.0, 4e6):
+        X = rng.normal(size=(3000, 3)) * [30.0, 20.0, 0.2] + shift
+        res = ufp_onc(X, k_max=1)
+        assert res.chosen_k == 1
+        assert res.memberships.tobytes() == res.best.predict_proba(X).tobytes()
