@@ -764,6 +764,64 @@ def turn_to_frame(X, origin, c, s):
     return Y
 
 
+@njit(nogil=True)
+def _lex_less(X, a, b, D):
+    for d in range(D):
+        if X[a, d] < X[b, d]:
+            return True
+        if X[a, d] > X[b, d]:
+            return False
+    return False
+
+
+@njit(cache=True, nogil=True)
+def lex_order(X):
+    """``np.lexsort(X.T[::-1])`` for finite ``X`` (n, D): the rows in order of the first column,
+    then the second, ..., ties in input order. A stable order is unique, so this bottom-up merge
+    sort (a right row goes first only when strictly less) gives numpy's permutation exactly,
+    without its D passes of indirect sorts (runs of 16 by insertion first)."""
+    n, D = X.shape
+    src = np.arange(n)
+    dst = np.empty(n, dtype=np.int64)
+    run = 16
+    for lo in range(0, n, run):  # stable insertion sort of each run
+        hi = min(lo + run, n)
+        for i in range(lo + 1, hi):
+            v = src[i]
+            j = i - 1
+            while j >= lo and _lex_less(X, v, src[j], D):
+                src[j + 1] = src[j]
+                j -= 1
+            src[j + 1] = v
+    width = run
+    while width < n:
+        for lo in range(0, n, 2 * width):
+            mid = min(lo + width, n)
+            hi = min(lo + 2 * width, n)
+            i = lo
+            j = mid
+            k = lo
+            while i < mid and j < hi:
+                if _lex_less(X, src[j], src[i], D):
+                    dst[k] = src[j]
+                    j += 1
+                else:
+                    dst[k] = src[i]
+                    i += 1
+                k += 1
+            while i < mid:
+                dst[k] = src[i]
+                i += 1
+                k += 1
+            while j < hi:
+                dst[k] = src[j]
+                j += 1
+                k += 1
+        src, dst = dst, src
+        width *= 2
+    return src
+
+
 @njit(cache=True, nogil=True)
 def bounds(X):
     """Per-column minimum and maximum of ``X`` (n, D) in one pass."""

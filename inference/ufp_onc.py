@@ -17,6 +17,7 @@ from collections.abc import Callable
 import numpy as np
 
 from kbs.errors import FitError, ParameterError
+from kbs.inference import _flags
 from kbs.inference._validation import check_points, check_weights, validate_params
 from kbs.inference.engine import (
     DroppedCluster,
@@ -183,8 +184,18 @@ def prepare_fit_set(X: np.ndarray, w: np.ndarray, *, max_fit_points: int | None,
             red = voxel_reduce(Y, size, w, expect=expect)
         red = frame.from_frame(red)
         return FitSet(Moments.build(red.centroids, red.weights, red.scatter), offset, red.voxel_size)
-    order = np.lexsort(Xc.T[::-1])
+    order = _lex_order(Xc)
     return FitSet(Moments.build(Xc[order], w[order]), offset, None)
+
+
+def _lex_order(X: np.ndarray) -> np.ndarray:
+    """``np.lexsort(X.T[::-1])`` (by the first column, then the next ...; ties in input order),
+    compiled when the kernels are on (the same permutation: a stable order is unique)."""
+    if _flags.JIT and X.dtype == np.float64 and X.ndim == 2 and X.shape[0] > 1:
+        from kbs.inference import _compiled
+
+        return _compiled.lex_order(np.ascontiguousarray(X))
+    return np.lexsort(X.T[::-1])
 
 
 def ufp_onc(

@@ -220,8 +220,11 @@ def _decode(keys: np.ndarray, D: int) -> np.ndarray:
     return np.stack([(keys >> (20 * (D - 1 - j))) & mask for j in range(D)], axis=1)
 
 
-def _min_size(X: np.ndarray) -> float:
-    lo, hi = bounds(X)
+def _min_size(X: np.ndarray, lo: np.ndarray | None = None, hi: np.ndarray | None = None) -> float:
+    """The smallest voxel edge whose cells fit the 20-bit keys (``lo``, ``hi``: X's bounds, when
+    known)."""
+    if lo is None or hi is None:
+        lo, hi = bounds(X)
     extent = float((hi - lo).max())
     return max(extent / (_MAX_AXIS_CELLS - 2), np.finfo(np.float64).tiny)
 
@@ -246,7 +249,7 @@ def auto_voxel_size(X: np.ndarray, target: int) -> float:
     extent = float((hi - lo).max())
     if extent == 0.0:
         return 1.0
-    fine = max(extent / 4096.0, _min_size(X))
+    fine = max(extent / 4096.0, _min_size(X, lo, hi))
     jit = _jit()
     if jit is not None and X.dtype == np.float64:
         fine_keys = jit.cell_keys(np.ascontiguousarray(X), lo, float(fine))
@@ -291,8 +294,9 @@ def voxel_reduce(X: np.ndarray, size: float, sample_weight: np.ndarray | None = 
     ``expect``: about how many voxels there will be, when known (the compiled hash table starts
     at that size; the result does not depend on it)."""
     n, D = X.shape
-    size = max(float(size), _min_size(X))
-    origin = bounds(X)[0]
+    lo, hi = bounds(X)
+    size = max(float(size), _min_size(X, lo, hi))
+    origin = lo
     jit = _jit()
     w = np.ones(n) if sample_weight is None else sample_weight
     if jit is not None and X.dtype == np.float64 and D <= 3:  # the same arrays, compiled, no (n, D) temporaries

@@ -354,3 +354,17 @@ def test_a_single_cluster_s_memberships_are_the_predicted_ones(monkeypatch, jit)
         res = ufp_onc(X, k_max=1)
         assert res.chosen_k == 1
         assert res.memberships.tobytes() == res.best.predict_proba(X).tobytes()
+
+
+def test_the_compiled_lexicographic_order_is_numpys():
+    """The fitting set's canonical order (rows by x, then y, then z; ties in input order): the
+    compiled merge sort gives np.lexsort's permutation, ties, zeros of both signs and 1-4
+    columns included."""
+    rng = np.random.default_rng(21)
+    for t in range(60):
+        n, D = int(rng.integers(2, 3000)), int(rng.integers(1, 5))
+        X = rng.normal(size=(n, D))
+        if t % 2:
+            X = np.round(X * 2.0) / 2.0  # many ties
+            X[rng.random(n) < 0.2] = -0.0
+        assert np.array_equal(C.lex_order(X), np.lexsort(X.T[::-1]))
