@@ -388,6 +388,31 @@ def gg_predict(XT, centers, whit, logdet, priors, m):
     return u
 
 
+@njit(cache=True, nogil=True)
+def gg_predict_rows(X, offset, centers, whit, logdet, priors, m, chunk):
+    """Memberships (n, K) of points ``X`` (n, 3, input coordinates) under fixed parameters
+    (``centers`` centred on ``offset``): :func:`gg_predict` of each chunk of ``chunk`` rows
+    centred ``X - offset``, as :func:`kbs.inference.engine.memberships_in_chunks` computes them,
+    without its transposed copies. The same compiled memberships on the same centred
+    coordinates: identical values."""
+    n = X.shape[0]
+    K = centers.shape[0]
+    out = np.empty((n, K))
+    for s in range(0, n, chunk):
+        c = min(chunk, n - s)
+        XT = np.empty((3, c))
+        for j in range(c):
+            for a in range(3):
+                XT[a, j] = X[s + j, a] - offset[a]
+        u = np.empty((K, c))
+        _gg_memberships(XT, centers, whit, logdet, priors, m, u, np.empty((K, c)), np.empty((K, c)),
+                        np.empty(c), np.empty(c), np.empty(c, dtype=np.int64))
+        for j in range(c):
+            for k in range(K):
+                out[s + j, k] = u[k, j]
+    return out
+
+
 @njit(nogil=True, fastmath=_FAST)
 def _squarem_norms(u, s1, s2, w):
     K, n = u.shape

@@ -70,6 +70,14 @@ class KPartition:
         """Memberships (n, K) of points ``X`` (input coordinates), computed in chunks of
         ``chunk_size`` rows: memory is O(n K), never O(n K D^2)."""
         centers = self.centers - self.offset
+        X = np.asarray(X)
+        if (_flags.JIT and X.ndim == 2 and X.shape[1] == 3 and X.shape[0] and X.dtype == np.float64
+                and self.gaussians is not None):  # the same chunks, compiled, no transposed copies
+            from kbs.inference import _compiled
+
+            return _compiled.gg_predict_rows(np.ascontiguousarray(X), np.ascontiguousarray(self.offset, dtype=np.float64),
+                                             np.ascontiguousarray(centers), self.gaussians.whitening,
+                                             self.gaussians.logdet, self.priors, float(self.m), int(chunk_size))
         return memberships_in_chunks(
             np.asarray(X), self.offset, lambda XT: gg_memberships(XT, centers, self.gaussians, self.priors, self.m),
             self.k, chunk_size,

@@ -368,3 +368,17 @@ def test_the_compiled_lexicographic_order_is_numpys():
             X = np.round(X * 2.0) / 2.0  # many ties
             X[rng.random(n) < 0.2] = -0.0
         assert np.array_equal(C.lex_order(X), np.lexsort(X.T[::-1]))
+
+
+def test_predicted_memberships_by_rows_are_the_chunked_ones():
+    """KPartition.predict_proba compiled over the rows: the very values of the chunked
+    transposed path (memberships_in_chunks over gg_memberships), chunk edges included."""
+    from kbs.inference.engine import memberships_in_chunks
+
+    X = _blobs(6, 5000) + [1e5, 2e5, 30.0]
+    res = ufp_onc(X, k_max=3)
+    for p in res.partitions:
+        centers = p.centers - p.offset
+        ref = memberships_in_chunks(X, p.offset, lambda XT: gg_memberships(XT, centers, p.gaussians, p.priors, p.m),
+                                    p.k, 777)
+        assert p.predict_proba(X, chunk_size=777).tobytes() == ref.tobytes()
