@@ -169,6 +169,38 @@ def _fcm_memberships(XT, centers, m, d2, dmin, tot, u_new):
 
 
 @njit(cache=True, nogil=True)
+def new_prototype_u2(XT, centers, d0):
+    """:func:`kbs.inference.engine.new_prototype_memberships` for m = 2 and 3 coordinates: the
+    squared distances ``(t0^2 + t1^2) + t2^2`` to the K centres and ``d0`` to the new one, floored
+    at TINY, then ``u_k = (d_min / d_k) / sum_k (d_min / d_k)``. Each operation rounded alone, in
+    numpy's order (no fused multiply-adds): the very memberships numpy computes."""
+    K = centers.shape[0]
+    n = XT.shape[1]
+    r = np.empty((K + 1, n))
+    for j in range(n):
+        x0 = XT[0, j]
+        x1 = XT[1, j]
+        x2 = XT[2, j]
+        for k in range(K):
+            t0 = x0 - centers[k, 0]
+            t1 = x1 - centers[k, 1]
+            t2 = x2 - centers[k, 2]
+            r[k, j] = max((t0 * t0 + t1 * t1) + t2 * t2, TINY)
+        r[K, j] = max(d0, TINY)
+        dmin = r[0, j]
+        for k in range(1, K + 1):
+            dmin = min(dmin, r[k, j])
+        tot = 0.0
+        for k in range(K + 1):
+            v = dmin / r[k, j]
+            r[k, j] = v
+            tot += v
+        for k in range(K + 1):
+            r[k, j] = r[k, j] / tot
+    return r
+
+
+@njit(cache=True, nogil=True)
 def fcm_run(XT, w, R, u0, m, tol, max_iter, min_mass):
     """Fuzzy c-means from ``u0`` (K, n). Returns ``(centers, u, n_iter, converged, status)``;
     ``status`` 1 means a cluster died in update ``n_iter``: ``u`` are then that update's new

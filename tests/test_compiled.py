@@ -382,3 +382,18 @@ def test_predicted_memberships_by_rows_are_the_chunked_ones():
         ref = memberships_in_chunks(X, p.offset, lambda XT: gg_memberships(XT, centers, p.gaussians, p.priors, p.m),
                                     p.k, 777)
         assert p.predict_proba(X, chunk_size=777).tobytes() == ref.tobytes()
+
+
+@pytest.mark.parametrize("k", [1, 3, 9])
+def test_compiled_new_prototype_memberships_are_numpys_bit_for_bit(monkeypatch, k):
+    """The start of K + 1's fuzzy c-means (m = 2): the compiled memberships are numpy's, points
+    on a centre (a distance floored at TINY) and d0 = 0 included."""
+    rng = np.random.default_rng(k)
+    XT = np.ascontiguousarray(_blobs(k, 2000).T * 7.0)
+    centers = XT[:, rng.integers(0, XT.shape[1], k)].T.copy()
+    for d0 in (0.0, 3.5, 1e4):
+        a = new_prototype_memberships(XT, centers, d0, 2.0)
+        monkeypatch.setattr(_flags, "JIT", False)
+        b = new_prototype_memberships(XT, centers, d0, 2.0)
+        monkeypatch.setattr(_flags, "JIT", True)
+        assert a.tobytes() == b.tobytes()
