@@ -331,6 +331,7 @@ def test_compiled_frame_and_reduction_are_numpys_bit_for_bit(monkeypatch, D):
     fused multiply-adds), zero weights included."""
     from kbs.inference.voxel import HorizontalFrame
 
+    monkeypatch.setattr(_flags, "JIT", True)
     rng = np.random.default_rng(5)
     X = (_blobs(4, 6000) * 3.0 + [2e3, -7e2, 30.0])[:, :D]
     w = rng.integers(0, 3, size=len(X)).astype(float)  # some points weigh nothing
@@ -370,11 +371,12 @@ def test_the_compiled_lexicographic_order_is_numpys():
         assert np.array_equal(C.lex_order(X), np.lexsort(X.T[::-1]))
 
 
-def test_predicted_memberships_by_rows_are_the_chunked_ones():
+def test_predicted_memberships_by_rows_are_the_chunked_ones(monkeypatch):
     """KPartition.predict_proba compiled over the rows: the very values of the chunked
     transposed path (memberships_in_chunks over gg_memberships), chunk edges included."""
     from kbs.inference.engine import memberships_in_chunks
 
+    monkeypatch.setattr(_flags, "JIT", True)
     X = _blobs(6, 5000) + [1e5, 2e5, 30.0]
     res = ufp_onc(X, k_max=3)
     for p in res.partitions:
@@ -388,6 +390,7 @@ def test_predicted_memberships_by_rows_are_the_chunked_ones():
 def test_compiled_new_prototype_memberships_are_numpys_bit_for_bit(monkeypatch, k):
     """The start of K + 1's fuzzy c-means (m = 2): the compiled memberships are numpy's, points
     on a centre (a distance floored at TINY) and d0 = 0 included."""
+    monkeypatch.setattr(_flags, "JIT", True)
     rng = np.random.default_rng(k)
     XT = np.ascontiguousarray(_blobs(k, 2000).T * 7.0)
     centers = XT[:, rng.integers(0, XT.shape[1], k)].T.copy()
