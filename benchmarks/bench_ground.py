@@ -23,7 +23,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -33,6 +33,7 @@ import peers  # noqa: E402
 from kbs.evaluation import SEMANTICKITTI_GROUND, SEMANTICKITTI_IGNORED, ground_metrics, load_ground_truth  # noqa: E402
 from kbs.io import read_cloud  # noqa: E402
 from kbs.knowledge import Interpreter, load_rule_base  # noqa: E402
+from kbs.units import scale_factors, unit  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 Z_UP = np.eye(3)
@@ -90,7 +91,9 @@ def scans(sets: list[str]) -> list[Scan]:
         for name in ("autzen_trim", "4_6_crop", "sample_c"):
             pc = read_cloud(DATA / "las" / f"{name}.las")
             cls = pc.fields["classification"].astype(int)
-            X = pc.xyz - pc.xyz.mean(axis=0)
+            # in metres, as `kbs run` converts them for the metre rule bases (autzen_trim: feet,
+            # 4_6_crop: US survey feet, by their CRS); the peers get the same metres
+            X = (pc.xyz - pc.xyz.mean(axis=0)) * scale_factors(pc.units, unit("m"))
             # ASPRS 2 = ground; noise (7, 18) left out; the provider's classification, not hand-checked
             out.append(Scan("LAS", name, X, cls == 2, ~np.isin(cls, (7, 18)), peers.Frame(Z_UP, 0.0, airborne=True),
                             np.array([0.0, 0.0, X[:, 2].min() - 10.0]), 0.5))

@@ -149,6 +149,31 @@ class Tiling:
     chunk_points: int = 0
 
 
+@dataclass(frozen=True)
+class TileOptions:
+    """``--buffer``, ``--resume`` and ``--chunk-points`` as given (None / False: not given). Without
+    ``--tile`` they apply to the tiles of the rule base's ``limits.tile`` as they do to ``--tile``'s."""
+
+    buffer: float | None = None
+    resume: bool = False
+    chunk_points: int | None = None
+
+    def given(self) -> list[str]:
+        """The options given, by name, in the order of ``kbs run --help``."""
+        return [name for name, value in (("--buffer", self.buffer), ("--resume", self.resume or None),
+                                         ("--chunk-points", self.chunk_points)) if value is not None]
+
+
+def _not_used(names: list[str]) -> str:
+    """'--buffer is not used' / '--buffer and --resume are not used' ('' for no name)."""
+    return f"{_listed(names)} {'is' if len(names) == 1 else 'are'} not used" if names else ""
+
+
+def _listed(names: list[str]) -> str:
+    """'--buffer' / '--buffer and --resume' / '--buffer, --resume and --chunk-points'."""
+    return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} and {names[-1]}"
+
+
 def default_out_format(cloud: Path, in_format: str | None = None) -> str:
     """The points format of a result when --out-format is not given: LAS in, LAS out (LAZ in,
     LAZ out); anything else, PLY."""
@@ -219,15 +244,18 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
              inputs: InputFiles | tuple[Path, ...] = (),
              force: bool = False, out_format: str | None = None, in_format: str | None = None,
              units: str | None = None, sensor=None, tiling: Tiling | None = None,
-             auto_tile: bool = True, auto_scheduler: tuple[str, int | None] | None = None) -> ScanResult:
+             auto_tile: bool = True, auto_scheduler: tuple[str, int | None] | None = None,
+             tile_options: TileOptions = TileOptions()) -> ScanResult:
     """Read one scan, segment it, write DIR/<stem>.ply (or .las/.laz) and DIR/<stem>.json (and the
     meshes and the report when asked) and print what was done (nothing on stdout when ``quiet``);
     ``t0`` is when its clock started (default: now). ``out_dir`` None: the points go to standard
     output (``--out -``), no JSON, and the summary to stderr. Without ``tiling``, a cloud wider than
     the rule base's ``limits.tile.wider_than`` is segmented in its tiles (:func:`_auto_tiling`)
     unless ``auto_tile`` is False (``--no-tile``): on Dask when ``auto_scheduler`` is given (the
-    scheduler and the number of workers, as :class:`Tiling`'s); a LAS/LAZ written as LAS/LAZ whose
-    header's bounds say it is wider is read in chunks, as ``--tile`` reads it (:func:`_header_tiling`).
+    scheduler and the number of workers, as :class:`Tiling`'s), with ``tile_options``' buffer and
+    resume; a LAS/LAZ written as LAS/LAZ whose header's bounds say it is wider is read in chunks of
+    ``tile_options.chunk_points`` (0: read whole), as ``--tile`` reads it (:func:`_header_tiling`).
+    An option given that this scan cannot use is named in a note (on stderr), never ignored silently.
 
     Before reading, each output is checked (:func:`kbs.io.result.check_output`): never ``cloud``
     or one of ``inputs``; an existing file kbs did not write only with ``force``."""
@@ -246,7 +274,7 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
             check_output(target, inputs=sources, force=force)
     spilled, why_tiled = None, None
     if tiling is None and auto_tile and not stdin and not to_stdout and sensor is None:
-        tiling, why_tiled = _header_tiling(segmenter, cloud, in_format, fmt, units, auto_scheduler)
+        tiling, why_tiled = _header_tiling(segmenter, cloud, in_format, fmt, units, auto_scheduler, tile_options)
     if _streams(tiling, cloud, in_format, fmt):
         from kbs.tiles.stream import spill_las, streamed_cloud
 
@@ -265,13 +293,19 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
             spilled.remove()
             shutil.rmtree(spilled.folder, ignore_errors=True)
             spilled, tiling, why_tiled = None, None, None
+    chunk_note = None  # --chunk-points given, this scan read whole: said if it is tiled
+    if spilled is None and tile_options.chunk_points:
+        chunk_note = ("--chunk-points is not used: it reads a LAS/LAZ file written as LAS/LAZ in chunks; this scan "
+                      "is read whole" if not _las_in_and_out(cloud, in_format, fmt) else
+                      "--chunk-points is not used: the LAS header's bounds do not give the width across the rule "
+                      "base's ground normal, so the scan was read whole for its points to decide")
     pc = read_scan(cloud, in_format) if spilled is None else streamed_cloud(spilled, cloud)
     try:
         return _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, stdin=stdin, stem=stem, fmt=fmt,
                                   points=points, js=js, html=html, to_stdout=to_stdout, color_by=color_by,
                                   meshes=meshes, report=report, quiet=quiet, units=units, sensor=sensor,
                                   tiling=tiling, auto_tile=auto_tile, auto_scheduler=auto_scheduler,
-                                  why_tiled=why_tiled, say=say)
+                                  why_tiled=why_tiled, say=say, tile_options=tile_options, chunk_note=chunk_note)
     finally:
         if spilled is not None:
             spilled.remove()
@@ -279,12 +313,14 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
 
 
 def _auto_tiling(segmenter: Segmenter, xyz: np.ndarray, scan_units: ScanUnits | None, sensor,
-                 to_stdout: bool, scheduler: tuple[str, int | None] | None = None) -> tuple[Tiling | None, str | None]:
+                 to_stdout: bool, scheduler: tuple[str, int | None] | None = None,
+                 options: TileOptions = TileOptions()) -> tuple[Tiling | None, str | None]:
     """The rule base's ``limits.tile`` for a scan read whole: its tiling when the cloud is wider
     than ``wider_than`` along either ground axis (the rule base's fixed ground normal, else x-y), with
-    the words that say why, its tiles on Dask with ``scheduler`` (address, workers); (None, why not)
-    when it is wider but cannot be tiled (another unit, --sensor, --out -: as for --tile); when it is
-    not wider, (None, None), or (None, a note that it runs whole) with a ``scheduler`` (not used)."""
+    the words that say why, its tiles on Dask with ``scheduler`` (address, workers), with
+    ``options``' buffer and resume; (None, why not) when it is wider but cannot be tiled (another
+    unit, --sensor, --out -: as for --tile); when it is not wider, (None, None), or (None, a note
+    that it runs whole) when a ``scheduler`` or ``options`` were given (they are not used)."""
     from kbs.tiles import ground_axes
 
     spec = segmenter.rule_base.tile
@@ -296,11 +332,12 @@ def _auto_tiling(segmenter: Segmenter, xyz: np.ndarray, scan_units: ScanUnits | 
     unit = segmenter.rule_base.length_unit
     u = f" {unit}" if unit else ""
     src = f"{Path(segmenter.rule_base.path).name} limits.tile"
-    unused = "; --scheduler is not used" if scheduler is not None else ""
+    names = (["--scheduler"] if scheduler is not None else []) + options.given()
+    unused = f"; {_not_used(names)}" if names else ""
     if not width > spec.wider_than:
-        return None, (None if scheduler is None else
+        return None, (None if not names else
                       f"the cloud is {width:.6g}{u} wide, not more than {src}.wider_than ({spec.wider_than:g}{u}): "
-                      f"it runs whole, in this process{unused}")
+                      f"it runs whole{', in this process' if scheduler is not None else ''}{unused}")
     if sensor is not None or not np.array_equal(f, np.ones(3)) or to_stdout:
         why = ("--sensor" if sensor is not None else "--out -" if to_stdout else
                f"its unit ({scan_units.name if scan_units else '?'}) is not the rule base's")
@@ -308,23 +345,31 @@ def _auto_tiling(segmenter: Segmenter, xyz: np.ndarray, scan_units: ScanUnits | 
                       f"runs whole: tiles need the rule base's own units and sensor and a result folder ({why}); "
                       f"give --tile {spec.size:g} after converting it, or --no-tile to silence this{unused}")
     address, workers = scheduler if scheduler is not None else (None, None)
-    return (Tiling(size=spec.size, scheduler=address, workers=workers, chunk_points=0),
-            f"{src}: the cloud is {width:.6g}{u} wide, more than {spec.wider_than:g}{u}; --no-tile runs it whole")
+    return (Tiling(size=spec.size, buffer=options.buffer, scheduler=address, workers=workers, resume=options.resume,
+                   chunk_points=0),
+            f"{src}: the cloud is {width:.6g}{u} wide, more than {spec.wider_than:g}{u}{_buffer_from(options)}; "
+            f"--no-tile runs it whole")
+
+
+def _buffer_from(options: TileOptions) -> str:
+    """Where an automatic tiling's buffer comes from, when not the default (said on the tiles: line)."""
+    return f"; the buffer from --buffer {options.buffer:g}" if options.buffer is not None else ""
 
 
 def _header_tiling(segmenter: Segmenter, cloud: Path, in_format: str | None, fmt: str, units: str | None,
-                   scheduler: tuple[str, int | None] | None) -> tuple[Tiling | None, str | None]:
+                   scheduler: tuple[str, int | None] | None,
+                   options: TileOptions = TileOptions()) -> tuple[Tiling | None, str | None]:
     """The rule base's ``limits.tile`` for a LAS/LAZ file written as LAS/LAZ, decided from its
     header's bounds before any point is read: a tiling read in chunks (as ``--tile``'s) and the words
     that say why when they are wider than ``wider_than``; (None, None) when the header cannot
     decide (no ``limits.tile``, another format, a ground plane other than x-y, a unit other than
-    the rule base's, a header kbs cannot read: the points then decide, read whole, as
-    :func:`_auto_tiling` does) or says it is not wider."""
+    the rule base's, a header kbs cannot read, ``--chunk-points 0``: the points then decide, read
+    whole, as :func:`_auto_tiling` does) or says it is not wider. ``options``: as for ``--tile``."""
     from kbs.tiles import ground_axes
     from kbs.tiles.stream import DEFAULT_CHUNK_POINTS, las_header
 
     spec = segmenter.rule_base.tile
-    if spec is None or not _las_in_and_out(cloud, in_format, fmt):
+    if spec is None or not _las_in_and_out(cloud, in_format, fmt) or options.chunk_points == 0:
         return None, None
     if not np.array_equal(ground_axes(segmenter.rule_base.ground.normal), np.eye(3)[:2]):
         return None, None  # the bounds of x and y do not give the width across another normal
@@ -344,9 +389,11 @@ def _header_tiling(segmenter: Segmenter, cloud: Path, in_format: str | None, fmt
     unit = segmenter.rule_base.length_unit
     u = f" {unit}" if unit else ""
     address, workers = scheduler if scheduler is not None else (None, None)
-    return (Tiling(size=spec.size, scheduler=address, workers=workers, chunk_points=DEFAULT_CHUNK_POINTS),
+    chunk_points = DEFAULT_CHUNK_POINTS if options.chunk_points is None else options.chunk_points
+    return (Tiling(size=spec.size, buffer=options.buffer, scheduler=address, workers=workers, resume=options.resume,
+                   chunk_points=chunk_points),
             f"{Path(segmenter.rule_base.path).name} limits.tile: the cloud is {width:.6g}{u} wide by its LAS header, "
-            f"more than {spec.wider_than:g}{u}, read in chunks; --no-tile runs it whole")
+            f"more than {spec.wider_than:g}{u}, read in chunks{_buffer_from(options)}; --no-tile runs it whole")
 
 
 def _streams(tiling: Tiling | None, cloud: Path, in_format: str | None, fmt: str) -> bool:
@@ -369,7 +416,7 @@ def _buffer(segmenter: Segmenter, tiling: Tiling) -> float:
 
 def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, stem, fmt, points, js, html, to_stdout,
                        color_by, meshes, report, quiet, units, sensor, tiling, auto_tile, auto_scheduler, why_tiled,
-                       say) -> ScanResult:
+                       say, tile_options=TileOptions(), chunk_note=None) -> ScanResult:
     rb = segmenter.rule_base
     name = "<stdin>" if stdin else str(cloud)
     if fmt != "ply":
@@ -381,9 +428,12 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
     if too_big is not None:
         raise CloudFileError(name, too_big)
     if tiling is None and auto_tile and rb.tile is not None:
-        tiling, why_tiled = _auto_tiling(segmenter, pc.xyz, scan_units, sensor, to_stdout, auto_scheduler)
+        tiling, why_tiled = _auto_tiling(segmenter, pc.xyz, scan_units, sensor, to_stdout, auto_scheduler,
+                                         tile_options)
         if tiling is None and why_tiled and not quiet:
             click.echo(f"note: {name}: {why_tiled}", err=True)
+    if tiling is not None and chunk_note is not None and not quiet:
+        click.echo(f"note: {name}: {chunk_note}", err=True)
     if tiling is None:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", SpacingWarning)
@@ -424,6 +474,9 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
     }
     if tiling is not None:
         doc["tiling"] = seg.tiling
+        # where the tiling came from (the tiles: line says why): --tile, or the rule base's limits.tile
+        doc["tiled_by"] = {"from": "--tile" if why_tiled is None else "limits.tile",
+                           "buffer_from": "--buffer" if tiling.buffer is not None else "default"}
     if scan_units is not None or pc.crs is not None:
         doc["scan_units"] = {**(scan_units.to_dict() if scan_units is not None else {}),
                              "to_rule_base": f.tolist(), "crs": pc.crs}
@@ -611,18 +664,20 @@ def time_table(results: list[ScanResult | ScanFailure], t_load: float, t_total: 
               help="Run the whole cloud at once even when it is wider than the rule base's limits.tile.wider_than "
               "(which otherwise segments it in tiles of limits.tile.size, as --tile does).")
 @click.option("--buffer", "buffer", type=click.FloatRange(min=0), metavar="B",
-              help="How far each tile reaches beyond its core (default: a tenth of --tile, at least twice the "
-              "local ground surface's radius).")
+              help="How far each tile reaches beyond its core, with --tile or for the tiles of the rule base's "
+              "limits.tile (default: a tenth of the tile size, at least twice the local ground surface's radius).")
 @click.option("--scheduler", "scheduler", metavar="ADDRESS|local",
               help="Run the tiles (with --tile, or of the rule base's limits.tile when the cloud is wider than its "
               "wider_than) or the scans (a folder, several scans) as Dask tasks: on the "
               "scheduler at ADDRESS (tcp://host:8786), or on a LocalCluster of -j workers ('local'; -1: one per "
               "core). Needs pip install 'kbs[dask]'. Without it they run one after the other in this process. The "
               "result is the same.")
-@click.option("--resume", is_flag=True, help="With --tile: take the tiles an earlier run that failed kept in "
-              "DIR/<stem>.tiles/ (same cloud, rule base and grid) and segment only the others.")
+@click.option("--resume", is_flag=True, help="With --tile, or for the tiles of the rule base's limits.tile: take the "
+              "tiles an earlier run that failed kept in DIR/<stem>.tiles/ (same cloud, rule base and grid) and segment "
+              "only the others.")
 @click.option("--chunk-points", "chunk_points", type=click.IntRange(min=0), metavar="N",
-              help="With --tile, a LAS/LAZ scan written as LAS/LAZ: read and write N points at a time, the tiles "
+              help="With --tile, or the tiles of the rule base's limits.tile, a LAS/LAZ scan written as LAS/LAZ: "
+              "read and write N points at a time, the tiles "
               f"spilled to a temporary folder in DIR (default {1_000_000:,}); 0: read the whole file into memory.")
 @click.pass_context
 def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_dir: Path, plugins: tuple[Path, ...],
@@ -683,6 +738,21 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
         _check_scheduler(scheduler)
         auto_scheduler, scheduler = (scheduler, None if jobs == -1 else jobs), None
     tiling = _tiling(tile, buffer, scheduler, jobs, resume, chunk_points)
+    tile_options = TileOptions(buffer, resume, chunk_points)
+    auto_given = tile_options.given() if tile is None else []  # for the tiles of the rule base's limits.tile
+    if chunk_points and out_format == "ply":
+        raise click.UsageError("--chunk-points reads and writes a LAS/LAZ scan in chunks: it is not used with "
+                               "--out-format ply")
+    if auto_given:
+        if no_tile:
+            raise click.UsageError(f"{_listed(auto_given)} appl{'ies' if len(auto_given) == 1 else 'y'} to the tiles "
+                                   f"of the rule base's limits.tile; --no-tile runs the scan whole: give one")
+        if to_stdout:
+            raise click.UsageError(f"--out - runs the scan whole (tiles write a result folder): "
+                                   f"{_not_used(auto_given)} with --out -")
+        if sensor is not None:
+            raise click.UsageError(f"--sensor runs the scan whole (tiles need the rule base's own sensor, as with "
+                                   f"--tile): {_not_used(auto_given)} with --sensor")
     if to_stdout and len(scans) != 1:
         raise click.UsageError(f"--out - writes one scan to standard output; {len(scans)} scans given")
     if to_stdout and tiling is not None:
@@ -693,6 +763,10 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
             raise click.UsageError(f"--scheduler only applies to a tiled run: give --tile SIZE too (or several scans: a "
                                    f"folder's scans run as Dask tasks); rule base '{segmenter.rule_base.name}' has no "
                                    f"limits.tile to tile a wide cloud by itself")
+        if auto_given and segmenter.rule_base.tile is None:
+            raise click.UsageError(f"{_listed(auto_given)} only appl{'ies' if len(auto_given) == 1 else 'y'} to a "
+                                   f"tiled run: give --tile SIZE too; rule base '{segmenter.rule_base.name}' has no "
+                                   f"limits.tile to tile a wide cloud by itself")
         if not quiet:
             for w in segmenter.rule_base.warnings:  # `kbs rules check` quotes the line
                 click.echo(f"kbs: warning: {w.pos}: {w.message}", err=True)
@@ -701,19 +775,18 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
         _run_scans(segmenter, scans, None if to_stdout else out_dir, t0, color_by=color_by, meshes=meshes,
                    report=report, quiet=quiet, inputs=InputFiles(scans), force=force, out_format=out_format,
                    in_format=in_format, units=units, sensor=sensor, tiling=tiling, scheduler=scan_scheduler,
-                   auto_tile=not no_tile, auto_scheduler=auto_scheduler)
+                   auto_tile=not no_tile, auto_scheduler=auto_scheduler, tile_options=tile_options)
 
 
 def _tiling(tile: float | None, buffer: float | None, scheduler: str | None, jobs: int,
             resume: bool = False, chunk_points: int | None = None) -> Tiling | None:
     """The --tile/--buffer/--scheduler/--resume/--chunk-points options, checked together (usage
-    errors, exit 2)."""
+    errors, exit 2). Without --tile: None (--buffer, --resume and --chunk-points then apply to the
+    tiles of the rule base's limits.tile, checked by :func:`run` once the rule base is loaded)."""
     if tile is None:
-        for name, value in (("--buffer", buffer), ("--scheduler", scheduler), ("--resume", resume or None),
-                            ("--chunk-points", chunk_points)):
-            if value is not None:
-                also = " (or several scans: a folder's scans run as Dask tasks)" if name == "--scheduler" else ""
-                raise click.UsageError(f"{name} only applies to a tiled run: give --tile SIZE too{also}")
+        if scheduler is not None:
+            raise click.UsageError("--scheduler only applies to a tiled run: give --tile SIZE too (or several scans: "
+                                   "a folder's scans run as Dask tasks)")
         return None
     if scheduler is not None:
         _check_scheduler(scheduler)

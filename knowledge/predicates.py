@@ -755,22 +755,25 @@ def height_above_local_ground(cluster: Cluster, scene: Scene, *, stat: str = "p9
 @predicate(unit="length", needs_ground_model=True, choices={"stat": tuple(_STATS)},
            bounds={"slope": (0.0, 89.0), "radius": (0.0, None), "max_points": (1, None)})
 def height_above_slope_surface(cluster: Cluster, scene: Scene, *, slope: float = 30.0, radius: float = 20.0,
-                               stat: str = "median", max_points: int = 64) -> float:
+                               stat: str = "median", max_points: int = 64) -> float | Measurement:
     """Height of the cluster above the lowest terrain the ground around it allows, the terrain
     being no steeper than slope degrees (a slope-based filter): for each point, its height above
     min over the surface points of other clusters within radius (along the ground plane) of
     (their height + tan(slope) x their distance). Ground on a hillside no steeper than slope
     measures 0 or less, a roof its height less the slope's rise to the ground beside the building,
     however many roof patches surround it. The stat (max, 90th percentile, mean, median, 10th
-    percentile or min) over up to max_points of its points, evenly taken; NaN-free: points with
-    no surface within radius are left out (the cluster measures 0 when none has). Usable in
-    post.relabel conditions only."""
+    percentile or min) over up to max_points of its points, evenly taken; points with no surface
+    within radius are left out, and the value is undefined when none has (no ground around it says
+    nothing of its height above the terrain: its check fails). Usable in post.relabel conditions
+    only."""
     X = cluster.X
     if X.shape[0] > max_points:
         X = X[np.linspace(0, X.shape[0] - 1, max_points).astype(np.int64)]
     h = scene.ground_model.height_above_slope(X, slope, radius, cluster.id)
     h = h[~np.isnan(h)]
-    return float(_STATS[stat](h)) if h.size else 0.0
+    if not h.size:
+        return Measurement(math.nan, undefined=f"no ground of other clusters within {radius:g} of its points")
+    return float(_STATS[stat](h))
 
 
 BUILTINS: tuple[Predicate, ...] = (thickness, flatness, ground_angle, connexity, point_count, extent, height_above_ground,

@@ -122,6 +122,12 @@ def _same_files(a: Path, b: Path, *names: str) -> None:
         assert _normalised(a / name) == _normalised(b / name), name
 
 
+def _tiled_by(path: Path) -> tuple[dict, dict]:
+    """A result JSON's ``tiled_by`` and the rest of it (run id and timing blanked)."""
+    doc = json.loads(_normalised(path))
+    return doc.pop("tiled_by"), doc
+
+
 def _invoke(*args: str, monkeypatch=None, forbid_whole_read: bool = False):
     """``kbs ARGS`` in this process (click's CliRunner), so that a spy can watch the reader:
     with ``forbid_whole_read``, reading the scan whole (:func:`kbs.cli.run.read_scan`) fails."""
@@ -181,7 +187,12 @@ def test_an_automatically_tiled_las_is_read_in_chunks_as_tile_reads_it(shared_da
         "--no-tile runs it whole)"), line
     assert sorted(p.name for p in (tmp_path / "auto").iterdir()) == ["sample_c.json", "sample_c.las"]  # spill gone
     run("--rules", str(tiled), "--tile", "30", str(scan), "--out", str(tmp_path / "explicit"))
-    _same_files(tmp_path / "auto", tmp_path / "explicit", "sample_c.las", "sample_c.json")
+    _same_files(tmp_path / "auto", tmp_path / "explicit", "sample_c.las")
+    by_auto, doc_auto = _tiled_by(tmp_path / "auto" / "sample_c.json")
+    by_explicit, doc_explicit = _tiled_by(tmp_path / "explicit" / "sample_c.json")
+    assert doc_auto == doc_explicit  # all but where the tiling came from
+    assert by_auto == {"from": "limits.tile", "buffer_from": "default"}
+    assert by_explicit == {"from": "--tile", "buffer_from": "default"}
     dask = kbs("run", "-j", "2", "--scheduler", "local", "--rules", str(tiled), str(scan), "--out",
                str(tmp_path / "dask"))
     assert dask.returncode == 0, dask.stderr
@@ -261,3 +272,174 @@ def test_scheduler_with_one_scan_that_cannot_tile_is_a_usage_error(shared_data, 
     r = kbs("run", "--rules", rules, "--scheduler", "local", str(scan), *extra, *out)
     assert r.returncode == 2 and message in r.stderr, r.stderr
     assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
+
+
+# -- session 11: --buffer, --resume and --chunk-points for the tiles of limits.tile ----------------
+
+def test_the_tiles_line_and_the_json_say_where_the_tiling_and_its_buffer_came_from():
+    """The words a tiled run prints and writes, from the functions that decide them (the whole
+    runs are in the slow tests below)."""
+    from kbs.cli.run import TileOptions, _auto_tiling
+    from kbs.knowledge import Segmenter
+
+    rng = np.random.default_rng(0)
+    xyz = np.column_stack([rng.uniform(0, 130, 500), rng.uniform(0, 40, 500), rng.uniform(0, 1, 500)])
+    xyz[0, 0], xyz[1, 0] = 0.0, 130.0  # 130 m wide
+    seg = Segmenter("airborne", jobs=1)  # the shipped rules: tiles of 100 m beyond 600 m
+    tiling, why = _auto_tiling(seg, xyz, None, None, False, None, TileOptions(buffer=5.0))
+    assert tiling is None and why == ("the cloud is 130 m wide, not more than airborne.yaml limits.tile.wider_than "
+                                      "(600 m): it runs whole; --buffer is not used"), why
+    tiling, why = _auto_tiling(seg, xyz, None, None, False, ("local", 2), TileOptions(resume=True, chunk_points=9))
+    assert tiling is None and why.endswith("; --scheduler, --resume and --chunk-points are not used"), why
+    assert _auto_tiling(seg, xyz, None, None, False, None, TileOptions()) == (None, None)  # nothing given: no word
+    wide = xyz * [10, 1, 1]
+    tiling, why = _auto_tiling(seg, wide, None, None, False, None, TileOptions(buffer=5.0, resume=True))
+    assert tiling is not None and (tiling.size, tiling.buffer, tiling.resume) == (100.0, 5.0, True)
+    assert why.endswith("more than 600 m; the buffer from --buffer 5; --no-tile runs it whole"), why
+    tiling, why = _auto_tiling(seg, wide, None, None, False, None, TileOptions())
+    assert tiling is not None and tiling.buffer is None and not tiling.resume and "--buffer" not in why
+
+
+@pytest.mark.parametrize("rules, extra, message", [
+    ("outdoor", ("--buffer", "5"), "--buffer only applies to a tiled run: give --tile SIZE too; rule base 'outdoor' "
+     "has no limits.tile to tile a wide cloud by itself"),
+    ("outdoor", ("--resume", "--chunk-points", "10"), "--resume and --chunk-points only apply to a tiled run"),
+    ("airborne", ("--buffer", "5", "--no-tile"), "--buffer applies to the tiles of the rule base's limits.tile; "
+     "--no-tile runs the scan whole: give one"),
+    ("airborne", ("--resume", "--out", "-"), "--out - runs the scan whole (tiles write a result folder): --resume is "
+     "not used with --out -"),
+    ("airborne", ("--buffer", "5", "--resume", "--sensor", "0,0,0"), "--sensor runs the scan whole (tiles need the "
+     "rule base's own sensor, as with --tile): --buffer and --resume are not used with --sensor"),
+    ("airborne", ("--chunk-points", "100", "--out-format", "ply"), "--chunk-points reads and writes a LAS/LAZ scan in "
+     "chunks: it is not used with --out-format ply"),
+    ("airborne", ("--tile", "30", "--chunk-points", "100", "--out-format", "ply"), "--chunk-points reads and writes"),
+])
+def test_tile_options_that_cannot_apply_to_the_automatic_tiles_are_usage_errors(shared_data, tmp_path, rules, extra,
+                                                                                  message):
+    scan = shared_data / "las" / "sample_c.las"
+    out = () if "--out" in extra else ("--out", str(tmp_path / "o"))
+    r = kbs("run", "--rules", rules, str(scan), *extra, *out)
+    assert r.returncode == 2 and message in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr and r.stdout == ""
+    assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
+
+
+@pytest.mark.slow
+def test_buffer_sets_the_buffer_of_the_automatic_tiles_as_it_does_for_tile(shared_data, tmp_path):
+    """--buffer 7 without --tile: the tiles of limits.tile reach 7 m beyond their cores (the tiles:
+    line and the JSON say so, and that it came from --buffer), the labels of --tile 60 --buffer 7;
+    a cloud that is not wider runs whole and a note says --buffer is not used."""
+    scan = shared_data / "isprs" / "samp21-utm.pcd"
+    tiled = rules_with_tile(tmp_path, "  tile: {size: 60, wider_than: 100}")
+    r = run("--rules", str(tiled), "--buffer", "7", str(scan), "--out", str(tmp_path / "auto"))
+    line = next(ln for ln in r.stdout.splitlines() if ln.startswith("  tiles: "))
+    assert line.startswith("  tiles: 6 of 60 x 60 with a 7 buffer; ") and line.endswith(
+        "(airborne_tiled.yaml limits.tile: the cloud is 123.781 m wide, more than 100 m; the buffer from --buffer 7; "
+        "--no-tile runs it whole)"), line
+    by, doc = _tiled_by(tmp_path / "auto" / "samp21-utm.json")
+    assert doc["tiling"]["buffer"] == 7.0 and by == {"from": "limits.tile", "buffer_from": "--buffer"}
+    default = run("--rules", str(tiled), str(scan), "--out", str(tmp_path / "default"))
+    assert "with a 10 buffer; " in default.stdout
+    by, doc_default = _tiled_by(tmp_path / "default" / "samp21-utm.json")
+    assert doc_default["tiling"]["buffer"] == 10.0 and by == {"from": "limits.tile", "buffer_from": "default"}
+    # the buffer reaches the tiles: their points differ from the default's
+    assert [t["points"] for t in doc["tiling"]["tiles"]] != [t["points"] for t in doc_default["tiling"]["tiles"]]
+    run("--rules", str(tiled), "--tile", "60", "--buffer", "7", str(scan), "--out", str(tmp_path / "explicit"))
+    _same_files(tmp_path / "auto", tmp_path / "explicit", "samp21-utm.ply")
+    assert _tiled_by(tmp_path / "explicit" / "samp21-utm.json")[1] == doc
+
+    narrow = rules_with_tile(tmp_path, "  tile: {size: 60, wider_than: 200}")
+    r = run("--rules", str(narrow), "--buffer", "7", str(scan), "--out", str(tmp_path / "narrow"))
+    assert "tiles:" not in r.stdout
+    notes = [ln for ln in r.stderr.splitlines() if "limits.tile" in ln]
+    assert notes == [f"note: {scan}: the cloud is 123.781 m wide, not more than airborne_tiled.yaml "
+                     f"limits.tile.wider_than (200 m): it runs whole; --buffer is not used"], r.stderr
+
+
+@pytest.mark.slow  # sample_c three times, and once on a LocalCluster of 2 workers
+def test_chunk_points_on_an_automatically_tiled_las_gives_the_bytes_of_the_unchunked_run(shared_data, tmp_path):
+    """--chunk-points 4000 (4 chunks) on a LAS tiled by limits.tile: the LAS and JSON of --chunk-points
+    0 (read whole, the points decide) and of the default chunks, byte for byte (run id and timing
+    apart); with --buffer too, in process and on Dask. A PCD scan cannot be read in chunks: a note says so."""
+    pytest.importorskip("distributed", reason="Dask is not installed: pip install 'kbs[dask]' (it is in [test])")
+    scan = shared_data / "las" / "sample_c.las"  # 14,408 points
+    tiled = rules_with_tile(tmp_path, "  tile: {size: 30, wider_than: 50}")
+    names = ("sample_c.las", "sample_c.json")
+    chunked = run("--rules", str(tiled), "--chunk-points", "4000", str(scan), "--out", str(tmp_path / "chunked"))
+    assert "by its LAS header, more than 50 m, read in chunks" in chunked.stdout
+    whole = run("--rules", str(tiled), "--chunk-points", "0", str(scan), "--out", str(tmp_path / "whole"))
+    line = next(ln for ln in whole.stdout.splitlines() if ln.startswith("  tiles: "))
+    assert line.startswith("  tiles: 8 of 30 x 30 with a 10 buffer; ") and "by its LAS header" not in line, line
+    assert "the cloud is 83.4 m wide, more than 50 m" in line
+    _same_files(tmp_path / "chunked", tmp_path / "whole", *names)
+    run("--rules", str(tiled), str(scan), "--out", str(tmp_path / "default"))
+    _same_files(tmp_path / "chunked", tmp_path / "default", *names)
+
+    args = ("--rules", str(tiled), "--buffer", "4", "--chunk-points", "4000", str(scan))
+    here = run(*args, "--out", str(tmp_path / "here"))
+    assert "with a 4 buffer; " in here.stdout and "the buffer from --buffer 4" in here.stdout
+    dask = kbs("run", "-j", "2", "--scheduler", "local", *args, "--out", str(tmp_path / "dask"))
+    assert dask.returncode == 0, dask.stderr
+    assert "kbs: Dask dashboard: http" in dask.stderr and "with a 4 buffer; " in dask.stdout
+    _same_files(tmp_path / "here", tmp_path / "dask", *names)
+    assert json.loads((tmp_path / "dask" / "sample_c.json").read_text())["tiling"]["buffer"] == 4.0
+
+    pcd = shared_data / "isprs" / "samp21-utm.pcd"
+    r = run("--rules", str(rules_with_tile(tmp_path, "  tile: {size: 60, wider_than: 100}")), "--chunk-points", "4000",
+            str(pcd), "--out", str(tmp_path / "pcd"))
+    assert "  tiles: 6 of 60 x 60" in r.stdout
+    assert f"note: {pcd}: --chunk-points is not used: it reads a LAS/LAZ file written as LAS/LAZ in chunks; this " \
+           f"scan is read whole" in r.stderr, r.stderr
+
+
+EAST_PLUGIN = '''
+import os
+
+from kbs.knowledge import predicate
+
+
+@predicate(unit="length")
+def east(cluster, scene) -> float:
+    """x of the centre; fails east of KBS_TEST_FAIL_EAST_OF (when set), to make the tiles there fail."""
+    x = float(cluster.geometry.center[0])
+    if x > float(os.environ.get("KBS_TEST_FAIL_EAST_OF", "inf")):
+        raise RuntimeError("no measurement that far east")
+    return x
+'''
+
+
+@pytest.mark.slow  # samp21 four times, once on a LocalCluster of 2 workers
+def test_resume_after_a_failed_automatic_run_redoes_only_the_missing_tiles(shared_data, tmp_path, monkeypatch):
+    """limits.tile cuts samp21 into 6 tiles; a plugin check fails east of x = 513,620 m, so the tiles
+    there fail: the run exits 7 with the others kept; --resume (in process, then on Dask) segments
+    only the failed ones and gives the bytes of a fresh run."""
+    plugin = tmp_path / "east.py"
+    plugin.write_text(EAST_PLUGIN)
+    rules = rules_with_tile(tmp_path, "  tile: {size: 60, wider_than: 100}")
+    text = rules.read_text(encoding="utf-8")
+    assert text.count("checks:\n") == 1 and text.count("    if: [planar, gentle]\n") == 1
+    text = text.replace("checks:\n", "checks:\n  west: {predicate: east, max: 1.0e+9}\n").replace(
+        "    if: [planar, gentle]\n", "    if: [planar, gentle, west]\n")
+    rules.write_text(text, encoding="utf-8")
+    scan = shared_data / "isprs" / "samp21-utm.pcd"
+    args = ["--rules", str(rules), "--plugin", str(plugin), "--buffer", "8", str(scan)]
+    for out in ("out", "dask"):
+        monkeypatch.setenv("KBS_TEST_FAIL_EAST_OF", "513620")
+        r = kbs("run", "-j", "1", *args, "--out", str(tmp_path / out))
+        assert r.returncode == 7, r.stderr
+        kept = tmp_path / out / "samp21-utm.tiles"
+        assert re.search(r"kbs: error: tile t\d_\d \[", r.stderr) and "no measurement that far east" in r.stderr
+        assert f"the finished tiles are kept in {kept}: run again with --resume" in r.stderr and "Traceback" not in r.stderr
+        done = sorted(p.name for p in kept.iterdir())
+        assert 0 < len(done) < 6 and "t0_0.npz" in done, done
+        assert not (tmp_path / out / "samp21-utm.ply").exists()
+        monkeypatch.delenv("KBS_TEST_FAIL_EAST_OF")
+        extra = ("-j", "1") if out == "out" else ("-j", "2", "--scheduler", "local")
+        r = kbs("run", *extra, *args, "--resume", "--out", str(tmp_path / out))
+        assert r.returncode == 0, r.stderr
+        assert f"kbs: resumed {len(done)} of 6 tiles from {kept}" in r.stderr, r.stderr
+        assert "with a 8 buffer; " in r.stdout and "limits.tile" in r.stdout
+        assert not kept.exists()
+    run(*args, "--out", str(tmp_path / "fresh"))
+    _same_files(tmp_path / "out", tmp_path / "fresh", "samp21-utm.ply", "samp21-utm.json")
+    _same_files(tmp_path / "dask", tmp_path / "fresh", "samp21-utm.ply", "samp21-utm.json")

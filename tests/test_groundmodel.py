@@ -618,6 +618,29 @@ def test_height_above_slope_is_at_most_zero_on_terrain_no_steeper_than_the_slope
     assert h[0] == pytest.approx(5.0 - np.tan(np.radians(40)) * 10.0)
 
 
+def test_height_above_slope_surface_is_undefined_with_no_ground_within_its_radius():
+    """A cluster with no ground of other clusters within the radius says nothing of its height
+    above the terrain: the predicate's value is undefined (its check fails, a 'max' check as
+    'on_terrain' included, and says why), where it measured 0 and passed every 'max' check."""
+    from kbs.knowledge.predicates import Cluster, Ground, Scene
+
+    rng = np.random.default_rng(1)
+    far = np.column_stack([rng.uniform(0, 10, (300, 2)), rng.normal(0, 0.02, 300)])  # ground 60 m away
+    roof = np.column_stack([rng.uniform(60, 70, (200, 2)), 8 + rng.normal(0, 0.02, 200)])
+    X = np.vstack([far, roof])
+    owners = np.r_[np.zeros(len(far), int), np.ones(len(roof), int)]
+    model = LocalGround.build(X, np.arange(len(X)), np.array([0, 0, 1.0]), np.zeros(3), neighbours=8, radius=5.0,
+                              owners=owners, owner_ids=("c0", "c1"))
+    scene = Scene(np.zeros(3), Ground(np.array([0, 0, 1.0]), np.zeros(3), "fixed"), "m", ground_model=model)
+    pred = PredicateRegistry.default(entry_points_too=False).get("height_above_slope_surface")
+    cl = Cluster("c1", roof, np.ones(len(roof)))
+    m = pred.measure(cl, scene, {"slope": 40.0, "radius": 30.0})
+    assert not m.defined and np.isnan(m.value) and "within 30" in m.undefined
+    near = pred.measure(cl, scene, {"slope": 10.0, "radius": 80.0})  # the ground in reach: a height
+    assert near.defined and near.value < 8 - np.tan(np.radians(10)) * 50  # at least 50 m from the ground
+
+
+
 @pytest.mark.parametrize("exclude", [None, "c1"])
 def test_compiled_slope_surface_equals_the_k_d_tree_reference(monkeypatch, exclude):
     """LocalGround.height_above_slope, compiled (a grid of cells of side just over the radius)

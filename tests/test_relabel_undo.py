@@ -184,3 +184,73 @@ def test_kbs_run_and_explain_say_which_pass_decided(tmp_path):
     assert r.returncode == 0, r.stderr
     assert "given back ground by terraces [t.yaml:29] in pass 2" in r.stdout
     assert "judged again (relabelled by roofs)" in r.stdout
+
+
+TWO_STEPS = textwrap.dedent("""\
+    kbs_rules: 1
+    name: two-steps
+    units: m
+    engine: {m: 2.0, k_max: 10, initial_k: first_apd_max, max_fit_points: 6000}
+    strategy: divisive
+    limits: {max_depth: 12, min_points: 30}
+    scene:
+      ground: {normal: [0, 0, 1]}
+    checks:
+      planar: {predicate: thickness, max: 0.25}
+      gentle: {predicate: ground_angle, max: 40}
+      never: {predicate: point_count, max: 0}
+      raised: {predicate: height_above_local_ground, params: {stat: p90, exclude_self: true}, min: 2.5}
+      low: {predicate: height_above_local_ground, params: {stat: p90}, max: 0.5}
+    rules:
+      - name: rough
+        if: [not planar]
+        then: split
+    labels:
+      - name: ground
+        if: [planar, gentle]
+      - name: object
+    post:
+      - ground_model: {label: ground, neighbours: 8, radius: 5.0}
+      - relabel:
+    {probe}      - name: roofs
+            from: ground
+            to: object
+            if: raised
+      - relabel:
+          - name: back
+            from: object
+            to: ground
+            if: low
+    """)
+PROBE = """\
+      - name: probe
+        from: ground
+        to: object
+        if: [low, never]
+"""
+
+
+def test_a_later_relabel_step_measures_its_surface_checks_against_its_own_surface():
+    """Two relabel steps: the first takes the roof and the terrace for roofs and builds the
+    surface again without them; the second gives an object back where it is 'low' on that
+    surface. A rule of the first step that only measures 'low' (it never acts) measured it on the
+    roof and the terrace against the first surface, where they lay in the surface (low); the
+    second step measures it again, against its own surface, where they stand 4 and 7 m above the
+    ground: they stay objects, as without the probe (measured once, the terrace came back: 43 %
+    of the labels differed). The first step's values stay in its relabel entries."""
+    X, labels = _scene()
+    roof = (labels == 1) & (X[:, 2] - 250.0 > 6.5)
+    rb_plain = _parse(TWO_STEPS.replace("{probe}", ""))
+    rb_probe = _parse(TWO_STEPS.replace("{probe}", PROBE))
+    plain = Interpreter(rb_plain).run(X)
+    probed = Interpreter(rb_probe).run(X)
+    ground = probed.label == rb_probe.label_names.index("ground")
+    assert roof.sum() > 300 and not ground[roof].any()
+    np.testing.assert_array_equal(probed.label, plain.label)
+    roofs = [r for r in probed.explanation.records.values() if r.relabel and r.relabel["rule"] == "roofs"]
+    assert roofs, "the first step took no roof"
+    for r in roofs:
+        first = {m["check"]: m for m in r.relabel["measured"]}
+        assert set(first) == {"raised"} and first["raised"]["passed"]  # what the first step decided on
+        now = {c.check: c for c in r.checks}
+        assert not now["low"].passed and now["low"].value > 2.5  # measured against the second surface

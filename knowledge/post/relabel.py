@@ -48,7 +48,9 @@ class Relabel(PostStep):
     terrain step against the terrain left once the roofs are out).
 
     When a rule changed a label and a ground_model step came before, the surface is built again
-    from the new labels for the steps after this one.
+    from the new labels for the steps after this one; a later relabel step measures its checks on
+    the surface again, against that surface (what an earlier step measured stays in the
+    explanation of that step's relabelling).
     """
 
     key: ClassVar[str] = "relabel"
@@ -158,7 +160,7 @@ class Relabel(PostStep):
         post_scene = Scene(scene.sensor, scene.ground, scene.unit,
                            ground_model=surface.model if surface is not None else None)
         changed = 0
-        leaves = list(state.leaves)
+        leaves = [self._fresh(lf, ctx) for lf in state.leaves]
         first = [r for r in self.rules if r.undoes is None]
         for i, lf in enumerate(leaves):
             fact = ctx.fact(lf.cluster, post_scene, lf.record)
@@ -235,6 +237,23 @@ class Relabel(PostStep):
             undone=(model.undone or 0) + given_back if model is not None else given_back,
             undo_passes=passes))
         return state, changed, passes
+
+    @staticmethod
+    def _fresh(lf: Leaf, ctx: PostContext) -> Leaf:
+        """``lf`` with its checks on the surface forgotten, so that this step measures them against
+        its own surface: an earlier relabel step measured them against the surface of its time,
+        which it built again if it changed a label. The values an earlier step's relabelling
+        decided on stay in that relabel entry's 'measured' (the explanation of that decision)."""
+        checks = ctx.rule_base.checks
+        stale = [c for c in lf.record.checks if c.check in checks and checks[c.check].predicate.needs_ground_model]
+        if not stale:
+            return lf
+        gone = {id(c) for c in stale}
+        kept = tuple(c for c in lf.record.checks if id(c) not in gone)
+        rel = lf.record.relabel
+        if rel and "measured" not in rel:
+            rel = {**rel, "measured": [dict(vars(c)) for c in stale if c.check in rel.get("checks", ())]}
+        return lf.with_record(checks=kept, relabel=rel)
 
     @staticmethod
     def _judge(rule: RelabelRule, lf: Leaf, scene: Scene, ctx: PostContext,
