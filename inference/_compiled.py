@@ -169,6 +169,38 @@ def _fcm_memberships(XT, centers, m, d2, dmin, tot, u_new):
 
 
 @njit(cache=True, nogil=True)
+def new_prototype_u2(XT, centers, d0):
+    """:func:`kbs.inference.engine.new_prototype_memberships` for m = 2 and 3 coordinates: the
+    squared distances ``(t0^2 + t1^2) + t2^2`` to the K centres and ``d0`` to the new one, floored
+    at TINY, then ``u_k = (d_min / d_k) / sum_k (d_min / d_k)``. Each operation rounded alone, in
+    numpy's order (no fused multiply-adds): the very memberships numpy computes."""
+    K = centers.shape[0]
+    n = XT.shape[1]
+    r = np.empty((K + 1, n))
+    for j in range(n):
+        x0 = XT[0, j]
+        x1 = XT[1, j]
+        x2 = XT[2, j]
+        for k in range(K):
+            t0 = x0 - centers[k, 0]
+            t1 = x1 - centers[k, 1]
+            t2 = x2 - centers[k, 2]
+            r[k, j] = max((t0 * t0 + t1 * t1) + t2 * t2, TINY)
+        r[K, j] = max(d0, TINY)
+        dmin = r[0, j]
+        for k in range(1, K + 1):
+            dmin = min(dmin, r[k, j])
+        tot = 0.0
+        for k in range(K + 1):
+            v = dmin / r[k, j]
+            r[k, j] = v
+            tot += v
+        for k in range(K + 1):
+            r[k, j] = r[k, j] / tot
+    return r
+
+
+@njit(cache=True, nogil=True)
 def fcm_run(XT, w, R, u0, m, tol, max_iter, min_mass):
     """Fuzzy c-means from ``u0`` (K, n). Returns ``(centers, u, n_iter, converged, status)``;
     ``status`` 1 means a cluster died in update ``n_iter``: ``u`` are then that update's new
@@ -388,6 +420,31 @@ def gg_predict(XT, centers, whit, logdet, priors, m):
     return u
 
 
+@njit(cache=True, nogil=True)
+def gg_predict_rows(X, offset, centers, whit, logdet, priors, m, chunk):
+    """Memberships (n, K) of points ``X`` (n, 3, input coordinates) under fixed parameters
+    (``centers`` centred on ``offset``): :func:`gg_predict` of each chunk of ``chunk`` rows
+    centred ``X - offset``, as :func:`kbs.inference.engine.memberships_in_chunks` computes them,
+    without its transposed copies. The same compiled memberships on the same centred
+    coordinates: identical values."""
+    n = X.shape[0]
+    K = centers.shape[0]
+    out = np.empty((n, K))
+    for s in range(0, n, chunk):
+        c = min(chunk, n - s)
+        XT = np.empty((3, c))
+        for j in range(c):
+            for a in range(3):
+                XT[a, j] = X[s + j, a] - offset[a]
+        u = np.empty((K, c))
+        _gg_memberships(XT, centers, whit, logdet, priors, m, u, np.empty((K, c)), np.empty((K, c)),
+                        np.empty(c), np.empty(c), np.empty(c, dtype=np.int64))
+        for j in range(c):
+            for k in range(K):
+                out[s + j, k] = u[k, j]
+    return out
+
+
 @njit(nogil=True, fastmath=_FAST)
 def _squarem_norms(u, s1, s2, w):
     K, n = u.shape
@@ -565,12 +622,14 @@ def _insert(table, group, key, m, shift):
 
 
 @njit(nogil=True)
-def _first_appearance(keys, want_inverse):
+def _first_appearance(keys, want_inverse, expect):
     """The distinct keys (non-negative int64) in order of first appearance, by a hash table, and
-    (when ``want_inverse``, else an empty array) each key's group: its distinct key's position."""
+    (when ``want_inverse``, else an empty array) each key's group: its distinct key's position.
+    The table starts sized for ``expect`` distinct keys (a negative ``expect``: as many as keys,
+    up to ``_PRESIZE``) and doubles when half full: the answer does not depend on it."""
     n = keys.shape[0]
     # most keys are distinct in the fine grids: sized for them, the table seldom grows
-    table, group, shift = _new_table(min(n, _PRESIZE))
+    table, group, shift = _new_table(min(n, _PRESIZE) if expect < 0 else min(n, expect))
     first_keys = np.empty(n, dtype=np.int64)
     inv = np.empty(n if want_inverse else 0, dtype=np.int64)
     m = 0
@@ -588,11 +647,12 @@ def _first_appearance(keys, want_inverse):
 
 
 @njit(cache=True, nogil=True)
-def unique_inverse(keys):
+def unique_inverse(keys, expect=-1):
     """``(distinct keys sorted, inverse)`` as ``np.unique(keys, return_inverse=True)`` for
     non-negative int64 keys: a hash table gives each key a group in order of first appearance,
-    then only the distinct keys are sorted."""
-    distinct, inv = _first_appearance(keys, True)
+    then only the distinct keys are sorted. ``expect``: about how many distinct keys there are
+    (-1: as many as keys); a table sized for the few voxels of a fitting set stays in cache."""
+    distinct, inv = _first_appearance(keys, True, expect)
     m = distinct.shape[0]
     order = np.argsort(distinct)
     rank = np.empty(m, dtype=np.int64)
@@ -606,7 +666,7 @@ def unique_inverse(keys):
 @njit(cache=True, nogil=True)
 def distinct_keys(keys):
     """The distinct keys (non-negative int64) in order of first appearance: a hash table, no sort."""
-    return _first_appearance(keys, False)[0]
+    return _first_appearance(keys, False, -1)[0]
 
 
 @njit(cache=True, nogil=True)
@@ -654,24 +714,169 @@ def voxel_sums(X, origin, size, inv, w, M):
 
 
 @njit(cache=True, nogil=True)
-def count_coarse_cells(cells, factor, expect):
-    """Number of distinct rows of ``floor(cells / factor)`` (cells (n, D <= 3) non-negative
-    int64), the 20-bit-per-axis keys of :mod:`kbs.inference.voxel`. ``expect``: about how many
-    there will be (the table starts at least twice that, so it rarely grows)."""
-    n, D = cells.shape
-    table, group, shift = _new_table(expect)
+def voxel_finish(X, origin, size, weights, s1, s2, first):
+    """The end of :func:`kbs.inference.voxel.voxel_reduce` from :func:`voxel_sums`'s sums, for
+    the voxels of positive weight: centroid ``corner + s1 / w`` (corner ``origin + c size``, ``c``
+    the first member's cell) and scatter ``s2_ab - (w m_a) m_b`` (``m = s1 / w``). The same
+    operations in the same order as numpy's there, each rounded alone: identical arrays."""
+    M, D = s1.shape
+    keep = 0
+    for g in range(M):
+        if weights[g] > 0:
+            keep += 1
+    cent = np.empty((keep, D))
+    wout = np.empty(keep)
+    scat = np.empty((keep, D, D))
+    mean = np.empty(D)
+    i = 0
+    for g in range(M):
+        wg = weights[g]
+        if not wg > 0:
+            continue
+        wout[i] = wg
+        j = first[g]
+        for a in range(D):
+            mean[a] = s1[g, a] / wg
+            c = np.int64(math.floor((X[j, a] - origin[a]) / size))
+            cent[i, a] = (origin[a] + c * size) + mean[a]
+        for a in range(D):
+            for b in range(a, D):
+                v = s2[g, a, b] - wg * mean[a] * mean[b]
+                scat[i, a, b] = v
+                scat[i, b, a] = v
+        i += 1
+    return cent, wout, scat
+
+
+@njit(cache=True, nogil=True)
+def count_coarse_keys(keys, D, factor):
+    """Number of distinct rows of ``floor(cells / factor)``, the cells (non-negative) those of the
+    distinct 20-bit-per-axis ``keys`` of :mod:`kbs.inference.voxel` (D <= 3 axes), read from the
+    keys themselves: no decoded (n, D) array. Each axis's ``floor(c / factor)`` is computed once
+    per cell index into a table (the indices run to the fine grid's 4,096 or so), and the set of
+    coarse keys is a hash table of keys alone, sized once for the most there can be (n, or the
+    coarse grid's size when smaller): it never grows, and stays in cache for the coarse grids.
+    The 21 searches of a SemanticKITTI 000001 frame: 178 -> 91 ms (docs/PERFORMANCE.md, session 11)."""
+    n = keys.shape[0]
+    mask = np.int64((1 << 20) - 1)
+    top = np.zeros(3, dtype=np.int64)
+    for j in range(n):
+        key = keys[j]
+        for d in range(D):
+            c = (key >> np.int64(20 * (D - 1 - d))) & mask
+            if c > top[d]:
+                top[d] = c
+    width = max(top[0], max(top[1], top[2])) + 1
+    coarse = np.empty((D, width), dtype=np.int64)
+    for d in range(D):
+        for c in range(top[d] + 1):
+            coarse[d, c] = np.int64(math.floor(np.int64(c) / factor))
+    # at most n coarse cells, and at most the coarse grid's own size: a table sized for that
+    # bound never grows, and stays small (in cache) for the coarse grids of a search
+    bound = np.int64(1)
+    for d in range(D):
+        bound *= coarse[d, top[d]] + 1
+        if bound >= n:
+            break
+    table, _group, shift = _new_table(max(1, min(n, bound)))
+    tmask = table.shape[0] - 1
     m = 0
     for j in range(n):
+        fkey = keys[j]
         key = np.int64(0)
         for d in range(D):
-            key = (key << 20) | np.int64(math.floor(cells[j, d] / factor))
-        g, new = _insert(table, group, key, m, shift)
-        if new:
-            m += 1
-            if 2 * m > table.shape[0]:
-                table, group = _grow(table, group, shift)
-                shift -= 1
+            key = (key << 20) | coarse[d, (fkey >> np.int64(20 * (D - 1 - d))) & mask]
+        s = _slot(key, shift)
+        while True:
+            t = table[s]
+            if t == key:
+                break
+            if t == _EMPTY:
+                table[s] = key
+                m += 1
+                if 2 * m > table.shape[0]:
+                    table, _group = _grow(table, _group, shift)
+                    shift -= 1
+                    tmask = table.shape[0] - 1
+                break
+            s = (s + 1) & tmask
     return m
+
+
+@njit(cache=True, nogil=True)
+def turn_to_frame(X, origin, c, s):
+    """:meth:`kbs.inference.voxel.HorizontalFrame.to_frame` in one pass: ``y = x - origin``, then
+    ``(y0 c + y1 s, y1 c - y0 s)`` in the first two columns. The same operations, each rounded as
+    numpy rounds them (no fused multiply-adds): identical coordinates, no temporaries."""
+    n, D = X.shape
+    Y = np.empty((n, D))
+    for j in range(n):
+        for a in range(D):
+            Y[j, a] = X[j, a] - origin[a]
+        if D >= 2:
+            y0 = Y[j, 0]
+            y1 = Y[j, 1]
+            Y[j, 0] = y0 * c + y1 * s
+            Y[j, 1] = y1 * c - y0 * s
+    return Y
+
+
+@njit(nogil=True)
+def _lex_less(X, a, b, D):
+    for d in range(D):
+        if X[a, d] < X[b, d]:
+            return True
+        if X[a, d] > X[b, d]:
+            return False
+    return False
+
+
+@njit(cache=True, nogil=True)
+def lex_order(X):
+    """``np.lexsort(X.T[::-1])`` for finite ``X`` (n, D): the rows in order of the first column,
+    then the second, ..., ties in input order. A stable order is unique, so this bottom-up merge
+    sort (a right row goes first only when strictly less) gives numpy's permutation exactly,
+    without its D passes of indirect sorts (runs of 16 by insertion first)."""
+    n, D = X.shape
+    src = np.arange(n)
+    dst = np.empty(n, dtype=np.int64)
+    run = 16
+    for lo in range(0, n, run):  # stable insertion sort of each run
+        hi = min(lo + run, n)
+        for i in range(lo + 1, hi):
+            v = src[i]
+            j = i - 1
+            while j >= lo and _lex_less(X, v, src[j], D):
+                src[j + 1] = src[j]
+                j -= 1
+            src[j + 1] = v
+    width = run
+    while width < n:
+        for lo in range(0, n, 2 * width):
+            mid = min(lo + width, n)
+            hi = min(lo + 2 * width, n)
+            i = lo
+            j = mid
+            k = lo
+            while i < mid and j < hi:
+                if _lex_less(X, src[j], src[i], D):
+                    dst[k] = src[j]
+                    j += 1
+                else:
+                    dst[k] = src[i]
+                    i += 1
+                k += 1
+            while i < mid:
+                dst[k] = src[i]
+                i += 1
+                k += 1
+            while j < hi:
+                dst[k] = src[j]
+                j += 1
+                k += 1
+        src, dst = dst, src
+        width *= 2
+    return src
 
 
 @njit(cache=True, nogil=True)

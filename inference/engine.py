@@ -252,6 +252,9 @@ def new_prototype_memberships(XT: np.ndarray, centers: np.ndarray, d0: float, m:
     """Initial memberships (K+1, n) for K + 1 clusters (Gath-Geva's way (V)): Euclidean distances
     to the old prototypes, and the constant squared distance ``d0`` to the new one, so that the new
     prototype takes the points the old ones explain badly."""
+    if jit_enabled() and m == 2.0 and XT.shape[0] == 3 and XT.dtype == np.float64:
+        return _compiled().new_prototype_u2(np.ascontiguousarray(XT), np.ascontiguousarray(centers, dtype=np.float64),
+                                            float(d0))
     d2 = np.empty((centers.shape[0] + 1, XT.shape[1]))
     d2[:-1] = sq_euclidean(XT, centers)
     d2[-1] = d0

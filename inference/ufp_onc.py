@@ -17,6 +17,7 @@ from collections.abc import Callable
 import numpy as np
 
 from kbs.errors import FitError, ParameterError
+from kbs.inference import _flags
 from kbs.inference._validation import check_points, check_weights, validate_params
 from kbs.inference.engine import (
     DroppedCluster,
@@ -69,6 +70,14 @@ class KPartition:
         """Memberships (n, K) of points ``X`` (input coordinates), computed in chunks of
         ``chunk_size`` rows: memory is O(n K), never O(n K D^2)."""
         centers = self.centers - self.offset
+        X = np.asarray(X)
+        if (_flags.JIT and X.ndim == 2 and X.shape[1] == 3 and X.shape[0] and X.dtype == np.float64
+                and self.gaussians is not None):  # the same chunks, compiled, no transposed copies
+            from kbs.inference import _compiled
+
+            return _compiled.gg_predict_rows(np.ascontiguousarray(X), np.ascontiguousarray(self.offset, dtype=np.float64),
+                                             np.ascontiguousarray(centers), self.gaussians.whitening,
+                                             self.gaussians.logdet, self.priors, float(self.m), int(chunk_size))
         return memberships_in_chunks(
             np.asarray(X), self.offset, lambda XT: gg_memberships(XT, centers, self.gaussians, self.priors, self.m),
             self.k, chunk_size,
@@ -176,14 +185,25 @@ def prepare_fit_set(X: np.ndarray, w: np.ndarray, *, max_fit_points: int | None,
         frame = HorizontalFrame.of(Xc, w)
         Y = frame.to_frame(Xc)
         size = voxel_size if voxel_size is not None else ladder_size(auto_voxel_size(Y, max_fit_points))
-        red = voxel_reduce(Y, size, w)
+        expect = max_fit_points if voxel_size is None else None
+        red = voxel_reduce(Y, size, w, expect=expect)
         while voxel_size is None and len(red) > max_fit_points:  # the size search counts on a finer grid
             size = ladder_size(size, up=1)
-            red = voxel_reduce(Y, size, w)
+            red = voxel_reduce(Y, size, w, expect=expect)
         red = frame.from_frame(red)
         return FitSet(Moments.build(red.centroids, red.weights, red.scatter), offset, red.voxel_size)
-    order = np.lexsort(Xc.T[::-1])
+    order = _lex_order(Xc)
     return FitSet(Moments.build(Xc[order], w[order]), offset, None)
+
+
+def _lex_order(X: np.ndarray) -> np.ndarray:
+    """``np.lexsort(X.T[::-1])`` (by the first column, then the next ...; ties in input order),
+    compiled when the kernels are on (the same permutation: a stable order is unique)."""
+    if _flags.JIT and X.dtype == np.float64 and X.ndim == 2 and X.shape[0] > 1:
+        from kbs.inference import _compiled
+
+        return _compiled.lex_order(np.ascontiguousarray(X))
+    return np.lexsort(X.T[::-1])
 
 
 def ufp_onc(
@@ -328,12 +348,32 @@ def ufp_onc(
             break
     eligible = [p for p in partitions if p.k >= min_k] or partitions[-1:]
     chosen = eligible[first_local_max([p.apd for p in eligible])]
-    memberships = chosen.predict_proba(X, chunk_size)
+    memberships = _ones_when_single(chosen, X)
+    if memberships is None:
+        memberships = chosen.predict_proba(X, chunk_size)
     return UFPONCResult(
         partitions=tuple(partitions), chosen_k=chosen.k, memberships=memberships, offset=fit.offset,
         n_samples=n, n_fit=int(mom.X.shape[0]), voxel_size=fit.voxel_size, stop_reason=stop_reason,
         notes=tuple(notes), seconds=time.perf_counter() - t_start,
     )
+
+
+def _ones_when_single(part: KPartition, X: np.ndarray) -> np.ndarray | None:
+    """The memberships (n, 1) of a partition of one cluster, when they are provably ones: the
+    softmax over one cluster is ``exp(0) / exp(0)`` = 1 exactly (compiled or not) wherever the
+    squared distance is finite, which holds when the whitening is finite and no whitened
+    coordinate can reach 1e150. None otherwise (the caller predicts). The ground chain of a
+    vehicle frame, split after split whose sweep prefers K = 1, no longer predicts its K = 1."""
+    if part.k != 1 or part.gaussians is None or X.shape[0] == 0:
+        return None
+    whit = part.gaussians.whitening
+    if not np.isfinite(whit).all():
+        return None
+    lo, hi = bounds(X)
+    reach = float(max(np.abs(lo - part.centers[0]).max(), np.abs(hi - part.centers[0]).max()))
+    if not reach * float(np.abs(whit).max()) * X.shape[1] < 1e150:
+        return None
+    return np.ones((X.shape[0], 1))
 
 
 def _validity(state: GGState, mom: Moments) -> tuple[float, float, float]:

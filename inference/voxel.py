@@ -111,6 +111,11 @@ class HorizontalFrame:
 
     def to_frame(self, X: np.ndarray) -> np.ndarray:
         """Coordinates (n, D) of points ``X`` (n, D) in this frame."""
+        jit = _jit()
+        if jit is not None and X.dtype == np.float64 and X.ndim == 2 and X.shape[0]:
+            c, s = self.axis
+            return jit.turn_to_frame(np.ascontiguousarray(X), np.ascontiguousarray(self.origin, dtype=np.float64),
+                                     float(c), float(s))
         Y = X - self.origin
         if X.shape[1] >= 2:
             c, s = self.axis
@@ -215,8 +220,11 @@ def _decode(keys: np.ndarray, D: int) -> np.ndarray:
     return np.stack([(keys >> (20 * (D - 1 - j))) & mask for j in range(D)], axis=1)
 
 
-def _min_size(X: np.ndarray) -> float:
-    lo, hi = bounds(X)
+def _min_size(X: np.ndarray, lo: np.ndarray | None = None, hi: np.ndarray | None = None) -> float:
+    """The smallest voxel edge whose cells fit the 20-bit keys (``lo``, ``hi``: X's bounds, when
+    known)."""
+    if lo is None or hi is None:
+        lo, hi = bounds(X)
     extent = float((hi - lo).max())
     return max(extent / (_MAX_AXIS_CELLS - 2), np.finfo(np.float64).tiny)
 
@@ -241,22 +249,26 @@ def auto_voxel_size(X: np.ndarray, target: int) -> float:
     extent = float((hi - lo).max())
     if extent == 0.0:
         return 1.0
-    fine = max(extent / 4096.0, _min_size(X))
+    fine = max(extent / 4096.0, _min_size(X, lo, hi))
     jit = _jit()
     if jit is not None and X.dtype == np.float64:
         fine_keys = jit.cell_keys(np.ascontiguousarray(X), lo, float(fine))
     else:
         fine_keys = _keys(_cells(X, lo, fine))
     # the counts below do not depend on the order of the distinct cells: no sort needed
-    fine_cells = _decode(jit.distinct_keys(fine_keys) if jit is not None else _distinct(fine_keys), X.shape[1])
-    n_fine = fine_cells.shape[0]
+    D = X.shape[1]
+    if jit is not None:  # the compiled count reads the cells from the keys: no decoded array
+        fine_distinct = jit.distinct_keys(fine_keys)
+        n_fine = fine_distinct.shape[0]
+    else:
+        fine_cells = _decode(_distinct(fine_keys), D)
+        n_fine = fine_cells.shape[0]
     if n_fine <= target:
         return fine
 
-
     def occupied(factor: float) -> int:
         if jit is not None:
-            return int(jit.count_coarse_cells(fine_cells, float(factor), int(target)))
+            return int(jit.count_coarse_keys(fine_distinct, D, float(factor)))
         return int(_distinct(_keys(np.floor(fine_cells / factor).astype(np.int64))).size)
 
     f0, n0 = 1.0, n_fine
@@ -276,26 +288,25 @@ def auto_voxel_size(X: np.ndarray, target: int) -> float:
     return fine * f
 
 
-def voxel_reduce(X: np.ndarray, size: float, sample_weight: np.ndarray | None = None) -> VoxelReduction:
-    """Reduce ``X`` (n, D<=3) to voxel centroids with weights and within-voxel scatter."""
+def voxel_reduce(X: np.ndarray, size: float, sample_weight: np.ndarray | None = None, *,
+                 expect: int | None = None) -> VoxelReduction:
+    """Reduce ``X`` (n, D<=3) to voxel centroids with weights and within-voxel scatter.
+    ``expect``: about how many voxels there will be, when known (the compiled hash table starts
+    at that size; the result does not depend on it)."""
     n, D = X.shape
-    size = max(float(size), _min_size(X))
-    origin = bounds(X)[0]
+    lo, hi = bounds(X)
+    size = max(float(size), _min_size(X, lo, hi))
+    origin = lo
     jit = _jit()
     w = np.ones(n) if sample_weight is None else sample_weight
     if jit is not None and X.dtype == np.float64 and D <= 3:  # the same arrays, compiled, no (n, D) temporaries
         Xc = np.ascontiguousarray(X)
-        keys, inverse = jit.unique_inverse(jit.cell_keys(Xc, origin, float(size)))
+        keys, inverse = jit.unique_inverse(jit.cell_keys(Xc, origin, float(size)), -1 if expect is None else int(expect))
         M = keys.size
         weights, s1, s2, first = jit.voxel_sums(Xc, origin, float(size), inverse,
                                                 np.ascontiguousarray(w, dtype=np.float64), M)
-        safe = np.where(weights > 0, weights, 1.0)
-        mean_local = s1 / safe[:, None]
-        scatter = np.empty((M, D, D))
-        for a in range(D):
-            for b in range(a, D):
-                scatter[:, a, b] = scatter[:, b, a] = s2[:, a, b] - weights * mean_local[:, a] * mean_local[:, b]
-        corner = origin + _cells(X[first], origin, size) * size
+        centroids, weights, scatter = jit.voxel_finish(Xc, origin, float(size), weights, s1, s2, first)
+        return VoxelReduction(centroids=centroids, weights=weights, scatter=scatter, voxel_size=size)
     else:
         cells = _cells(X, origin, size)
         keys, inverse = np.unique(_keys(cells), return_inverse=True)

@@ -59,9 +59,12 @@ class Node:
         hard = u.argmax(axis=1)
         parts = [np.flatnonzero(hard == j) for j in range(u.shape[1])]
         order = sorted((j for j in range(len(parts)) if parts[j].size), key=lambda j: -parts[j].size)
-        return [Node(f"{self.id}.{i}" if self.parent is not None else f"c{i}", self.id, self.depth + 1,
-                     self.idx[parts[j]], u[parts[j], j], self.path[parts[j]] * u[parts[j], j])
-                for i, j in enumerate(order)]
+        kids = []
+        for i, j in enumerate(order):
+            uj = u[parts[j], j]  # gathered once: the weight, and a factor of the path
+            kids.append(Node(f"{self.id}.{i}" if self.parent is not None else f"c{i}", self.id, self.depth + 1,
+                             self.idx[parts[j]], uj, self.path[parts[j]] * uj))
+        return kids
 
 
 @dataclass(frozen=True)

@@ -307,3 +307,96 @@ def test_the_predicates_statistics_are_numpys_with_and_without_compiled_kernels(
         for a in arrays:
             for name, want in ref.items():
                 assert np.float64(P._STATS[name](a)).tobytes() == np.float64(want(a)).tobytes(), (jit, name, a.size)
+
+
+@pytest.mark.parametrize("D", [2, 3])
+def test_coarse_counts_from_the_fine_keys_are_numpys(D):
+    """The voxel-size search's count of coarse cells, read from the fine keys, is the number of
+    distinct rows numpy finds, for grids from as fine as the keys to a handful of cells."""
+    from kbs.inference.voxel import _decode, _distinct, _keys
+
+    rng = np.random.default_rng(11 + D)
+    X = (_blobs(D, 9000) * 4.0)[:, :D]
+    lo = X.min(axis=0)
+    keys = C.distinct_keys(C.cell_keys(np.ascontiguousarray(X), lo, float((X.max(axis=0) - lo).max()) / 4096.0))
+    cells = _decode(keys, D)
+    for factor in [1.0, 1.37, 2.5, *rng.uniform(1.0, 400.0, 12), 5000.0]:
+        ref = _distinct(_keys(np.floor(cells / factor).astype(np.int64))).size
+        assert C.count_coarse_keys(keys, D, float(factor)) == ref, factor
+
+
+@pytest.mark.parametrize("D", [2, 3])
+def test_compiled_frame_and_reduction_are_numpys_bit_for_bit(monkeypatch, D):
+    """HorizontalFrame.to_frame and voxel_reduce compiled: the very same floats as numpy's (no
+    fused multiply-adds), zero weights included."""
+    from kbs.inference.voxel import HorizontalFrame
+
+    monkeypatch.setattr(_flags, "JIT", True)
+    rng = np.random.default_rng(5)
+    X = (_blobs(4, 6000) * 3.0 + [2e3, -7e2, 30.0])[:, :D]
+    w = rng.integers(0, 3, size=len(X)).astype(float)  # some points weigh nothing
+    frame = HorizontalFrame.of(X, w)
+    a_frame, a_red = frame.to_frame(X), voxel_reduce(X, 0.37, w)
+    monkeypatch.setattr(_flags, "JIT", False)
+    b_frame, b_red = frame.to_frame(X), voxel_reduce(X, 0.37, w)
+    assert a_frame.tobytes() == b_frame.tobytes()
+    for a, b in [(a_red.centroids, b_red.centroids), (a_red.weights, b_red.weights), (a_red.scatter, b_red.scatter)]:
+        assert a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+@pytest.mark.parametrize("jit", [True, False])
+def test_a_single_cluster_s_memberships_are_the_predicted_ones(monkeypatch, jit):
+    """ufp_onc gives the memberships of a chosen K = 1 without predicting them: exactly the ones
+    the prediction gives, far from the origin too."""
+    monkeypatch.setattr(_flags, "JIT", jit)
+    rng = np.random.default_rng(9)
+    for shift in (0.0, 4e6):
+        X = rng.normal(size=(3000, 3)) * [30.0, 20.0, 0.2] + shift
+        res = ufp_onc(X, k_max=1)
+        assert res.chosen_k == 1
+        assert res.memberships.tobytes() == res.best.predict_proba(X).tobytes()
+
+
+def test_the_compiled_lexicographic_order_is_numpys():
+    """The fitting set's canonical order (rows by x, then y, then z; ties in input order): the
+    compiled merge sort gives np.lexsort's permutation, ties, zeros of both signs and 1-4
+    columns included."""
+    rng = np.random.default_rng(21)
+    for t in range(60):
+        n, D = int(rng.integers(2, 3000)), int(rng.integers(1, 5))
+        X = rng.normal(size=(n, D))
+        if t % 2:
+            X = np.round(X * 2.0) / 2.0  # many ties
+            X[rng.random(n) < 0.2] = -0.0
+        assert np.array_equal(C.lex_order(X), np.lexsort(X.T[::-1]))
+
+
+def test_predicted_memberships_by_rows_are_the_chunked_ones(monkeypatch):
+    """KPartition.predict_proba compiled over the rows: the very values of the chunked
+    transposed path (memberships_in_chunks over gg_memberships), chunk edges included."""
+    from kbs.inference.engine import memberships_in_chunks
+
+    monkeypatch.setattr(_flags, "JIT", True)
+    X = _blobs(6, 5000) + [1e5, 2e5, 30.0]
+    res = ufp_onc(X, k_max=3)
+    for p in res.partitions:
+        centers = p.centers - p.offset
+        ref = memberships_in_chunks(X, p.offset, lambda XT: gg_memberships(XT, centers, p.gaussians, p.priors, p.m),
+                                    p.k, 777)
+        assert p.predict_proba(X, chunk_size=777).tobytes() == ref.tobytes()
+
+
+@pytest.mark.parametrize("k", [1, 3, 9])
+def test_compiled_new_prototype_memberships_are_numpys_bit_for_bit(monkeypatch, k):
+    """The start of K + 1's fuzzy c-means (m = 2): the compiled memberships are numpy's, points
+    on a centre (a distance floored at TINY) and d0 = 0 included."""
+    monkeypatch.setattr(_flags, "JIT", True)
+    rng = np.random.default_rng(k)
+    XT = np.ascontiguousarray(_blobs(k, 2000).T * 7.0)
+    centers = XT[:, rng.integers(0, XT.shape[1], k)].T.copy()
+    for d0 in (0.0, 3.5, 1e4):
+        a = new_prototype_memberships(XT, centers, d0, 2.0)
+        monkeypatch.setattr(_flags, "JIT", False)
+        b = new_prototype_memberships(XT, centers, d0, 2.0)
+        monkeypatch.setattr(_flags, "JIT", True)
+        assert a.tobytes() == b.tobytes()

@@ -25,14 +25,15 @@ class Split(Action):
 
     def divide(self, engine: Any, node: Node, cluster: Cluster, facts: Mapping[str, Measurement], rule: Any,
                prepared: Any) -> Division:
-        X = engine.X
+        # the cluster's points are X[node.idx] (the interpreter's Cluster): no second copy
+        X = cluster.X if cluster.X.shape[0] == node.size else engine.X[node.idx]
         res = prepared.result() if prepared is not None else \
-            engine.ufp_onc(X[node.idx], "first_max", min_k=engine.rule_base.engine["split_min_k"])
+            engine.ufp_onc(X, "first_max", min_k=engine.rule_base.engine["split_min_k"])
         k = res.chosen_k
         if k < 2:
             if len(res.partitions) < 2:
                 raise FitError("UFP-ONC found no second cluster")
             k = 2
         apd = APDCurve(tuple(p.k for p in res.partitions), tuple(p.apd for p in res.partitions), k)
-        u = res.memberships if k == res.chosen_k else res.partition(k).predict_proba(X[node.idx])
+        u = res.memberships if k == res.chosen_k else res.partition(k).predict_proba(X)
         return Division(tuple(node.children(u)), apd)
