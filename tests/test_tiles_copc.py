@@ -38,7 +38,7 @@ def _kbs_env(*args: str, env: dict[str, str]) -> subprocess.CompletedProcess:
     return subprocess.run([exe, *args], capture_output=True, text=True, env=full, timeout=300)
 
 
-def test_a_tile_read_by_the_octree_holds_the_points_and_order_of_the_grid_s_tile(copc_file):
+def test_a_tile_read_by_the_octree_holds_the_points_and_order_of_the_grid_s_tile(copc_file, tmp_path):
     """read_tile: the rows, core and coordinates of each tile are those TileGrid.tiles gives on the
     whole file read as LAZ, and no tile decompresses the whole file."""
     import laspy
@@ -48,6 +48,8 @@ def test_a_tile_read_by_the_octree_holds_the_points_and_order_of_the_grid_s_tile
 
     las = laspy.read(str(copc_file))
     X = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
+    xyz = tmp_path / "xyz.npy"  # the coordinates in file order, as read_copc writes them
+    np.save(xyz, X)
     table, bounds, header = copc_nodes(copc_file)
     assert int(table[:, 6].sum()) == len(X) and len(np.unique(table[:, 0])) == 4
     cloud = CopcCloud(xyz=X, index=np.arange(len(X)), grid=None, tiles=[], header=header, folder=Path("."),
@@ -58,6 +60,8 @@ def test_a_tile_read_by_the_octree_holds_the_points_and_order_of_the_grid_s_tile
         for i in range(grid.shape[0]):
             for j in range(grid.shape[1]):
                 rows, core, pts, read = read_tile(str(copc_file), cloud.nodes_of(*tile_box(grid, i, j)), grid, i, j)
+                again = read_tile(str(copc_file), cloud.nodes_of(*tile_box(grid, i, j)), grid, i, j, str(xyz))
+                assert all(np.array_equal(a, b) for a, b in zip((rows, core, pts, read), again))
                 t = expected.get(f"t{i}_{j}")
                 if t is None:
                     assert not core.any()
@@ -96,7 +100,7 @@ def test_a_copc_file_tiled_by_its_octree_gives_the_bytes_of_the_spill_path(copc_
 @pytest.mark.slow  # a whole tiled run
 def test_a_copc_file_is_never_spilled_nor_routed_by_a_pass_over_its_chunks(copc_file, tmp_path, monkeypatch):
     """In process, with the spill path's chunked reader and spill_las made to fail: the run reads
-    the file by its octree; every tile decompresses less than the whole file but the edge ones."""
+    the file by its octree; every tile reads the rows of its nodes, less than the whole file."""
     from click.testing import CliRunner
 
     from kbs.cli.main import cli
@@ -110,8 +114,8 @@ def test_a_copc_file_is_never_spilled_nor_routed_by_a_pass_over_its_chunks(copc_
     reads = []
     original = copc.read_tile
 
-    def spy(path, nodes, grid, i, j):
-        out = original(path, nodes, grid, i, j)
+    def spy(path, nodes, grid, i, j, xyz=None):
+        out = original(path, nodes, grid, i, j, xyz)
         reads.append(out[3])
         return out
 

@@ -287,12 +287,21 @@ def tile_box(grid: TileGrid, i: int, j: int) -> tuple[tuple[float, float], tuple
     return (lo[0], lo[1]), (hi[0], hi[1])
 
 
-def read_tile(path: str, nodes: np.ndarray, grid: TileGrid, i: int, j: int) -> tuple[np.ndarray, np.ndarray,
-                                                                                       np.ndarray, int]:
+def read_tile(path: str, nodes: np.ndarray, grid: TileGrid, i: int, j: int,
+              xyz: str | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """The points of tile (i, j) of a COPC file read from its ``nodes`` (those meeting its box):
     their rows in the file (increasing), which the core holds, their coordinates, and the points
-    decompressed."""
-    X = decompress(path, nodes)
+    read. The nodes' points are decompressed from the file, or with ``xyz`` (the coordinates
+    :func:`read_copc` wrote, in file order) read from there: each node's rows are one slice."""
+    if xyz is None:
+        X = decompress(path, nodes)
+    else:
+        mm = np.load(xyz, mmap_mode="r")
+        try:
+            X = np.concatenate([np.array(mm[f:f + c]) for f, c in zip(nodes[:, FIRST], nodes[:, COUNT])]) \
+                if len(nodes) else np.zeros((0, 3))
+        finally:
+            del mm
     rows = np.concatenate([np.arange(f, f + c, dtype=np.int64) for f, c in zip(nodes[:, FIRST], nodes[:, COUNT])]) \
         if len(nodes) else np.zeros(0, dtype=np.int64)
     order = np.argsort(rows, kind="stable")

@@ -280,7 +280,10 @@ def run_copc_job(segment: Callable[[np.ndarray], Segmentation], job: Any,
     from kbs.tiles.copc import read_tile
     from kbs.tiles.stream import SpilledTile
 
-    index, in_core, points, read = read_tile(job.path, job.nodes, job.grid, job.tile.i, job.tile.j)
+    try:  # the nodes' rows of the coordinates the client wrote (decompressed once, there)
+        index, in_core, points, read = read_tile(job.path, job.nodes, job.grid, job.tile.i, job.tile.j, job.xyz)
+    except OSError as exc:
+        raise _no_shared_folder(exc) from exc
     t = job.tile
     tile = SpilledTile(t.name, t.i, t.j, t.core, t.folder, int(index.size), int(np.count_nonzero(in_core)))
     if not tile.n_core:
