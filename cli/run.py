@@ -12,6 +12,7 @@ import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 import numpy as np
@@ -31,6 +32,9 @@ from kbs.knowledge.explain import TREE_LINES, limit_lines
 from kbs.knowledge.predicates import UNITS, did_you_mean
 from kbs.knowledge.rulebase import RuleFileError, resolve, shipped_rule_bases
 from kbs.units import UNITS as LENGTH_UNITS, CoordinateWarning, ScanUnits, SpacingWarning
+
+if TYPE_CHECKING:
+    from kbs.tiles.stream import SpilledCloud
 
 
 def _vector3(ctx, param, value):
@@ -272,18 +276,28 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
         sources = inputs if isinstance(inputs, InputFiles) else InputFiles((cloud, *inputs))
         for target in (points, js, *([html] if report else [])):
             check_output(target, inputs=sources, force=force)
-    spilled, why_tiled = None, None
+    spilled: SpilledCloud | None = None  # a LAS/LAZ file read in chunks, or a COPC file by its octree
+    why_tiled = None
     if tiling is None and auto_tile and not stdin and not to_stdout and sensor is None:
         tiling, why_tiled = _header_tiling(segmenter, cloud, in_format, fmt, units, auto_scheduler, tile_options)
     if _streams(tiling, cloud, in_format, fmt):
-        from kbs.tiles.stream import spill_las, streamed_cloud
+        from kbs.tiles.copc import ENV, copc_reason, read_copc
+        from kbs.tiles.stream import las_header, spill_las, streamed_cloud
 
         assert tiling is not None
 
         spill_folder = Path(tempfile.mkdtemp(prefix=f".{cloud.stem}.spill-", dir=out_dir))
         try:
-            spilled = spill_las(cloud, spill_folder, tiling.size, _buffer(segmenter, tiling),
-                                segmenter.rule_base.ground.normal, tiling.chunk_points)
+            normal = segmenter.rule_base.ground.normal
+            not_copc = copc_reason(las_header(cloud), normal)
+            if not_copc is None:  # each tile reads its bounds by the octree (kbs.tiles.copc)
+                spilled = read_copc(cloud, spill_folder, tiling.size, _buffer(segmenter, tiling), tiling.chunk_points)
+            else:
+                if not quiet and not_copc not in ("not a COPC file", f"{ENV}=0"):
+                    click.echo(f"note: {cloud}: a COPC file read as a plain LAZ file, not by its octree: {not_copc}",
+                               err=True)
+                spilled = spill_las(cloud, spill_folder, tiling.size, _buffer(segmenter, tiling), normal,
+                                    tiling.chunk_points)
         except BaseException:
             shutil.rmtree(spill_folder, ignore_errors=True)
             raise
@@ -559,6 +573,8 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
         ground_note = seg.explanation.ground.note
         for note in seg.explanation.notes + ([ground_note] if ground_note is not None else []):
             click.echo(f"note: {note}", err=True)
+        if getattr(seg, "read_note", None):
+            click.echo(f"note: {name}: {seg.read_note}", err=True)
     return ScanResult(cloud, len(pc), s["clusters"], t_read, seg.seconds, t_write)
 
 
@@ -581,6 +597,13 @@ def _segment_tiled(segmenter: Segmenter, xyz: np.ndarray, cloud: Path, tiling: T
             lines()
 
     try:
+        from kbs.tiles.copc import CopcCloud
+
+        if isinstance(spilled, CopcCloud):
+            from kbs.tiles.streamed import segment_copc
+
+            return segment_copc(segmenter, spilled, store, scheduler=tiling.scheduler, workers=tiling.workers,
+                                progress=progress, resume=tiling.resume)
         if spilled is not None:
             from kbs.tiles.streamed import segment_streamed
 

@@ -87,8 +87,17 @@ def _extra_dtype(name: str, values: np.ndarray) -> np.dtype | None:
 
 
 def without_run_id(vlrs: list[Any]) -> list[Any]:
-    """The VLRs but kbs's run-id record (a LAS written by kbs carries one, replaced when rewritten)."""
-    return [v for v in vlrs if not (v.user_id == RUN_ID_USER_ID and v.record_id == RUN_ID_RECORD_ID)]
+    """The VLRs but kbs's run-id record (a LAS written by kbs carries one, replaced when rewritten)
+    and a COPC file's records (the result is written as plain LAS/LAZ: not ordered by an octree)."""
+    return [v for v in vlrs if not (v.user_id == RUN_ID_USER_ID and v.record_id == RUN_ID_RECORD_ID)
+            and v.user_id != "copc"]
+
+
+def without_copc(header: Any) -> None:
+    """Drop a COPC file's records from ``header`` (laspy cannot write them: its result is plain LAS/LAZ)."""
+    header.vlrs = without_run_id(list(header.vlrs))
+    if getattr(header, "evlrs", None):
+        header.evlrs = [v for v in header.evlrs if v.user_id != "copc"]
 
 
 def run_id_vlr(run_id: str) -> Any:
@@ -141,7 +150,7 @@ def build_las(xyz: np.ndarray, fields: Mapping[str, np.ndarray], kbs_fields: Map
                 out.remove_extra_dim(name)
                 out.add_extra_dim(laspy.ExtraBytesParams(f"{name}_in"[:32], old.dtype, description=desc[:32]))
                 out[f"{name}_in"[:32]] = old
-        out.header.vlrs = without_run_id(list(out.header.vlrs))
+        without_copc(out.header)
     else:
         rgb = all(c in fields for c in ("red", "green", "blue"))
         header = laspy.LasHeader(point_format=7 if rgb else 6, version="1.4")

@@ -279,7 +279,7 @@ class ChunkedLas:
     def header(self) -> Any:
         import laspy
 
-        from kbs.io.las import KBS_DIMENSIONS, run_id_vlr, software_id, without_run_id
+        from kbs.io.las import KBS_DIMENSIONS, run_id_vlr, software_id, without_copc
 
         header = las_header(self.source)
         kept = set(header.point_format.extra_dimension_names)
@@ -290,7 +290,7 @@ class ChunkedLas:
             for name, new in self.renamed.items():
                 header.remove_extra_dim(name)
                 header.add_extra_dim(laspy.ExtraBytesParams(new, dtypes[name], description=descs[name][:32]))
-        header.vlrs = without_run_id(list(header.vlrs))
+        without_copc(header)
         header.add_extra_dims([laspy.ExtraBytesParams(name, dtype, description=desc)
                                for name, (dtype, desc) in KBS_DIMENSIONS.items()])
         header.vlrs.append(run_id_vlr(self.run_id))

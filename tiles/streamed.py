@@ -160,10 +160,19 @@ def run_job(segment: Callable[[np.ndarray], Segmentation], job: TileJob,
         index, in_core = job.tile.index, job.tile.in_core
         points = read_rows(job.xyz, index)
     except OSError as exc:
-        raise ParameterError(f"this worker cannot read the tile's points ({exc.strerror or exc}: {exc.filename}): "
-                             f"the workers of a Dask scheduler read the tiles from, and write their results to, "
-                             f"the output folder: give them a shared file system that holds it at the same path, "
-                             f"or run with 'local' or in process") from exc
+        raise _no_shared_folder(exc) from exc
+    return _run_points(segment, job, given, index, in_core, points)
+
+
+def _no_shared_folder(exc: OSError) -> ParameterError:
+    return ParameterError(f"this worker cannot read the tile's points ({exc.strerror or exc}: {exc.filename}): "
+                          f"the workers of a Dask scheduler read the tiles from, and write their results to, "
+                          f"the output folder: give them a shared file system that holds it at the same path, "
+                          f"or run with 'local' or in process")
+
+
+def _run_points(segment: Callable[[np.ndarray], Segmentation], job: Any, given: tuple[Any, GroundFacts],
+                index: np.ndarray, in_core: np.ndarray, points: np.ndarray) -> tuple[TileSummary, bool]:
     store = TileStore.at(job.store, job.base)
     key = store.key_of(index, points, given)
     seg = store.load(job.tile, key) if job.resume else None
@@ -174,7 +183,7 @@ def run_job(segment: Callable[[np.ndarray], Segmentation], job: TileJob,
     return summarize(job.tile, job.grid, index, in_core, points, seg, edges_path(job)), resumed
 
 
-def edges_path(job: TileJob) -> Path:
+def edges_path(job: Any) -> Path:
     """The file of the tile's edge points: in the spill folder, beside the coordinates."""
     return Path(job.xyz).with_name(f"{job.tile.name}.edges.npz")
 
@@ -183,7 +192,7 @@ class _Edges:
     """The tiles' edge points read from their files, two rows of the grid at a time (the links of
     row i are with rows i and i + 1): what stitching holds is bounded by two rows of tiles."""
 
-    def __init__(self, jobs: Sequence[TileJob]) -> None:
+    def __init__(self, jobs: Sequence[Any]) -> None:  # TileJob or kbs.tiles.copc.CopcJob
         self.jobs = jobs
         self.cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
@@ -260,6 +269,117 @@ def segment_streamed(segmenter: Any, spilled: Any, store: TileStore, *, schedule
                         kept=store.folder if len(failures) < len(tiles) else None)
     done_summaries = [s for s in summaries if s is not None]
     return _stitch(spilled, grid, tiles, done_summaries, _Edges(jobs), store, given[1], t0)
+
+
+def run_copc_job(segment: Callable[[np.ndarray], Segmentation], job: Any,
+                 given: tuple[Any, GroundFacts]) -> tuple[TileSummary | None, bool, Any, int]:
+    """Read ``job``'s tile (a :class:`kbs.tiles.copc.CopcJob`) from its COPC file by its nodes,
+    write its rows beside the spill folder's coordinates and segment it as :func:`run_job` does;
+    returns its summary (None: no point in its core, nothing segmented), whether it was resumed,
+    the tile with its counts, and the points decompressed."""
+    from kbs.tiles.copc import read_tile
+    from kbs.tiles.stream import SpilledTile
+
+    try:  # the nodes' rows of the coordinates the client wrote (decompressed once, there)
+        index, in_core, points, read = read_tile(job.path, job.nodes, job.grid, job.tile.i, job.tile.j, job.xyz)
+    except OSError as exc:
+        raise _no_shared_folder(exc) from exc
+    t = job.tile
+    tile = SpilledTile(t.name, t.i, t.j, t.core, t.folder, int(index.size), int(np.count_nonzero(in_core)))
+    if not tile.n_core:
+        return None, False, tile, read
+    try:
+        index.tofile(tile.folder / f"{tile.name}.idx")
+        in_core.tofile(tile.folder / f"{tile.name}.core")
+    except OSError as exc:
+        raise _no_shared_folder(exc) from exc
+    summary, resumed = _run_points(segment, dataclasses.replace(job, tile=tile), given, index, in_core, points)
+    return summary, resumed, tile, read
+
+
+def _copc_task(rules: str, sensor: tuple[float, float, float], plugins: tuple[str, ...], job: Any,
+               given: tuple[Any, GroundFacts]) -> tuple[TileSummary | None, bool, Any, int] | KbsError:
+    """One tile of a COPC file on a Dask worker (:func:`run_copc_job`); a KbsError is returned."""
+    from kbs.tiles.run import _segment_tile, worker_segmenter
+
+    segmenter = worker_segmenter(rules, sensor, plugins)
+    try:
+        return run_copc_job(lambda X: _segment_tile(segmenter, X, given), job, given)
+    except KbsError as exc:
+        return exc
+
+
+def segment_copc(segmenter: Any, cloud: Any, store: TileStore, *, scheduler: str | None = None,
+                 workers: int | None = None, progress: Callable[[str], None] | None = None,
+                 resume: bool = False) -> StreamedResult:
+    """Segment the tiles of a COPC file (:func:`kbs.tiles.copc.read_copc`), each read by the
+    nodes of its octree that meet its buffered bounds (in this process or in its Dask task), and
+    stitch them as :func:`segment_streamed` does: the same result, byte for byte."""
+    from kbs.errors import CloudFileError
+    from kbs.tiles.copc import CopcJob, tile_box, tiles_of
+    from kbs.tiles.run import TileError, _segment_tile, sample_ground
+
+    t0 = time.perf_counter()
+    grid = cloud.grid
+    n = int(cloud.xyz.shape[0])
+    given = sample_ground(segmenter, cloud.sample, n)
+    cells = tiles_of(cloud)
+    xyz_path = str(cloud.folder / "xyz.npy")
+
+    def job_of(k: int) -> CopcJob:  # made when submitted: the client holds the nodes of the tiles in flight
+        t = cells[k]
+        return CopcJob(str(cloud.path), cloud.nodes_of(*tile_box(grid, t.i, t.j)), xyz_path, t, grid,
+                       str(store.folder), store._base, resume)
+
+    outs: list[Any] = [None] * len(cells)
+    failures: dict[int, BaseException] = {}
+    n_resumed = 0
+
+    def finished(k: int, out: Any, done: int) -> None:
+        nonlocal n_resumed
+        if isinstance(out, BaseException):
+            failures[k] = out
+            return
+        outs[k] = out
+        n_resumed += out[1]
+        if progress is not None and not out[1]:
+            progress(f"{cells[k].name} ({done}/{len(cells)} tiles)")
+
+    if scheduler is None:
+        for done, k in enumerate(range(len(cells)), start=1):
+            try:
+                out: Any = run_copc_job(lambda X: _segment_tile(segmenter, X, given), job_of(k), given)
+            except KbsError as exc:
+                out = exc
+            finished(k, out, done)
+    else:
+        from kbs.tiles.run import submit_all
+
+        spec = (segmenter.rule_base.path, segmenter.sensor, segmenter.plugins)
+        submit_all(scheduler, workers, progress, finished, list(range(len(cells))),
+                   lambda k: (_copc_task, *spec, job_of(k), given), [t.name for t in cells])
+    if resume and progress is not None:
+        progress(f"resumed {n_resumed} of {sum(o is not None and o[0] is not None for o in outs)} tiles from "
+                 f"{store.folder}")
+    if failures:
+        first = min(failures)
+        raise TileError(cells[first], 0, failures[first], failed=[cells[k] for k in sorted(failures)],
+                        total=len(cells), kept=store.folder if len(failures) < len(cells) else None)
+    kept = [k for k in range(len(cells)) if outs[k][0] is not None]
+    tiles = [outs[k][2] for k in kept]
+    cloud.tiles = tiles
+    cloud.read_by_tiles = [int(o[3]) for o in outs]
+    held = sum(t.n_core for t in tiles)
+    if held != n:  # a point outside the bounds of its node: no tile read it
+        raise CloudFileError(str(cloud.path), f"the bounds of its COPC octree's nodes do not hold their points: the "
+                                              f"tiles read by them hold {held:,} of its {n:,} points")
+    jobs = [dataclasses.replace(job_of(k), tile=outs[k][2], nodes=np.zeros((0, 8), dtype=np.int64)) for k in kept]
+    out = _stitch(cloud, grid, tiles, [outs[k][0] for k in kept], _Edges(jobs), store, given[1], t0)
+    top = max(cloud.read_by_tiles)
+    out.read_note = (f"a COPC file: each of its {len(cells)} tiles read the nodes of its octree that meet its "
+                     f"buffered bounds (at most {top:,} of its {n:,} points for one tile; {len(tiles)} hold points), "
+                     f"no pass routed the points to the tiles")
+    return out
 
 
 def _n_points(tile: Tile) -> int:
@@ -517,6 +637,8 @@ class StreamedResult:
     _stitched: set[int]
     _geometry: dict[str, np.ndarray]
     _sizes: np.ndarray
+    #: How the tiles were read, said in a note (not in the result: the same result either way).
+    read_note: str | None = None
 
     @property
     def cluster(self) -> FileColumn:
