@@ -206,34 +206,29 @@ class _Edges:
         return self.cache[k]
 
 
-def _task(rules: str, sensor: tuple[float, float, float], plugins: tuple[str, ...], job: TileJob,
-          given: tuple[Any, GroundFacts]) -> tuple[TileSummary, bool] | KbsError:
-    """One tile on a Dask worker (:func:`run_job`); a KbsError is returned, not raised (see
+def _task(runner: Callable[..., Any], rules: str, sensor: tuple[float, float, float], plugins: tuple[str, ...],
+          job: Any, given: tuple[Any, GroundFacts]) -> Any:
+    """One tile on a Dask worker: ``runner`` (:func:`run_job`, or :func:`run_copc_job` for a tile
+    of a COPC file) with the worker's segmenter; a KbsError is returned, not raised (see
     :func:`kbs.tiles.run.segment_task`)."""
     from kbs.tiles.run import _segment_tile, worker_segmenter
 
     segmenter = worker_segmenter(rules, sensor, plugins)
     try:
-        return run_job(lambda X: _segment_tile(segmenter, X, given), job, given)
+        return runner(lambda X: _segment_tile(segmenter, X, given), job, given)
     except KbsError as exc:
         return exc
 
 
-def segment_streamed(segmenter: Any, spilled: Any, store: TileStore, *, scheduler: str | None = None,
-                     workers: int | None = None, progress: Callable[[str], None] | None = None,
-                     resume: bool = False) -> StreamedResult:
-    """Segment the tiles of a spilled LAS/LAZ file (:func:`kbs.tiles.stream.spill_las`) and stitch
-    them with bounded memory: each tile's result goes to ``store``, the output to files in the
-    spill folder. Arguments and errors as :func:`kbs.tiles.run.segment_tiled`'s."""
-    from kbs.tiles.run import TileError, _segment_tile
+def _dispatch(segmenter: Any, runner: Callable[..., Any], names: Sequence[str], job_of: Callable[[int], Any],
+              given: tuple[Any, GroundFacts], resumed_of: Callable[[Any], bool], scheduler: str | None,
+              workers: int | None, progress: Callable[[str], None] | None) -> tuple[list[Any], dict[int, BaseException], int]:
+    """Run ``runner`` on the job of each tile (``job_of(k)``, made when it is run or submitted): in
+    this process one after the other, or as Dask tasks on ``scheduler``. Returns each tile's output
+    (None where it failed), the failures by tile, and how many outputs were resumed."""
+    from kbs.tiles.run import _segment_tile
 
-    t0 = time.perf_counter()
-    tiles, grid = spilled.tiles, spilled.grid
-    xyz_path = str(spilled.folder / "xyz.npy")
-    n = int(spilled.xyz.shape[0])
-    given = _ground(segmenter, xyz_path, n)
-    jobs = [TileJob(xyz_path, t, grid, str(store.folder), store._base, resume) for t in tiles]
-    summaries: list[TileSummary | None] = [None] * len(tiles)
+    outs: list[Any] = [None] * len(names)
     failures: dict[int, BaseException] = {}
     n_resumed = 0
 
@@ -242,15 +237,16 @@ def segment_streamed(segmenter: Any, spilled: Any, store: TileStore, *, schedule
         if isinstance(out, BaseException):
             failures[k] = out
             return
-        summaries[k], resumed = out
+        outs[k] = out
+        resumed = resumed_of(out)
         n_resumed += resumed
         if progress is not None and not resumed:
-            progress(f"{tiles[k].name} ({done}/{len(tiles)} tiles)")
+            progress(f"{names[k]} ({done}/{len(names)} tiles)")
 
     if scheduler is None:
-        for done, k in enumerate(range(len(tiles)), start=1):
+        for done, k in enumerate(range(len(names)), start=1):
             try:
-                out: Any = run_job(lambda X: _segment_tile(segmenter, X, given), jobs[k], given)
+                out: Any = runner(lambda X: _segment_tile(segmenter, X, given), job_of(k), given)
             except KbsError as exc:
                 out = exc
             finished(k, out, done)
@@ -258,8 +254,28 @@ def segment_streamed(segmenter: Any, spilled: Any, store: TileStore, *, schedule
         from kbs.tiles.run import submit_all
 
         spec = (segmenter.rule_base.path, segmenter.sensor, segmenter.plugins)
-        submit_all(scheduler, workers, progress, finished, list(range(len(tiles))),
-                    lambda k: (_task, *spec, jobs[k], given), [t.name for t in tiles])
+        submit_all(scheduler, workers, progress, finished, list(range(len(names))),
+                   lambda k: (_task, runner, *spec, job_of(k), given), list(names))
+    return outs, failures, n_resumed
+
+
+def segment_streamed(segmenter: Any, spilled: Any, store: TileStore, *, scheduler: str | None = None,
+                     workers: int | None = None, progress: Callable[[str], None] | None = None,
+                     resume: bool = False) -> StreamedResult:
+    """Segment the tiles of a spilled LAS/LAZ file (:func:`kbs.tiles.stream.spill_las`) and stitch
+    them with bounded memory: each tile's result goes to ``store``, the output to files in the
+    spill folder. Arguments and errors as :func:`kbs.tiles.run.segment_tiled`'s."""
+    from kbs.tiles.run import TileError
+
+    t0 = time.perf_counter()
+    tiles, grid = spilled.tiles, spilled.grid
+    xyz_path = str(spilled.folder / "xyz.npy")
+    n = int(spilled.xyz.shape[0])
+    given = _ground(segmenter, xyz_path, n)
+    jobs = [TileJob(xyz_path, t, grid, str(store.folder), store._base, resume) for t in tiles]
+    outs, failures, n_resumed = _dispatch(segmenter, run_job, [t.name for t in tiles], jobs.__getitem__, given,
+                                          lambda out: bool(out[1]), scheduler, workers, progress)
+    summaries = [None if o is None else o[0] for o in outs]
     if resume and progress is not None:
         progress(f"resumed {n_resumed} of {len(tiles)} tiles from {store.folder}")
     if failures:
@@ -297,18 +313,6 @@ def run_copc_job(segment: Callable[[np.ndarray], Segmentation], job: Any,
     return summary, resumed, tile, read
 
 
-def _copc_task(rules: str, sensor: tuple[float, float, float], plugins: tuple[str, ...], job: Any,
-               given: tuple[Any, GroundFacts]) -> tuple[TileSummary | None, bool, Any, int] | KbsError:
-    """One tile of a COPC file on a Dask worker (:func:`run_copc_job`); a KbsError is returned."""
-    from kbs.tiles.run import _segment_tile, worker_segmenter
-
-    segmenter = worker_segmenter(rules, sensor, plugins)
-    try:
-        return run_copc_job(lambda X: _segment_tile(segmenter, X, given), job, given)
-    except KbsError as exc:
-        return exc
-
-
 def segment_copc(segmenter: Any, cloud: Any, store: TileStore, *, scheduler: str | None = None,
                  workers: int | None = None, progress: Callable[[str], None] | None = None,
                  resume: bool = False) -> StreamedResult:
@@ -317,7 +321,7 @@ def segment_copc(segmenter: Any, cloud: Any, store: TileStore, *, scheduler: str
     stitch them as :func:`segment_streamed` does: the same result, byte for byte."""
     from kbs.errors import CloudFileError
     from kbs.tiles.copc import CopcJob, tile_box, tiles_of
-    from kbs.tiles.run import TileError, _segment_tile, sample_ground
+    from kbs.tiles.run import TileError, sample_ground
 
     t0 = time.perf_counter()
     grid = cloud.grid
@@ -331,33 +335,8 @@ def segment_copc(segmenter: Any, cloud: Any, store: TileStore, *, scheduler: str
         return CopcJob(str(cloud.path), cloud.nodes_of(*tile_box(grid, t.i, t.j)), xyz_path, t, grid,
                        str(store.folder), store._base, resume)
 
-    outs: list[Any] = [None] * len(cells)
-    failures: dict[int, BaseException] = {}
-    n_resumed = 0
-
-    def finished(k: int, out: Any, done: int) -> None:
-        nonlocal n_resumed
-        if isinstance(out, BaseException):
-            failures[k] = out
-            return
-        outs[k] = out
-        n_resumed += out[1]
-        if progress is not None and not out[1]:
-            progress(f"{cells[k].name} ({done}/{len(cells)} tiles)")
-
-    if scheduler is None:
-        for done, k in enumerate(range(len(cells)), start=1):
-            try:
-                out: Any = run_copc_job(lambda X: _segment_tile(segmenter, X, given), job_of(k), given)
-            except KbsError as exc:
-                out = exc
-            finished(k, out, done)
-    else:
-        from kbs.tiles.run import submit_all
-
-        spec = (segmenter.rule_base.path, segmenter.sensor, segmenter.plugins)
-        submit_all(scheduler, workers, progress, finished, list(range(len(cells))),
-                   lambda k: (_copc_task, *spec, job_of(k), given), [t.name for t in cells])
+    outs, failures, n_resumed = _dispatch(segmenter, run_copc_job, [t.name for t in cells], job_of, given,
+                                          lambda out: bool(out[1]), scheduler, workers, progress)
     if resume and progress is not None:
         progress(f"resumed {n_resumed} of {sum(o is not None and o[0] is not None for o in outs)} tiles from "
                  f"{store.folder}")
