@@ -312,7 +312,7 @@ def median_spacing(X: np.ndarray, *, seed: int = 0) -> float | None:
     n = len(X)
     if n > SPACING_SAMPLE:
         X = X[np.random.default_rng(seed).choice(n, SPACING_SAMPLE, replace=False)]
-    X = np.unique(X, axis=0)
+    X = _distinct_rows(X)
     if len(X) < 2:
         return None
     d, _ = cKDTree(X).query(X, k=2)
@@ -320,6 +320,22 @@ def median_spacing(X: np.ndarray, *, seed: int = 0) -> float | None:
     if n > SPACING_SAMPLE:
         spacing *= math.sqrt(len(X) / n)
     return spacing
+
+
+def _distinct_rows(X: np.ndarray) -> np.ndarray:
+    """The distinct rows of ``X`` (n, 3), as ``np.unique(X, axis=0)`` (rows equal by value, sorted
+    by x, then y, then z): by the compiled stable order and a comparison of neighbours when the
+    kernels are on and ``X`` is finite (10,000 rows: about 5 ms -> 1 ms)."""
+    from kbs.inference import _flags
+
+    if not (_flags.JIT and X.ndim == 2 and X.shape[0] > 1 and np.isfinite(X).all()):
+        return np.unique(X, axis=0)
+    from kbs.inference import _compiled
+
+    S = X[_compiled.lex_order(np.ascontiguousarray(X))]
+    first = np.ones(S.shape[0], dtype=bool)
+    first[1:] = (S[1:] != S[:-1]).any(axis=1)
+    return S[first]
 
 
 class CoordinateWarning(UserWarning):

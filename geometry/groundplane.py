@@ -89,6 +89,17 @@ def _principal_plane(Q: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     return pca.normal, pca.center, pca.thickness
 
 
+def _xyz_order(X: np.ndarray) -> np.ndarray:
+    """``np.lexsort((X[:, 2], X[:, 1], X[:, 0]))``: the rows by x, then y, then z, ties in input
+    order. Compiled when the kernels are on and ``X`` is finite (the same permutation: a stable
+    order is unique; 10.6 -> 4.7 ms on a 45,619-point ground candidate)."""
+    if _flags.JIT and X.ndim == 2 and X.shape[0] > 1 and np.isfinite(X).all():
+        from kbs.inference import _compiled
+
+        return _compiled.lex_order(np.ascontiguousarray(X))
+    return np.lexsort((X[:, 2], X[:, 1], X[:, 0]))
+
+
 def robust_plane(X: np.ndarray, inlier_distance: float, min_share: float, *,
                  random_state: int = 0) -> RobustPlane | None:
     """The plane most points of ``X`` lie on.
@@ -112,7 +123,7 @@ def robust_plane(X: np.ndarray, inlier_distance: float, min_share: float, *,
     n = X.shape[0]
     if n < 3:
         return None
-    order = np.lexsort((X[:, 2], X[:, 1], X[:, 0]))  # independent of the order given
+    order = _xyz_order(X)  # independent of the order given
     P = X[order]
     rng = np.random.default_rng(random_state)
     S = P if n <= SCORE_POINTS else P[np.sort(rng.choice(n, SCORE_POINTS, replace=False))]

@@ -381,8 +381,26 @@ def _gg_z(XT, centers, whit, logdet, priors, m, maha, z, zmax):
 
 @njit(nogil=True, fastmath=_VEC)
 def _softmax(z, zmax, tot, ibuf, u_new):
-    """``u_new[k] = exp(z[k] - zmax) / sum_k exp(z[k] - zmax)``; ``z`` is overwritten."""
+    """``u_new[k] = exp(z[k] - zmax) / sum_k exp(z[k] - zmax)``; ``z`` is overwritten.
+
+    One cluster (the K = 1 fit of every sweep): where ``z - zmax`` is 0 (``z`` finite) the
+    general path computes ``exp(0) = 1`` (``k = 0``, ``r = 0``, ``p = 1``, scale ``2^0``),
+    ``tot = 1 / 1`` and ``1 * 1``: 1.0 exactly, which is written without the exponential; any
+    other value (a non-finite ``z``) takes the general path."""
     K, n = z.shape
+    if K == 1:
+        zk = z[0]
+        ones = True
+        for j in range(n):
+            if zk[j] - zmax[j] != 0.0:
+                ones = False
+                break
+        if ones:
+            uk = u_new[0]
+            for j in range(n):
+                zk[j] = 0.0
+                uk[j] = 1.0
+            return
     for j in range(n):
         tot[j] = 0.0
     for k in range(K):
