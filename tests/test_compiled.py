@@ -400,3 +400,46 @@ def test_compiled_new_prototype_memberships_are_numpys_bit_for_bit(monkeypatch, 
         b = new_prototype_memberships(XT, centers, d0, 2.0)
         monkeypatch.setattr(_flags, "JIT", True)
         assert a.tobytes() == b.tobytes()
+
+
+def test_one_cluster_s_softmax_is_the_exponential_s_ones(monkeypatch):
+    """K = 1 (the first fit of every sweep): the memberships written as ones are the ones the
+    exponential path gives (the numpy reference's, bit for bit); a row with a non-finite
+    argument takes the exponential path, as before."""
+    mom = _moments(_blobs(4), True)
+    kw = dict(m=2.0, center_power=2.0, tol=1e-4, max_iter=50, min_variance=1e-6, max_condition=1e6, min_mass=4.0)
+    a = gg_fit(mom, np.ones((1, mom.n)), jit=True, **kw)
+    b = gg_fit(mom, np.ones((1, mom.n)), jit=False, **kw)
+    assert a.memberships.tobytes() == b.memberships.tobytes() == np.ones((1, mom.n)).tobytes()
+    z = np.array([[-3.5, 0.25, -700.0, 7.0]])
+    u = np.empty_like(z)
+    C._softmax(z.copy(), z[0].copy(), np.empty(4), np.empty(4, dtype=np.int64), u)
+    assert u.tobytes() == np.ones((1, 4)).tobytes()
+    bad = np.array([[-3.5, -np.inf]])  # the exponential path, as before (a division by zero)
+    with pytest.raises(ZeroDivisionError):
+        C._softmax(bad.copy(), bad[0].copy(), np.empty(2), np.empty(2, dtype=np.int64), np.empty_like(bad))
+
+
+def test_the_plane_search_and_the_spacing_order_points_as_numpy(monkeypatch):
+    """The robust plane's order of the points is np.lexsort's, and the spacing check's distinct
+    rows are np.unique's and give its spacing (ties and zeros of both signs included; numpy's own
+    answer for NaN)."""
+    from kbs.geometry.groundplane import _xyz_order
+    from kbs.units import _distinct_rows, median_spacing
+
+    monkeypatch.setattr(_flags, "JIT", True)
+    rng = np.random.default_rng(5)
+    for t in range(40):
+        X = rng.normal(size=(int(rng.integers(2, 2000)), 3))
+        if t % 2:
+            X = np.round(X * 2.0) / 2.0
+            X[rng.random(len(X)) < 0.2] = -0.0
+        if t % 7 == 3:
+            X[0, 1] = np.nan
+        assert np.array_equal(_xyz_order(X), np.lexsort((X[:, 2], X[:, 1], X[:, 0])))
+        if not np.isnan(X).any():  # the same rows (which zero's sign stands for a row may differ)
+            assert np.array_equal(_distinct_rows(X), np.unique(X, axis=0))
+            a = median_spacing(X)
+            monkeypatch.setattr(_flags, "JIT", False)
+            assert median_spacing(X) == a
+            monkeypatch.setattr(_flags, "JIT", True)
