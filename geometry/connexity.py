@@ -317,6 +317,20 @@ class _Distinct:
     spacing: float
 
 
+def _nearest_other(S: np.ndarray, side: float, tree: cKDTree) -> np.ndarray:
+    """The distance from each row of ``S`` (n, 2) to its nearest other row: ``tree.query(S,
+    k=2)[0][:, 1]``, the same values bit for bit from the compiled grid search
+    (:func:`~kbs.inference._compiled.nearest_other_distances`, cells of ``side``) when the kernels
+    are on and the grid fits (about 4x faster on a vehicle frame's connexity calls)."""
+    if _flags.JIT and S.dtype == np.float64 and np.isfinite(S).all():
+        from kbs.inference import _compiled
+
+        d, ok = _compiled.nearest_other_distances(np.ascontiguousarray(S), float(side))
+        if ok:
+            return d
+    return tree.query(S, k=2)[0][:, 1]
+
+
 def _distinct(P: np.ndarray) -> _Distinct:
     n = P.shape[0]
     lo, hi = P.min(axis=0), P.max(axis=0)
@@ -333,7 +347,7 @@ def _distinct(P: np.ndarray) -> _Distinct:
     tree = _kdtree(S, balanced_tree=False, compact_nodes=False)
     if n < 2:
         return _Distinct(S, np.ones(n, dtype=np.int64), order, np.arange(n), tree, tree, 0.0)
-    d = tree.query(S, k=2)[0][:, 1]
+    d = _nearest_other(S, side, tree)
     if d.min() > 0.0:  # no duplicate: the common case
         return _Distinct(S, np.ones(n, dtype=np.int64), order, np.arange(n), tree, tree, float(np.median(d)))
     # Exact duplicates: merge them (x, y sorted within each cell) and measure again.

@@ -1564,3 +1564,120 @@ def surface_bounds(Q, lo, hi, origin, side, lo_b, hi_b, n3, need, narrow):
         elif n3[a, b] >= need:
             lo[k] = max(lo[k], lo_b[a, b])
             hi[k] = min(hi[k], hi_b[a, b])
+
+
+# -- the distance from each point of a plane to its nearest other point (connexity's spacing) ----
+
+
+@njit(nogil=True)
+def _point_grid(S, lo0, lo1, side, nx, ny):
+    """Cells (nx, ny) of ``side`` from (lo0, lo1) over the rows of ``S`` (n, 2): each row's cell
+    (cx, cy) and the rows cell by cell (``member[start[c]:start[c + 1]]``, cell c = cx ny + cy)."""
+    n = S.shape[0]
+    cx = np.empty(n, dtype=np.int64)
+    cy = np.empty(n, dtype=np.int64)
+    start = np.zeros(nx * ny + 1, dtype=np.int64)
+    for j in range(n):
+        a = min(max(int(math.floor((S[j, 0] - lo0) / side)), 0), nx - 1)
+        b = min(max(int(math.floor((S[j, 1] - lo1) / side)), 0), ny - 1)
+        cx[j] = a
+        cy[j] = b
+        start[a * ny + b + 1] += 1
+    for c in range(nx * ny):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    member = np.empty(n, dtype=np.int64)
+    for j in range(n):
+        c = cx[j] * ny + cy[j]
+        member[fill[c]] = j
+        fill[c] += 1
+    return cx, cy, start, member
+
+
+@njit(cache=True, nogil=True)
+def nearest_other_distances(S, side):
+    """For each row of ``S`` (n, 2), the distance to its nearest other row: what
+    ``cKDTree(S).query(S, k=2)[0][:, 1]`` gives, bit for bit (scipy's squared distance
+    ``(0 + d0 d0) + d1 d1`` with ``d = query - data``, then its square root), by a grid searched
+    ring by ring around each point until no cell beyond the searched block can hold a nearer
+    point (its border farther than the best distance, less a margin of 1e-6 cell).
+
+    The cells: ``side`` shrunk to about one point per occupied cell of a first grid of ``side``
+    (the points of a cluster fill a part of their bounding box). Returns ``(d, ok)``; ``ok`` False
+    (``d`` then unset) when ``side`` is not positive and finite or the first grid would have more
+    than ``8 n + 64`` cells: the caller asks its k-d tree."""
+    n = S.shape[0]
+    d = np.empty(n)
+    if not (side > 0.0 and side < np.inf) or n < 2:
+        return d, False
+    lo0 = S[0, 0]
+    lo1 = S[0, 1]
+    hi0 = lo0
+    hi1 = lo1
+    for j in range(n):
+        lo0 = min(lo0, S[j, 0])
+        lo1 = min(lo1, S[j, 1])
+        hi0 = max(hi0, S[j, 0])
+        hi1 = max(hi1, S[j, 1])
+    limit = 8.0 * n + 64.0
+    fx = math.floor((hi0 - lo0) / side) + 1.0
+    fy = math.floor((hi1 - lo1) / side) + 1.0
+    if not (fx * fy <= limit):
+        return d, False
+    nx = int(fx)
+    ny = int(fy)
+    cx, cy, start, member = _point_grid(S, lo0, lo1, side, nx, ny)
+    occupied = 0
+    for c in range(nx * ny):
+        if start[c + 1] > start[c]:
+            occupied += 1
+    fine = side * math.sqrt(occupied / n)
+    gx = math.floor((hi0 - lo0) / fine) + 1.0
+    gy = math.floor((hi1 - lo1) / fine) + 1.0
+    if fine > 0.0 and gx * gy <= limit:
+        side = fine
+        nx = int(gx)
+        ny = int(gy)
+        cx, cy, start, member = _point_grid(S, lo0, lo1, side, nx, ny)
+    margin = 1e-6 * side
+    for j in range(n):
+        q0 = S[j, 0]
+        q1 = S[j, 1]
+        a = cx[j]
+        b = cy[j]
+        best = np.inf
+        r = 0
+        while True:
+            for ia in range(max(a - r, 0), min(a + r, nx - 1) + 1):
+                ring_row = ia == a - r or ia == a + r
+                for ib in range(max(b - r, 0), min(b + r, ny - 1) + 1):
+                    if not ring_row and ib != b - r and ib != b + r:
+                        continue
+                    c = ia * ny + ib
+                    for t in range(start[c], start[c + 1]):
+                        i = member[t]
+                        if i == j:
+                            continue
+                        d0 = q0 - S[i, 0]
+                        d1 = q1 - S[i, 1]
+                        s = (0.0 + d0 * d0) + d1 * d1
+                        if s < best:
+                            best = s
+            # the nearest a cell outside the searched block can be (none beyond the grid's edge)
+            border = np.inf
+            if a - r > 0:
+                border = min(border, q0 - (lo0 + (a - r) * side))
+            if a + r < nx - 1:
+                border = min(border, (lo0 + (a + r + 1) * side) - q0)
+            if b - r > 0:
+                border = min(border, q1 - (lo1 + (b - r) * side))
+            if b + r < ny - 1:
+                border = min(border, (lo1 + (b + r + 1) * side) - q1)
+            if border == np.inf:
+                break
+            border -= margin
+            if border > 0.0 and best <= border * border:
+                break
+            r += 1
+        d[j] = math.sqrt(best)
+    return d, True

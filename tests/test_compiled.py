@@ -443,3 +443,26 @@ def test_the_plane_search_and_the_spacing_order_points_as_numpy(monkeypatch):
             monkeypatch.setattr(_flags, "JIT", False)
             assert median_spacing(X) == a
             monkeypatch.setattr(_flags, "JIT", True)
+
+
+def test_nearest_other_distances_are_the_kd_tree_s():
+    """Connexity's spacing: the compiled grid search gives cKDTree's k = 2 distances bit for bit
+    (duplicates, ties on a lattice, a thin strip, far from the origin), and declines a grid it
+    cannot lay."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(12)
+    for t in range(60):
+        n = int(rng.integers(2, 1500))
+        S = rng.normal(size=(n, 2)) * rng.uniform(0.01, 50.0, size=2) + rng.uniform(-1e4, 1e4, size=2)
+        if t % 3 == 1:
+            S = np.round(S * 4.0) / 4.0
+        if t % 5 == 2:
+            S[:, 1] = S[0, 1] + (S[:, 1] - S[0, 1]) * 1e-6
+        ext = S.max(axis=0) - S.min(axis=0)
+        side = 4.0 * np.sqrt(np.prod(np.maximum(ext, ext.max() * 1e-3)) / n)
+        d, ok = C.nearest_other_distances(np.ascontiguousarray(S), float(side))
+        assert ok
+        assert d.tobytes() == cKDTree(S).query(S, k=2)[0][:, 1].tobytes()
+    assert not C.nearest_other_distances(np.zeros((3, 2)), 0.0)[1]
+    assert not C.nearest_other_distances(np.array([[0.0, 0.0], [1e9, 1e9]]), 1.0)[1]
