@@ -169,10 +169,49 @@ class LocalGround:
         step = max(1, self.QUERY_BUDGET // k)
         for s in range(0, q, step):
             sel = order[s:s + step]
-            d, i = self.tree.query(Q[sel], k=k, distance_upper_bound=self.radius,
-                                   workers=self.workers if sel.size >= 4096 else 1)
+            d, i = self._knn(Q[sel], k)
             ground[sel], nearest[sel] = self._medians(d.reshape(sel.size, k), i.reshape(sel.size, k), own)
         return ground, nearest
+
+    def _knn(self, Q: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """``tree.query(Q, k, distance_upper_bound=radius)`` as (q, k) arrays: the same distances
+        and indices from the compiled grid search (:func:`~kbs.inference._compiled.grid_knn`) for
+        the rows whose answer is unique (no near-ties among their k + 1 nearest, none at the
+        radius), from the k-d tree for the others and when the kernels are off."""
+        grid = self._grid if _flags.JIT and np.isfinite(Q).all() else None
+        if grid is None:
+            d, i = self.tree.query(Q, k=k, distance_upper_bound=self.radius,  # type: ignore[attr-defined]
+                                   workers=self.workers if Q.shape[0] >= 4096 else 1)
+            return d.reshape(Q.shape[0], k), i.reshape(Q.shape[0], k)
+        Q = np.ascontiguousarray(Q)
+        T = self.tree.data  # type: ignore[attr-defined]
+        if self.workers > 1 and Q.shape[0] >= 4096:  # the kernel releases the GIL: rows in threads, the same answers
+            from concurrent.futures import ThreadPoolExecutor
+
+            with ThreadPoolExecutor(self.workers) as pool:
+                parts = list(pool.map(lambda rows: _compiled.grid_knn(Q[rows], T, *grid, k, float(self.radius)),
+                                      np.array_split(np.arange(Q.shape[0]), self.workers)))
+            d, i, ok = (np.concatenate([p[j] for p in parts]) for j in range(3))
+        else:
+            d, i, ok = _compiled.grid_knn(Q, T, *grid, k, float(self.radius))
+        redo = np.flatnonzero(~ok)
+        if redo.size:
+            rd, ri = self.tree.query(Q[redo], k=k, distance_upper_bound=self.radius,  # type: ignore[attr-defined]
+                                     workers=self.workers if redo.size >= 4096 else 1)
+            d[redo], i[redo] = rd.reshape(redo.size, k), ri.reshape(redo.size, k)
+        return d, i
+
+    @functools.cached_property
+    def _grid(self) -> tuple | None:
+        """The compiled search's grid over the surface's plane coordinates (built once, at the
+        first query), or None when none fits."""
+        T = self.tree.data  # type: ignore[attr-defined]
+        if T.shape[0] < 2 or not np.isfinite(T).all():
+            return None
+        extent = T.max(axis=0) - T.min(axis=0)
+        area = float(np.prod(np.maximum(extent, extent.max() * 1e-3)))
+        *grid, ok = _compiled.plane_grid(np.ascontiguousarray(T), 2.0 * float(np.sqrt(area / T.shape[0])))
+        return tuple(grid) if ok else None
 
     def _medians(self, d: np.ndarray, i: np.ndarray, own: int) -> tuple[np.ndarray, np.ndarray]:
         """The median heights and nearest positions of a k-nearest query (``d``, ``i`` (q, k),

@@ -1681,3 +1681,145 @@ def nearest_other_distances(S, side):
             r += 1
         d[j] = math.sqrt(best)
     return d, True
+
+
+# -- the k nearest surface points within a radius (the local ground surface's queries) ---------
+
+
+@njit(cache=True, nogil=True)
+def plane_grid(T, side, per_cell=4.0):
+    """A grid over the rows of ``T`` (m, 2) for :func:`grid_knn`: cells of about ``side``, shrunk
+    to about 4 points per occupied cell. Returns ``(lo0, lo1, side, nx, ny, start, member, ok)``;
+    ``ok`` False when no grid of at most ``8 m + 64`` cells fits."""
+    m = T.shape[0]
+    e = np.zeros(0, dtype=np.int64)
+    if m < 1 or not (side > 0.0 and side < np.inf):
+        return 0.0, 0.0, 0.0, 0, 0, e, e, False
+    lo0 = T[0, 0]
+    lo1 = T[0, 1]
+    hi0 = lo0
+    hi1 = lo1
+    for j in range(m):
+        lo0 = min(lo0, T[j, 0])
+        lo1 = min(lo1, T[j, 1])
+        hi0 = max(hi0, T[j, 0])
+        hi1 = max(hi1, T[j, 1])
+    limit = 8.0 * m + 64.0
+    fx = math.floor((hi0 - lo0) / side) + 1.0
+    fy = math.floor((hi1 - lo1) / side) + 1.0
+    if not (fx * fy <= limit):
+        return 0.0, 0.0, 0.0, 0, 0, e, e, False
+    nx = int(fx)
+    ny = int(fy)
+    cx, cy, start, member = _point_grid(T, lo0, lo1, side, nx, ny)
+    occupied = 0
+    for c in range(nx * ny):
+        if start[c + 1] > start[c]:
+            occupied += 1
+    fine = side * math.sqrt(per_cell * occupied / m)
+    gx = math.floor((hi0 - lo0) / fine) + 1.0
+    gy = math.floor((hi1 - lo1) / fine) + 1.0
+    if fine > 0.0 and gx * gy <= limit:
+        side = fine
+        nx = int(gx)
+        ny = int(gy)
+        cx, cy, start, member = _point_grid(T, lo0, lo1, side, nx, ny)
+    return lo0, lo1, side, nx, ny, start, member, True
+
+
+@njit(cache=True, nogil=True)
+def grid_knn(Q, T, lo0, lo1, side, nx, ny, start, member, k, radius):
+    """``cKDTree(T).query(Q, k, distance_upper_bound=radius)`` over the grid of
+    :func:`plane_grid`: ``(d, i, ok)`` with ``d`` (q, k) the distances nearest first (scipy's
+    ``sqrt((0 + d0 d0) + d1 d1)``, ``d = query - data``), inf and ``m`` where fewer than k points
+    lie nearer than ``radius``. A row is ``ok`` only when its answer is unique: no two of its
+    k + 1 nearest within 1e-12 of each other (relative, squared distances), none within 1e-9 of
+    the radius; the caller asks its k-d tree for the others."""
+    q = Q.shape[0]
+    m = T.shape[0]
+    d = np.full((q, k), np.inf)
+    idx = np.full((q, k), m, dtype=np.int64)
+    ok = np.ones(q, dtype=np.bool_)
+    r2 = radius * radius
+    near_r2 = r2 * (1.0 - 1e-9)
+    far_r2 = r2 * (1.0 + 1e-9)
+    margin = 1e-6 * side
+    kk = k + 1
+    bs = np.empty(kk)
+    bi = np.empty(kk, dtype=np.int64)
+    for j in range(q):
+        q0 = Q[j, 0]
+        q1 = Q[j, 1]
+        fa = math.floor((q0 - lo0) / side)
+        fb = math.floor((q1 - lo1) / side)
+        if not (abs(fa) < 1e15 and abs(fb) < 1e15):
+            ok[j] = False
+            continue
+        a = int(fa)
+        b = int(fb)
+        cnt = 0  # the kk best so far, sorted by squared distance
+        r = 0
+        while True:
+            a0 = max(a - r, 0)
+            a1 = min(a + r, nx - 1)
+            b0 = max(b - r, 0)
+            b1 = min(b + r, ny - 1)
+            for ia in range(a0, a1 + 1):
+                ring_row = ia == a - r or ia == a + r
+                ib = b0
+                while ib <= b1:
+                    if not ring_row and ib != b - r and ib != b + r:
+                        ib = b + r if b + r <= b1 else b1 + 1  # the row's inner cells were searched
+                        continue
+                    c = ia * ny + ib
+                    for t in range(start[c], start[c + 1]):
+                        i = member[t]
+                        d0 = q0 - T[i, 0]
+                        d1 = q1 - T[i, 1]
+                        s = (0.0 + d0 * d0) + d1 * d1
+                        if s >= far_r2:
+                            continue
+                        if cnt == kk and s >= bs[kk - 1]:
+                            continue
+                        p = cnt if cnt < kk else kk - 1
+                        while p > 0 and bs[p - 1] > s:
+                            bs[p] = bs[p - 1]
+                            bi[p] = bi[p - 1]
+                            p -= 1
+                        bs[p] = s
+                        bi[p] = i
+                        if cnt < kk:
+                            cnt += 1
+                    ib += 1
+            # the nearest a point outside the searched block can be (none beyond the grid's edge)
+            border = np.inf
+            if a - r > 0:
+                border = min(border, q0 - (lo0 + (a - r) * side))
+            if a + r < nx - 1:
+                border = min(border, (lo0 + (a + r + 1) * side) - q0)
+            if b - r > 0:
+                border = min(border, q1 - (lo1 + (b - r) * side))
+            if b + r < ny - 1:
+                border = min(border, (lo1 + (b + r + 1) * side) - q1)
+            if border == np.inf:
+                break
+            border -= margin
+            if border > 0.0:
+                b2 = border * border
+                if b2 >= far_r2:
+                    break
+                if cnt == kk and bs[kk - 1] <= b2:
+                    break
+            r += 1
+        for p in range(cnt):
+            if near_r2 <= bs[p] < far_r2:
+                ok[j] = False
+            if p > 0 and bs[p] - bs[p - 1] <= 1e-12 * bs[p]:
+                ok[j] = False
+        if not ok[j]:
+            continue
+        for p in range(min(cnt, k)):
+            if bs[p] < r2:
+                d[j, p] = math.sqrt(bs[p])
+                idx[j, p] = bi[p]
+    return d, idx, ok

@@ -466,3 +466,27 @@ def test_nearest_other_distances_are_the_kd_tree_s():
         assert d.tobytes() == cKDTree(S).query(S, k=2)[0][:, 1].tobytes()
     assert not C.nearest_other_distances(np.zeros((3, 2)), 0.0)[1]
     assert not C.nearest_other_distances(np.array([[0.0, 0.0], [1e9, 1e9]]), 1.0)[1]
+
+
+def test_grid_knn_rows_are_the_kd_tree_s():
+    """The local ground surface's queries: the compiled grid search's rows it vouches for are
+    cKDTree's (k = 1, 16, 128; within a radius; queries off the grid; a lattice full of ties,
+    whose rows it leaves to the tree), distances and indices bit for bit."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(3)
+    for t in range(18):
+        m = int(rng.integers(1, 2500))
+        T = rng.normal(size=(m, 2)) * rng.uniform(0.5, 30.0, size=2)
+        if t % 3 == 1:
+            T = np.round(T * 4.0) / 4.0
+        Q = np.vstack([T[rng.integers(0, m, 150)] + rng.normal(size=(150, 2)) * 0.3, rng.normal(size=(30, 2)) * 60.0])
+        k, radius = [1, 16, 128][t % 3], [3.0, 1.0, 0.2][(t // 3) % 3]
+        ext = T.max(axis=0) - T.min(axis=0)
+        *grid, ok = C.plane_grid(np.ascontiguousarray(T), 2.0 * float(np.sqrt(np.prod(np.maximum(ext, ext.max() * 1e-3)) / m)))
+        assert ok
+        d, i, rows = C.grid_knn(np.ascontiguousarray(Q), np.ascontiguousarray(T), *grid, k, radius)
+        rd, ri = cKDTree(T).query(Q, k=k, distance_upper_bound=radius)
+        rd, ri = rd.reshape(len(Q), k), ri.reshape(len(Q), k)
+        assert rows.mean() > (0.5 if t % 3 == 1 else 0.95)
+        assert d[rows].tobytes() == rd[rows].tobytes() and np.array_equal(i[rows], ri[rows])
