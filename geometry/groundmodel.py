@@ -142,12 +142,16 @@ class LocalGround:
     def n_points(self) -> int:
         return int(self.index.size)
 
-    def query(self, P: np.ndarray, exclude: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def query(self, P: np.ndarray, exclude: str | None = None, *,
+              nearest_of: str = "point") -> tuple[np.ndarray, np.ndarray]:
         """For points ``P`` (q, 3): the local ground height under each (NaN where no ground point
         lies within ``radius``) and the position in :attr:`index` of its nearest ground point (-1
         where none). With ``exclude`` (a cluster id), that cluster's own points are left out: among
         the ``EXCLUDE_FACTOR x neighbours`` nearest, the nearest ``neighbours`` of other clusters
-        count."""
+        count. ``nearest_of``: what the caller uses of the nearest surface point, its position
+        (``'point'``), only its cluster (``'owner'``: of points at the same distance, any one of the
+        same cluster may be given) or nothing (``'none'``: any one of them)."""
+        first = {"point": 0, "owner": 1, "none": 2}[nearest_of]
         P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
         q = P.shape[0]
         ground = np.full(q, np.nan)
@@ -169,15 +173,17 @@ class LocalGround:
         step = max(1, self.QUERY_BUDGET // k)
         for s in range(0, q, step):
             sel = order[s:s + step]
-            d, i = self._knn(Q[sel], k)
+            d, i = self._knn(Q[sel], k, own, first)
             ground[sel], nearest[sel] = self._medians(d.reshape(sel.size, k), i.reshape(sel.size, k), own)
         return ground, nearest
 
-    def _knn(self, Q: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """``tree.query(Q, k, distance_upper_bound=radius)`` as (q, k) arrays: the same distances
-        and indices from the compiled grid search (:func:`~kbs.inference._compiled.grid_knn`) for
-        the rows whose answer is unique (no near-ties among their k + 1 nearest, none at the
-        radius), from the k-d tree for the others and when the kernels are off."""
+    def _knn(self, Q: np.ndarray, k: int, own: int, first: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """``tree.query(Q, k, distance_upper_bound=radius)`` as (q, k) arrays, or the compiled grid
+        search's answer (:func:`~kbs.inference._compiled.grid_knn`) for the rows where
+        :meth:`_medians` (``own``) gives both the same outputs (the nearest point's position, its
+        cluster or nothing: ``first`` 0, 1, 2, see :meth:`query`): the same distances, and the same
+        indices up to the order of equal distances where that order changes nothing; the k-d tree
+        answers the other rows, and all when the kernels are off."""
         grid = self._grid if _flags.JIT and np.isfinite(Q).all() else None
         if grid is None:
             d, i = self.tree.query(Q, k=k, distance_upper_bound=self.radius,  # type: ignore[attr-defined]
@@ -185,15 +191,17 @@ class LocalGround:
             return d.reshape(Q.shape[0], k), i.reshape(Q.shape[0], k)
         Q = np.ascontiguousarray(Q)
         T = self.tree.data  # type: ignore[attr-defined]
+        owners = np.ascontiguousarray(self.owners if self.owners is not None else np.zeros(0), dtype=np.int64)
+        rest = (float(self.radius), self.heights, owners, int(own), int(self.neighbours), int(first))
         if self.workers > 1 and Q.shape[0] >= 4096:  # the kernel releases the GIL: rows in threads, the same answers
             from concurrent.futures import ThreadPoolExecutor
 
             with ThreadPoolExecutor(self.workers) as pool:
-                parts = list(pool.map(lambda rows: _compiled.grid_knn(Q[rows], T, *grid, k, float(self.radius)),
+                parts = list(pool.map(lambda rows: _compiled.grid_knn(Q[rows], T, *grid, k, *rest),
                                       np.array_split(np.arange(Q.shape[0]), self.workers)))
             d, i, ok = (np.concatenate([p[j] for p in parts]) for j in range(3))
         else:
-            d, i, ok = _compiled.grid_knn(Q, T, *grid, k, float(self.radius))
+            d, i, ok = _compiled.grid_knn(Q, T, *grid, k, *rest)
         redo = np.flatnonzero(~ok)
         if redo.size:
             rd, ri = self.tree.query(Q[redo], k=k, distance_upper_bound=self.radius,  # type: ignore[attr-defined]
@@ -448,5 +456,5 @@ class LocalGround:
         """Heights (q,) of points ``P`` above the local ground surface (NaN where it is unknown);
         ``exclude``: a cluster whose own points do not count (see :meth:`query`)."""
         P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
-        ground, _ = self.query(P, exclude)
+        ground, _ = self.query(P, exclude, nearest_of="none")
         return (P - self.point) @ self.normal - ground

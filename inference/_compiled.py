@@ -1727,14 +1727,65 @@ def plane_grid(T, side, per_cell=4.0):
     return lo0, lo1, side, nx, ny, start, member, True
 
 
+@njit(nogil=True)
+def _near(a, b):
+    return b - a <= 1e-12 * b
+
+
+@njit(nogil=True)
+def _knn_ambiguous(bs, bi, cnt, k, near_r2, far_r2, heights, owners, own, neighbours, first):
+    """Whether the k-d tree's order of equal distances could change a row's outputs (see
+    :func:`grid_knn`); ``bs``/``bi`` the ``cnt`` (at most k + 1) nearest, sorted."""
+    for p in range(cnt):
+        if near_r2 <= bs[p] < far_r2:
+            return True
+    if cnt == k + 1 and _near(bs[k - 1], bs[k]):
+        return True
+    n = min(cnt, k)
+    kept = 0
+    f = -1
+    first_open = False  # still in the group of the first kept point
+    odd = False  # a kept height is zero or NaN
+    two = False  # a group holds two kept points
+    g_kept = 0  # kept points in the current group
+    for p in range(n):
+        if p > 0 and not _near(bs[p - 1], bs[p]):
+            g_kept = 0
+            first_open = False
+        if own >= 0 and owners[bi[p]] == own:
+            continue
+        if kept >= neighbours:  # the next one not of own: open only if it shares a kept one's group
+            if g_kept > 0:
+                return True
+            break
+        if kept == 0:
+            first_open = True
+            f = bi[p]
+        elif first_open and (first == 0 or (first == 1 and owners[bi[p]] != owners[f])):
+            return True  # two candidates for the first kept point (of two owners)
+        v = heights[bi[p]]
+        if not (v < 0.0 or v > 0.0):
+            odd = True
+        kept += 1
+        g_kept += 1
+        if g_kept > 1:
+            two = True
+    return odd and two
+
+
 @njit(cache=True, nogil=True)
-def grid_knn(Q, T, lo0, lo1, side, nx, ny, start, member, k, radius):
+def grid_knn(Q, T, lo0, lo1, side, nx, ny, start, member, k, radius, heights, owners, own, neighbours, first):
     """``cKDTree(T).query(Q, k, distance_upper_bound=radius)`` over the grid of
     :func:`plane_grid`: ``(d, i, ok)`` with ``d`` (q, k) the distances nearest first (scipy's
     ``sqrt((0 + d0 d0) + d1 d1)``, ``d = query - data``), inf and ``m`` where fewer than k points
-    lie nearer than ``radius``. A row is ``ok`` only when its answer is unique: no two of its
-    k + 1 nearest within 1e-12 of each other (relative, squared distances), none within 1e-9 of
-    the radius; the caller asks its k-d tree for the others."""
+    lie nearer than ``radius``. A row is ``ok`` when :func:`local_medians_fast` (``heights``,
+    ``owners``, ``own``, ``neighbours``) gives it the k-d tree's outputs whatever the order of
+    equal distances: the k nearest are one set (the k-th and the next not within 1e-12 of each
+    other, relative, squared), none lies within 1e-9 of the radius, the kept points (the first
+    ``neighbours`` not of ``own``) are one set whatever the order within a group of near-equal
+    distances, and so is the first of them (``first`` 0: one point; 1: its owner, ``owners``, one
+    cluster; 2: not asked), and no group holds two kept points when a kept height is zero or NaN
+    (their order then decides the sort). The caller asks its k-d tree for the other rows."""
     q = Q.shape[0]
     m = T.shape[0]
     d = np.full((q, k), np.inf)
@@ -1811,12 +1862,8 @@ def grid_knn(Q, T, lo0, lo1, side, nx, ny, start, member, k, radius):
                 if cnt == kk and bs[kk - 1] <= b2:
                     break
             r += 1
-        for p in range(cnt):
-            if near_r2 <= bs[p] < far_r2:
-                ok[j] = False
-            if p > 0 and bs[p] - bs[p - 1] <= 1e-12 * bs[p]:
-                ok[j] = False
-        if not ok[j]:
+        if _knn_ambiguous(bs, bi, cnt, k, near_r2, far_r2, heights, owners, own, neighbours, first):
+            ok[j] = False
             continue
         for p in range(min(cnt, k)):
             if bs[p] < r2:

@@ -42,8 +42,8 @@ def receive(leaves: list[Leaf], moved_in: dict, note: str) -> None:
         leaves[t] = leaves[t].with_record(notes=(note.format(n=f"{n_in:,}"),))
 
 
-def surface_batches(X: np.ndarray, todo: Sequence[Leaf], model,
-                    may_matter: Callable | None = None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+def surface_batches(X: np.ndarray, todo: Sequence[Leaf], model, may_matter: Callable | None = None,
+                    nearest_of: str = "point") -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """For each leaf of ``todo`` in order: (heights above the local surface, positions of the
     nearest surface points) of its points, asked for batches of leaves of about
     :data:`SURFACE_BATCH` points together (few small queries, bounded temporaries).
@@ -51,7 +51,8 @@ def surface_batches(X: np.ndarray, todo: Sequence[Leaf], model,
     ``may_matter(hp, lo, hi)``: which points the caller needs, from their heights above the
     ground plane and the bounds of the surface under them (:meth:`LocalGround.height_bounds`);
     the others are not asked for and come back as NaN (height) and -1 (nearest). The caller
-    promises that their outcome is the same either way (the bounds decide it)."""
+    promises that their outcome is the same either way (the bounds decide it). ``nearest_of``:
+    what the caller uses of the nearest surface points (:meth:`LocalGround.query`)."""
     batch: list[Leaf] = []
     size = 0
     for i, lf in enumerate(todo):
@@ -63,13 +64,13 @@ def surface_batches(X: np.ndarray, todo: Sequence[Leaf], model,
         hp = (P - model.point) @ model.normal
         bounds = model.height_bounds(P) if may_matter is not None else None
         if bounds is None or may_matter is None:
-            ground, nearest = model.query(P)
+            ground, nearest = model.query(P, nearest_of=nearest_of)
             h = hp - ground
         else:
             ask = np.flatnonzero(may_matter(hp, *bounds))
             h = np.full(P.shape[0], np.nan)
             nearest = np.full(P.shape[0], -1, dtype=np.int64)
-            ground, nearest[ask] = model.query(P[ask])
+            ground, nearest[ask] = model.query(P[ask], nearest_of=nearest_of)
             h[ask] = hp[ask] - ground
         stop = 0
         for b in batch:

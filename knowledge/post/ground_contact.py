@@ -89,7 +89,8 @@ class GroundContact(PostStep):
         # a point whose surface bounds put it farther than the tolerance from any height the
         # surface can have under it does not move: it is not asked for
         near = lambda hp, lo, hi: (hp - hi <= tol) & (hp - lo >= -tol)  # noqa: E731
-        batches = surface_batches(ctx.X, [leaves[li] for li in todo], surface.model, near)
+        batches = surface_batches(ctx.X, [leaves[li] for li in todo], surface.model, near,
+                                  nearest_of="owner")  # only the nearest point's cluster is used
         for li, (h, nearest) in zip(todo, batches):
             lf = leaves[li]
             move = np.abs(np.nan_to_num(h, nan=np.inf)) <= tol

@@ -70,7 +70,7 @@ class GroundRelease(PostStep):
         # queries for batches of clusters (points move only after the loop)
         tol = self.tolerance
         above = lambda hp, lo, hi: hp - lo > tol  # noqa: E731 (no surface height under it is low enough: stays)
-        batches = surface_batches(X, [leaves[li] for li in todo], surface.model, above)
+        batches = surface_batches(X, [leaves[li] for li in todo], surface.model, above, nearest_of="none")
         for li, (h, _) in zip(todo, batches):
             lf = leaves[li]
             move = np.nan_to_num(h, nan=-np.inf) > tol
