@@ -323,16 +323,13 @@ def median_spacing(X: np.ndarray, *, seed: int = 0) -> float | None:
 
 
 def _distinct_rows(X: np.ndarray) -> np.ndarray:
-    """The distinct rows of ``X`` (n, 3), as ``np.unique(X, axis=0)`` (rows equal by value, sorted
-    by x, then y, then z): by the compiled stable order and a comparison of neighbours when the
-    kernels are on and ``X`` is finite (10,000 rows: about 5 ms -> 1 ms)."""
-    from kbs.inference import _flags
-
-    if not (_flags.JIT and X.ndim == 2 and X.shape[0] > 1 and np.isfinite(X).all()):
+    """The distinct rows of ``X`` (n, 3), as ``np.unique(X, axis=0)`` (rows equal by value, in the
+    order of x, then y, then z; which zero's sign stands for a row may differ): by a lexicographic
+    sort and a comparison of neighbours, without np.unique's structured copy (10,000 rows: 5.5 ->
+    2 ms). NaN rows: np.unique's own answer."""
+    if X.ndim != 2 or X.shape[0] < 2 or not np.isfinite(X).all():
         return np.unique(X, axis=0)
-    from kbs.inference import _compiled
-
-    S = X[_compiled.lex_order(np.ascontiguousarray(X))]
+    S = X[np.lexsort(X.T[::-1])]
     first = np.ones(S.shape[0], dtype=bool)
     first[1:] = (S[1:] != S[:-1]).any(axis=1)
     return S[first]
