@@ -842,7 +842,7 @@ def test_post_steps_ask_only_for_the_points_the_bounds_leave_open(monkeypatch, s
     rb = load_rule_base("outdoor")
     asked = []
     real = LocalGround.query
-    monkeypatch.setattr(LocalGround, "query", lambda self, P, exclude=None: asked.append(len(P)) or real(self, P, exclude))
+    monkeypatch.setattr(LocalGround, "query", lambda self, P, exclude=None, **kw: asked.append(len(P)) or real(self, P, exclude, **kw))
     fast = Interpreter(rb).run(X)
     n_fast = sum(asked)
     asked.clear()
