@@ -197,11 +197,11 @@ class LocalGround:
             from concurrent.futures import ThreadPoolExecutor
 
             with ThreadPoolExecutor(self.workers) as pool:
-                parts = list(pool.map(lambda rows: _compiled.grid_knn(Q[rows], T, *grid, k, *rest),
+                parts = list(pool.map(lambda rows: _compiled.grid_knn(Q[rows], T, *grid, k, *rest),  # type: ignore[call-arg]
                                       np.array_split(np.arange(Q.shape[0]), self.workers)))
             d, i, ok = (np.concatenate([p[j] for p in parts]) for j in range(3))
         else:
-            d, i, ok = _compiled.grid_knn(Q, T, *grid, k, *rest)
+            d, i, ok = _compiled.grid_knn(Q, T, *grid, k, *rest)  # type: ignore[call-arg]
         redo = np.flatnonzero(~ok)
         if redo.size:
             rd, ri = self.tree.query(Q[redo], k=k, distance_upper_bound=self.radius,  # type: ignore[attr-defined]
