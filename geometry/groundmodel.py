@@ -115,6 +115,11 @@ class LocalGround:
 
     #: how many more neighbours are fetched when a cluster's own points are left out
     EXCLUDE_FACTOR = 8
+    #: the grid search answers while it leaves at most this share of its rows to the k-d tree
+    #: (duplicated plane positions, as in GndNet's scans, tie many distances: each row left is asked
+    #: twice), judged once it has been asked this many rows; the answers are the same either way
+    GRID_MAX_LEFT = 0.1
+    GRID_TRIAL = 2000
     #: neighbours fetched per k-d tree query call (16 bytes each): queries go in chunks of
     #: ``QUERY_BUDGET // k`` points
     QUERY_BUDGET = 1 << 20
@@ -183,8 +188,11 @@ class LocalGround:
         :meth:`_medians` (``own``) gives both the same outputs (the nearest point's position, its
         cluster or nothing: ``first`` 0, 1, 2, see :meth:`query`): the same distances, and the same
         indices up to the order of equal distances where that order changes nothing; the k-d tree
-        answers the other rows, and all when the kernels are off."""
-        grid = self._grid if _flags.JIT and np.isfinite(Q).all() else None
+        answers the other rows, and all when the kernels are off or the grid left it more than
+        :attr:`GRID_MAX_LEFT` of the rows so far."""
+        tally = self._knn_tally  # rows asked of the grid, rows it left to the tree
+        useful = tally[0] < self.GRID_TRIAL or tally[1] <= self.GRID_MAX_LEFT * tally[0]
+        grid = self._grid if _flags.JIT and useful and np.isfinite(Q).all() else None
         if grid is None:
             d, i = self.tree.query(Q, k=k, distance_upper_bound=self.radius,  # type: ignore[attr-defined]
                                    workers=self.workers if Q.shape[0] >= 4096 else 1)
@@ -203,11 +211,18 @@ class LocalGround:
         else:
             d, i, ok = _compiled.grid_knn(Q, T, *grid, k, *rest)  # type: ignore[call-arg]
         redo = np.flatnonzero(~ok)
+        tally[0] += Q.shape[0]
+        tally[1] += redo.size
         if redo.size:
             rd, ri = self.tree.query(Q[redo], k=k, distance_upper_bound=self.radius,  # type: ignore[attr-defined]
                                      workers=self.workers if redo.size >= 4096 else 1)
             d[redo], i[redo] = rd.reshape(redo.size, k), ri.reshape(redo.size, k)
         return d, i
+
+    @functools.cached_property
+    def _knn_tally(self) -> list[int]:
+        """[rows asked of the grid search, rows it left to the k-d tree] (see :meth:`_knn`)."""
+        return [0, 0]
 
     @functools.cached_property
     def _grid(self) -> tuple | None:
