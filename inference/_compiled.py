@@ -1687,10 +1687,13 @@ def nearest_other_distances(S, side):
 
 
 @njit(cache=True, nogil=True)
-def plane_grid(T, side, per_cell=4.0):
+def plane_grid(T, side, per_cell=4.0, max_dup=0.01):
     """A grid over the rows of ``T`` (m, 2) for :func:`grid_knn`: cells of about ``side``, shrunk
-    to about 4 points per occupied cell. Returns ``(lo0, lo1, side, nx, ny, start, member, ok)``;
-    ``ok`` False when no grid of at most ``8 m + 64`` cells fits."""
+    to about ``per_cell`` points per occupied cell. Returns ``(lo0, lo1, side, nx, ny, start,
+    member, ok)``; ``ok`` False when no grid of at most ``8 m + 64`` cells fits, or when more than
+    ``max_dup`` of the rows repeat an earlier row's position (their distances tie, and rows with
+    ties in the wrong places go to the k-d tree: a third of a GndNet scan's points are
+    duplicated)."""
     m = T.shape[0]
     e = np.zeros(0, dtype=np.int64)
     if m < 1 or not (side > 0.0 and side < np.inf):
@@ -1724,6 +1727,16 @@ def plane_grid(T, side, per_cell=4.0):
         nx = int(gx)
         ny = int(gy)
         cx, cy, start, member = _point_grid(T, lo0, lo1, side, nx, ny)
+    dup = 0  # rows at the plane position of an earlier row: their distances tie, the k-d tree answers them
+    for c in range(nx * ny):
+        for t in range(start[c] + 1, start[c + 1]):
+            i = member[t]
+            for u in range(start[c], t):
+                if T[member[u], 0] == T[i, 0] and T[member[u], 1] == T[i, 1]:
+                    dup += 1
+                    break
+    if dup > max_dup * m:
+        return 0.0, 0.0, 0.0, 0, 0, e, e, False
     return lo0, lo1, side, nx, ny, start, member, True
 
 

@@ -488,8 +488,11 @@ def test_grid_knn_rows_give_the_kd_tree_s_medians():
         own, k = (-1, 16) if t % 2 else (int(t % 4), 128)
         radius = [3.0, 1.0, 0.2][(t // 2) % 3]
         ext = T.max(axis=0) - T.min(axis=0)
-        *grid, ok = C.plane_grid(np.ascontiguousarray(T), 2.0 * float(np.sqrt(np.prod(np.maximum(ext, ext.max() * 1e-3)) / m)))
+        side = 2.0 * float(np.sqrt(np.prod(np.maximum(ext, ext.max() * 1e-3)) / m))
+        *grid, ok = C.plane_grid(np.ascontiguousarray(T), side, 4.0, 1.0)  # duplicates allowed: the ties tested
         assert ok
+        if t % 3 == 1:
+            assert not C.plane_grid(np.ascontiguousarray(T), side)[-1]  # a surface of duplicated positions: no grid
         first = t % 3  # the nearest point asked for: its position, its owner, nothing
         d, i, rows = C.grid_knn(np.ascontiguousarray(Q), np.ascontiguousarray(T), *grid, k, radius, heights, owners, own,
                                 16, first)
