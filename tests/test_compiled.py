@@ -491,8 +491,6 @@ def test_grid_knn_rows_give_the_kd_tree_s_medians():
         side = 2.0 * float(np.sqrt(np.prod(np.maximum(ext, ext.max() * 1e-3)) / m))
         *grid, ok = C.plane_grid(np.ascontiguousarray(T), side, 4.0, 1.0)  # duplicates allowed: the ties tested
         assert ok
-        if t % 3 == 1:
-            assert not C.plane_grid(np.ascontiguousarray(T), side)[-1]  # a surface of duplicated positions: no grid
         first = t % 3  # the nearest point asked for: its position, its owner, nothing
         d, i, rows = C.grid_knn(np.ascontiguousarray(Q), np.ascontiguousarray(T), *grid, k, radius, heights, owners, own,
                                 16, first)
@@ -507,3 +505,6 @@ def test_grid_knn_rows_give_the_kd_tree_s_medians():
             assert np.array_equal(a[1], b[1])
         elif first == 1:
             assert np.array_equal(owners[a[1][found]], owners[b[1][found]])
+    T = rng.normal(size=(1000, 2))
+    assert C.plane_grid(T, 0.2)[-1]
+    assert not C.plane_grid(np.vstack([T, T[:50]]), 0.2)[-1]  # 5 % of the positions repeated: no grid
