@@ -466,8 +466,14 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
         from kbs.tiles.store import TileStore
 
         store = TileStore(out_dir / f"{cloud.stem}.tiles", segmenter)
-        seg = _segment_tiled(segmenter, pc.xyz, cloud, tiling, quiet=quiet, t0=t0, store=store, spilled=spilled)
-        spacing, far = [], []
+        with warnings.catch_warnings(record=True) as caught:  # the whole cloud's spacing, judged once
+            warnings.simplefilter("always", SpacingWarning)
+            seg = _segment_tiled(segmenter, pc.xyz, cloud, tiling, quiet=quiet, t0=t0, store=store, spilled=spilled)
+        spacing = [w.message for w in caught if isinstance(w.message, SpacingWarning)]
+        far = []
+        for w in caught:
+            if not isinstance(w.message, SpacingWarning):
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     t1 = time.perf_counter()
     if not to_stdout:
         check_writable_folder(out_dir, create=True)  # checked by `kbs run` already; here for other callers

@@ -316,3 +316,20 @@ def test_a_dask_worker_killed_mid_run_gives_the_same_output(rocks, tmp_path, mon
     assert r.returncode == 0, r.stderr
     assert marker.read_text() == "killed"  # a worker died in a tile; Dask ran the tile again on another
     assert _normalised(tmp_path / "dask", "rocks") == _normalised(tmp_path / "here", "rocks")
+
+
+def test_a_tiled_cloud_in_the_wrong_unit_is_warned_of_once_not_once_per_tile(rocks):
+    """The spacing of a tiled cloud is judged once, on the whole cloud (a cloud in mm read as m
+    used to warn once per tile: 764 warnings for PDAL's simple.las)."""
+    import warnings
+
+    from kbs.units import SpacingWarning
+
+    X = np.column_stack([_vertex(rocks[0])[k] for k in "xyz"]).astype(np.float64) * 1000.0  # m written as mm
+    with kbs.Segmenter("outdoor", jobs=1) as seg, warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = segment_tiled(seg, X, 6000.0, 1500.0)
+    spacing = [w.message for w in caught if isinstance(w.message, SpacingWarning)]
+    assert len(out.tiling["tiles"]) == 4
+    assert len(spacing) == 1, [str(w.message) for w in caught]
+    assert spacing[0].spacing > 2.0 and "mm" in spacing[0].suggested

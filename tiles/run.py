@@ -16,6 +16,7 @@ import functools
 import logging
 import os
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -171,6 +172,7 @@ def segment_tiled(segmenter: Segmenter, points: Any, size: float, buffer: float 
     """
     t0 = time.perf_counter()
     X = points if plan is not None else as_points(points)
+    warn_spacing(segmenter, X)
     grid, tiles = plan if plan is not None else plan_tiles(segmenter, X, size, buffer)
     given = scene_ground(segmenter, X)
     keys = [store.key(t, X, given) for t in tiles] if store is not None else [None] * len(tiles)
@@ -216,12 +218,33 @@ def worker_segmenter(rules: str, sensor: tuple[float, float, float], plugins: tu
     return Segmenter(rules, jobs=1, sensor=sensor, plugins=plugins)
 
 
+def warn_spacing(segmenter: Segmenter, X: np.ndarray) -> None:
+    """Warn once, for the whole cloud, when its point spacing does not fit the rule base (a
+    :class:`kbs.units.SpacingWarning`, as :meth:`Segmenter.segment` warns of an untiled cloud). The
+    tiles do not warn: a tile at the cloud's edge may be sparse where the cloud is not, and a cloud
+    in the wrong unit would warn once per tile."""
+    from kbs.units import check_spacing
+
+    target = segmenter.length_unit
+    if target is None or len(X) == 0:
+        return
+    rb = segmenter.rule_base
+    problem = check_spacing(X, scan=None, target=target, declared=rb.spacing, rule_base=rb.name)
+    if problem is not None:
+        warnings.warn(problem, stacklevel=3)
+
+
 def _segment_tile(segmenter: Segmenter, points: np.ndarray, given: tuple[Any, GroundFacts]) -> Segmentation:
-    """One tile, with the whole cloud's ground plane ``given`` (:func:`scene_ground`)."""
+    """One tile, with the whole cloud's ground plane ``given`` (:func:`scene_ground`); its
+    spacing is not judged (:func:`warn_spacing` judged the whole cloud's)."""
+    from kbs.units import SpacingWarning
+
     interpreter = segmenter._interpreter
     interpreter.given_ground = given
     try:
-        return segmenter.segment(points)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", SpacingWarning)
+            return segmenter.segment(points)
     finally:
         interpreter.given_ground = None
 

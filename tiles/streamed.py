@@ -265,9 +265,10 @@ def segment_streamed(segmenter: Any, spilled: Any, store: TileStore, *, schedule
     """Segment the tiles of a spilled LAS/LAZ file (:func:`kbs.tiles.stream.spill_las`) and stitch
     them with bounded memory: each tile's result goes to ``store``, the output to files in the
     spill folder. Arguments and errors as :func:`kbs.tiles.run.segment_tiled`'s."""
-    from kbs.tiles.run import TileError
+    from kbs.tiles.run import TileError, warn_spacing
 
     t0 = time.perf_counter()
+    warn_spacing(segmenter, spilled.xyz)
     tiles, grid = spilled.tiles, spilled.grid
     xyz_path = str(spilled.folder / "xyz.npy")
     n = int(spilled.xyz.shape[0])
@@ -321,9 +322,10 @@ def segment_copc(segmenter: Any, cloud: Any, store: TileStore, *, scheduler: str
     stitch them as :func:`segment_streamed` does: the same result, byte for byte."""
     from kbs.errors import CloudFileError
     from kbs.tiles.copc import CopcJob, tile_box, tiles_of
-    from kbs.tiles.run import TileError, sample_ground
+    from kbs.tiles.run import TileError, sample_ground, warn_spacing
 
     t0 = time.perf_counter()
+    warn_spacing(segmenter, cloud.xyz)
     grid = cloud.grid
     n = int(cloud.xyz.shape[0])
     given = sample_ground(segmenter, cloud.sample, n)
