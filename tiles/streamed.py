@@ -509,7 +509,7 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], summaries: Sequ
             mm[core] = values[name]
             mm.flush()
             del mm
-    geometry = _descriptors(folder / "xyz.npy", columns["cluster"], columns["membership"], order.size)
+    geometry = _in_files(folder, _descriptors(folder / "xyz.npy", columns["cluster"], columns["membership"], order.size))
 
     # the tile clusters of each root, in increasing order: members[start[r]:start[r + 1]] (arrays,
     # not a list per root: the stitching process holds them for every output cluster)
@@ -609,6 +609,17 @@ class CodesColumn:
         from kbs.io.las import class_codes
 
         return class_codes(self.label[key], self.cluster[key], self.label_names, self.classes)
+
+
+def _in_files(folder: Path, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``arrays`` written to ``folder/out-<name>.npy`` and given back mapped from there (read
+    only): per output cluster arrays the JSON is written from, not held while it is written."""
+    out = {}
+    for name, a in arrays.items():
+        path = folder / f"out-{name}.npy"
+        np.save(path, a)
+        out[name] = np.load(path, mmap_mode="r")
+    return out
 
 
 def _descriptors(xyz_path: Path, cluster: FileColumn, membership: FileColumn, k: int) -> dict[str, np.ndarray]:
