@@ -15,7 +15,6 @@ import threading
 
 import click
 
-from kbs import __version__
 from kbs.errors import ExitCode, KbsError
 
 #: command name -> "module:attribute". Commands are imported when used (click's lazy-group
@@ -114,8 +113,20 @@ class LazyGroup(click.Group):
             formatter.write_dl(rows)
 
 
+def _print_version(ctx: click.Context, param: click.Parameter, value: bool) -> None:
+    """--version, as click.version_option writes it, with the version read only when asked
+    (kbs.__version__: package metadata)."""
+    if not value or ctx.resilient_parsing:
+        return
+    from kbs import __version__
+
+    click.echo(f"kbs, version {__version__}")
+    ctx.exit()
+
+
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
-@click.version_option(__version__, prog_name="kbs")
+@click.option("--version", is_flag=True, expose_value=False, is_eager=True, callback=_print_version,
+              help="Show the version and exit.")
 @click.option("-q", "--quiet", is_flag=True,
               help="Only errors on stderr (no progress, no notes); `kbs run` prints no summary either.")
 @click.pass_context
