@@ -18,9 +18,11 @@ results:
 4. the JSON's clusters and explanation are written piece by piece (:meth:`StreamedResult.pieces`:
    one tile's records at a time) and the LAS/LAZ chunk by chunk (:class:`FileColumn`).
 
-What the stitching process still holds grows with the number of tiles and of output clusters
-(a few numbers, a label and the record ids per cluster; the limits' ids of the summary), not with
-the points.
+What the stitching process still holds grows with the number of tiles and of output clusters,
+not with the points: per tile its summary in a few arrays (a label code, the record ids packed in
+one string, the limits' points, ids and kinds; one head for all tiles), per output cluster a few
+integers (its tile clusters, its root); the output clusters' descriptors go to files. When the
+summary is written, the limits' ids are listed (``limits_by_kind``).
 """
 from __future__ import annotations
 
