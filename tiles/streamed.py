@@ -30,7 +30,6 @@ import dataclasses
 import json
 import os
 import time
-import types
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -730,11 +729,11 @@ class StreamedResult:
 
     def summary(self) -> dict[str, Any]:
         """As :meth:`Segmentation.summary`."""
-        limits = self.limits
-        records = {i: types.SimpleNamespace(action="limit", n_points=p, id=i, limit=lim) for p, i, lim in limits}
-        holder: Any = types.SimpleNamespace(explanation=types.SimpleNamespace(records=records))
-        by_kind = Segmentation.limits_by_kind(holder)
-        return {"points": self.n, "clusters": self.n_clusters, "splits": self.n_splits, "limits": len(limits),
+        from kbs.knowledge.segmentation import limits_by_kind
+
+        by_kind = limits_by_kind(self.limits)
+        return {"points": self.n, "clusters": self.n_clusters, "splits": self.n_splits,
+                "limits": sum(s["count"] for s in by_kind.values()),
                 "limits_by_kind": by_kind, "points_per_label": dict(self.points_per_label),
                 "seconds": round(self.seconds, 3)}
 
