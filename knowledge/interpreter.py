@@ -123,8 +123,12 @@ class Interpreter:
         (:attr:`given_ground`)."""
         from kbs.knowledge.run import RunContext
 
+        from kbs.knowledge.ground import needs_candidates
+
         X = np.ascontiguousarray(X, dtype=np.float64)
         ctx = RunContext(self, X)
+        if not needs_candidates(ctx):  # a fixed normal (airborne rules), or no ground: no partition to make
+            return ctx.ground([])
         root = Node.root(X.shape[0])
         try:
             fixed_k = isinstance(self.rb.engine["initial_k"], int)
