@@ -18,14 +18,7 @@ large one tile by tile. They are imported on first use, so ``import kbs`` stays 
 """
 from __future__ import annotations
 
-import importlib.metadata as _metadata
-
-try:
-    __version__ = _metadata.version("kbs")
-except _metadata.PackageNotFoundError:  # pragma: no cover - running from a source tree
-    __version__ = "0+unknown"
-
-from kbs.errors import (  # noqa: E402
+from kbs.errors import (
     CloudFileError,
     ExitCode,
     FitError,
@@ -41,7 +34,17 @@ _SUBPACKAGES = ("inference", "knowledge", "io", "cli", "evaluation", "synth", "r
 
 def __getattr__(name: str):
     """``kbs.segment`` and ``kbs.Segmenter`` are imported when first used (they pull in the
-    engine: numpy, scipy, numba ...)."""
+    engine: numpy, scipy, numba ...); ``kbs.__version__`` is read when first asked."""
+    if name == "__version__":  # the package's metadata, read when first asked: importlib.metadata
+        # costs 25-30 ms to import, a third of `kbs --help` (issue 9)
+        import importlib.metadata
+
+        try:
+            version = importlib.metadata.version("kbs")
+        except importlib.metadata.PackageNotFoundError:  # pragma: no cover - running from a source tree
+            version = "0+unknown"
+        globals()["__version__"] = version
+        return version
     if name in ("Segmenter", "segment"):
         from kbs.knowledge import segmenter
 

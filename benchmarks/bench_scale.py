@@ -7,7 +7,8 @@ end). Each size runs as ``kbs run --rules airborne --tile SIZE --scheduler local
 process, for W = 1 and 2 workers; the LAS is read in chunks (the default ``--chunk-points``).
 
 Prints markdown: points, tiles, workers, wall time, peak RSS of the client (the kbs process) and
-of the largest worker (sampled every 0.2 s over the process tree), points per second, kbs's own
+of the largest worker (sampled every 0.2 s over the process tree; in brackets the peak of its
+anonymous part, without the resident pages of memory-mapped files), points per second, kbs's own
 split of its time (read, segment, write: the summary's time line), the speed-up
 against one worker (when it ran) and the machine's 1-minute load average at the run's start and
 end (the machine may be shared: the other processes' load is part of the measure). A size and worker
@@ -70,26 +71,41 @@ def write_cloud(path: Path, n_points: int, seed: int = 0) -> int:
     return written
 
 
-def run_measured(cmd: list[str], timeout: float | None = None) -> tuple[float, float, float, int | None, str]:
-    """Run ``cmd``; wall seconds, peak RSS (MB) of the process itself and of its largest
-    descendant (a Dask worker), the exit code (None: stopped after ``timeout`` seconds) and what
-    it printed."""
+def _anonymous(info) -> int:
+    """The part of a process's resident memory that is its own (heap, stacks, anonymous maps):
+    RSS minus the resident pages of mapped files and shared memory (``shared``, Linux's RssFile +
+    RssShmem). The client memory-maps the spill folder's coordinates and per-point results, and
+    the pages of those files it has touched count in its RSS while the kernel may drop them at
+    any time (they are the page cache, written back to the files): they grow with the cloud and
+    are not memory the process holds."""
+    return info.rss - getattr(info, "shared", 0)
+
+
+def run_measured(cmd: list[str], timeout: float | None = None) -> tuple[float, dict[str, float], int | None, str]:
+    """Run ``cmd``; wall seconds, the peaks in MB (``client``/``worker``: RSS of the process itself
+    and of its largest descendant, a Dask worker; ``client_anon``/``worker_anon``: the same
+    without the resident pages of mapped files, :func:`_anonymous`), the exit code (None: stopped
+    after ``timeout`` seconds) and what it printed."""
     import psutil
 
     t0 = time.perf_counter()
     env = {**os.environ, "KBS_PROGRESS_SECONDS": "10"}
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-    peak = {"client": 0, "worker": 0}
+    peak = {"client": 0, "worker": 0, "client_anon": 0, "worker_anon": 0}
     done = threading.Event()
 
     def sample() -> None:
         p = psutil.Process(proc.pid)
         while not done.is_set():
             try:
-                peak["client"] = max(peak["client"], p.memory_info().rss)
+                info = p.memory_info()
+                peak["client"] = max(peak["client"], info.rss)
+                peak["client_anon"] = max(peak["client_anon"], _anonymous(info))
                 for child in p.children(recursive=True):
                     try:
-                        peak["worker"] = max(peak["worker"], child.memory_info().rss)
+                        info = child.memory_info()
+                        peak["worker"] = max(peak["worker"], info.rss)
+                        peak["worker_anon"] = max(peak["worker_anon"], _anonymous(info))
                     except psutil.Error:
                         pass
             except psutil.Error:
@@ -109,7 +125,12 @@ def run_measured(cmd: list[str], timeout: float | None = None) -> tuple[float, f
         code = None
     done.set()
     thread.join()
-    return time.perf_counter() - t0, peak["client"] / 1e6, peak["worker"] / 1e6, code, out + err
+    return time.perf_counter() - t0, {k: v / 1e6 for k, v in peak.items()}, code, out + err
+
+
+def mem(peaks: dict[str, float], who: str) -> str:
+    """``RSS (anonymous)``: the two peaks of one process, in MB."""
+    return f"{peaks[who]:,.0f} ({peaks[who + '_anon']:,.0f})"
 
 
 def main() -> None:
@@ -126,8 +147,8 @@ def main() -> None:
     print(f"kbs run --rules airborne --tile {args.tile:g} --scheduler local -j W, LAS read in chunks; "
           f"{os.cpu_count()} cores")
     print()
-    print("| points | tiles | workers | wall s | kbs's read / segment / write s | client peak RSS MB | "
-          "largest worker peak RSS MB | points/s | speed-up vs 1 worker | load avg start / end |")
+    print("| points | tiles | workers | wall s | kbs's read / segment / write s | client peak RSS MB (anonymous) | "
+          "largest worker peak RSS MB (anonymous) | points/s | speed-up vs 1 worker | load avg start / end |")
     print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     rate: dict[int, float] = {}
     with tempfile.TemporaryDirectory(prefix="kbs-scale-") as tmp:
@@ -148,14 +169,14 @@ def main() -> None:
             for w in run:
                 out = folder / f"out-{n}-{w}"
                 load0 = os.getloadavg()[0]
-                wall, client, worker, code, tail = run_measured(
+                wall, peaks, code, tail = run_measured(
                     [kbs, "run", "--rules", "airborne", "--tile", f"{args.tile:g}", "--scheduler", "local",
                      "-j", str(w), str(cloud), "--out", str(out), "--force"],
                     timeout=None if args.timeout is None else args.timeout * 60)
                 if code is None:  # stopped: how far it got, from its progress lines ('N tiles done')
                     done = [int(m.replace(",", "")) for m in re.findall(r"([\d,]+) tiles? done", tail)]
                     print(f"| {n:,} | | {w} | stopped after {wall:.0f} s, {max(done, default=0):,} tiles done | | "
-                          f"{client:,.0f} | {worker:,.0f} | | | |", flush=True)
+                          f"{mem(peaks, 'client')} | {mem(peaks, 'worker')} | | | |", flush=True)
                     shutil.rmtree(out, ignore_errors=True)
                     continue
                 if code != 0:
@@ -168,7 +189,7 @@ def main() -> None:
                 speedup = f"{walls[1] / wall:.2f}" if 1 in walls else ""
                 split = re.search(r"time: [\d.]+ s \(read ([\d.]+), segment ([\d.]+), write ([\d.]+)\)", tail)
                 parts = " / ".join(f"{float(v):.0f}" for v in split.groups()) if split else "?"
-                print(f"| {n:,} | {tiles} | {w} | {wall:.0f} | {parts} | {client:,.0f} | {worker:,.0f} | {n / wall:,.0f} | "
+                print(f"| {n:,} | {tiles} | {w} | {wall:.0f} | {parts} | {mem(peaks, 'client')} | {mem(peaks, 'worker')} | {n / wall:,.0f} | "
                       f"{speedup} | {load0:.1f} / {os.getloadavg()[0]:.1f} |", flush=True)
                 shutil.rmtree(out, ignore_errors=True)
             if args.keep is None:

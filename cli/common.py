@@ -9,16 +9,18 @@ import sys
 import time
 from pathlib import Path
 from collections.abc import Callable, Iterator, Mapping
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import click
 import numpy as np
-from tqdm import tqdm
 
 from kbs.errors import CloudFileError
 from kbs.io import PointCloud
 from kbs.io.atomic import temporary_path
 from kbs.io.result import PLY_NAMES, write_result_cloud
+
+if TYPE_CHECKING:
+    from tqdm import tqdm
 
 #: The CLOUD argument: existence and readability are checked by the reader, which says what is
 #: wrong in one line with the file's name and exit code 3 (click's own checks, ``readable`` among
@@ -92,7 +94,10 @@ class ProgressLines:
 
 @contextlib.contextmanager
 def progress_bar(total: int, desc: str, quiet: bool) -> Iterator[tqdm]:
-    """A tqdm bar on stderr, shown only on a terminal and when not quiet."""
+    """A tqdm bar on stderr, shown only on a terminal and when not quiet (tqdm is imported here:
+    only `kbs cluster` draws one)."""
+    from tqdm import tqdm
+
     bar = tqdm(total=total, desc=desc, file=sys.stderr, disable=True if quiet else None, leave=False)
     try:
         yield bar

@@ -26,8 +26,7 @@ def find(run: Any, X: np.ndarray, candidates: list[tuple[Cluster, Draft]]) -> tu
     none) and the explanation's ``ground`` facts: which cluster, how it was found, and every
     candidate's verdict."""
     spec = run.rule_base.ground
-    if not run.rule_base.needs_ground and spec.normal is None and spec.candidate is None and spec.plane is None \
-            and run.rule_base.ground_model is None:
+    if not _uses_ground(run.rule_base):
         return None, GroundFacts()
     if run.given_ground is not None:  # found once on the whole cloud this one is a tile of
         return run.given_ground
@@ -184,6 +183,21 @@ def _candidate_plane(run: Any, cl: Cluster, rec: Draft, provisional: Scene) -> d
         out.update(plane=(rp.normal, rp.point, cl.X[rp.inliers]), method="robust plane")
         out.pop("why", None)
     return out
+
+def _uses_ground(rule_base: Any) -> bool:
+    """Whether the rule base uses a ground plane at all."""
+    spec = rule_base.ground
+    return bool(rule_base.needs_ground or spec.normal is not None or spec.candidate is not None
+                or spec.plane is not None or rule_base.ground_model is not None)
+
+
+def needs_candidates(run: Any) -> bool:
+    """Whether :func:`find` looks at the candidates it is given: not when the rule base uses no
+    ground, when the ground is given (a tile's) or when its normal is fixed by the rule file. The
+    initial partition that makes the candidates need not be computed then
+    (:meth:`kbs.knowledge.interpreter.Interpreter.find_ground`)."""
+    return _uses_ground(run.rule_base) and run.given_ground is None and run.rule_base.ground.normal is None
+
 
 def plane_from_normal(X: np.ndarray, n: np.ndarray, source: str,
                       facts: GroundFacts) -> tuple[Ground, GroundFacts]:

@@ -123,8 +123,12 @@ class Interpreter:
         (:attr:`given_ground`)."""
         from kbs.knowledge.run import RunContext
 
+        from kbs.knowledge.ground import needs_candidates
+
         X = np.ascontiguousarray(X, dtype=np.float64)
         ctx = RunContext(self, X)
+        if not needs_candidates(ctx):  # a fixed normal (airborne rules), or no ground: no partition to make
+            return ctx.ground([])
         root = Node.root(X.shape[0])
         try:
             fixed_k = isinstance(self.rb.engine["initial_k"], int)
@@ -177,14 +181,17 @@ class _Job:
         self.kwargs, self.future = kwargs, future
 
     def result(self) -> UFPONCResult:
-        from concurrent.futures.process import BrokenProcessPool
-
         X = self.X
         assert X is not None, "a split's result is taken once"
-        try:
-            status, value = self.future.result() if self.future is not None else _split_job(X, self.kwargs)
-        except BrokenProcessPool:  # a worker died (killed, out of memory): do this split here
+        if self.future is None:
             status, value = _split_job(X, self.kwargs)
+        else:  # concurrent.futures.process imported only with workers (-j 1 does not load multiprocessing)
+            from concurrent.futures.process import BrokenProcessPool
+
+            try:
+                status, value = self.future.result()
+            except BrokenProcessPool:  # a worker died (killed, out of memory): do this split here
+                status, value = _split_job(X, self.kwargs)
         self.X = self.future = None  # the points and the result are the caller's now: nothing kept here
         if status == "error":
             raise FitError(value)

@@ -2,6 +2,7 @@
 being divided (:data:`STOP_KINDS`)."""
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -51,18 +52,8 @@ class Segmentation:
         setting's value), ``count``, ``points`` (their points when judged) and ``clusters`` (their
         ids, the largest first).
         """
-        out: dict[str, dict[str, Any]] = {}
-        stopped = sorted((r for r in self.explanation.records.values() if r.action == "limit"),
-                         key=lambda r: (-r.n_points, r.id))
-        for r in stopped:
-            lim = r.limit or {"kind": "other", "setting": None, "value": None}
-            e = out.setdefault(lim["kind"], {"setting": lim["setting"], "value": lim["value"], "count": 0,
-                                             "points": 0, "clusters": []})
-            e["count"] += 1
-            e["points"] += r.n_points
-            e["clusters"].append(r.id)
-        order = list(STOP_KINDS)
-        return dict(sorted(out.items(), key=lambda kv: order.index(kv[0]) if kv[0] in order else len(order)))
+        return limits_by_kind((r.n_points, r.id, r.limit) for r in self.explanation.records.values()
+                              if r.action == "limit")
 
     def summary(self) -> dict[str, Any]:
         """Counts; ``points_per_label``: each label's points, then ``noise`` (points in no output
@@ -78,6 +69,21 @@ class Segmentation:
                 "limits": sum(r.action == "limit" for r in self.explanation.records.values()),
                 "limits_by_kind": self.limits_by_kind(),
                 "points_per_label": counts, "seconds": round(self.seconds, 3)}
+
+
+def limits_by_kind(stopped: Iterable[tuple[int, str, Any]]) -> dict[str, dict[str, Any]]:
+    """:meth:`Segmentation.limits_by_kind` of the records a limit stopped, given as (n_points, id,
+    limit) (a tiled run's, without a record object each)."""
+    out: dict[str, dict[str, Any]] = {}
+    for n_points, rid, limit in sorted(stopped, key=lambda s: (-s[0], s[1])):
+        lim = limit or {"kind": "other", "setting": None, "value": None}
+        e = out.setdefault(lim["kind"], {"setting": lim["setting"], "value": lim["value"], "count": 0,
+                                         "points": 0, "clusters": []})
+        e["count"] += 1
+        e["points"] += n_points
+        e["clusters"].append(rid)
+    order = list(STOP_KINDS)
+    return dict(sorted(out.items(), key=lambda kv: order.index(kv[0]) if kv[0] in order else len(order)))
 
 
 #: Why a cluster that a rule wanted split was kept (``ClusterRecord.limit['kind']``), and the

@@ -124,6 +124,34 @@ def test_commands_that_do_not_segment_load_neither_numba_nor_scipy(tmp_path):
     assert "'scipy'" in r.stdout.strip().splitlines()[-1]  # numba too when the compiled kernels are on
 
 
+def test_the_command_ends_without_the_teardown_but_as_sys_exit_would():
+    """The console script (cli.main:entry) ends the process with os._exit once main() returned
+    (issue 9: Python's teardown of numba's and scipy's objects took 0.4-0.6 s after a run): its
+    exit code, everything written to stdout and stderr, the exit handlers run; with a thread that
+    is not a daemon still running, it waits for it (sys.exit)."""
+    import importlib.metadata
+
+    scripts = importlib.metadata.distribution("kbs").entry_points.select(group="console_scripts")
+    assert [ep.value for ep in scripts if ep.name == "kbs"] == ["kbs.cli.main:entry"]
+    code = ("import atexit, sys, threading, time; from kbs.cli.main import entry\n"
+            "atexit.register(lambda: print('handler ran'))\n"
+            "if sys.argv[1] == 'thread':\n"
+            "    threading.Thread(target=lambda: (time.sleep(0.3), print('thread done'))).start()\n"
+            "sys.argv = ['kbs', *sys.argv[2:]]; entry(); print('not reached')")
+    runs = {"plain": ["predicates"], "thread": ["predicates"], "error": ["rules", "show", "no_such_rule_base"]}
+    for name, args in runs.items():
+        r = subprocess.run([sys.executable, "-c", code, name, *args], capture_output=True, text=True, timeout=120)
+        assert "not reached" not in r.stdout and "Traceback" not in r.stderr, (name, r.stderr)
+        if name == "error":
+            assert r.returncode == 4 and "no_such_rule_base" in r.stderr, (r.returncode, r.stderr)
+        else:  # the whole table, then the handler (after the thread, which Python waits for)
+            assert r.returncode == 0, r.stderr
+            assert "point_count" in r.stdout and r.stdout.rstrip().endswith("handler ran"), (name, r.stdout[-300:])
+            assert ("thread done" in r.stdout) == (name == "thread")
+    r = kbs("--version")  # the installed script itself
+    assert r.returncode == 0 and "kbs, version" in r.stdout
+
+
 def test_help_lists_the_commands_without_importing_them():
     """`kbs --help` writes the commands' table from cli.main.SHORT_HELP: the same text click writes
     from the commands' own docstrings (at any width), without importing the commands' modules."""

@@ -333,3 +333,31 @@ def test_a_tiled_cloud_in_the_wrong_unit_is_warned_of_once_not_once_per_tile(roc
     assert len(out.tiling["tiles"]) == 4
     assert len(spacing) == 1, [str(w.message) for w in caught]
     assert spacing[0].spacing > 2.0 and "mm" in spacing[0].suggested
+
+
+@pytest.mark.filterwarnings("ignore:median point spacing")
+def test_the_whole_cloud_ground_is_found_without_a_partition_only_when_the_rule_file_fixes_its_normal(monkeypatch):
+    """A tiled run finds the ground plane once on the whole cloud (Interpreter.find_ground). With a
+    normal fixed by the rule file (airborne) the plane is the fixed normal through the 5 % height
+    quantile, and the initial partition the candidates come from is not computed (it was, on up to
+    2,000,000 points: the client's largest memory); the result is what the run itself would find.
+    With a normal found from the data (outdoor) the partition is computed."""
+    from kbs.knowledge.ground import plane_from_normal
+    from kbs.knowledge.interpreter import Interpreter
+
+    X, _ = ground_and_rocks()
+    X = X + np.array([1000.0, 2000.0, 50.0])
+    calls = []
+    original = Interpreter._ufp_onc
+    monkeypatch.setattr(Interpreter, "_ufp_onc", lambda self, *a, **k: calls.append(1) or original(self, *a, **k))
+    airborne = kbs.Segmenter("airborne", jobs=1)
+    ground, facts = airborne._interpreter.find_ground(X)
+    assert calls == []
+    expected, expected_facts = plane_from_normal(X, np.array([0.0, 0.0, 1.0]), "fixed", type(facts)())
+    assert np.array_equal(ground.normal, expected.normal) and np.array_equal(ground.point, expected.point)
+    assert facts == expected_facts and facts.source == "fixed"
+    run = airborne.segment(X)  # the untiled run finds the same plane
+    assert run.explanation.ground.normal == facts.normal and run.explanation.ground.point == facts.point
+    calls.clear()
+    kbs.Segmenter("outdoor", jobs=1)._interpreter.find_ground(X - np.array([1000.0, 2000.0, 50.0]))
+    assert calls == [1]

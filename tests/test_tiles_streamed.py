@@ -15,7 +15,7 @@ import pytest
 from kbs.inference import cluster_geometry
 from kbs.tiles import TileGrid
 from kbs.tiles.stream import spill_las
-from kbs.tiles.streamed import TileJob, _descriptors, _edge_mask, _new_column
+from kbs.tiles.streamed import TileJob, Texts, _descriptors, _edge_mask, _new_column
 from scenes import ground_and_rocks
 from test_cli import kbs as kbs_cmd
 
@@ -205,3 +205,55 @@ def test_a_dask_worker_killed_in_a_streamed_run_gives_the_same_bytes(rocks_las, 
     assert marker.read_text() == "killed"  # a worker died in a tile; Dask ran the tile again on another
     for name in ("rocks.las", "rocks.json"):
         assert _normalised(tmp_path / "dask" / name) == _normalised(tmp_path / "here" / name)
+
+
+def test_packed_texts_give_back_each_string():
+    texts = Texts.of(["c0", "", "c0.1.2", "t1_2/c3"])
+    assert len(texts) == 4
+    assert texts.slice(0, 4) == ["c0", "", "c0.1.2", "t1_2/c3"]
+    assert texts.slice(2, 3) == ["c0.1.2"]
+    assert texts.slice(1, 2) == [""]
+    assert texts.slice(3, 3) == [] and Texts.of([]).slice(0, 0) == []
+
+
+def test_a_tile_summary_gives_back_every_cluster_label_and_id_and_every_limit(rocks_las, tmp_path, monkeypatch):
+    """The summary a tile sends back holds its clusters' labels and ids and its limits in a few
+    arrays (one label table, one string of ids); what it gives back is the result's own, and the
+    tiles' summaries kept for stitching share one head."""
+    import kbs
+    from kbs.tiles import streamed
+    from kbs.tiles.store import TileStore
+
+    rules = Path(kbs.__file__).parent / "rules" / "outdoor.yaml"
+    text = rules.read_text()
+    assert "max_depth: 11 " in text
+    shallow = tmp_path / "shallow.yaml"  # a limit stops some clusters
+    shallow.write_text(text.replace("max_depth: 11 ", "max_depth: 1 "))
+    seg = kbs.Segmenter(str(shallow), jobs=1)
+    whole = spill_las(rocks_las, tmp_path / "whole", 30.0, 1.0)  # one tile: the ground and the rocks
+    tile = whole.tiles[0]
+    points = np.asarray(whole.xyz)[tile.index]
+    result = seg.segment(points)
+    summary = streamed.summarize(tile, whole.grid, tile.index, tile.in_core, points, result)
+    assert len(result.clusters) >= 2 and len({c["label"] for c in result.clusters}) >= 2
+    for c, cluster in enumerate(result.clusters):
+        assert summary.cluster(c) == (cluster["label"], list(cluster["ids"]))
+    stopped = [r for r in result.explanation.records.values() if r.action == "limit"]
+    assert stopped
+    assert summary.limits() == [(r.n_points, f"{tile.name}/{r.id}", r.limit) for r in stopped]
+    assert len(summary.labels) <= len(result.label_names) + 1  # a table of labels, not one per cluster
+    assert isinstance(summary.ids.text, str) and len(summary.ids) == sum(len(c["ids"]) for c in result.clusters)
+
+    whole.remove()
+
+    spilled = spill_las(rocks_las, tmp_path / "spill", 6.0, 1.0)
+    assert len(spilled.tiles) >= 4
+    kept = []
+    stitch = streamed._stitch
+    monkeypatch.setattr(streamed, "_stitch", lambda sp, grid, tiles, summaries, *a: kept.extend(summaries) or
+                        stitch(sp, grid, tiles, summaries, *a))
+    out = streamed.segment_streamed(seg, spilled, TileStore(tmp_path / "store", seg))
+    assert len(kept) == len(spilled.tiles)
+    assert all(s.head is kept[0].head for s in kept)
+    assert out.summary()["limits"] == sum(len(s.limit_points) for s in kept) > 0
+    spilled.remove()

@@ -18,9 +18,11 @@ results:
 4. the JSON's clusters and explanation are written piece by piece (:meth:`StreamedResult.pieces`:
    one tile's records at a time) and the LAS/LAZ chunk by chunk (:class:`FileColumn`).
 
-What the stitching process still holds grows with the number of tiles and of output clusters
-(a few numbers, a label and the record ids per cluster; the limits' ids of the summary), not with
-the points.
+What the stitching process still holds grows with the number of tiles and of output clusters,
+not with the points: per tile its summary in a few arrays (a label code, the record ids packed in
+one string, the limits' points, ids and kinds; one head for all tiles), per output cluster a few
+integers (its tile clusters, its root); the output clusters' descriptors go to files. When the
+summary is written, the limits' ids are listed (``limits_by_kind``).
 """
 from __future__ import annotations
 
@@ -28,7 +30,6 @@ import dataclasses
 import json
 import os
 import time
-import types
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,40 +50,107 @@ CHUNK_POINTS = 1_000_000
 
 
 @dataclass(frozen=True)
+class Texts:
+    """Strings packed in one: the ``i``-th is ``text[ends[i - 1]:ends[i]]``. A tile's record ids
+    held this way cost their characters and 8 bytes each, not a Python string and a list slot
+    each (about 60 bytes): what the stitching process holds per tile while the others run."""
+
+    text: str
+    ends: np.ndarray  # (n,) int64
+
+    @classmethod
+    def of(cls, items: Sequence[str]) -> Texts:
+        return cls("".join(items), np.cumsum([len(t) for t in items], dtype=np.int64))
+
+    def __len__(self) -> int:
+        return int(self.ends.size)
+
+    def slice(self, a: int, b: int) -> list[str]:
+        """Strings ``a`` .. ``b - 1``."""
+        if b <= a:
+            return []
+        start = int(self.ends[a - 1]) if a else 0
+        cuts = self.ends[a:b].tolist()
+        out = []
+        for end in cuts:
+            out.append(self.text[start:end])
+            start = end
+        return out
+
+
+def _codes(values: Sequence[Any]) -> tuple[tuple[Any, ...], np.ndarray]:
+    """The distinct values (by equality, in order of first appearance) and each value's position
+    among them: a few labels or limit kinds stand for a tile's many clusters and records."""
+    table: list[Any] = []
+    codes = np.empty(len(values), dtype=np.int32)
+    for k, v in enumerate(values):
+        for i, t in enumerate(table):
+            if t == v and type(t) is type(v):
+                codes[k] = i
+                break
+        else:
+            codes[k] = len(table)
+            table.append(v)
+    return tuple(table), codes
+
+
+@dataclass(frozen=True)
 class TileSummary:
-    """What stitching needs of one tile's result (its whole result is in its tile file).
+    """What stitching needs of one tile's result (its whole result is in its tile file), in a few
+    arrays: the process that stitches holds one per tile until the end.
 
     Attributes
     ----------
     name : str
     sizes, core_sizes : ndarray (K,) int64
         The points of each of the tile's K clusters, in the whole tile and in its core.
-    clusters : list of (label, ids)
-        Each tile cluster's label and explanation record ids.
+    labels, label_codes : tuple and ndarray (K,) int32
+        The distinct labels of the clusters, and each cluster's (:meth:`cluster`).
+    ids, id_start : Texts and ndarray (K + 1,) int64
+        The clusters' explanation record ids, those of cluster c being ``id_start[c]`` ..
+        ``id_start[c + 1] - 1`` (:meth:`cluster`).
     label_counts : ndarray (L + 2,) int64
         Core points per label, then core points in no cluster, then core points of a cluster
         with no label.
     n_splits : int
-    limits : list of (n_points, id, limit)
-        The records a limit stopped (ids prefixed with the tile's name).
+    limit_points, limit_ids, limit_kinds, limit_codes
+        The records a limit stopped: their points, ids (without the tile's name), the distinct
+        ``limit`` values and each record's (:meth:`limits`).
     root : str
         The id of the tile explanation's root.
     ground, notes, head
         The explanation's ground and notes; ``head``: rule_base, rule_file, strategy,
-        label_names, catalogue.
+        label_names, catalogue (the same for every tile: the process that stitches keeps one,
+        :func:`_dispatch`).
     """
 
     name: str
     sizes: np.ndarray
     core_sizes: np.ndarray
-    clusters: list[tuple[Any, list[str]]]
+    labels: tuple[Any, ...]
+    label_codes: np.ndarray
+    ids: Texts
+    id_start: np.ndarray
     label_counts: np.ndarray
     n_splits: int
-    limits: list[tuple[int, str, Any]]
+    limit_points: np.ndarray
+    limit_ids: Texts
+    limit_kinds: tuple[Any, ...]
+    limit_codes: np.ndarray
     root: str
     ground: GroundFacts
     notes: list[str]
     head: dict[str, Any] = field(default_factory=dict)
+
+    def cluster(self, c: int) -> tuple[Any, list[str]]:
+        """Cluster ``c``'s label and record ids."""
+        return self.labels[int(self.label_codes[c])], self.ids.slice(int(self.id_start[c]), int(self.id_start[c + 1]))
+
+    def limits(self) -> list[tuple[int, str, Any]]:
+        """The records a limit stopped: (n_points, id prefixed with the tile's name, limit)."""
+        ids = self.limit_ids.slice(0, len(self.limit_ids))
+        return [(int(p), f"{self.name}/{i}", self.limit_kinds[int(c)])
+                for p, i, c in zip(self.limit_points.tolist(), ids, self.limit_codes)]
 
 
 def summarize(tile: Tile, grid: TileGrid, index: np.ndarray, in_core: np.ndarray, points: np.ndarray,
@@ -104,12 +172,17 @@ def summarize(tile: Tile, grid: TileGrid, index: np.ndarray, in_core: np.ndarray
             np.savez(stream, index=np.asarray(index)[edge], cluster=cl[edge], label=np.asarray(seg.label)[edge])
     e = seg.explanation
     records = e.records.values()
+    labels, label_codes = _codes([c["label"] for c in seg.clusters])
+    ids = [list(c["ids"]) for c in seg.clusters]
+    stopped = [r for r in records if r.action == "limit"]
+    limit_kinds, limit_codes = _codes([r.limit for r in stopped])
     return TileSummary(
-        name=tile.name, sizes=sizes, core_sizes=core_sizes,
-        clusters=[(c["label"], list(c["ids"])) for c in seg.clusters],
+        name=tile.name, sizes=sizes, core_sizes=core_sizes, labels=labels, label_codes=label_codes,
+        ids=Texts.of([i for c in ids for i in c]), id_start=np.cumsum([0] + [len(c) for c in ids], dtype=np.int64),
         label_counts=np.array(counts, dtype=np.int64),
         n_splits=sum(r.action in ("split", "split_components") for r in records),
-        limits=[(r.n_points, f"{tile.name}/{r.id}", r.limit) for r in records if r.action == "limit"],
+        limit_points=np.array([r.n_points for r in stopped], dtype=np.int64),
+        limit_ids=Texts.of([r.id for r in stopped]), limit_kinds=limit_kinds, limit_codes=limit_codes,
         root=e.root, ground=e.ground, notes=list(e.notes),
         head={"rule_base": e.rule_base, "rule_file": e.rule_file, "strategy": e.strategy,
               "label_names": list(e.label_names), "catalogue": e.catalogue})
@@ -231,12 +304,19 @@ def _dispatch(segmenter: Any, runner: Callable[..., Any], names: Sequence[str], 
     outs: list[Any] = [None] * len(names)
     failures: dict[int, BaseException] = {}
     n_resumed = 0
+    heads: list[dict[str, Any]] = []  # the tiles' heads are equal: one is kept, not one per tile
 
     def finished(k: int, out: Any, done: int) -> None:
         nonlocal n_resumed
         if isinstance(out, BaseException):
             failures[k] = out
             return
+        summary = out[0] if isinstance(out, tuple) and out else None
+        if isinstance(summary, TileSummary):
+            if heads and summary.head == heads[0]:
+                out = (dataclasses.replace(summary, head=heads[0]), *out[1:])
+            elif not heads:
+                heads.append(summary.head)
         outs[k] = out
         resumed = resumed_of(out)
         n_resumed += resumed
@@ -430,16 +510,15 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], summaries: Sequ
             mm[core] = values[name]
             mm.flush()
             del mm
-    geometry = _descriptors(folder / "xyz.npy", columns["cluster"], columns["membership"], order.size)
+    geometry = _in_files(folder, _descriptors(folder / "xyz.npy", columns["cluster"], columns["membership"], order.size))
 
-    members: dict[int, list[int]] = {}
-    for g in range(total):
-        members.setdefault(int(roots[g]), []).append(g)
+    # the tile clusters of each root, in increasing order: members[start[r]:start[r + 1]] (arrays,
+    # not a list per root: the stitching process holds them for every output cluster)
+    members = np.argsort(roots, kind="stable") if total else np.zeros(0, dtype=np.int64)
+    member_start = np.searchsorted(roots[members], np.arange(total + 1)) if total else np.zeros(1, dtype=np.int64)
     tile_of = np.searchsorted(offsets, np.arange(total), side="right") - 1
-    stitched = set()
-    for gi, root in enumerate(order.tolist()):
-        if sum(int(core_sizes[g]) > 0 for g in members[root]) > 1:
-            stitched.add(gi)
+    in_core_parts = np.bincount(roots, weights=core_sizes > 0, minlength=total) if total else np.zeros(0)
+    stitched = set(np.flatnonzero(in_core_parts[order] > 1).tolist())
     head = summaries[0].head
     label_names = list(head["label_names"])
     grounds = {t.name: s.ground for t, s in zip(tiles, summaries)}
@@ -460,7 +539,6 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], summaries: Sequ
     per_label["noise (rejected)" if "noise" in per_label else "noise"] = int(counts[len(label_names)])
     if counts[len(label_names) + 1]:
         per_label[NO_LABEL] = int(counts[len(label_names) + 1])
-    limits = [lim for s in summaries for lim in s.limits]
     tiling = {"size": grid.size, "buffer": grid.buffer, "axes": grid.axes.tolist(), "origin": list(grid.origin),
               "shape": list(grid.shape), "stitched": k_st,
               "tiles": [{"name": t.name, "core": list(t.core), "points": _n_points(t),
@@ -469,9 +547,9 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], summaries: Sequ
     return StreamedResult(
         n=n, columns=columns, label_names=label_names, explanation=explanation, tiling=tiling,
         seconds=time.perf_counter() - t0, n_clusters=int(order.size), n_splits=sum(s.n_splits for s in summaries),
-        limits=limits, points_per_label=per_label,
+        points_per_label=per_label,
         _tiles=list(tiles), _summaries=list(summaries), _store=store, _offsets=offsets, _roots=roots,
-        _out_of_root=out_of_root, _order=order, _members=members, _tile_of=tile_of, _shared=shared,
+        _out_of_root=out_of_root, _order=order, _members=members, _member_start=member_start, _tile_of=tile_of, _shared=shared,
         _stitched=stitched, _geometry=geometry, _sizes=sizes)
 
 
@@ -532,6 +610,17 @@ class CodesColumn:
         from kbs.io.las import class_codes
 
         return class_codes(self.label[key], self.cluster[key], self.label_names, self.classes)
+
+
+def _in_files(folder: Path, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``arrays`` written to ``folder/out-<name>.npy`` and given back mapped from there (read
+    only): per output cluster arrays the JSON is written from, not held while it is written."""
+    out = {}
+    for name, a in arrays.items():
+        path = folder / f"out-{name}.npy"
+        np.save(path, a)
+        out[name] = np.load(path, mmap_mode="r")
+    return out
 
 
 def _descriptors(xyz_path: Path, cluster: FileColumn, membership: FileColumn, k: int) -> dict[str, np.ndarray]:
@@ -603,7 +692,6 @@ class StreamedResult:
     seconds: float
     n_clusters: int
     n_splits: int
-    limits: list[tuple[int, str, Any]]
     points_per_label: dict[str, int]
     _tiles: list[Tile]
     _summaries: list[TileSummary]
@@ -612,7 +700,8 @@ class StreamedResult:
     _roots: np.ndarray
     _out_of_root: np.ndarray
     _order: np.ndarray
-    _members: dict[int, list[int]]
+    _members: np.ndarray
+    _member_start: np.ndarray
     _tile_of: np.ndarray
     _shared: dict[int, list[str]]
     _stitched: set[int]
@@ -633,12 +722,18 @@ class StreamedResult:
     def membership(self) -> FileColumn:
         return self.columns["membership"]
 
+    @property
+    def limits(self) -> list[tuple[int, str, Any]]:
+        """The records a limit stopped, tile by tile: (n_points, id, limit); made when asked for."""
+        return [lim for s in self._summaries for lim in s.limits()]
+
     def summary(self) -> dict[str, Any]:
         """As :meth:`Segmentation.summary`."""
-        records = {i: types.SimpleNamespace(action="limit", n_points=p, id=i, limit=lim) for p, i, lim in self.limits}
-        holder: Any = types.SimpleNamespace(explanation=types.SimpleNamespace(records=records))
-        by_kind = Segmentation.limits_by_kind(holder)
-        return {"points": self.n, "clusters": self.n_clusters, "splits": self.n_splits, "limits": len(self.limits),
+        from kbs.knowledge.segmentation import limits_by_kind
+
+        by_kind = limits_by_kind(self.limits)
+        return {"points": self.n, "clusters": self.n_clusters, "splits": self.n_splits,
+                "limits": sum(s["count"] for s in by_kind.values()),
                 "limits_by_kind": by_kind, "points_per_label": dict(self.points_per_label),
                 "seconds": round(self.seconds, 3)}
 
@@ -649,13 +744,13 @@ class StreamedResult:
         geo_all = self._geometry
         for gi, root in enumerate(self._order.tolist()):
             parts = []
-            for g in self._members[root]:
+            for g in self._members[self._member_start[root]:self._member_start[root + 1]].tolist():
                 k = int(self._tile_of[g])
                 c = int(g - self._offsets[k])
                 s = self._summaries[k]
                 in_core = int(s.core_sizes[c])
                 if in_core:
-                    label, ids = s.clusters[c]
+                    label, ids = s.cluster(c)
                     parts.append({"tile": self._tiles[k].name, "cluster": c, "label": label, "core_points": in_core,
                                   "ids": [f"{self._tiles[k].name}/{i}" for i in ids]})
             geo = ClusterGeometry(center=geo_all["center"][gi].copy(), covariance=geo_all["covariance"][gi].copy(),
