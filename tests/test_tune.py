@@ -414,6 +414,17 @@ def test_the_marked_outdoor_example_is_the_shipped_rule_base_plus_marks():
     assert [split_relevant(rb, t) for t in rb.tunables] == [True, False, False, False]
 
 
+def test_the_marked_airborne_example_is_the_shipped_rule_base_plus_marks():
+    """examples/rules/airborne-tune.yaml: airborne.yaml with its header and 'tune:' lines; drop them
+    and the text is the shipped file's (bench_tune.py --kind airborne tunes it)."""
+    example = (ROOT / "examples" / "rules" / "airborne-tune.yaml").read_text().splitlines()
+    body = [ln for ln in example if not ln.lstrip().startswith("tune:")]
+    first = body.index("# Airborne laser scanning: bare earth versus objects (buildings, vegetation) seen from above.")
+    assert body[first:] == shipped_text("airborne").splitlines()[1:]
+    rb = load_rule_base(str(ROOT / "examples" / "rules" / "airborne-tune.yaml"))
+    assert [split_relevant(rb, t) for t in rb.tunables] == [t.name == "checks.planar.max" for t in rb.tunables]
+
+
 def test_the_split_puts_each_shared_scan_in_one_part(shared_data):
     import yaml
 
