@@ -77,6 +77,8 @@ def main() -> None:
     ap.add_argument("--kind", choices=list(KINDS), default="vehicle")
     ap.add_argument("--rules", default=None, help="default: examples/rules/outdoor-tune.yaml (airborne: airborne-tune.yaml)")
     ap.add_argument("--folds", type=int, default=None)
+    ap.add_argument("--select", choices=["mean", "median"], default="mean",
+                    help="how a setting's tuning scores are combined to choose it (kbs tune --select)")
     ap.add_argument("--time-limit", type=float, default=None)
     ap.add_argument("--jobs", type=int, default=-1)
     ap.add_argument("--no-validate", action="store_true")
@@ -93,7 +95,7 @@ def main() -> None:
     print(f"> tuning part: {', '.join(s.name for s in scans)}; validation part: "
           f"{', '.join(bench_ground.splits()[args.kind]['validate'])}\n")
     t0 = time.perf_counter()
-    result = tune(rb, scans, ground_label="ground", folds=args.folds, metric=metric, jobs=args.jobs,
+    result = tune(rb, scans, ground_label="ground", folds=args.folds, metric=metric, jobs=args.jobs, select=args.select,
                   time_limit=args.time_limit, progress=lambda m: print(f"\r{m}", end="", file=sys.stderr, flush=True))
     print(file=sys.stderr)
     print(format_report(result, str(Path(args.rules).relative_to(ROOT) if Path(args.rules).is_relative_to(ROOT)

@@ -39,6 +39,9 @@ from kbs.units import UNITS as LENGTH_UNITS, ScanUnits, scale_factors, unit
               help="k of the k-fold cross-validation over scans  [default: min(5, number of scans)]")
 @click.option("--metric", type=click.Choice(list(METRICS)), default="f1", show_default=True,
               help="Score of the ground label on the labelled points (total_error is minimised).")
+@click.option("--select", type=click.Choice(["mean", "median"]), default="mean", show_default=True,
+              help="How a setting's scores on the tuning scans are combined to choose it: their mean (as "
+                   "scikit-learn's GridSearchCV), or their median, which one much harder scan does not decide.")
 @click.option("--max-evals", type=click.IntRange(min=1), default=None, metavar="N",
               help="Evaluate at most N settings of the grid (the file's own values first, then groups sharing a "
                    "split tree in a shuffled order).")
@@ -65,7 +68,7 @@ from kbs.units import UNITS as LENGTH_UNITS, ScanUnits, scale_factors, unit
 @plugin_option
 @click.pass_context
 def tune_(ctx: click.Context, rules: str, pairs: tuple[str, ...], out: Path, folds: int | None, metric: str,
-          max_evals: int | None, time_limit: float | None, ground_values, unlabelled_values, ground_label: str,
+          select: str, max_evals: int | None, time_limit: float | None, ground_values, unlabelled_values, ground_label: str,
           sensor, units: str | None, report: Path | None, jobs: int, force: bool, plugins: tuple[Path, ...]) -> None:
     """Fit the thresholds marked 'tune:' in a rule file to labelled scans, SCAN GT pairs (GT as
     in kbs eval: a label file .npy / .label / text, or field:NAME of the scan), and write NEW.yaml.
@@ -129,7 +132,7 @@ def tune_(ctx: click.Context, rules: str, pairs: tuple[str, ...], out: Path, fol
     lines = ProgressLines("tune", lambda k: f"{k:,} of {total:,} scores (settings x scans)", quiet=quiet, start=t0)
     try:
         result = tune(rb, scans, ground_label=ground_label, folds=folds, metric=metric, jobs=jobs,
-                      max_evals=max_evals, time_limit=time_limit, progress=lines)
+                      max_evals=max_evals, time_limit=time_limit, progress=lines, select=select)
     except ParameterError as exc:
         raise click.UsageError(str(exc)) from None
     run_id = new_run_id()

@@ -261,11 +261,16 @@ def test_kbs_tune_bounds_the_evaluations(tmp_path, capsys, scenes):
     report = tmp_path / "r.json"
     pairs = [str(p) for pair in zip(scenes[:2], truths) for p in pair]
     code, stdout, err = run_kbs(capsys, "tune", "--rules", str(rules), *pairs, "--ground-values", "1", "--max-evals",
-                                "2", "--out", str(tmp_path / "t.yaml"), "--report", str(report), "-j", "1")
+                                "2", "--out", str(tmp_path / "t.yaml"), "--report", str(report), "-j", "1",
+                                "--select", "median")
     assert code == 0, err
     doc = json.loads(report.read_text())
     assert doc["grid"]["evaluated"] == 2 and doc["grid"]["stopped"] == "--max-evals 2"
     assert "stopped at --max-evals 2" in stdout
+    assert doc["select"] == "median" and "chosen by its median score over the tuning scans" in stdout
+    code, _, err = run_kbs(capsys, "tune", "--rules", str(rules), *pairs, "--ground-values", "1", "--select", "max",
+                           "--out", str(tmp_path / "u.yaml"), "-j", "1")
+    assert code == 2 and "'max' is not one of 'mean', 'median'" in err
 
 
 def test_kbs_tune_time_limit_and_progress(tmp_path, capsys, scenes, monkeypatch):
@@ -462,3 +467,21 @@ def test_kbs_tune_says_when_the_held_back_scans_do_not_support_the_move(tmp_path
     assert "note: on the held-back scans, the values chosen on the other scans score worse than the file's own" in stdout
     assert out.read_text().splitlines()[1] == ("# kbs tune: held back, the tuned values scored worse than the file's: "
                                                "see the report")
+
+
+def test_a_setting_is_chosen_by_the_mean_or_the_median_of_its_tuning_scores():
+    """kbs tune --select: by the mean (GridSearchCV's choice) one scan much harder than the others
+    decides; by the median the setting better on most scans wins. Ties go to the nearest setting."""
+    from kbs.evaluation.tune import best_setting
+
+    # total error (lower is better, sign -1) of settings 0 (the file's), 1 and 2 on three scans
+    scores = np.array([[0.20, 0.20, 1.00],
+                       [0.10, 0.10, 0.90],    # mean 0.367: best by the mean
+                       [0.05, 0.06, 1.20]])   # median 0.06: best by the median (mean 0.437)
+    near = [[0.0], [1.0], [2.0]]
+    assert best_setting(scores, [0, 1, 2], [0, 1, 2], -1.0, near, "mean") == 1
+    assert best_setting(scores, [0, 1, 2], [0, 1, 2], -1.0, near, "median") == 2
+    assert best_setting(scores, [0, 1], [0, 1, 2], -1.0, near, "median") == 1  # among those evaluated
+    assert best_setting(scores, [0, 1, 2], [2], 1.0, near, "median") == 2  # higher is better
+    tied = np.array([[0.5, 0.5], [0.5, 0.5]])
+    assert best_setting(tied, [1, 0], [0, 1], 1.0, [[0.0], [1.0]], "median") == 0
