@@ -2,11 +2,12 @@
 by a grid search with k-fold cross-validation over the scans.
 
 Every setting of the grid (one value per marked threshold) is scored on every scan; the scans are
-dealt into k folds (scan i into fold i mod k); for each fold the setting with the best mean score on
-the other folds' scans (or the best median: ``select``) is chosen, and scored on the fold's own (held-back) scans, beside the rule
-file's own values on the same scans. The values written out are those chosen on all the scans.
-Ties go to the setting nearest to the file's values (fewest thresholds moved, then the smallest
-moves relative to each range), so a threshold moves only when a better score asks for it.
+dealt into k folds (scan i into fold i mod k); for each fold the setting with the best mean score
+(or median: ``select``) on the other folds' scans is chosen, and scored on the fold's own
+(held-back) scans, beside the rule file's own values on the same scans. The values written out
+are those chosen on all the scans. Ties go to the setting nearest to the file's values (fewest
+thresholds moved, then the smallest moves relative to each range), so a threshold moves only when
+a better score asks for it.
 
 Speed: a setting is segmented once per distinct value of its split-relevant thresholds
 (:func:`kbs.knowledge.tuning.split_relevant`) and scan; the settings that differ only in
@@ -265,9 +266,10 @@ def tune(rule_base: RuleBase, scans: Sequence[LabelledScan], *, ground_label: st
     if len(started) < len(settings) and stopped is None:
         stopped = f"--max-evals {budget}"
 
+    distances = [distance(s, tunables) for s in settings]
+
     def best(cols: list[int]) -> int:
-        return best_setting(scores, evaluated, cols, sign, [distance(settings[i], tunables) for i in range(len(settings))],
-                            select)
+        return best_setting(scores, evaluated, cols, sign, distances, select)
 
     fold_list = []
     for f in range(k):

@@ -184,6 +184,7 @@ def _candidate_plane(run: Any, cl: Cluster, rec: Draft, provisional: Scene) -> d
         out.pop("why", None)
     return out
 
+
 def _uses_ground(rule_base: Any) -> bool:
     """Whether the rule base uses a ground plane at all."""
     spec = rule_base.ground

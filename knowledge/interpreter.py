@@ -121,9 +121,8 @@ class Interpreter:
         the rest of the run: the root's UFP-ONC partition and the ground among its clusters (as
         :meth:`run` does). A tiled run finds it once on the whole cloud and gives it to every tile
         (:attr:`given_ground`)."""
-        from kbs.knowledge.run import RunContext
-
         from kbs.knowledge.ground import needs_candidates
+        from kbs.knowledge.run import RunContext
 
         X = np.ascontiguousarray(X, dtype=np.float64)
         ctx = RunContext(self, X)

@@ -41,6 +41,7 @@ from kbs.errors import KbsError, ParameterError
 from kbs.knowledge.explain import ClusterRecord, Explanation
 from kbs.knowledge.groundfacts import GroundFacts
 from kbs.knowledge.interpreter import NO_LABEL, Segmentation
+from kbs.knowledge.segmentation import limits_by_kind
 from kbs.tiles.grid import Tile, TileGrid
 from kbs.tiles.stitch import NEIGHBOURS, ROOT, _Union, pair_links, stitched_record
 from kbs.tiles.store import TileStore
@@ -69,13 +70,8 @@ class Texts:
         """Strings ``a`` .. ``b - 1``."""
         if b <= a:
             return []
-        start = int(self.ends[a - 1]) if a else 0
-        cuts = self.ends[a:b].tolist()
-        out = []
-        for end in cuts:
-            out.append(self.text[start:end])
-            start = end
-        return out
+        bounds = [int(self.ends[a - 1]) if a else 0, *self.ends[a:b].tolist()]
+        return [self.text[s:e] for s, e in zip(bounds, bounds[1:])]
 
 
 def _codes(values: Sequence[Any]) -> tuple[tuple[Any, ...], np.ndarray]:
@@ -729,12 +725,9 @@ class StreamedResult:
 
     def summary(self) -> dict[str, Any]:
         """As :meth:`Segmentation.summary`."""
-        from kbs.knowledge.segmentation import limits_by_kind
-
-        by_kind = limits_by_kind(self.limits)
-        return {"points": self.n, "clusters": self.n_clusters, "splits": self.n_splits,
-                "limits": sum(s["count"] for s in by_kind.values()),
-                "limits_by_kind": by_kind, "points_per_label": dict(self.points_per_label),
+        limits = self.limits
+        return {"points": self.n, "clusters": self.n_clusters, "splits": self.n_splits, "limits": len(limits),
+                "limits_by_kind": limits_by_kind(limits), "points_per_label": dict(self.points_per_label),
                 "seconds": round(self.seconds, 3)}
 
     def cluster_items(self) -> Iterator[dict[str, Any]]:
