@@ -6,6 +6,10 @@ steps. The local model answers it the way a height map does, without gridding: t
 under a point is the median height of its ``neighbours`` nearest ground points, found in the ground
 plane's own 2D coordinates within ``radius``. Heights are measured along the ground normal.
 
+The radius may grow with the distance to the sensor (``per_range``): a spinning lidar's rings
+lie farther apart the farther they are (metres apart at 30 m for a 64-beam sensor), so a fixed
+radius that holds a near surface leaves far ground without one.
+
 Where no ground point lies within ``radius`` the local height is unknown (NaN in
 :meth:`LocalGround.height`); callers decide what that means (the predicate falls back to the
 global plane, the ground-contact step leaves such points alone).
@@ -94,10 +98,17 @@ class LocalGround:
         Their heights above the ground plane.
     neighbours : int
     radius : float
+        Farther ground points do not count (plus ``per_range`` x the query point's distance to
+        ``sensor``).
     owners : ndarray (m,) int
         Which cluster each point came from (an index into ``owner_ids``), so that a cluster can be
         compared with the ground *around* it, its own points left out.
     owner_ids : tuple of str
+    per_range : float
+        How much the radius grows per unit of a query point's distance to ``sensor`` (0: a fixed
+        radius).
+    sensor : ndarray (3,) or None
+        Where distances are measured from (needed when ``per_range`` > 0).
     """
 
     normal: np.ndarray
@@ -112,6 +123,8 @@ class LocalGround:
     owner_ids: tuple[str, ...] = ()
     #: threads of the k-d tree queries (scipy's ``workers``): the answers do not depend on it
     workers: int = 1
+    per_range: float = 0.0
+    sensor: np.ndarray | None = None
 
     #: how many more neighbours are fetched when a cluster's own points are left out
     EXCLUDE_FACTOR = 8
@@ -127,30 +140,45 @@ class LocalGround:
     @classmethod
     def build(cls, X: np.ndarray, index: np.ndarray, normal: np.ndarray, point: np.ndarray, *,
               neighbours: int = 8, radius: float = 3.0, owners: np.ndarray | None = None,
-              owner_ids: tuple[str, ...] = (), workers: int = 1) -> LocalGround:
+              owner_ids: tuple[str, ...] = (), workers: int = 1, per_range: float = 0.0,
+              sensor: np.ndarray | None = None) -> LocalGround:
         """A model from the points ``X[index]`` (the scene ``X`` (n, 3)) over the plane (normal,
         point); ``owners``/``owner_ids`` say which cluster each point came from; ``workers``
-        threads answer large queries (the same answers)."""
+        threads answer large queries (the same answers); the radius of a query at distance ``r``
+        from ``sensor`` is ``radius + per_range r``."""
         from scipy.spatial import cKDTree
 
         normal = np.asarray(normal, dtype=np.float64)
         point = np.asarray(point, dtype=np.float64)
         basis = plane_basis(normal)
+        if per_range < 0.0 or not np.isfinite(per_range):
+            raise ValueError(f"per_range must be a finite number >= 0, got {per_range}")
+        if per_range > 0.0 and sensor is None:
+            raise ValueError("a radius growing with range (per_range > 0) needs the sensor's position")
         G = X[index] - point
         return cls(normal=normal, point=point, index=np.asarray(index), heights=G @ normal,
                    neighbours=int(neighbours), radius=float(radius), basis=basis,
                    tree=cKDTree(G @ basis.T, balanced_tree=False, compact_nodes=False),
                    owners=None if owners is None else np.asarray(owners), owner_ids=tuple(owner_ids),
-                   workers=max(1, int(workers)))
+                   workers=max(1, int(workers)), per_range=float(per_range),
+                   sensor=None if sensor is None else np.asarray(sensor, dtype=np.float64).reshape(3))
 
     @property
     def n_points(self) -> int:
         return int(self.index.size)
 
+    def radii(self, P: np.ndarray) -> np.ndarray | None:
+        """The radius of each query point ``P`` (q, 3): ``radius + per_range`` x its distance to
+        ``sensor``; None when the radius is fixed (``per_range`` 0)."""
+        if not self.per_range > 0.0:
+            return None
+        assert self.sensor is not None  # build() saw to it
+        return self.radius + self.per_range * np.sqrt(((np.asarray(P, dtype=np.float64) - self.sensor) ** 2).sum(axis=1))
+
     def query(self, P: np.ndarray, exclude: str | None = None, *,
               nearest_of: str = "point") -> tuple[np.ndarray, np.ndarray]:
         """For points ``P`` (q, 3): the local ground height under each (NaN where no ground point
-        lies within ``radius``) and the position in :attr:`index` of its nearest ground point (-1
+        lies within ``radius``, see :meth:`radii`) and the position in :attr:`index` of its nearest ground point (-1
         where none). With ``exclude`` (a cluster id), that cluster's own points are left out: among
         the ``EXCLUDE_FACTOR x neighbours`` nearest, the nearest ``neighbours`` of other clusters
         count. ``nearest_of``: what the caller uses of the nearest surface point, its position
@@ -173,34 +201,42 @@ class LocalGround:
         order = self._spatial_order(Q)
         if order is None:
             order = np.arange(q)
+        radii = self.radii(P)
         # in chunks of the spatial order: the same answers, asked in an order that keeps the
         # tree's nodes in cache, with the (chunk, k) temporaries bounded whatever q
         step = max(1, self.QUERY_BUDGET // k)
         for s in range(0, q, step):
             sel = order[s:s + step]
-            d, i = self._knn(Q[sel], k, own, first)
+            if radii is None:
+                d, i = self._knn(Q[sel], k, own, first)
+            else:  # the neighbours within the chunk's largest radius, then each point's own
+                r = radii[sel]
+                d, i = self._knn(Q[sel], k, own, first, float(r.max()))
+                d = np.where(d.reshape(sel.size, k) <= r[:, None], d.reshape(sel.size, k), np.inf)
             ground[sel], nearest[sel] = self._medians(d.reshape(sel.size, k), i.reshape(sel.size, k), own)
         return ground, nearest
 
-    def _knn(self, Q: np.ndarray, k: int, own: int, first: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        """``tree.query(Q, k, distance_upper_bound=radius)`` as (q, k) arrays, or the compiled grid
+    def _knn(self, Q: np.ndarray, k: int, own: int, first: int = 0,
+             radius: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``tree.query(Q, k, distance_upper_bound=radius)`` (default :attr:`radius`) as (q, k) arrays, or the compiled grid
         search's answer (:func:`~kbs.inference._compiled.grid_knn`) for the rows where
         :meth:`_medians` (``own``) gives both the same outputs (the nearest point's position, its
         cluster or nothing: ``first`` 0, 1, 2, see :meth:`query`): the same distances, and the same
         indices up to the order of equal distances where that order changes nothing; the k-d tree
         answers the other rows, and all when the kernels are off or the grid left it more than
         :attr:`GRID_MAX_LEFT` of the rows so far."""
+        radius = self.radius if radius is None else radius
         tally = self._knn_tally  # rows asked of the grid, rows it left to the tree
         useful = tally[0] < self.GRID_TRIAL or tally[1] <= self.GRID_MAX_LEFT * tally[0]
         grid = self._grid if _flags.JIT and useful and np.isfinite(Q).all() else None
         if grid is None:
-            d, i = self.tree.query(Q, k=k, distance_upper_bound=self.radius,  # type: ignore[attr-defined]
+            d, i = self.tree.query(Q, k=k, distance_upper_bound=radius,  # type: ignore[attr-defined]
                                    workers=self.workers if Q.shape[0] >= 4096 else 1)
             return d.reshape(Q.shape[0], k), i.reshape(Q.shape[0], k)
         Q = np.ascontiguousarray(Q)
         T = self.tree.data  # type: ignore[attr-defined]
         owners = np.ascontiguousarray(self.owners if self.owners is not None else np.zeros(0), dtype=np.int64)
-        rest = (float(self.radius), self.heights, owners, int(own), int(self.neighbours), int(first))
+        rest = (float(radius), self.heights, owners, int(own), int(self.neighbours), int(first))
         if self.workers > 1 and Q.shape[0] >= 4096:  # the kernel releases the GIL: rows in threads, the same answers
             from concurrent.futures import ThreadPoolExecutor
 
@@ -214,7 +250,7 @@ class LocalGround:
         tally[0] += Q.shape[0]
         tally[1] += redo.size
         if redo.size:
-            rd, ri = self.tree.query(Q[redo], k=k, distance_upper_bound=self.radius,  # type: ignore[attr-defined]
+            rd, ri = self.tree.query(Q[redo], k=k, distance_upper_bound=radius,  # type: ignore[attr-defined]
                                      workers=self.workers if redo.size >= 4096 else 1)
             d[redo], i[redo] = rd.reshape(redo.size, k), ri.reshape(redo.size, k)
         return d, i
@@ -400,9 +436,10 @@ class LocalGround:
         Exact in floating point: a median of heights between ``lo`` and ``hi`` is between them, so
         ``fl(h_p - hi) <= fl(h_p - ground) <= fl(h_p - lo)``: a caller may skip the query of a
         point whose bounds already decide its outcome. None when the coarse grid would be absurdly
-        large for the surface (the fine grid is then skipped alone)."""
+        large for the surface (the fine grid is then skipped alone), and when the radius grows with
+        range (``per_range``: the coarse grid's cells are one radius wide)."""
         P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
-        if self.n_points == 0 or not self.radius > 0.0:
+        if self.n_points == 0 or not self.radius > 0.0 or self.per_range > 0.0:
             return None
         coarse, fine = self._bound_grids
         if coarse is None:

@@ -68,6 +68,44 @@ def test_unknown_beyond_the_radius_and_median_of_the_neighbours_found():
         assert (np.isnan(g) and near.size == 0) or g == pytest.approx(np.median(G[near, 2]))
 
 
+@pytest.mark.parametrize("jit", [True, False])
+def test_a_radius_growing_with_range_reaches_far_sparse_ground(monkeypatch, jit):
+    """per_range: the radius of a query is radius + per_range x its distance to the sensor. Far
+    ground a spinning lidar leaves metres apart gets a surface that a fixed radius leaves it
+    without; near the sensor the radius hardly grows. Checked against brute force."""
+    from kbs.inference import _flags
+
+    monkeypatch.setattr(_flags, "JIT", jit)
+    G = np.array([[40.0, 0, -1.5], [40.0, 0.5, -1.5], [3.0, 0, -1.7]])  # two far points, one near
+    P = np.array([[45.0, 0, -1.4], [7.5, 0, -1.6]])  # 5 m from the far pair at 45 m; 4.5 m from the near one at 7.5 m
+    fixed = LocalGround.build(G, np.arange(3), np.array([0, 0, 1.0]), np.zeros(3), neighbours=8, radius=3.0)
+    grows = LocalGround.build(G, np.arange(3), np.array([0, 0, 1.0]), np.zeros(3), neighbours=8, radius=3.0,
+                              per_range=0.1, sensor=np.zeros(3))  # about 7.5 m at 45 m, 3.77 m at 7.5 m
+    assert np.isnan(fixed.height(P)).all()
+    h = grows.height(P)
+    assert h[0] == pytest.approx(0.1) and np.isnan(h[1])
+    np.testing.assert_allclose(grows.radii(P), 3.0 + 0.1 * np.linalg.norm(P, axis=1))  # 3-d distances
+    assert fixed.radii(P) is None and grows.height_bounds(P) is None  # the bounds assume one radius
+    # brute force on random data, with and without a cluster left out
+    rng = np.random.default_rng(5)
+    X = np.column_stack([rng.uniform(-30, 30, (900, 2)), rng.normal(0, 0.1, 900)])
+    owners = (X[:, 0] > 0).astype(np.int64)
+    sensor = np.array([0.0, 0.0, 1.7])
+    model = LocalGround.build(X, np.arange(900), np.array([0, 0, 1.0]), np.zeros(3), neighbours=6, radius=0.5,
+                              owners=owners, owner_ids=("c0", "c1"), per_range=0.05, sensor=sensor)
+    Q = np.column_stack([rng.uniform(-35, 35, (300, 2)), rng.normal(0, 0.1, 300)])
+    for exclude, own in ((None, -1), ("c1", 1)):
+        ground, _ = model.query(Q, exclude)
+        for p, g in zip(Q, ground):
+            r = 0.5 + 0.05 * np.linalg.norm(p - sensor)
+            d = np.hypot(*(X[:, :2] - p[:2]).T)
+            near = [j for j in np.argsort(d, kind="stable") if owners[j] != own][:6]
+            near = [j for j in near if d[j] <= r]
+            assert (np.isnan(g) and not near) or g == pytest.approx(np.median(X[near, 2]))
+    with pytest.raises(ValueError, match="needs the sensor"):
+        LocalGround.build(G, np.arange(3), np.array([0, 0, 1.0]), np.zeros(3), per_range=0.1)
+
+
 def test_a_cluster_can_be_compared_with_the_ground_around_it():
     """exclude: the cluster's own points leave the surface; a raised flat roof among ground patches
     is then high above the ground around it, and a ground patch is not."""
@@ -301,6 +339,26 @@ def test_post_step_problems_are_positioned(kw, expected):
     assert expected in str(err.value), str(err.value)
 
 
+def test_per_range_settings_parse_and_bad_values_are_positioned():
+    """post.ground_model.per_range and post.ground_contact.per_range: 0 when absent; a negative, a
+    word or more than 1 is a positioned problem."""
+    rb = _parse(post=POST_OK)
+    assert rb.ground_model.per_range == 0.0 and rb.contact.per_range == 0.0
+    rb = _parse(post=POST_OK.replace("{label: ground}", "{label: ground, per_range: 0.2}")
+                .replace("{tolerance: 0.05}", "{tolerance: 0.05, per_range: 0.005}"))
+    assert rb.ground_model.per_range == 0.2 and rb.contact.per_range == 0.005
+    for post, expected in (
+            (POST_OK.replace("{label: ground}", "{label: ground, per_range: -0.1}"),
+             "t.yaml:19:44: post.ground_model.per_range: -0.1 is less than the minimum of 0"),
+            (POST_OK.replace("{label: ground}", "{label: ground, per_range: far}"),
+             "t.yaml:19:44: post.ground_model.per_range must be a number; got 'far'"),
+            (POST_OK.replace("{tolerance: 0.05}", "{tolerance: 0.05, per_range: 2}"),
+             "t.yaml:22:48: post.ground_contact.per_range: 2 is greater than the maximum of 1")):
+        with pytest.raises(RuleFileError) as err:
+            _parse(post=post)
+        assert expected in str(err.value), str(err.value)
+
+
 # --- the interpreter -------------------------------------------------------------------------------
 
 
@@ -464,6 +522,41 @@ def test_ground_contact_only_from_the_clusters_its_condition_admits():
         if r.contact:
             checks = {c.check: c.passed for c in r.checks}
             assert not checks["level"] or not checks["sheet"]
+
+
+def test_a_contact_tolerance_growing_with_range_takes_more_of_far_obstacles():
+    """post.ground_contact.per_range: the rocks seen from 30 m away take 0.05 m + 0.002 x range
+    (about 0.12 m) of contact: more of their feet join the ground than with 0.05 m, each within its
+    own tolerance of the ground (flat, at z = -1.5), and the records say so; nothing else changed."""
+    X, _ = ground_and_rocks()
+    sensor = np.array([0.0, -30.0, 0.0])
+    rb = load_rule_base("outdoor")
+    contact = "      tolerance: 0.05            # m\n"
+    assert contact in rb.text
+    on = parse_rule_base(rb.text.replace(contact, contact + "      per_range: 0.002\n"), "outdoor.yaml",
+                         PredicateRegistry.default(entry_points_too=False))
+    assert on.contact.per_range == 0.002
+    seg_off, seg = Interpreter(rb, sensor=sensor).run(X), Interpreter(on, sensor=sensor).run(X)
+    off_moved = sum(r.contact for r in seg_off.explanation.records.values())
+    moved = sum(r.contact for r in seg.explanation.records.values())
+    changed = seg.label != seg_off.label
+    assert moved > off_moved + 100 and changed.sum() == moved - off_moved
+    assert np.all(seg.label[changed] == 0) and np.all(seg_off.label[changed] == 1)
+    # against the surface the step measured with (the ground before contact: the rules without it)
+    lines = rb.text.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("  - ground_contact:"))
+    end = next(i for i in range(start + 1, len(lines)) if not lines[i].startswith("      "))
+    no_contact = parse_rule_base("\n".join(lines[:start] + lines[end:]), "outdoor.yaml",
+                                 PredicateRegistry.default(entry_points_too=False))
+    before = Interpreter(no_contact, sensor=sensor).run(X)
+    g = seg.explanation.ground
+    surface = LocalGround.build(X, np.flatnonzero(before.label == 0), np.array(g.normal), np.array(g.point),
+                                neighbours=on.ground_model.neighbours, radius=on.ground_model.radius)
+    h = np.abs(surface.height(X[changed]))
+    tol = 0.05 + 0.002 * np.linalg.norm(X[changed] - sensor, axis=1)
+    assert np.all(h <= tol) and np.all(h > 0.05 - 1e-12)  # beyond the fixed 0.05 m, within the grown one
+    donors = [r for r in seg.explanation.records.values() if r.contact]
+    assert all(any("within 0.05 m + 0.002 x range of the local ground surface" in n for n in r.notes) for r in donors)
 
 
 @pytest.mark.slow

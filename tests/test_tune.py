@@ -112,6 +112,25 @@ def test_bad_tune_marks_on_post_steps():
     assert any("value 0 must be above 0" in p for p in problems(text))
 
 
+def test_the_per_range_settings_can_be_marked_for_kbs_tune():
+    """post.ground_model.per_range and post.ground_contact.per_range are thresholds kbs tune can fit
+    (labels only: the split tree does not depend on them), written back in place; a value the
+    schema refuses is a positioned problem."""
+    radius = "      radius: 3.0                # m\n"
+    text = OUTDOOR.replace(radius, radius + "      per_range: 0.0\n      tune: {field: per_range, values: [0, 0.1, 0.2]}\n", 1)
+    text = text.replace(CONTACT, CONTACT + "      per_range: 0.0\n      tune: {field: per_range, values: [0, 0.002, 0.005]}\n", 1)
+    rb = parse_rule_base(text, "t.yaml", PredicateRegistry.default())
+    model, contact = rb.tunables
+    assert (model.name, model.values) == ("post.ground_model.per_range", (0.0, 0.1, 0.2))
+    assert (contact.name, contact.values) == ("post.ground_contact.per_range", (0.0, 0.002, 0.005))
+    assert not split_relevant(rb, model) and not split_relevant(rb, contact)
+    new_text, other = with_values(rb, {model.name: 0.2, contact.name: 0.005})
+    assert other.ground_model.per_range == 0.2 and other.contact.per_range == 0.005
+    assert "      per_range: 0.2\n" in new_text and "      per_range: 0.005\n" in new_text
+    bad = text.replace("values: [0, 0.002, 0.005]", "values: [0, 0.002, 2]")
+    assert any("tune on post[3].ground_contact.per_range: value 2 is outside [0, 1]" in p for p in problems(bad))
+
+
 def test_a_bad_tune_mark_exits_4_from_kbs_tune_with_its_position(tmp_path, capsys, scenes):
     rules = marked(tmp_path, a=(PLANAR, PLANAR + "    tune: {min: 0.1, max: 0.02}\n"))
     code, _, err = run_kbs(capsys, "tune", "--rules", str(rules), str(scenes[0]), "field:ground", str(scenes[1]),

@@ -48,8 +48,8 @@ def surface_batches(X: np.ndarray, todo: Sequence[Leaf], model, may_matter: Call
     nearest surface points) of its points, asked for batches of leaves of about
     :data:`SURFACE_BATCH` points together (few small queries, bounded temporaries).
 
-    ``may_matter(hp, lo, hi)``: which points the caller needs, from their heights above the
-    ground plane and the bounds of the surface under them (:meth:`LocalGround.height_bounds`);
+    ``may_matter(hp, lo, hi, P)``: which points ``P`` the caller needs, from their heights above
+    the ground plane and the bounds of the surface under them (:meth:`LocalGround.height_bounds`);
     the others are not asked for and come back as NaN (height) and -1 (nearest). The caller
     promises that their outcome is the same either way (the bounds decide it). ``nearest_of``:
     what the caller uses of the nearest surface points (:meth:`LocalGround.query`)."""
@@ -67,7 +67,7 @@ def surface_batches(X: np.ndarray, todo: Sequence[Leaf], model, may_matter: Call
             ground, nearest = model.query(P, nearest_of=nearest_of)
             h = hp - ground
         else:
-            ask = np.flatnonzero(may_matter(hp, *bounds))
+            ask = np.flatnonzero(may_matter(hp, *bounds, P))
             h = np.full(P.shape[0], np.nan)
             nearest = np.full(P.shape[0], -1, dtype=np.int64)
             ground, nearest[ask] = model.query(P[ask], nearest_of=nearest_of)

@@ -16,7 +16,8 @@ from kbs.knowledge.state import PostState, Surface
 class GroundModel(PostStep):
     """A local ground surface from the points of the clusters of one label: the ground height under a
     point is the median height of its nearest such points (in the ground plane's coordinates, within
-    radius). Used by predicates such as height_above_local_ground and by ground_contact.
+    radius, plus per_range x the point's distance to scene.sensor: a spinning lidar's rings lie
+    farther apart with range). Used by predicates such as height_above_local_ground and by ground_contact.
 
     Later steps measure against it (relabel conditions, ground_release, ground_contact); a relabel
     step that changes labels builds it again from the new labels. Without a ground plane (a rule
@@ -32,15 +33,19 @@ class GroundModel(PostStep):
                            "type": "integer", "minimum": 1, "maximum": 64},
             "radius": {"description": "length units; farther ground points do not count", "type": "number",
                        "exclusiveMinimum": 0},
+            "per_range": {"description": "length units of radius per length unit of the point's distance to "
+                                         "scene.sensor (default 0: a fixed radius)", "type": "number",
+                          "minimum": 0, "maximum": 1},
             "tune": {"$ref": "#/$defs/tune"},
         },
     }
-    tunable: ClassVar[tuple[str, ...]] = ("neighbours", "radius")
+    tunable: ClassVar[tuple[str, ...]] = ("neighbours", "radius", "per_range")
 
     label: str
     neighbours: int
     radius: float
     pos: SourcePos
+    per_range: float = 0.0  #: radius per unit of distance to the sensor
 
     @classmethod
     def parse(cls, raw: Any, ctx: SpecContext) -> GroundModel | None:
@@ -48,7 +53,8 @@ class GroundModel(PostStep):
             return None  # the schema reported it
         ctx.label_ref(ctx.path + ("label",), raw["label"])
         return cls(label=raw["label"], neighbours=ctx.number(raw.get("neighbours"), 8, int),
-                   radius=ctx.number(raw.get("radius"), 3.0), pos=ctx.pos(ctx.path, key=True))
+                   radius=ctx.number(raw.get("radius"), 3.0), pos=ctx.pos(ctx.path, key=True),
+                   per_range=ctx.number(raw.get("per_range"), 0.0))
 
     def build(self, state: PostState, ctx: PostContext) -> Surface:
         """The surface from the leaves labelled :attr:`label` now."""
@@ -61,7 +67,8 @@ class GroundModel(PostStep):
         owner = np.concatenate([np.full(leaves[i].size, i) for i in mine]) if mine else np.zeros(0, dtype=np.int64)
         model = LocalGround.build(ctx.X, index, ground.normal, ground.point, neighbours=self.neighbours,
                                   radius=self.radius, owners=np.searchsorted(mine, owner) if mine else owner,
-                                  owner_ids=tuple(leaves[i].id for i in mine), workers=ctx.jobs)
+                                  owner_ids=tuple(leaves[i].id for i in mine), workers=ctx.jobs,
+                                  per_range=self.per_range, sensor=state.scene.sensor)
         return Surface(model=model, owner=owner, spec=self)
 
     def apply(self, state: PostState, ctx: PostContext) -> PostState:
@@ -70,5 +77,5 @@ class GroundModel(PostStep):
             return replace(state, surface=None, ground_facts=replace(state.ground_facts, local_model=skipped))
         surface = self.build(state, ctx)
         built = LocalModel(label=self.label, points=surface.model.n_points, neighbours=self.neighbours,
-                           radius=self.radius, source=self.pos.short)
+                           radius=self.radius, per_range=self.per_range or None, source=self.pos.short)
         return replace(state, surface=surface, ground_facts=replace(state.ground_facts, local_model=built))

@@ -69,7 +69,7 @@ class GroundRelease(PostStep):
         todo = [li for li, lf in enumerate(leaves) if lf.label == gl and lf.size]
         # queries for batches of clusters (points move only after the loop)
         tol = self.tolerance
-        above = lambda hp, lo, hi: hp - lo > tol  # noqa: E731 (no surface height under it is low enough: stays)
+        above = lambda hp, lo, hi, P: hp - lo > tol  # noqa: E731 (no surface height under it is low enough: stays)
         batches = surface_batches(X, [leaves[li] for li in todo], surface.model, above, nearest_of="none")
         for li, (h, _) in zip(todo, batches):
             lf = leaves[li]
