@@ -361,3 +361,16 @@ def test_the_whole_cloud_ground_is_found_without_a_partition_only_when_the_rule_
     calls.clear()
     kbs.Segmenter("outdoor", jobs=1)._interpreter.find_ground(X - np.array([1000.0, 2000.0, 50.0]))
     assert calls == [1]
+
+
+def test_the_union_find_gives_every_node_its_root_at_once():
+    from kbs.tiles.stitch import _Union
+
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 50, 2000):
+        uf = _Union(n)
+        for a, b in rng.integers(0, max(n, 1), size=(n // 2, 2)) if n else ():
+            uf.union(int(a), int(b))
+        roots = uf.roots()
+        assert roots.dtype == np.int64 and roots.tolist() == [uf.find(i) for i in range(n)]
+        assert all(roots[i] <= i for i in range(n))  # the smaller node stays the root

@@ -216,6 +216,19 @@ def test_packed_texts_give_back_each_string():
     assert texts.slice(3, 3) == [] and Texts.of([]).slice(0, 0) == []
 
 
+def test_packed_texts_in_a_file_give_back_each_string(tmp_path):
+    from kbs.tiles.streamed import FileTexts, _mapped, _utf8
+
+    for items in (["c0", "", "c0.1.2", "t1_2/c3"], ["sol", "", "sous-bois à 2 m", "c1"]):
+        data, ends = _utf8(Texts.of(items))
+        (tmp_path / "ids.bin").write_bytes(data)
+        texts = FileTexts(_mapped(tmp_path / "ids.bin", np.uint8), ends)
+        assert len(texts) == 4 and texts.slice(0, 4) == items
+        assert texts.slice(2, 3) == [items[2]] and texts.slice(1, 2) == [""] and texts.slice(3, 3) == []
+    (tmp_path / "none.bin").write_bytes(b"")
+    assert FileTexts(_mapped(tmp_path / "none.bin", np.uint8), np.zeros(0, dtype=np.int64)).slice(0, 0) == []
+
+
 def test_a_tile_summary_gives_back_every_cluster_label_and_id_and_every_limit(rocks_las, tmp_path, monkeypatch):
     """The summary a tile sends back holds its clusters' labels and ids and its limits in a few
     arrays (one label table, one string of ids); what it gives back is the result's own, and the
@@ -250,10 +263,24 @@ def test_a_tile_summary_gives_back_every_cluster_label_and_id_and_every_limit(ro
     assert len(spilled.tiles) >= 4
     kept = []
     stitch = streamed._stitch
-    monkeypatch.setattr(streamed, "_stitch", lambda sp, grid, tiles, summaries, *a: kept.extend(summaries) or
-                        stitch(sp, grid, tiles, summaries, *a))
+    monkeypatch.setattr(streamed, "_stitch", lambda sp, grid, tiles, briefs, *a: kept.extend(briefs) or
+                        stitch(sp, grid, tiles, briefs, *a))
     out = streamed.segment_streamed(seg, spilled, TileStore(tmp_path / "store", seg))
     assert len(kept) == len(spilled.tiles)
-    assert all(s.head is kept[0].head for s in kept)
-    assert out.summary()["limits"] == sum(len(s.limit_points) for s in kept) > 0
+    # what the stitching process held of each tile while the others ran: numbers, its summary in a file
+    assert all(isinstance(b, streamed.TileBrief) and b.head is kept[0].head for b in kept)
+    assert all(Path(b.path).parent == spilled.folder for b in kept)
+    assert out.summary()["limits"] == sum(b.n_limits for b in kept) > 0
+    # the summaries gathered in files give back each tile's clusters and limits
+    tables, limits = out._tables, []
+    for k, b in enumerate(kept):
+        s = streamed.load_summary(b)
+        assert len(s.sizes) == b.n_clusters and len(s.ids) == b.n_ids
+        for c in range(b.n_clusters):
+            g = int(out._offsets[k]) + c
+            assert tables.cluster(g) == s.cluster(c)
+            assert tables.sizes[g] == s.sizes[c] and tables.core_sizes[g] == s.core_sizes[c]
+        limits += s.limits()
+    assert out.limits == limits
     spilled.remove()
+    assert not spilled.folder.exists()  # the summaries and tables went with the spill files

@@ -75,7 +75,7 @@ class SpilledCloud:
     def remove(self) -> None:
         """Delete the spill files (and the folder if nothing else is in it)."""
         for path in self.folder.glob("*"):
-            if path.suffix in (".idx", ".core", ".npy", ".npz"):
+            if path.suffix in (".idx", ".core", ".npy", ".npz", ".bin", ".pkl", ".part"):
                 path.unlink(missing_ok=True)
         try:
             self.folder.rmdir()

@@ -8,27 +8,31 @@ results:
 1. each tile is segmented (in this process or as a Dask task) from its points read from the spill
    folder (the task gets file paths, not arrays); its whole result goes to its tile file
    (:class:`~kbs.tiles.store.TileStore`), the cluster and label of the points near the tile's
-   edges (the only ones a neighbour may hold) to a file in the spill folder, and what comes back
-   is small (:class:`TileSummary`): each cluster's size, label and ids, the counts of the summary;
-2. the clusters crossing tile edges are merged from those edge points alone, two rows of tiles
-   read at a time (:func:`kbs.tiles.stitch.pair_links`);
+   edges (the only ones a neighbour may hold) to a file in the spill folder, its summary
+   (:class:`TileSummary`: each cluster's size, label and ids, its limits, the counts of the
+   summary) to another, and what comes back is a few numbers (:class:`TileBrief`);
+2. the summaries are read back once and gathered in files (:func:`_gather`); the clusters crossing
+   tile edges are merged from the edge points alone, two rows of tiles read at a time
+   (:func:`kbs.tiles.stitch.pair_links`);
 3. the per-point result (cluster, label, membership) is written to files in the spill folder,
    reading the tile files in turn; the output clusters' descriptors are summed over those files
    in chunks (the sums of :func:`kbs.inference.cluster_geometry`, in its order: the same numbers);
 4. the JSON's clusters and explanation are written piece by piece (:meth:`StreamedResult.pieces`:
    one tile's records at a time) and the LAS/LAZ chunk by chunk (:class:`FileColumn`).
 
-What the stitching process still holds grows with the number of tiles and of output clusters,
-not with the points: per tile its summary in a few arrays (a label code, the record ids packed in
-one string, the limits' points, ids and kinds; one head for all tiles), per output cluster a few
-integers (its tile clusters, its root); the output clusters' descriptors go to files. When the
-summary is written, the limits' ids are listed (``limits_by_kind``).
+What the stitching process holds while the tiles run is a brief per tile (a few numbers, its
+ground facts and notes; one head for all tiles). The arrays per tile cluster and per output
+cluster (sizes, labels, ids, roots, members, descriptors) are in files and mapped when read.
+What still grows with the cloud in memory: the union-find over the tile clusters while stitching
+(8 bytes each), the links of the stitched clusters, and, when the summary is written, the limits'
+ids (``limits_by_kind`` lists them all).
 """
 from __future__ import annotations
 
 import dataclasses
 import json
 import os
+import pickle
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -93,7 +97,7 @@ def _codes(values: Sequence[Any]) -> tuple[tuple[Any, ...], np.ndarray]:
 @dataclass(frozen=True)
 class TileSummary:
     """What stitching needs of one tile's result (its whole result is in its tile file), in a few
-    arrays: the process that stitches holds one per tile until the end.
+    arrays; written by the tile's task to a file of the spill folder (:func:`save_summary`).
 
     Attributes
     ----------
@@ -147,6 +151,50 @@ class TileSummary:
         ids = self.limit_ids.slice(0, len(self.limit_ids))
         return [(int(p), f"{self.name}/{i}", self.limit_kinds[int(c)])
                 for p, i, c in zip(self.limit_points.tolist(), ids, self.limit_codes)]
+
+
+@dataclass(frozen=True)
+class TileBrief:
+    """What the stitching process holds of a finished tile while the others run: a few numbers;
+    the tile's :class:`TileSummary` is in the file ``path`` (spill folder), read back once when
+    stitching (:func:`_tables`). ``head`` as the summary's (one kept for all tiles)."""
+
+    name: str
+    path: str
+    n_clusters: int
+    n_ids: int
+    n_limits: int
+    n_splits: int
+    label_counts: np.ndarray
+    root: str
+    ground: GroundFacts
+    notes: list[str]
+    head: dict[str, Any] = field(default_factory=dict)
+
+
+def save_summary(summary: TileSummary, path: Path) -> TileBrief:
+    """Write ``summary`` to ``path`` (pickled: a file of this run's spill folder, read by this
+    run) and give back its :class:`TileBrief`."""
+    tmp = path.with_name(path.name + ".part")
+    with open(tmp, "wb") as stream:
+        pickle.dump(summary, stream, protocol=pickle.HIGHEST_PROTOCOL)
+    os.replace(tmp, path)
+    return TileBrief(name=summary.name, path=str(path), n_clusters=len(summary.sizes), n_ids=len(summary.ids),
+                     n_limits=len(summary.limit_points), n_splits=summary.n_splits, label_counts=summary.label_counts,
+                     root=summary.root, ground=summary.ground, notes=summary.notes, head=summary.head)
+
+
+def load_summary(brief: TileBrief) -> TileSummary:
+    with open(brief.path, "rb") as stream:
+        summary = pickle.load(stream)
+    if not isinstance(summary, TileSummary) or summary.name != brief.name:
+        raise KbsError(f"{brief.path} is not the summary of tile {brief.name}")
+    return summary
+
+
+def summary_path(job: Any) -> Path:
+    """The file of the tile's summary: in the spill folder, beside its edge points."""
+    return Path(job.xyz).with_name(f"{job.tile.name}.summary.pkl")
 
 
 def summarize(tile: Tile, grid: TileGrid, index: np.ndarray, in_core: np.ndarray, points: np.ndarray,
@@ -222,9 +270,10 @@ def read_rows(path: str | os.PathLike[str], index: np.ndarray) -> np.ndarray:
 
 
 def run_job(segment: Callable[[np.ndarray], Segmentation], job: TileJob,
-            given: tuple[Any, GroundFacts]) -> tuple[TileSummary, bool]:
+            given: tuple[Any, GroundFacts]) -> tuple[TileBrief, bool]:
     """Segment ``job``'s tile with ``segment`` (points -> result), or take its file when resuming
-    and the file is this tile's; save it, return its summary and whether it was resumed."""
+    and the file is this tile's; save it and its summary (:func:`summary_path`), return the
+    summary's brief and whether it was resumed."""
     try:
         index, in_core = job.tile.index, job.tile.in_core
         points = read_rows(job.xyz, index)
@@ -241,7 +290,7 @@ def _no_shared_folder(exc: OSError) -> ParameterError:
 
 
 def _run_points(segment: Callable[[np.ndarray], Segmentation], job: Any, given: tuple[Any, GroundFacts],
-                index: np.ndarray, in_core: np.ndarray, points: np.ndarray) -> tuple[TileSummary, bool]:
+                index: np.ndarray, in_core: np.ndarray, points: np.ndarray) -> tuple[TileBrief, bool]:
     store = TileStore.at(job.store, job.base)
     key = store.key_of(index, points, given)
     seg = store.load(job.tile, key) if job.resume else None
@@ -249,7 +298,8 @@ def _run_points(segment: Callable[[np.ndarray], Segmentation], job: Any, given: 
     if seg is None:
         seg = segment(points)
         store.save(job.tile, key, seg)
-    return summarize(job.tile, job.grid, index, in_core, points, seg, edges_path(job)), resumed
+    summary = summarize(job.tile, job.grid, index, in_core, points, seg, edges_path(job))
+    return save_summary(summary, summary_path(job)), resumed
 
 
 def edges_path(job: Any) -> Path:
@@ -308,7 +358,7 @@ def _dispatch(segmenter: Any, runner: Callable[..., Any], names: Sequence[str], 
             failures[k] = out
             return
         summary = out[0] if isinstance(out, tuple) and out else None
-        if isinstance(summary, TileSummary):
+        if isinstance(summary, TileBrief):
             if heads and summary.head == heads[0]:
                 out = (dataclasses.replace(summary, head=heads[0]), *out[1:])
             elif not heads:
@@ -365,7 +415,7 @@ def segment_streamed(segmenter: Any, spilled: Any, store: TileStore, *, schedule
 
 
 def run_copc_job(segment: Callable[[np.ndarray], Segmentation], job: Any,
-                 given: tuple[Any, GroundFacts]) -> tuple[TileSummary | None, bool, Any, int]:
+                 given: tuple[Any, GroundFacts]) -> tuple[TileBrief | None, bool, Any, int]:
     """Read ``job``'s tile (a :class:`kbs.tiles.copc.CopcJob`) from its COPC file by its nodes,
     write its rows beside the spill folder's coordinates and segment it as :func:`run_job` does;
     returns its summary (None: no point in its core, nothing segmented), whether it was resumed,
@@ -459,37 +509,179 @@ def _ground(segmenter: Any, xyz_path: str, n: int) -> tuple[Any, GroundFacts]:
 # -- stitching from the summaries ---------------------------------------------------------------------
 
 
-def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], summaries: Sequence[TileSummary], edges: _Edges,
+def _mapped(path: Path, dtype: Any) -> np.ndarray:
+    """The raw file ``path`` mapped read-only as an array of ``dtype`` (an empty array when the
+    file is: a map cannot be empty)."""
+    if path.stat().st_size == 0:
+        return np.zeros(0, dtype=dtype)
+    return np.memmap(path, dtype=dtype, mode="r")
+
+
+@dataclass(frozen=True)
+class FileTexts:
+    """:class:`Texts` in a file: the strings' UTF-8 bytes one after the other (``data``, mapped)
+    and each one's end offset in bytes (``ends``)."""
+
+    data: np.ndarray  # (bytes,) uint8
+    ends: np.ndarray  # (n,) int64
+
+    def __len__(self) -> int:
+        return int(self.ends.size)
+
+    def slice(self, a: int, b: int) -> list[str]:
+        """Strings ``a`` .. ``b - 1``."""
+        if b <= a:
+            return []
+        s0 = int(self.ends[a - 1]) if a else 0
+        bounds = [s0, *self.ends[a:b].tolist()]
+        raw = bytes(self.data[s0:bounds[-1]])
+        return [raw[x - s0:y - s0].decode("utf-8") for x, y in zip(bounds, bounds[1:])]
+
+
+class _Table:
+    """Distinct values (by equality and type; labels, limit dicts: few, not all hashable) and a
+    code each, over all tiles."""
+
+    def __init__(self) -> None:
+        self.values: list[Any] = []
+
+    def codes(self, values: Sequence[Any], codes: np.ndarray) -> np.ndarray:
+        """The global codes of a tile's ``values`` table, for its ``codes`` into it."""
+        out = []
+        for v in values:
+            for i, t in enumerate(self.values):
+                if t == v and type(t) is type(v):
+                    out.append(i)
+                    break
+            else:
+                out.append(len(self.values))
+                self.values.append(v)
+        return np.asarray(out, dtype=np.int32)[codes] if len(codes) else np.zeros(0, dtype=np.int32)
+
+
+def _utf8(texts: Texts) -> tuple[bytes, np.ndarray]:
+    """``texts`` as UTF-8 bytes and each string's end in them."""
+    data = texts.text.encode("utf-8")
+    if len(data) == len(texts.text):  # ASCII (the record ids kbs makes): the same offsets
+        return data, texts.ends
+    return data, np.cumsum([len(t.encode("utf-8")) for t in texts.slice(0, len(texts))], dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class _Tables:
+    """The tiles' summaries gathered, in files of the spill folder (:func:`_gather`, one pass over
+    the summary files): per tile cluster (numbered ``offsets[k] + c`` over the tiles) its points
+    (``sizes``), core points, label code and record ids; per record a limit stopped, its points,
+    tile, limit code and id. What stitching and writing read of the summaries, mapped, not held."""
+
+    sizes: np.ndarray
+    core_sizes: np.ndarray
+    labels: tuple[Any, ...]
+    label_codes: np.ndarray
+    id_start: np.ndarray  # (total + 1,)
+    ids: FileTexts
+    limit_points: np.ndarray
+    limit_tiles: np.ndarray
+    limit_kinds: tuple[Any, ...]
+    limit_codes: np.ndarray
+    limit_ids: FileTexts
+
+    def cluster(self, g: int) -> tuple[Any, list[str]]:
+        """Tile cluster ``g``'s label and record ids (without the tile's name)."""
+        return self.labels[int(self.label_codes[g])], self.ids.slice(int(self.id_start[g]), int(self.id_start[g + 1]))
+
+    def limits(self, names: Sequence[str]) -> list[tuple[int, str, Any]]:
+        """The records a limit stopped, tile by tile: (n_points, id prefixed with its tile's name
+        from ``names``, limit)."""
+        ids = self.limit_ids.slice(0, len(self.limit_ids))
+        return [(p, f"{names[k]}/{i}", self.limit_kinds[c]) for p, k, i, c in
+                zip(self.limit_points.tolist(), self.limit_tiles.tolist(), ids, self.limit_codes.tolist())]
+
+
+def _gather(folder: Path, briefs: Sequence[TileBrief]) -> _Tables:
+    """Read each tile's summary file once and write what :class:`_Tables` holds to ``folder``."""
+    names = ("sizes", "core_sizes", "label_codes", "id_start", "ids", "id_ends", "limit_points", "limit_tiles",
+             "limit_codes", "limit_ids", "limit_id_ends")
+    paths = {name: folder / f"tables-{name}.bin" for name in names}
+    labels, kinds = _Table(), _Table()
+    n_ids = n_bytes = n_limit_bytes = 0
+    streams = {name: open(path, "wb") for name, path in paths.items()}
+    try:
+        for k, brief in enumerate(briefs):
+            s = load_summary(brief)
+            streams["sizes"].write(s.sizes.astype("<i8").tobytes())
+            streams["core_sizes"].write(s.core_sizes.astype("<i8").tobytes())
+            streams["label_codes"].write(labels.codes(s.labels, s.label_codes).astype("<i4").tobytes())
+            streams["id_start"].write((s.id_start[:-1] + n_ids).astype("<i8").tobytes())
+            data, ends = _utf8(s.ids)
+            streams["ids"].write(data)
+            streams["id_ends"].write((ends + n_bytes).astype("<i8").tobytes())
+            n_ids += len(s.ids)
+            n_bytes += len(data)
+            streams["limit_points"].write(s.limit_points.astype("<i8").tobytes())
+            streams["limit_tiles"].write(np.full(len(s.limit_points), k, dtype="<i4").tobytes())
+            streams["limit_codes"].write(kinds.codes(s.limit_kinds, s.limit_codes).astype("<i4").tobytes())
+            data, ends = _utf8(s.limit_ids)
+            streams["limit_ids"].write(data)
+            streams["limit_id_ends"].write((ends + n_limit_bytes).astype("<i8").tobytes())
+            n_limit_bytes += len(data)
+        streams["id_start"].write(np.array([n_ids], dtype="<i8").tobytes())
+    finally:
+        for stream in streams.values():
+            stream.close()
+    i8, i4, u1 = np.dtype("<i8"), np.dtype("<i4"), np.dtype(np.uint8)
+    return _Tables(sizes=_mapped(paths["sizes"], i8), core_sizes=_mapped(paths["core_sizes"], i8),
+                   labels=tuple(labels.values), label_codes=_mapped(paths["label_codes"], i4),
+                   id_start=_mapped(paths["id_start"], i8),
+                   ids=FileTexts(_mapped(paths["ids"], u1), _mapped(paths["id_ends"], i8)),
+                   limit_points=_mapped(paths["limit_points"], i8), limit_tiles=_mapped(paths["limit_tiles"], i4),
+                   limit_kinds=tuple(kinds.values), limit_codes=_mapped(paths["limit_codes"], i4),
+                   limit_ids=FileTexts(_mapped(paths["limit_ids"], u1), _mapped(paths["limit_id_ends"], i8)))
+
+
+def _to_file(folder: Path, name: str, a: np.ndarray) -> np.ndarray:
+    """``a`` written to ``folder/stitch-<name>.npy`` and mapped back read-only (an array held per
+    tile cluster or output cluster: paged in when read, not held)."""
+    path = folder / f"stitch-{name}.npy"
+    np.save(path, a)
+    return np.load(path, mmap_mode="r") if a.size else a
+
+
+
+def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], briefs: Sequence[TileBrief], edges: _Edges,
             store: TileStore, given: GroundFacts, t0: float) -> StreamedResult:
-    offsets = np.concatenate([[0], np.cumsum([len(s.sizes) for s in summaries])]).astype(np.int64)
+    folder = Path(spilled.folder)
+    tables = _gather(folder, briefs)
+    offsets = np.concatenate([[0], np.cumsum([b.n_clusters for b in briefs])]).astype(np.int64)
     total = int(offsets[-1])
     uf = _Union(total)
     shared: dict[int, list[str]] = {}
     by_cell = {(t.i, t.j): k for k, t in enumerate(tiles)}
     for ka, a in enumerate(tiles):
-        sa = summaries[ka]
+        size_a = np.asarray(tables.sizes[offsets[ka]:offsets[ka + 1]])
         for di, dj in NEIGHBOURS:
             kb = by_cell.get((a.i + di, a.j + dj))
             if kb is None:
                 continue
             b = tiles[kb]
             (ia, ca, la), (ib, cb, lb) = edges.get(ka), edges.get(kb)
-            for x, y, k in pair_links(ia, ca, la, sa.sizes, ib, cb, lb, summaries[kb].sizes):
+            for x, y, k in pair_links(ia, ca, la, size_a, ib, cb, lb, np.asarray(tables.sizes[offsets[kb]:offsets[kb + 1]])):
                 uf.union(int(offsets[ka] + x), int(offsets[kb] + y))
                 shared.setdefault(int(offsets[ka] + x), []).append(f"{b.name} cluster {y} ({k:,} shared points)")
                 shared.setdefault(int(offsets[kb] + y), []).append(f"{a.name} cluster {x} ({k:,} shared points)")
-    roots = np.array([uf.find(i) for i in range(total)], dtype=np.int64)
-    core_sizes = np.concatenate([s.core_sizes for s in summaries]) if total else np.zeros(0, dtype=np.int64)
+    roots = uf.roots()
+    del uf
+    core_sizes = np.asarray(tables.core_sizes) if total else np.zeros(0, dtype=np.int64)
     sizes = np.bincount(roots, weights=core_sizes, minlength=total).astype(np.int64) if total else \
         np.zeros(0, dtype=np.int64)
     alive = np.flatnonzero(sizes)
     order = alive[np.lexsort((alive, -sizes[alive]))]
+    del alive
     out_of_root = np.full(total + 1, -1, dtype=np.int64)
     out_of_root[order] = np.arange(order.size)
     out_of_node = out_of_root[roots] if total else np.zeros(0, dtype=np.int64)
 
     n = int(spilled.xyz.shape[0])
-    folder = Path(spilled.folder)
     columns = {name: _new_column(folder / f"out-{name}.npy", dtype, n)
                for name, dtype in (("cluster", np.int32), ("label", np.int32), ("membership", np.float32))}
     for k, t in enumerate(tiles):  # each point takes the result of the tile whose core holds it
@@ -506,23 +698,24 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], summaries: Sequ
             mm[core] = values[name]
             mm.flush()
             del mm
+    del out_of_node
     geometry = _in_files(folder, _descriptors(folder / "xyz.npy", columns["cluster"], columns["membership"], order.size))
 
-    # the tile clusters of each root, in increasing order: members[start[r]:start[r + 1]] (arrays,
-    # not a list per root: the stitching process holds them for every output cluster)
+    # the tile clusters of each root, in increasing order: members[start[r]:start[r + 1]]; these
+    # arrays (a few per tile cluster) go to files: the JSON is written from them, not held
     members = np.argsort(roots, kind="stable") if total else np.zeros(0, dtype=np.int64)
     member_start = np.searchsorted(roots[members], np.arange(total + 1)) if total else np.zeros(1, dtype=np.int64)
-    tile_of = np.searchsorted(offsets, np.arange(total), side="right") - 1
     in_core_parts = np.bincount(roots, weights=core_sizes > 0, minlength=total) if total else np.zeros(0)
     stitched = set(np.flatnonzero(in_core_parts[order] > 1).tolist())
-    head = summaries[0].head
+    del in_core_parts, core_sizes
+    head = briefs[0].head
     label_names = list(head["label_names"])
-    grounds = {t.name: s.ground for t, s in zip(tiles, summaries)}
+    grounds = {t.name: b.ground for t, b in zip(tiles, briefs)}
     k_st = len(stitched)
     notes = [f"{len(tiles)} tiles; {k_st} output cluster{'s' if k_st != 1 else ''} stitched across tile edges",
-             *[f"{t.name}: {note}" for t, s in zip(tiles, summaries) for note in s.notes]]
+             *[f"{t.name}: {note}" for t, b in zip(tiles, briefs) for note in b.notes]]
     root_record = ClusterRecord(id=ROOT, parent=None, depth=0, n_points=n, action="partition",
-                                children=tuple(f"{t.name}/{s.root}" for t, s in zip(tiles, summaries)),
+                                children=tuple(f"{t.name}/{b.root}" for t, b in zip(tiles, briefs)),
                                 notes=(f"{len(tiles)} tiles: " + ", ".join(t.bounds_text() for t in tiles),))
     ground = dataclasses.replace(given, tiles=grounds) if given else \
         GroundFacts(source=f"per tile ({', '.join(sorted({str(g.source or 'not used') for g in grounds.values()}))})",
@@ -530,7 +723,7 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], summaries: Sequ
     explanation = Explanation(rule_base=head["rule_base"], rule_file=head["rule_file"], strategy=head["strategy"],
                               label_names=label_names, records={ROOT: root_record}, root=ROOT, ground=ground,
                               notes=notes, catalogue=head["catalogue"])
-    counts = np.sum([s.label_counts for s in summaries], axis=0)
+    counts = np.sum([b.label_counts for b in briefs], axis=0)
     per_label = {name: int(counts[i]) for i, name in enumerate(label_names)}
     per_label["noise (rejected)" if "noise" in per_label else "noise"] = int(counts[len(label_names)])
     if counts[len(label_names) + 1]:
@@ -542,11 +735,13 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], summaries: Sequ
                         for t in tiles]}
     return StreamedResult(
         n=n, columns=columns, label_names=label_names, explanation=explanation, tiling=tiling,
-        seconds=time.perf_counter() - t0, n_clusters=int(order.size), n_splits=sum(s.n_splits for s in summaries),
+        seconds=time.perf_counter() - t0, n_clusters=int(order.size), n_splits=sum(b.n_splits for b in briefs),
         points_per_label=per_label,
-        _tiles=list(tiles), _summaries=list(summaries), _store=store, _offsets=offsets, _roots=roots,
-        _out_of_root=out_of_root, _order=order, _members=members, _member_start=member_start, _tile_of=tile_of, _shared=shared,
-        _stitched=stitched, _geometry=geometry, _sizes=sizes)
+        _tiles=list(tiles), _tables=tables, _store=store, _offsets=offsets,
+        _roots=_to_file(folder, "roots", roots), _out_of_root=_to_file(folder, "out_of_root", out_of_root),
+        _order=_to_file(folder, "order", order), _members=_to_file(folder, "members", members),
+        _member_start=_to_file(folder, "member_start", member_start), _shared=shared,
+        _stitched=stitched, _geometry=geometry, _sizes=_to_file(folder, "sizes", sizes))
 
 
 # -- the per-point output, in files ---------------------------------------------------------------------
@@ -690,7 +885,7 @@ class StreamedResult:
     n_splits: int
     points_per_label: dict[str, int]
     _tiles: list[Tile]
-    _summaries: list[TileSummary]
+    _tables: _Tables
     _store: TileStore
     _offsets: np.ndarray
     _roots: np.ndarray
@@ -698,7 +893,6 @@ class StreamedResult:
     _order: np.ndarray
     _members: np.ndarray
     _member_start: np.ndarray
-    _tile_of: np.ndarray
     _shared: dict[int, list[str]]
     _stitched: set[int]
     _geometry: dict[str, np.ndarray]
@@ -721,7 +915,7 @@ class StreamedResult:
     @property
     def limits(self) -> list[tuple[int, str, Any]]:
         """The records a limit stopped, tile by tile: (n_points, id, limit); made when asked for."""
-        return [lim for s in self._summaries for lim in s.limits()]
+        return self._tables.limits([t.name for t in self._tiles])
 
     def summary(self) -> dict[str, Any]:
         """As :meth:`Segmentation.summary`."""
@@ -738,12 +932,11 @@ class StreamedResult:
         for gi, root in enumerate(self._order.tolist()):
             parts = []
             for g in self._members[self._member_start[root]:self._member_start[root + 1]].tolist():
-                k = int(self._tile_of[g])
+                k = int(np.searchsorted(self._offsets, g, side="right")) - 1
                 c = int(g - self._offsets[k])
-                s = self._summaries[k]
-                in_core = int(s.core_sizes[c])
+                in_core = int(self._tables.core_sizes[g])
                 if in_core:
-                    label, ids = s.cluster(c)
+                    label, ids = self._tables.cluster(g)
                     parts.append({"tile": self._tiles[k].name, "cluster": c, "label": label, "core_points": in_core,
                                   "ids": [f"{self._tiles[k].name}/{i}" for i in ids]})
             geo = ClusterGeometry(center=geo_all["center"][gi].copy(), covariance=geo_all["covariance"][gi].copy(),
