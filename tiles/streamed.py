@@ -1024,13 +1024,13 @@ class StreamedResult:
         def explanation() -> Iterator[str]:
             alone = ClusterRecord(id=ROOT, parent=None, depth=0, n_points=self.n)  # its records are written here
             e, tiles = self.explanation, self.explanation.ground.tiles
-            lazy = isinstance(tiles, _GroundTiles)
-            d = dataclasses.replace(e, records={ROOT: alone},
-                                    ground=dataclasses.replace(e.ground, tiles=None) if lazy else e.ground).to_dict()
-            markers = {"\x00kbs records\x00": records}
+            lazy = tiles if isinstance(tiles, _GroundTiles) else None
+            d = dataclasses.replace(e, records={ROOT: alone}, ground=e.ground if lazy is None else
+                                    dataclasses.replace(e.ground, tiles=None)).to_dict()
+            markers: dict[str, Callable[[], Iterator[str]]] = {"\x00kbs records\x00": records}
             d["clusters"] = "\x00kbs records\x00"
-            if lazy:  # "tiles" where GroundFacts.to_dict puts it: after the other facts, before local_model
-                markers["\x00kbs ground tiles\x00"] = functools.partial(ground_tiles, tiles)
+            if lazy is not None:  # "tiles" where GroundFacts.to_dict puts it: after the other facts, before local_model
+                markers["\x00kbs ground tiles\x00"] = functools.partial(ground_tiles, lazy)
                 facts = d["ground"]
                 d["ground"] = {k: v for k, v in facts.items() if k != "local_model"}
                 d["ground"]["tiles"] = "\x00kbs ground tiles\x00"
