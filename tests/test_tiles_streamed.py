@@ -281,6 +281,8 @@ def test_a_tile_summary_gives_back_every_cluster_label_and_id_and_every_limit(ro
             assert tables.cluster(g) == s.cluster(c)
             assert tables.sizes[g] == s.sizes[c] and tables.core_sizes[g] == s.core_sizes[c]
         limits += s.limits()
+        assert out.explanation.ground.tiles[b.name] == s.ground  # read from the gathered file when asked
     assert out.limits == limits
+    assert not any(hasattr(b, "ground") for b in kept)
     spilled.remove()
     assert not spilled.folder.exists()  # the summaries and tables went with the spill files

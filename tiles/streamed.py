@@ -30,11 +30,12 @@ ids (``limits_by_kind`` lists them all).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 import pickle
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -167,7 +168,6 @@ class TileBrief:
     n_splits: int
     label_counts: np.ndarray
     root: str
-    ground: GroundFacts
     notes: list[str]
     head: dict[str, Any] = field(default_factory=dict)
 
@@ -181,7 +181,7 @@ def save_summary(summary: TileSummary, path: Path) -> TileBrief:
     os.replace(tmp, path)
     return TileBrief(name=summary.name, path=str(path), n_clusters=len(summary.sizes), n_ids=len(summary.ids),
                      n_limits=len(summary.limit_points), n_splits=summary.n_splits, label_counts=summary.label_counts,
-                     root=summary.root, ground=summary.ground, notes=summary.notes, head=summary.head)
+                     root=summary.root, notes=summary.notes, head=summary.head)
 
 
 def load_summary(brief: TileBrief) -> TileSummary:
@@ -585,6 +585,8 @@ class _Tables:
     limit_kinds: tuple[Any, ...]
     limit_codes: np.ndarray
     limit_ids: FileTexts
+    grounds: FileTexts
+    ground_sources: tuple[str, ...]
 
     def cluster(self, g: int) -> tuple[Any, list[str]]:
         """Tile cluster ``g``'s label and record ids (without the tile's name)."""
@@ -600,11 +602,14 @@ class _Tables:
 
 def _gather(folder: Path, briefs: Sequence[TileBrief]) -> _Tables:
     """Read each tile's summary file once and write what :class:`_Tables` holds to ``folder``."""
+    from kbs.io.result import strict_json
+
     names = ("sizes", "core_sizes", "label_codes", "id_start", "ids", "id_ends", "limit_points", "limit_tiles",
-             "limit_codes", "limit_ids", "limit_id_ends")
+             "limit_codes", "limit_ids", "limit_id_ends", "grounds", "ground_ends")
     paths = {name: folder / f"tables-{name}.bin" for name in names}
     labels, kinds = _Table(), _Table()
-    n_ids = n_bytes = n_limit_bytes = 0
+    n_ids = n_bytes = n_limit_bytes = n_ground_bytes = 0
+    sources: set[str] = set()
     streams = {name: open(path, "wb") for name, path in paths.items()}
     try:
         for k, brief in enumerate(briefs):
@@ -625,6 +630,11 @@ def _gather(folder: Path, briefs: Sequence[TileBrief]) -> _Tables:
             streams["limit_ids"].write(data)
             streams["limit_id_ends"].write((ends + n_limit_bytes).astype("<i8").tobytes())
             n_limit_bytes += len(data)
+            data = strict_json(s.ground.to_dict()).encode("utf-8")  # as the explanation's JSON holds it
+            streams["grounds"].write(data)
+            n_ground_bytes += len(data)
+            streams["ground_ends"].write(np.array([n_ground_bytes], dtype="<i8").tobytes())
+            sources.add(str(s.ground.source or "not used"))
         streams["id_start"].write(np.array([n_ids], dtype="<i8").tobytes())
     finally:
         for stream in streams.values():
@@ -636,7 +646,34 @@ def _gather(folder: Path, briefs: Sequence[TileBrief]) -> _Tables:
                    ids=FileTexts(_mapped(paths["ids"], u1), _mapped(paths["id_ends"], i8)),
                    limit_points=_mapped(paths["limit_points"], i8), limit_tiles=_mapped(paths["limit_tiles"], i4),
                    limit_kinds=tuple(kinds.values), limit_codes=_mapped(paths["limit_codes"], i4),
-                   limit_ids=FileTexts(_mapped(paths["limit_ids"], u1), _mapped(paths["limit_id_ends"], i8)))
+                   limit_ids=FileTexts(_mapped(paths["limit_ids"], u1), _mapped(paths["limit_id_ends"], i8)),
+                   grounds=FileTexts(_mapped(paths["grounds"], u1), _mapped(paths["ground_ends"], i8)),
+                   ground_sources=tuple(sorted(sources)))
+
+
+class _GroundTiles(Mapping[str, GroundFacts]):
+    """The tiles' ground facts by tile name (``GroundFacts.tiles`` of a streamed result), read
+    from their JSON text in a file when asked for: not held per tile (:meth:`StreamedResult.pieces`
+    writes the texts as they are)."""
+
+    def __init__(self, names: Sequence[str], texts: FileTexts) -> None:
+        self.names = list(names)
+        self.texts = texts
+        self._at: dict[str, int] | None = None
+
+    def text(self, k: int) -> str:
+        return self.texts.slice(k, k + 1)[0]
+
+    def __getitem__(self, name: str) -> GroundFacts:
+        if self._at is None:
+            self._at = {n: k for k, n in enumerate(self.names)}
+        return GroundFacts.from_dict(json.loads(self.text(self._at[name])))
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.names)
+
+    def __len__(self) -> int:
+        return len(self.names)
 
 
 def _to_file(folder: Path, name: str, a: np.ndarray) -> np.ndarray:
@@ -710,7 +747,7 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], briefs: Sequenc
     del in_core_parts, core_sizes
     head = briefs[0].head
     label_names = list(head["label_names"])
-    grounds = {t.name: b.ground for t, b in zip(tiles, briefs)}
+    grounds = _GroundTiles([t.name for t in tiles], tables.grounds)
     k_st = len(stitched)
     notes = [f"{len(tiles)} tiles; {k_st} output cluster{'s' if k_st != 1 else ''} stitched across tile edges",
              *[f"{t.name}: {note}" for t, b in zip(tiles, briefs) for note in b.notes]]
@@ -718,8 +755,7 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], briefs: Sequenc
                                 children=tuple(f"{t.name}/{b.root}" for t, b in zip(tiles, briefs)),
                                 notes=(f"{len(tiles)} tiles: " + ", ".join(t.bounds_text() for t in tiles),))
     ground = dataclasses.replace(given, tiles=grounds) if given else \
-        GroundFacts(source=f"per tile ({', '.join(sorted({str(g.source or 'not used') for g in grounds.values()}))})",
-                    tiles=grounds)
+        GroundFacts(source=f"per tile ({', '.join(tables.ground_sources)})", tiles=grounds)
     explanation = Explanation(rule_base=head["rule_base"], rule_file=head["rule_file"], strategy=head["strategy"],
                               label_names=label_names, records={ROOT: root_record}, root=ROOT, ground=ground,
                               notes=notes, catalogue=head["catalogue"])
@@ -973,15 +1009,39 @@ class StreamedResult:
                 yield ("," if k else "") + strict_json(item)
             yield "]"
 
-        def explanation() -> Iterator[str]:
-            marker = "\x00kbs records\x00"
-            alone = ClusterRecord(id=ROOT, parent=None, depth=0, n_points=self.n)  # its records are written here
-            d = dataclasses.replace(self.explanation, records={ROOT: alone}).to_dict()
-            d["clusters"] = marker
-            before, after = strict_json(d).split(json.dumps(marker), 1)
-            yield before + "["
+        def records() -> Iterator[str]:
+            yield "["
             for k, rec in enumerate(self.records()):
                 yield ("," if k else "") + strict_json(rec)
-            yield "]" + after
+            yield "]"
+
+        def ground_tiles(tiles: _GroundTiles) -> Iterator[str]:  # GroundFacts.to_dict's "tiles", text as kept
+            yield "{"
+            for k, name in enumerate(tiles.names):
+                yield ("," if k else "") + json.dumps(name) + ":" + tiles.text(k)
+            yield "}"
+
+        def explanation() -> Iterator[str]:
+            alone = ClusterRecord(id=ROOT, parent=None, depth=0, n_points=self.n)  # its records are written here
+            e, tiles = self.explanation, self.explanation.ground.tiles
+            lazy = tiles if isinstance(tiles, _GroundTiles) else None
+            d = dataclasses.replace(e, records={ROOT: alone}, ground=e.ground if lazy is None else
+                                    dataclasses.replace(e.ground, tiles=None)).to_dict()
+            markers: dict[str, Callable[[], Iterator[str]]] = {"\x00kbs records\x00": records}
+            d["clusters"] = "\x00kbs records\x00"
+            if lazy is not None:  # "tiles" where GroundFacts.to_dict puts it: after the other facts, before local_model
+                markers["\x00kbs ground tiles\x00"] = functools.partial(ground_tiles, lazy)
+                facts = d["ground"]
+                d["ground"] = {k: v for k, v in facts.items() if k != "local_model"}
+                d["ground"]["tiles"] = "\x00kbs ground tiles\x00"
+                if "local_model" in facts:
+                    d["ground"]["local_model"] = facts["local_model"]
+            text = strict_json(d)
+            while markers:  # each marker's pieces where it is, in the order they come
+                at, marker = min((text.index(json.dumps(m)), m) for m in markers)
+                yield text[:at]
+                yield from markers.pop(marker)()
+                text = text[at + len(json.dumps(marker)):]
+            yield text
 
         return {"clusters": clusters, "explanation": explanation}
