@@ -489,7 +489,8 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
     doc = {
         "kbs_version": __version__, "input": name, "n_points": len(pc), "n_dropped": pc.n_dropped,
         "rule_base": rb.name, "rule_file": rb.path, "units": rb.units, "sensor": used_sensor,
-        "label_names": seg.label_names, "summary": seg.summary(), "clusters": clusters,
+        # streamed: the summary too is written by pieces (the limits' ids are read as they are written)
+        "label_names": seg.label_names, "summary": seg.summary() if spilled is None else None, "clusters": clusters,
         "explanation": seg.explanation.to_dict() if spilled is None else None,
     }
     if tiling is not None:

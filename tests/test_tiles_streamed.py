@@ -286,3 +286,43 @@ def test_a_tile_summary_gives_back_every_cluster_label_and_id_and_every_limit(ro
     assert not any(hasattr(b, "ground") for b in kept)
     spilled.remove()
     assert not spilled.folder.exists()  # the summaries and tables went with the spill files
+
+
+def test_the_limits_by_kind_of_the_gathered_summaries_are_those_of_the_records(tmp_path):
+    """limits_by_kind made from the gathered arrays (its ids read when asked for) is the dict the
+    reference function makes from (points, id, limit) triples: equal, and the same JSON; equal
+    points ordered by 'tile/id', whatever the tiles' names and the ids' order within a tile."""
+    from kbs.io.result import strict_json
+    from kbs.knowledge.groundfacts import GroundFacts
+    from kbs.knowledge.segmentation import limits_by_kind
+    from kbs.tiles import streamed
+
+    rng = np.random.default_rng(7)
+    depth = {"kind": "max_depth", "setting": "limits.max_depth", "value": 12}
+    small = {"kind": "min_points", "setting": "limits.min_points", "value": 30}
+    small2 = {"kind": "min_points", "setting": "limits.min_points", "value": 40}  # the same kind, another value
+    failed = {"kind": "split_failed", "setting": None, "value": None}
+    names = ["t1_23", "t1_2", "t10_2", "t1_3", "t2_1"]
+    briefs, triples = [], []
+    for name in names:
+        n = int(rng.integers(0, 9))
+        points = rng.integers(30, 34, size=n)  # many equal counts: the ids decide
+        ids = [f"c{rng.integers(0, 3)}." + ".".join(map(str, rng.integers(0, 3, size=rng.integers(1, 4)))) + f"x{j}"
+               for j in range(n)]
+        kinds = [[depth, small, small2, failed, None][int(k)] for k in rng.integers(0, 5, size=n)]
+        table, codes = streamed._codes(kinds)
+        summary = streamed.TileSummary(
+            name=name, sizes=np.zeros(0, dtype=np.int64), core_sizes=np.zeros(0, dtype=np.int64), labels=(),
+            label_codes=np.zeros(0, dtype=np.int32), ids=Texts.of([]), id_start=np.zeros(1, dtype=np.int64),
+            label_counts=np.zeros(3, dtype=np.int64), n_splits=0, limit_points=points.astype(np.int64),
+            limit_ids=Texts.of(ids), limit_kinds=table, limit_codes=codes, root="c", ground=GroundFacts(), notes=[])
+        briefs.append(streamed.save_summary(summary, tmp_path / f"{name}.summary.pkl"))
+        triples += summary.limits()
+    tables = streamed._gather(tmp_path, briefs)
+    got, want = tables.limits_by_kind(names), limits_by_kind(triples)
+    assert got == want and list(got) == list(want)
+    assert strict_json({k: {**e, "clusters": list(e["clusters"])} for k, e in got.items()}) == strict_json(want)
+    for e in got.values():
+        assert isinstance(e["clusters"], streamed.LimitIds)
+        assert e["clusters"][:2] == e["clusters"][0:2] and (not len(e["clusters"]) or e["clusters"][-1] == list(e["clusters"])[-1])
+    assert streamed._gather(tmp_path, []).limits_by_kind([]) == {}

@@ -46,7 +46,7 @@ from kbs.errors import KbsError, ParameterError
 from kbs.knowledge.explain import ClusterRecord, Explanation
 from kbs.knowledge.groundfacts import GroundFacts
 from kbs.knowledge.interpreter import NO_LABEL, Segmentation
-from kbs.knowledge.segmentation import limits_by_kind
+from kbs.knowledge.segmentation import STOP_KINDS
 from kbs.tiles.grid import Tile, TileGrid
 from kbs.tiles.stitch import NEIGHBOURS, ROOT, _Union, pair_links, stitched_record
 from kbs.tiles.store import TileStore
@@ -585,6 +585,7 @@ class _Tables:
     limit_kinds: tuple[Any, ...]
     limit_codes: np.ndarray
     limit_ids: FileTexts
+    limit_ranks: np.ndarray  # each limited record's place among its tile's in the order of their ids
     grounds: FileTexts
     ground_sources: tuple[str, ...]
 
@@ -600,12 +601,80 @@ class _Tables:
                 zip(self.limit_points.tolist(), self.limit_tiles.tolist(), ids, self.limit_codes.tolist())]
 
 
+    def limits_by_kind(self, names: Sequence[str]) -> dict[str, dict[str, Any]]:
+        """:func:`kbs.knowledge.segmentation.limits_by_kind` of :meth:`limits`, the same dict
+        (``==``, the same JSON), made from the arrays: each kind's ``clusters`` is a
+        :class:`LimitIds`, the ids read from the file when asked for, not a list of strings.
+
+        The order is limits_by_kind's, the fewest points last and equal points by their ids
+        (``tile/id``): a tile's name holds no '/', so the ids of two tiles compare as their names
+        followed by '/', and those of one tile as the tile's ids (``limit_ranks``)."""
+        m = int(self.limit_points.size)
+        if m == 0:
+            return {}
+        by_name = sorted(range(len(names)), key=lambda k: names[k] + "/")
+        name_rank = np.empty(len(names), dtype=np.int64)
+        name_rank[by_name] = np.arange(len(names))
+        tiles = np.asarray(self.limit_tiles, dtype=np.int64)
+        points = np.asarray(self.limit_points, dtype=np.int64)
+        order = np.lexsort((np.asarray(self.limit_ranks), name_rank[tiles], -points))
+        del tiles
+        kinds = [(lim or {"kind": "other", "setting": None, "value": None}) for lim in self.limit_kinds]
+        names_of_kinds = [k["kind"] for k in kinds]
+        group_of_code = np.array([names_of_kinds.index(k) for k in names_of_kinds], dtype=np.int64)
+        codes = np.asarray(self.limit_codes, dtype=np.int64)[order]
+        grouped = group_of_code[codes]  # the kind of each record, in the order
+        out: dict[str, dict[str, Any]] = {}
+        groups, firsts = np.unique(grouped, return_index=True)
+        for g, first in sorted(zip(groups.tolist(), firsts.tolist()), key=lambda t: t[1]):  # as first met
+            rows = order[grouped == g]
+            lim = kinds[int(codes[first])]  # the setting and value of the kind's first record
+            out[lim["kind"]] = {"setting": lim["setting"], "value": lim["value"], "count": int(rows.size),
+                                "points": int(points[rows].sum()), "clusters": LimitIds(rows, self, names)}
+        stops = list(STOP_KINDS)
+        return dict(sorted(out.items(), key=lambda kv: stops.index(kv[0]) if kv[0] in stops else len(stops)))
+
+
+class LimitIds(Sequence[str]):
+    """The ids (``tile/id``) of some limited records of a streamed result, in a given order, read
+    from the gathered file when asked for (``limits_by_kind``'s ``clusters`` of a streamed result:
+    a list of every id would be held while the result is written). Equal to the list of them."""
+
+    def __init__(self, rows: np.ndarray, tables: _Tables, names: Sequence[str]) -> None:
+        self.rows, self.tables, self.names = rows, tables, names
+
+    def __len__(self) -> int:
+        return int(self.rows.size)
+
+    def _one(self, r: int) -> str:
+        return f"{self.names[int(self.tables.limit_tiles[r])]}/{self.tables.limit_ids.slice(r, r + 1)[0]}"
+
+    def __getitem__(self, key: Any) -> Any:
+        if isinstance(key, slice):
+            return [self._one(r) for r in self.rows[key].tolist()]
+        return self._one(int(self.rows[key]))
+
+    def __iter__(self) -> Iterator[str]:
+        for r in self.rows.tolist():
+            yield self._one(r)
+
+    def __eq__(self, other: object) -> bool:
+        if isinstance(other, LimitIds | list | tuple):
+            return len(self) == len(other) and all(a == b for a, b in zip(self, other))
+        return NotImplemented
+
+    __hash__ = None  # type: ignore[assignment]
+
+    def __repr__(self) -> str:
+        return f"LimitIds({list(self[:3])}{', ...' if len(self) > 3 else ''}; {len(self)})"
+
+
 def _gather(folder: Path, briefs: Sequence[TileBrief]) -> _Tables:
     """Read each tile's summary file once and write what :class:`_Tables` holds to ``folder``."""
     from kbs.io.result import strict_json
 
     names = ("sizes", "core_sizes", "label_codes", "id_start", "ids", "id_ends", "limit_points", "limit_tiles",
-             "limit_codes", "limit_ids", "limit_id_ends", "grounds", "ground_ends")
+             "limit_codes", "limit_ids", "limit_id_ends", "limit_ranks", "grounds", "ground_ends")
     paths = {name: folder / f"tables-{name}.bin" for name in names}
     labels, kinds = _Table(), _Table()
     n_ids = n_bytes = n_limit_bytes = n_ground_bytes = 0
@@ -627,6 +696,10 @@ def _gather(folder: Path, briefs: Sequence[TileBrief]) -> _Tables:
             streams["limit_tiles"].write(np.full(len(s.limit_points), k, dtype="<i4").tobytes())
             streams["limit_codes"].write(kinds.codes(s.limit_kinds, s.limit_codes).astype("<i4").tobytes())
             data, ends = _utf8(s.limit_ids)
+            rids = s.limit_ids.slice(0, len(s.limit_ids))
+            rank = np.empty(len(rids), dtype="<i4")  # each id's place among the tile's in string order
+            rank[sorted(range(len(rids)), key=rids.__getitem__)] = np.arange(len(rids), dtype="<i4")
+            streams["limit_ranks"].write(rank.tobytes())
             streams["limit_ids"].write(data)
             streams["limit_id_ends"].write((ends + n_limit_bytes).astype("<i8").tobytes())
             n_limit_bytes += len(data)
@@ -647,7 +720,7 @@ def _gather(folder: Path, briefs: Sequence[TileBrief]) -> _Tables:
                    limit_points=_mapped(paths["limit_points"], i8), limit_tiles=_mapped(paths["limit_tiles"], i4),
                    limit_kinds=tuple(kinds.values), limit_codes=_mapped(paths["limit_codes"], i4),
                    limit_ids=FileTexts(_mapped(paths["limit_ids"], u1), _mapped(paths["limit_id_ends"], i8)),
-                   grounds=FileTexts(_mapped(paths["grounds"], u1), _mapped(paths["ground_ends"], i8)),
+                   limit_ranks=_mapped(paths["limit_ranks"], i4), grounds=FileTexts(_mapped(paths["grounds"], u1), _mapped(paths["ground_ends"], i8)),
                    ground_sources=tuple(sorted(sources)))
 
 
@@ -954,11 +1027,12 @@ class StreamedResult:
         return self._tables.limits([t.name for t in self._tiles])
 
     def summary(self) -> dict[str, Any]:
-        """As :meth:`Segmentation.summary`."""
-        limits = self.limits
-        return {"points": self.n, "clusters": self.n_clusters, "splits": self.n_splits, "limits": len(limits),
-                "limits_by_kind": limits_by_kind(limits), "points_per_label": dict(self.points_per_label),
-                "seconds": round(self.seconds, 3)}
+        """As :meth:`Segmentation.summary` (equal to it: the same JSON), with the limits' ids read
+        from the spill folder when asked for (:class:`LimitIds`)."""
+        return {"points": self.n, "clusters": self.n_clusters, "splits": self.n_splits,
+                "limits": int(self._tables.limit_points.size),
+                "limits_by_kind": self._tables.limits_by_kind([t.name for t in self._tiles]),
+                "points_per_label": dict(self.points_per_label), "seconds": round(self.seconds, 3)}
 
     def cluster_items(self) -> Iterator[dict[str, Any]]:
         """The output clusters (``clusters`` of a result), one at a time, as :func:`stitch` makes them."""
@@ -1044,4 +1118,19 @@ class StreamedResult:
                 text = text[at + len(json.dumps(marker)):]
             yield text
 
-        return {"clusters": clusters, "explanation": explanation}
+        def summary() -> Iterator[str]:  # the limits' ids written as they are read, not held as a list
+            d = self.summary()
+            ids = {f"\x00kbs limit ids {kind}\x00": e["clusters"] for kind, e in d["limits_by_kind"].items()}
+            for marker, (kind, e) in zip(ids, list(d["limits_by_kind"].items())):
+                d["limits_by_kind"][kind] = {**e, "clusters": marker}
+            text = strict_json(d)
+            for marker, seq in ids.items():
+                at = text.index(json.dumps(marker))
+                yield text[:at] + "["
+                for k, rid in enumerate(seq):
+                    yield ("," if k else "") + json.dumps(rid)
+                yield "]"
+                text = text[at + len(json.dumps(marker)):]
+            yield text
+
+        return {"clusters": clusters, "explanation": explanation, "summary": summary}
