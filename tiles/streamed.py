@@ -23,9 +23,11 @@ results:
 What the stitching process holds while the tiles run is a brief per tile (a few numbers, its
 ground facts and notes; one head for all tiles). The arrays per tile cluster and per output
 cluster (sizes, labels, ids, roots, members, descriptors) are in files and mapped when read.
-What still grows with the cloud in memory: the union-find over the tile clusters while stitching
-(8 bytes each), the links of the stitched clusters, and, when the summary is written, the limits'
-ids (``limits_by_kind`` lists them all).
+The summary's limits are made from those files too, their ids read when written
+(:class:`LimitIds`). What still grows with the cloud in memory: the union-find over the tile
+clusters while stitching (8 bytes each, and a few such arrays while they are made), the order of
+the limited records while the summary is written (8 bytes each), the links of the stitched
+clusters (a note each), and per tile its brief, its job and its entry in the tiling's list.
 """
 from __future__ import annotations
 
