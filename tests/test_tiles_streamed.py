@@ -78,6 +78,13 @@ def test_the_descriptors_summed_in_chunks_are_cluster_geometry_to_the_last_bit(t
         assert got["eigenvalues"][c].tobytes() == want.eigenvalues.tobytes()
         assert got["eigenvectors"][c].tobytes() == want.eigenvectors.tobytes()
         assert got["mass"][c] == want.mass
+    out = tmp_path / "out"
+    out.mkdir()
+    monkeypatch.setattr(streamed, "DESCRIPTOR_STEP", 3)  # clusters over several steps
+    in_files = _descriptors(tmp_path / "xyz.npy", cols["cluster"], cols["membership"], k, out)
+    for name, a in got.items():  # the same numbers, filled in files and mapped back
+        assert isinstance(in_files[name], np.memmap) and in_files[name].tobytes() == np.asarray(a).tobytes()
+    assert sorted(p.name for p in out.iterdir()) == sorted(f"out-{name}.npy" for name in got)
 
 
 def test_a_tile_task_carries_paths_not_points(tmp_path):

@@ -55,6 +55,8 @@ from kbs.tiles.store import TileStore
 
 #: Points summed (and written) at a time when the output is computed from the files.
 CHUNK_POINTS = 1_000_000
+#: Output clusters whose descriptors are computed at a time (their sums in files).
+DESCRIPTOR_STEP = 1 << 16
 
 
 @dataclass(frozen=True)
@@ -811,7 +813,7 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], briefs: Sequenc
             mm.flush()
             del mm
     del out_of_node
-    geometry = _in_files(folder, _descriptors(folder / "xyz.npy", columns["cluster"], columns["membership"], order.size))
+    geometry = _descriptors(folder / "xyz.npy", columns["cluster"], columns["membership"], order.size, folder)
 
     # the tile clusters of each root, in increasing order: members[start[r]:start[r + 1]]; these
     # arrays (a few per tile cluster) go to files: the JSON is written from them, not held
@@ -925,31 +927,59 @@ def _in_files(folder: Path, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarr
     return out
 
 
-def _descriptors(xyz_path: Path, cluster: FileColumn, membership: FileColumn, k: int) -> dict[str, np.ndarray]:
+def _descriptors(xyz_path: Path, cluster: FileColumn, membership: FileColumn, k: int,
+                 folder: Path | None = None) -> dict[str, np.ndarray]:
     """Centre, covariance, eigenvalues, eigenvectors and mass of each of the ``k`` output clusters,
     from the files in chunks: the sums of :func:`kbs.inference._compiled.geometry3`, in its order
     (each cluster's points by increasing index), so the same numbers as ``cluster_geometry`` on
-    the cluster's points and memberships."""
+    the cluster's points and memberships. With ``folder``, the arrays (the sums and the
+    descriptors, a few hundred bytes per output cluster) are files there (``out-<name>.npy``, as
+    :func:`_in_files` writes them), filled in place and given back mapped read-only: not held."""
     from kbs.inference import _flags
 
     if not _flags.JIT:  # the numpy reference sums in another order: its numbers need each cluster whole
-        return _descriptors_reference(xyz_path, cluster, membership, k)
+        out = _descriptors_reference(xyz_path, cluster, membership, k)
+        return out if folder is None else _in_files(folder, out)
+    if folder is not None and k == 0:
+        return _in_files(folder, _descriptors(xyz_path, cluster, membership, k))
     from kbs.tiles._sums import centre_sums, covariance_sums, eigen
 
-    den, mass, c = np.zeros(k), np.zeros(k), np.zeros((k, 3))
+    def array(name: str, shape: tuple[int, ...]) -> np.ndarray:
+        if folder is None:
+            return np.zeros(shape)
+        return np.lib.format.open_memmap(folder / f"out-{name}.npy", mode="w+", dtype=np.float64, shape=shape)
+
+    den, mass, c = array("sum-den", (k,)), array("mass", (k,)), array("sum-c", (k, 3))
     xyz = FileColumn(xyz_path, np.dtype(np.float64), (len(cluster), 3))
     for start, cl in cluster.chunks():
         stop = start + len(cl)
-        centre_sums(xyz[start:stop], cl, membership[start:stop].astype(np.float64), den, mass, c)
-    ok = (den > 0.0) & (mass > 0.0)
-    centre = np.zeros((k, 3))
-    centre[ok] = c[ok] / den[ok, None]
-    s = np.zeros((k, 6))
+        centre_sums(xyz[start:stop], cl, membership[start:stop].astype(np.float64), *map(np.asarray, (den, mass, c)))
+    centre, s = array("center", (k, 3)), array("sum-s", (k, 6))
+    step = DESCRIPTOR_STEP  # clusters at a time: each one's numbers depend on its sums alone
+    for a in range(0, k, step):
+        b = min(k, a + step)
+        ok = (den[a:b] > 0.0) & (mass[a:b] > 0.0)
+        part = np.zeros((b - a, 3))
+        part[ok] = c[a:b][ok] / den[a:b][ok, None]
+        centre[a:b] = part
     for start, cl in cluster.chunks():
         stop = start + len(cl)
-        covariance_sums(xyz[start:stop], cl, membership[start:stop].astype(np.float64), centre, s)
-    cov, lam, vec = eigen(s, mass, ok)
-    return {"center": centre, "covariance": cov, "eigenvalues": lam, "eigenvectors": vec, "mass": mass}
+        covariance_sums(xyz[start:stop], cl, membership[start:stop].astype(np.float64), np.asarray(centre), np.asarray(s))
+    cov, lam, vec = array("covariance", (k, 3, 3)), array("eigenvalues", (k, 3)), array("eigenvectors", (k, 3, 3))
+    for a in range(0, k, step):
+        b = min(k, a + step)
+        ok = (den[a:b] > 0.0) & (mass[a:b] > 0.0)
+        cov[a:b], lam[a:b], vec[a:b] = eigen(np.ascontiguousarray(s[a:b]), np.ascontiguousarray(mass[a:b]), ok)
+    out = {"center": centre, "covariance": cov, "eigenvalues": lam, "eigenvectors": vec, "mass": mass}
+    if folder is None:
+        return out
+    for a_ in (den, c, s, *out.values()):
+        a_.flush()  # type: ignore[attr-defined]
+    del den, c, s, out, centre, cov, lam, vec, mass
+    for name in ("sum-den", "sum-c", "sum-s"):
+        (folder / f"out-{name}.npy").unlink()
+    return {name: np.load(folder / f"out-{name}.npy", mmap_mode="r")
+            for name in ("center", "covariance", "eigenvalues", "eigenvectors", "mass")}
 
 
 def _descriptors_reference(xyz_path: Path, cluster: FileColumn, membership: FileColumn,
