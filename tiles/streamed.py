@@ -86,17 +86,9 @@ class Texts:
 def _codes(values: Sequence[Any]) -> tuple[tuple[Any, ...], np.ndarray]:
     """The distinct values (by equality, in order of first appearance) and each value's position
     among them: a few labels or limit kinds stand for a tile's many clusters and records."""
-    table: list[Any] = []
-    codes = np.empty(len(values), dtype=np.int32)
-    for k, v in enumerate(values):
-        for i, t in enumerate(table):
-            if t == v and type(t) is type(v):
-                codes[k] = i
-                break
-        else:
-            codes[k] = len(table)
-            table.append(v)
-    return tuple(table), codes
+    table = _Table()
+    codes = table.codes(values, np.arange(len(values)))
+    return tuple(table.values), codes
 
 
 @dataclass(frozen=True)
@@ -753,14 +745,6 @@ class _GroundTiles(Mapping[str, GroundFacts]):
         return len(self.names)
 
 
-def _to_file(folder: Path, name: str, a: np.ndarray) -> np.ndarray:
-    """``a`` written to ``folder/stitch-<name>.npy`` and mapped back read-only (an array held per
-    tile cluster or output cluster: paged in when read, not held)."""
-    path = folder / f"stitch-{name}.npy"
-    np.save(path, a)
-    return np.load(path, mmap_mode="r") if a.size else a
-
-
 
 def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], briefs: Sequence[TileBrief], edges: _Edges,
             store: TileStore, given: GroundFacts, t0: float) -> StreamedResult:
@@ -846,15 +830,16 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], briefs: Sequenc
               "tiles": [{"name": t.name, "core": list(t.core), "points": _n_points(t),
                          "core_points": int(getattr(t, "n_core", None) or np.count_nonzero(t.in_core))}
                         for t in tiles]}
+    mapped = _in_files(folder, {"roots": roots, "out_of_root": out_of_root, "order": order, "members": members,
+                                "member_start": member_start, "sizes": sizes}, prefix="stitch")
     return StreamedResult(
         n=n, columns=columns, label_names=label_names, explanation=explanation, tiling=tiling,
         seconds=time.perf_counter() - t0, n_clusters=int(order.size), n_splits=sum(b.n_splits for b in briefs),
         points_per_label=per_label,
         _tiles=list(tiles), _tables=tables, _store=store, _offsets=offsets,
-        _roots=_to_file(folder, "roots", roots), _out_of_root=_to_file(folder, "out_of_root", out_of_root),
-        _order=_to_file(folder, "order", order), _members=_to_file(folder, "members", members),
-        _member_start=_to_file(folder, "member_start", member_start), _shared=shared,
-        _stitched=stitched, _geometry=geometry, _sizes=_to_file(folder, "sizes", sizes))
+        _roots=mapped["roots"], _out_of_root=mapped["out_of_root"], _order=mapped["order"], _members=mapped["members"],
+        _member_start=mapped["member_start"], _shared=shared, _stitched=stitched, _geometry=geometry,
+        _sizes=mapped["sizes"])
 
 
 # -- the per-point output, in files ---------------------------------------------------------------------
@@ -916,14 +901,15 @@ class CodesColumn:
         return class_codes(self.label[key], self.cluster[key], self.label_names, self.classes)
 
 
-def _in_files(folder: Path, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """``arrays`` written to ``folder/out-<name>.npy`` and given back mapped from there (read
-    only): per output cluster arrays the JSON is written from, not held while it is written."""
+def _in_files(folder: Path, arrays: dict[str, np.ndarray], prefix: str = "out") -> dict[str, np.ndarray]:
+    """``arrays`` written to ``folder/<prefix>-<name>.npy`` and given back mapped from there (read
+    only; an empty array as it is): arrays per tile cluster or output cluster that stitching and
+    the JSON read, not held."""
     out = {}
     for name, a in arrays.items():
-        path = folder / f"out-{name}.npy"
+        path = folder / f"{prefix}-{name}.npy"
         np.save(path, a)
-        out[name] = np.load(path, mmap_mode="r")
+        out[name] = np.load(path, mmap_mode="r") if a.size else a
     return out
 
 
