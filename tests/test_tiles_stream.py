@@ -39,7 +39,9 @@ def _without_run_id(path: Path) -> bytes:
 # -- the tiles of a file read in chunks are the tiles of the cloud in memory ------------------------
 
 
-@pytest.mark.parametrize("size, buffer, chunk", [(3.0, 0.5, 700), (2.5, 3.0, 1000), (100.0, 1.0, 333), (4.0, 0.0, 5000)])
+@pytest.mark.parametrize("size, buffer, chunk", [(3.0, 0.5, 700), (2.5, 3.0, 1000), (100.0, 1.0, 333), (4.0, 0.0, 5000),
+                                                        # a buffer of whole tiles, and a rounding short of one
+                                                        (2.0, 4.0, 900), (2.0, 2.0, 900), (3.0, 2.9999999999999, 900)])
 def test_the_tiles_of_a_las_spilled_in_chunks_are_the_tiles_of_the_cloud_in_memory(tmp_path, size, buffer, chunk):
     rng = np.random.default_rng(5)
     X = rng.uniform([-7, 2, 0], [6, 11, 3], (4000, 3)).round(4)

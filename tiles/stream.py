@@ -240,24 +240,32 @@ def _tile_rows(grid: TileGrid, uv: np.ndarray) -> dict[tuple[int, int], np.ndarr
     """For the points ``uv`` of a chunk: the rows each tile (core widened by the buffer, the grid's
     outer edges reaching everything) holds, by the comparisons of :meth:`TileGrid.tiles`."""
     core = grid.cells(uv)
-    reach = int(math.ceil(grid.buffer / grid.size)) + 1  # a point lies in tiles this many cells from its core at most
-    rows_all, ids_all = [], []
-    for axis_pairs in [(di, dj) for di in range(-reach, reach + 1) for dj in range(-reach, reach + 1)]:
-        keep = np.ones(len(uv), dtype=bool)
-        for axis, d in enumerate(axis_pairs):
+    # a point lies in the tiles at most this many cells from its core: the buffer reaches
+    # floor(buffer / size) cells past the neighbour (a margin for a ratio a rounding away from whole)
+    reach = int(math.floor(grid.buffer / grid.size + 1e-9)) + 1
+    steps = range(-reach, reach + 1)
+    # each axis's test alone (the tile holds a point when both hold), made once per axis and step
+    inside: list[dict[int, np.ndarray]] = []
+    for axis in range(2):
+        by_step = {}
+        for d in steps:
             c = core[:, axis] + d
             ok = (c >= 0) & (c < grid.shape[axis])
             c0 = np.where(ok, c, 0)
             start = grid.origin[axis] + c0 * grid.size
             lo = np.where(c0 == 0, -np.inf, start - grid.buffer)
             hi = np.where(c0 == grid.shape[axis] - 1, np.inf, start + grid.size + grid.buffer)
-            keep &= ok & (uv[:, axis] >= lo) & (uv[:, axis] <= hi)
-        rows = np.flatnonzero(keep)
-        rows_all.append(rows)
-        ids_all.append((core[rows, 0] + axis_pairs[0]) * grid.shape[1] + core[rows, 1] + axis_pairs[1])
+            by_step[d] = ok & (uv[:, axis] >= lo) & (uv[:, axis] <= hi)
+        inside.append(by_step)
+    rows_all, ids_all = [], []
+    for di in steps:
+        for dj in steps:
+            rows = np.flatnonzero(inside[0][di] & inside[1][dj])
+            rows_all.append(rows)
+            ids_all.append((core[rows, 0] + di) * grid.shape[1] + core[rows, 1] + dj)
     rows = np.concatenate(rows_all)
     ids = np.concatenate(ids_all)
-    order = np.lexsort((rows, ids))
+    order = np.argsort(ids * max(1, len(uv)) + rows)  # by tile, then by row (a point is once in a tile)
     rows, ids = rows[order], ids[order]
     cut = np.flatnonzero(np.diff(ids)) + 1
     out = {}
