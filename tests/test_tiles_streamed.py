@@ -236,6 +236,29 @@ def test_packed_texts_in_a_file_give_back_each_string(tmp_path):
     assert FileTexts(_mapped(tmp_path / "none.bin", np.uint8), np.zeros(0, dtype=np.int64)).slice(0, 0) == []
 
 
+def test_the_links_logged_to_a_file_are_the_notes_of_the_dict_in_the_order_found(tmp_path):
+    from kbs.tiles.streamed import _Links, _Marked
+
+    rng = np.random.default_rng(3)
+    names = [f"t{i}_{j}" for i in range(4) for j in range(5)]
+    found = rng.integers(0, [300, len(names), 40, 5000], size=(2000, 4))  # node, other tile, its cluster, points
+    found[::7, 0] = 17  # one node with many links: their order is the order found
+    expected: dict[int, list[str]] = {}
+    for g, t, c, k in found.tolist():
+        expected.setdefault(g, []).append(f"{names[t]} cluster {c} ({k:,} shared points)")
+    (tmp_path / "stitch-links.bin").write_bytes(found.astype(np.int64).tobytes())
+    links = _Links.gather(tmp_path, names)
+    assert not (tmp_path / "stitch-links.bin").exists()
+    assert dict(links) == expected and len(links) == len(expected)
+    assert all(g in links for g in expected) and 300 not in links and -1 not in links and "17" not in links
+    with pytest.raises(KeyError):
+        links[300]
+    (tmp_path / "stitch-links.bin").write_bytes(b"")  # no link at all
+    assert dict(_Links.gather(tmp_path, names)) == {}
+    marked = _Marked(np.array([False, True, True, False]))
+    assert [i in marked for i in range(-1, 5)] == [False, False, True, True, False, False] and len(marked) == 2
+
+
 def test_a_tile_summary_gives_back_every_cluster_label_and_id_and_every_limit(rocks_las, tmp_path, monkeypatch):
     """The summary a tile sends back holds its clusters' labels and ids and its limits in a few
     arrays (one label table, one string of ids); what it gives back is the result's own, and the

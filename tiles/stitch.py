@@ -13,7 +13,7 @@ note.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterator, Sequence
+from collections.abc import Container, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -251,7 +251,7 @@ def _explanation(tiles, results, offsets, roots, out_of_root, shared, stitched, 
 
 
 def tile_records(name: str, e: Explanation, offset: int, roots: np.ndarray, out_of_root: np.ndarray,
-                 shared: dict[int, list[str]], stitched: set[int]) -> Iterator[ClusterRecord]:
+                 shared: Mapping[int, list[str]], stitched: Container[int]) -> Iterator[ClusterRecord]:
     """The records of one tile's explanation ``e`` as the stitched explanation holds them, in its
     order: ids prefixed with the tile's ``name``, the output cluster each became, notes on the
     stitched ones and on those only in the buffer (``offset``: the tile's first node number)."""
@@ -262,7 +262,7 @@ def tile_records(name: str, e: Explanation, offset: int, roots: np.ndarray, out_
 
 
 def stitched_record(d: dict[str, Any], name: str, offset: int, roots: np.ndarray, out_of_root: np.ndarray,
-                    shared: dict[int, list[str]], stitched: set[int]) -> dict[str, Any]:
+                    shared: Mapping[int, list[str]], stitched: Container[int]) -> dict[str, Any]:
     """One record of a tile (its fields ``d``, changed in place and returned) as the stitched
     explanation holds it (:func:`tile_records`)."""
     rid, parent, output_index = d["id"], d["parent"], d["output_index"]

@@ -24,10 +24,11 @@ What the stitching process holds while the tiles run is a brief per tile (a few 
 ground facts and notes; one head for all tiles). The arrays per tile cluster and per output
 cluster (sizes, labels, ids, roots, members, descriptors) are in files and mapped when read.
 The summary's limits are made from those files too, their ids read when written
-(:class:`LimitIds`). What still grows with the cloud in memory: the union-find over the tile
+(:class:`LimitIds`), and so are the links of the stitched clusters, their notes made when
+written (:class:`_Links`). What still grows with the cloud in memory: the union-find over the tile
 clusters while stitching (8 bytes each, and a few such arrays while they are made), the order of
-the limited records while the summary is written (8 bytes each), the links of the stitched
-clusters (a note each), and per tile its brief, its job and its entry in the tiling's list.
+the limited records while the summary is written (8 bytes each), and per tile its brief, its job
+and its entry in the tiling's list.
 """
 from __future__ import annotations
 
@@ -753,20 +754,25 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], briefs: Sequenc
     offsets = np.concatenate([[0], np.cumsum([b.n_clusters for b in briefs])]).astype(np.int64)
     total = int(offsets[-1])
     uf = _Union(total)
-    shared: dict[int, list[str]] = {}
     by_cell = {(t.i, t.j): k for k, t in enumerate(tiles)}
-    for ka, a in enumerate(tiles):
-        size_a = np.asarray(tables.sizes[offsets[ka]:offsets[ka + 1]])
-        for di, dj in NEIGHBOURS:
-            kb = by_cell.get((a.i + di, a.j + dj))
-            if kb is None:
-                continue
-            b = tiles[kb]
-            (ia, ca, la), (ib, cb, lb) = edges.get(ka), edges.get(kb)
-            for x, y, k in pair_links(ia, ca, la, size_a, ib, cb, lb, np.asarray(tables.sizes[offsets[kb]:offsets[kb + 1]])):
-                uf.union(int(offsets[ka] + x), int(offsets[kb] + y))
-                shared.setdefault(int(offsets[ka] + x), []).append(f"{b.name} cluster {y} ({k:,} shared points)")
-                shared.setdefault(int(offsets[kb] + y), []).append(f"{a.name} cluster {x} ({k:,} shared points)")
+    with open(folder / "stitch-links.bin", "wb") as log:  # each link, from each side, as it is found
+        for ka, a in enumerate(tiles):
+            size_a = np.asarray(tables.sizes[offsets[ka]:offsets[ka + 1]])
+            for di, dj in NEIGHBOURS:
+                kb = by_cell.get((a.i + di, a.j + dj))
+                if kb is None:
+                    continue
+                (ia, ca, la), (ib, cb, lb) = edges.get(ka), edges.get(kb)
+                found = pair_links(ia, ca, la, size_a, ib, cb, lb, np.asarray(tables.sizes[offsets[kb]:offsets[kb + 1]]))
+                for x, y, _ in found:
+                    uf.union(int(offsets[ka] + x), int(offsets[kb] + y))
+                if found:
+                    xyk = np.array(found, dtype=np.int64).reshape(-1, 3)
+                    rows = np.empty((2 * len(xyk), 4), dtype=np.int64)
+                    rows[0::2] = np.column_stack([offsets[ka] + xyk[:, 0], np.full(len(xyk), kb), xyk[:, 1], xyk[:, 2]])
+                    rows[1::2] = np.column_stack([offsets[kb] + xyk[:, 1], np.full(len(xyk), ka), xyk[:, 0], xyk[:, 2]])
+                    log.write(rows.tobytes())
+    shared = _Links.gather(folder, [t.name for t in tiles])
     roots = uf.roots()
     del uf
     core_sizes = np.asarray(tables.core_sizes) if total else np.zeros(0, dtype=np.int64)
@@ -804,7 +810,7 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], briefs: Sequenc
     members = np.argsort(roots, kind="stable") if total else np.zeros(0, dtype=np.int64)
     member_start = np.searchsorted(roots[members], np.arange(total + 1)) if total else np.zeros(1, dtype=np.int64)
     in_core_parts = np.bincount(roots, weights=core_sizes > 0, minlength=total) if total else np.zeros(0)
-    stitched = set(np.flatnonzero(in_core_parts[order] > 1).tolist())
+    stitched = _Marked(_in_files(folder, {"stitched": in_core_parts[order] > 1}, prefix="stitch")["stitched"])
     del in_core_parts, core_sizes
     head = briefs[0].head
     label_names = list(head["label_names"])
@@ -840,6 +846,65 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], briefs: Sequenc
         _roots=mapped["roots"], _out_of_root=mapped["out_of_root"], _order=mapped["order"], _members=mapped["members"],
         _member_start=mapped["member_start"], _shared=shared, _stitched=stitched, _geometry=geometry,
         _sizes=mapped["sizes"])
+
+
+class _Links(Mapping[int, list[str]]):
+    """The links of the stitched tile clusters (``shared`` of :func:`kbs.tiles.stitch.stitch`: for
+    a tile cluster's node, the notes naming the clusters of neighbouring tiles it shares buffer
+    points with, in the order they were found), from a file of rows (node, other tile, its
+    cluster, shared points) sorted by node: each note made when asked for, not held."""
+
+    def __init__(self, rows: np.ndarray, names: Sequence[str]) -> None:
+        self.rows, self.names = rows, names
+        self.nodes = rows[:, 0] if len(rows) else np.zeros(0, dtype=np.int64)
+
+    @classmethod
+    def gather(cls, folder: Path, names: Sequence[str]) -> _Links:
+        """The links logged in ``folder/stitch-links.bin`` (rows of 4 int64 in the order found),
+        sorted by node (stably: each node's links in that order) into ``stitch-links.npy``."""
+        log = folder / "stitch-links.bin"
+        found = _mapped(log, np.int64).reshape(-1, 4)
+        order = np.argsort(found[:, 0], kind="stable")
+        rows = _in_files(folder, {"links": np.asarray(found[order]) if len(order) else np.zeros((0, 4), np.int64)},
+                         prefix="stitch")["links"]
+        del found, order
+        log.unlink()
+        return cls(rows, names)
+
+    def _span(self, g: int) -> tuple[int, int]:
+        return int(np.searchsorted(self.nodes, g, "left")), int(np.searchsorted(self.nodes, g, "right"))
+
+    def __contains__(self, g: object) -> bool:
+        if not isinstance(g, (int, np.integer)):
+            return False
+        a, b = self._span(int(g))
+        return b > a
+
+    def __getitem__(self, g: int) -> list[str]:
+        a, b = self._span(int(g))
+        if a == b:
+            raise KeyError(g)
+        return [f"{self.names[t]} cluster {c} ({k:,} shared points)" for _, t, c, k in self.rows[a:b].tolist()]
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(np.unique(self.nodes).tolist())
+
+    def __len__(self) -> int:
+        return int(np.unique(self.nodes).size)
+
+
+class _Marked:
+    """The output clusters stitched across tile edges (``out in marked``), from a mapped array of
+    flags, one per output cluster (not a set of Python integers)."""
+
+    def __init__(self, flags: np.ndarray) -> None:
+        self.flags = flags
+
+    def __contains__(self, i: object) -> bool:
+        return isinstance(i, (int, np.integer)) and 0 <= int(i) < len(self.flags) and bool(self.flags[int(i)])
+
+    def __len__(self) -> int:
+        return int(np.count_nonzero(self.flags))
 
 
 # -- the per-point output, in files ---------------------------------------------------------------------
@@ -1020,8 +1085,8 @@ class StreamedResult:
     _order: np.ndarray
     _members: np.ndarray
     _member_start: np.ndarray
-    _shared: dict[int, list[str]]
-    _stitched: set[int]
+    _shared: Mapping[int, list[str]]
+    _stitched: _Marked
     _geometry: dict[str, np.ndarray]
     _sizes: np.ndarray
     #: How the tiles were read, said in a note (not in the result: the same result either way).
