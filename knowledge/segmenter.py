@@ -99,6 +99,9 @@ class Segmenter:
         self.sensor: tuple[float, float, float] = (
             tuple(map(float, self.rule_base.sensor)) if sensor is None else _check_sensor(sensor))
         self._interpreter = Interpreter(self.rule_base, sensor=self.sensor, jobs=self.jobs)
+        #: False while the tiles of a tiled run are segmented: the whole cloud's spacing was judged
+        #: once, and a tile's is not (:func:`kbs.tiles.run.warn_spacing`), so it is not measured.
+        self._judge_spacing = True
 
     @property
     def label_names(self) -> list[str]:
@@ -170,7 +173,7 @@ class Segmenter:
         if far is not None:
             warnings.warn(CoordinateWarning(far), stacklevel=2)
         target = self.length_unit
-        if target is not None:
+        if target is not None and self._judge_spacing:
             problem = check_spacing(X, scan=scan_units, target=target, declared=self.rule_base.spacing,
                                     rule_base=self.rule_base.name)
             if problem is not None:

@@ -335,6 +335,22 @@ def test_a_tiled_cloud_in_the_wrong_unit_is_warned_of_once_not_once_per_tile(roc
     assert spacing[0].spacing > 2.0 and "mm" in spacing[0].suggested
 
 
+def test_a_tiles_spacing_is_not_measured_and_the_segmenter_measures_again_after(rocks, monkeypatch):
+    """The tiles' spacing would be ignored: it is not measured (a k-d tree over each tile). The
+    whole cloud's is, once; and the segmenter judges its next cloud's again."""
+    import kbs.units
+
+    calls = []
+    real = kbs.units.median_spacing
+    monkeypatch.setattr(kbs.units, "median_spacing", lambda X, **kw: calls.append(len(X)) or real(X, **kw))
+    X = np.column_stack([_vertex(rocks[0])[k] for k in "xyz"]).astype(np.float64)
+    with kbs.Segmenter("outdoor", jobs=1) as seg:
+        out = segment_tiled(seg, X, 6.0, 1.5)
+        assert len(out.tiling["tiles"]) == 4 and calls == [len(X)]
+        seg.segment(X[:2000])
+    assert calls == [len(X), 2000]
+
+
 @pytest.mark.filterwarnings("ignore:median point spacing")
 def test_the_whole_cloud_ground_is_found_without_a_partition_only_when_the_rule_file_fixes_its_normal(monkeypatch):
     """A tiled run finds the ground plane once on the whole cloud (Interpreter.find_ground). With a

@@ -241,12 +241,14 @@ def _segment_tile(segmenter: Segmenter, points: np.ndarray, given: tuple[Any, Gr
 
     interpreter = segmenter._interpreter
     interpreter.given_ground = given
+    segmenter._judge_spacing = False  # not measured: its warning would be ignored
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", SpacingWarning)
             return segmenter.segment(points)
     finally:
         interpreter.given_ground = None
+        segmenter._judge_spacing = True
 
 
 def segment_task(rules: str, sensor: tuple[float, float, float], plugins: tuple[str, ...],
