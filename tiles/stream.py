@@ -204,7 +204,8 @@ class SpilledTile(Tile):
 
     def __init__(self, name: str, i: int, j: int, core: tuple[float, float, float, float], folder: Path,
                  n_points: int, n_core: int) -> None:
-        for key, value in (("name", name), ("i", i), ("j", j), ("core", core), ("folder", Path(folder)),
+        for key, value in (("name", name), ("i", i), ("j", j), ("core", core),
+                           ("folder", folder if isinstance(folder, Path) else Path(folder)),  # one Path for all tiles
                            ("n_points", n_points), ("n_core", n_core)):
             object.__setattr__(self, key, value)
 

@@ -396,7 +396,8 @@ def segment_streamed(segmenter: Any, spilled: Any, store: TileStore, *, schedule
     xyz_path = str(spilled.folder / "xyz.npy")
     n = int(spilled.xyz.shape[0])
     given = _ground(segmenter, xyz_path, n)
-    jobs = [TileJob(xyz_path, t, grid, str(store.folder), store._base, resume) for t in tiles]
+    store_folder = str(store.folder)  # one string for every job
+    jobs = [TileJob(xyz_path, t, grid, store_folder, store._base, resume) for t in tiles]
     outs, failures, n_resumed = _dispatch(segmenter, run_job, [t.name for t in tiles], jobs.__getitem__, given,
                                           lambda out: bool(out[1]), scheduler, workers, progress)
     summaries = [None if o is None else o[0] for o in outs]
