@@ -123,8 +123,8 @@ def test_a_worker_that_cannot_read_the_spill_folder_says_it_needs_a_shared_file_
 @pytest.mark.slow  # a whole real scan three times, once on Dask: pytest --runslow (CI) runs it
 def test_a_real_airborne_las_tiled_and_streamed_gives_the_bytes_of_the_in_memory_run(shared_data, tmp_path):
     pytest.importorskip("distributed", reason="Dask is not installed: pip install 'kbs[dask]' (it is in [test])")
-    scan = shared_data / "las" / "sample_c.las"  # airborne, an urban block 83 m x 75 m: 9 tiles of 30 m
-    args = ["-q", "run", "--rules", "airborne", "--tile", "30", str(scan)]
+    scan = shared_data / "las" / "sample_c.las"  # airborne, an urban block 83 m x 75 m: 12 tiles of 25 m
+    args = ["-q", "run", "--rules", "airborne", "--tile", "25", "--buffer", "6", str(scan)]
     whole = kbs_cmd(*args, "-j", "1", "--chunk-points", "0", "--out", str(tmp_path / "whole"))
     assert whole.returncode == 0, whole.stderr
     here = kbs_cmd(*args, "-j", "1", "--chunk-points", "5000", "--out", str(tmp_path / "here"))
@@ -134,6 +134,8 @@ def test_a_real_airborne_las_tiled_and_streamed_gives_the_bytes_of_the_in_memory
     doc = (tmp_path / "whole" / "sample_c.json").read_text()
     assert '"tiles":[{"name":"t0_0"' in doc and doc.count('"core_points"') >= 9
     assert '"stitched":[' in doc  # clusters crossing tile edges were merged
+    # both notes stitching adds to a tile's records (the streamed runs write them into the tasks' texts)
+    assert "stitched across tile edges into output cluster" in doc and "only in the buffer of tile" in doc
     for name in ("sample_c.las", "sample_c.json"):
         assert _normalised(tmp_path / "here" / name) == _normalised(tmp_path / "whole" / name), name
         assert _normalised(tmp_path / "dask" / name) == _normalised(tmp_path / "whole" / name), name
@@ -314,6 +316,13 @@ def test_a_tile_summary_gives_back_every_cluster_label_and_id_and_every_limit(ro
         assert out.explanation.ground.tiles[b.name] == s.ground  # read from the gathered file when asked
     assert out.limits == limits
     assert not any(hasattr(b, "ground") for b in kept)
+    # the records' texts the tasks wrote, their stand-ins replaced, are the records read and encoded again
+    from kbs.io.result import strict_json
+
+    texts = list(out.record_texts())
+    assert texts == [strict_json(r) for r in out.records()]
+    assert sum(',"stitched across tile edges into' in t for t in texts) > 0  # a note added after others
+    assert not any(m in t for t in texts for m in (streamed.NOTE_MARK, streamed.OUT_MARK))
     spilled.remove()
     assert not spilled.folder.exists()  # the summaries and tables went with the spill files
 

@@ -265,19 +265,35 @@ def stitched_record(d: dict[str, Any], name: str, offset: int, roots: np.ndarray
                     shared: Mapping[int, list[str]], stitched: Container[int]) -> dict[str, Any]:
     """One record of a tile (its fields ``d``, changed in place and returned) as the stitched
     explanation holds it (:func:`tile_records`)."""
-    rid, parent, output_index = d["id"], d["parent"], d["output_index"]
-    d["id"] = f"{name}/{rid}"
-    d["parent"] = f"{name}/{parent}" if parent else ROOT
-    d["depth"] = d["depth"] + 1
-    d["children"] = [f"{name}/{c}" for c in d["children"]]
+    output_index = d["output_index"]
+    renamed(d, name)
     if output_index is not None:
         g = offset + output_index
         out = int(out_of_root[roots[g]])
         d["output_index"] = out if out >= 0 else None
-        if out < 0:
-            d["notes"].append(f"only in the buffer of tile {name}: its points are in the cores of "
-                              f"other tiles, which took them")
-        elif out in stitched:
-            links = f": shares buffer points with {'; '.join(shared[g])}" if g in shared else ""
-            d["notes"].append(f"stitched across tile edges into output cluster {out}{links}")
+        note = stitch_note(name, g, out, shared, stitched)
+        if note is not None:
+            d["notes"].append(note)
     return d
+
+
+def renamed(d: dict[str, Any], name: str) -> dict[str, Any]:
+    """What :func:`stitched_record` changes in a record ``d`` of tile ``name`` that does not depend
+    on the other tiles: its id, parent and children prefixed with the tile, one level deeper."""
+    rid, parent = d["id"], d["parent"]
+    d["id"] = f"{name}/{rid}"
+    d["parent"] = f"{name}/{parent}" if parent else ROOT
+    d["depth"] = d["depth"] + 1
+    d["children"] = [f"{name}/{c}" for c in d["children"]]
+    return d
+
+
+def stitch_note(name: str, g: int, out: int, shared: Mapping[int, list[str]], stitched: Container[int]) -> str | None:
+    """The note :func:`stitched_record` adds to a record of tile ``name`` that became tile cluster
+    node ``g`` and output cluster ``out`` (-1: none, its points in other tiles' cores), or None."""
+    if out < 0:
+        return f"only in the buffer of tile {name}: its points are in the cores of other tiles, which took them"
+    if out in stitched:
+        links = f": shares buffer points with {'; '.join(shared[g])}" if g in shared else ""
+        return f"stitched across tile edges into output cluster {out}{links}"
+    return None

@@ -10,7 +10,9 @@ results:
    (:class:`~kbs.tiles.store.TileStore`), the cluster and label of the points near the tile's
    edges (the only ones a neighbour may hold) to a file in the spill folder, its summary
    (:class:`TileSummary`: each cluster's size, label and ids, its limits, the counts of the
-   summary) to another, and what comes back is a few numbers (:class:`TileBrief`);
+   summary) to another, its explanation's records as the stitched JSON's texts with stand-ins for
+   what stitching decides (:func:`write_record_texts`) to a third, and what comes back is a few
+   numbers (:class:`TileBrief`);
 2. the summaries are read back once and gathered in files (:func:`_gather`); the clusters crossing
    tile edges are merged from the edge points alone, two rows of tiles read at a time
    (:func:`kbs.tiles.stitch.pair_links`);
@@ -18,7 +20,8 @@ results:
    reading the tile files in turn; the output clusters' descriptors are summed over those files
    in chunks (the sums of :func:`kbs.inference.cluster_geometry`, in its order: the same numbers);
 4. the JSON's clusters and explanation are written piece by piece (:meth:`StreamedResult.pieces`:
-   one tile's records at a time) and the LAS/LAZ chunk by chunk (:class:`FileColumn`).
+   one tile's record texts at a time, their stand-ins replaced, not decoded and encoded again) and
+   the LAS/LAZ chunk by chunk (:class:`FileColumn`).
 
 What the stitching process holds while the tiles run is a brief per tile (a few numbers, its
 ground facts and notes; one head for all tiles). The arrays per tile cluster and per output
@@ -296,7 +299,43 @@ def _run_points(segment: Callable[[np.ndarray], Segmentation], job: Any, given: 
         seg = segment(points)
         store.save(job.tile, key, seg)
     summary = summarize(job.tile, job.grid, index, in_core, points, seg, edges_path(job))
+    write_record_texts(seg.explanation, job.tile.name, records_path(job))
     return save_summary(summary, summary_path(job)), resumed
+
+
+#: Stand-ins, in a record's JSON text written by its tile's task, for what stitching decides: a
+#: note it may add to the record's notes, and the output cluster the record became.
+NOTE_MARK, OUT_MARK = json.dumps("\x00kbs note\x00"), json.dumps("\x00kbs output index\x00")
+
+
+def records_path(job: Any) -> Path:
+    """The file of the tile's records as JSON texts (:func:`write_record_texts`): in the spill
+    folder, beside its edge points."""
+    return Path(job.xyz).with_name(f"{job.tile.name}.records.npz")
+
+
+def write_record_texts(e: Explanation, name: str, path: Path) -> None:
+    """The records of tile ``name``'s explanation ``e`` as the stitched JSON writes them, in its
+    order, to ``path``: each one's text with what does not depend on the other tiles done
+    (:func:`kbs.tiles.stitch.renamed`), and where it became an output cluster of the tile, the
+    stand-ins :data:`NOTE_MARK` (the last of its notes) and :data:`OUT_MARK` (its output index),
+    with that index (-1: none). Stitching then writes each text with the stand-ins replaced
+    (:meth:`StreamedResult.record_texts`), not the records read and encoded again."""
+    from kbs.io.result import strict_json
+    from kbs.tiles.stitch import renamed
+
+    texts, outs = [], []
+    for rec in e.walk():
+        d = renamed(rec.to_dict(), name)
+        out = d["output_index"]
+        if out is not None:
+            d["notes"].append(json.loads(NOTE_MARK))
+            d["output_index"] = json.loads(OUT_MARK)
+        texts.append(strict_json(d))
+        outs.append(-1 if out is None else int(out))
+    data = "\n".join(texts).encode("utf-8")  # a JSON text holds no raw line break
+    with open(path, "wb") as stream:
+        np.savez(stream, text=np.frombuffer(data, dtype=np.uint8), out=np.array(outs, dtype=np.int64))
 
 
 def edges_path(job: Any) -> Path:
@@ -846,7 +885,7 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], briefs: Sequenc
         _tiles=list(tiles), _tables=tables, _store=store, _offsets=offsets,
         _roots=mapped["roots"], _out_of_root=mapped["out_of_root"], _order=mapped["order"], _members=mapped["members"],
         _member_start=mapped["member_start"], _shared=shared, _stitched=stitched, _geometry=geometry,
-        _sizes=mapped["sizes"])
+        _sizes=mapped["sizes"], _folder=folder)
 
 
 class _Links(Mapping[int, list[str]]):
@@ -1090,6 +1129,8 @@ class StreamedResult:
     _stitched: _Marked
     _geometry: dict[str, np.ndarray]
     _sizes: np.ndarray
+    #: The spill folder (the tiles' record texts, :func:`write_record_texts`).
+    _folder: Path | None = None
     #: How the tiles were read, said in a note (not in the result: the same result either way).
     read_note: str | None = None
 
@@ -1156,6 +1197,33 @@ class StreamedResult:
                 yield stitched_record(d, t.name, int(self._offsets[k]), self._roots, self._out_of_root, self._shared,
                                       self._stitched)
 
+    def record_texts(self) -> Iterator[str]:
+        """:meth:`records` as their JSON texts (``strict_json`` of each, the same text), from the
+        tiles' record texts (:func:`write_record_texts`): the stand-ins replaced, nothing decoded."""
+        from kbs.io.result import strict_json
+        from kbs.tiles.stitch import stitch_note
+
+        yield strict_json(self.explanation.records[ROOT].to_dict())
+        assert self._folder is not None
+        for k, t in enumerate(self._tiles):
+            with np.load(self._folder / f"{t.name}.records.npz", allow_pickle=False) as f:
+                texts = bytes(f["text"]).decode("utf-8").split("\n")
+                local = f["out"]
+            g = int(self._offsets[k]) + local
+            outs = np.where(local >= 0, np.asarray(self._out_of_root)[np.asarray(self._roots)[np.where(local >= 0, g, 0)]], -1)
+            for text, lo, gi, out in zip(texts, local.tolist(), g.tolist(), outs.tolist()):
+                if lo < 0:
+                    yield text
+                    continue
+                note = stitch_note(t.name, gi, out, self._shared, self._stitched)
+                if note is not None:
+                    text = text.replace(NOTE_MARK, json.dumps(note), 1)
+                elif "," + NOTE_MARK in text:
+                    text = text.replace("," + NOTE_MARK, "", 1)
+                else:
+                    text = text.replace(NOTE_MARK, "", 1)
+                yield text.replace(OUT_MARK, str(out) if out >= 0 else "null", 1)
+
     def pieces(self) -> dict[str, Callable[[], Iterator[str]]]:
         """The JSON text of ``clusters`` and ``explanation``, piece by piece (for
         :func:`kbs.io.result.write_result_pair`'s ``pieces``)."""
@@ -1169,8 +1237,9 @@ class StreamedResult:
 
         def records() -> Iterator[str]:
             yield "["
-            for k, rec in enumerate(self.records()):
-                yield ("," if k else "") + strict_json(rec)
+            for k, text in enumerate(self.record_texts() if self._folder is not None else
+                                     map(strict_json, self.records())):
+                yield ("," if k else "") + text
             yield "]"
 
         def ground_tiles(tiles: _GroundTiles) -> Iterator[str]:  # GroundFacts.to_dict's "tiles", text as kept
