@@ -895,8 +895,8 @@ class _Links(Mapping[int, list[str]]):
     cluster, shared points) sorted by node: each note made when asked for, not held."""
 
     def __init__(self, rows: np.ndarray, names: Sequence[str]) -> None:
-        self.rows, self.names = rows, names
-        self.nodes = rows[:, 0] if len(rows) else np.zeros(0, dtype=np.int64)
+        self.rows, self.names = np.asarray(rows), names  # a plain view of the map: cheaper to index
+        self.nodes = self.rows[:, 0] if len(rows) else np.zeros(0, dtype=np.int64)
 
     @classmethod
     def gather(cls, folder: Path, names: Sequence[str]) -> _Links:
@@ -938,7 +938,7 @@ class _Marked:
     flags, one per output cluster (not a set of Python integers)."""
 
     def __init__(self, flags: np.ndarray) -> None:
-        self.flags = flags
+        self.flags = np.asarray(flags)  # a plain view of the map: cheaper to index
 
     def __contains__(self, i: object) -> bool:
         return isinstance(i, (int, np.integer)) and 0 <= int(i) < len(self.flags) and bool(self.flags[int(i)])
@@ -1163,13 +1163,16 @@ class StreamedResult:
         """The output clusters (``clusters`` of a result), one at a time, as :func:`stitch` makes them."""
         from kbs.inference.geometry import ClusterGeometry
 
-        geo_all = self._geometry
-        for gi, root in enumerate(self._order.tolist()):
+        # plain views of the mapped files: a memmap's indexing makes a memmap object each time
+        geo_all = {name: np.asarray(a) for name, a in self._geometry.items()}
+        members, member_start = np.asarray(self._members), np.asarray(self._member_start)
+        core_sizes, sizes = np.asarray(self._tables.core_sizes), np.asarray(self._sizes)
+        for gi, root in enumerate(np.asarray(self._order).tolist()):
             parts = []
-            for g in self._members[self._member_start[root]:self._member_start[root + 1]].tolist():
+            for g in members[member_start[root]:member_start[root + 1]].tolist():
                 k = int(np.searchsorted(self._offsets, g, side="right")) - 1
                 c = int(g - self._offsets[k])
-                in_core = int(self._tables.core_sizes[g])
+                in_core = int(core_sizes[g])
                 if in_core:
                     label, ids = self._tables.cluster(g)
                     parts.append({"tile": self._tiles[k].name, "cluster": c, "label": label, "core_points": in_core,
@@ -1178,7 +1181,7 @@ class StreamedResult:
                                   eigenvalues=geo_all["eigenvalues"][gi].copy(),
                                   eigenvectors=geo_all["eigenvectors"][gi].copy(), mass=float(geo_all["mass"][gi]))
             item = {"index": gi, "ids": [i for p in parts for i in p["ids"]], "label": parts[0]["label"],
-                    "n_points": int(self._sizes[root]),
+                    "n_points": int(sizes[root]),
                     "descriptors": {"center": geo.center.tolist(), "normal": geo.normal.tolist(),
                                     "thickness": geo.thickness, "eigenvalues": geo.eigenvalues.tolist(),
                                     "mass": geo.mass}}
