@@ -238,6 +238,28 @@ def test_packed_texts_in_a_file_give_back_each_string(tmp_path):
     assert FileTexts(_mapped(tmp_path / "none.bin", np.uint8), np.zeros(0, dtype=np.int64)).slice(0, 0) == []
 
 
+def _anonymous_kb() -> int:
+    return int(re.search(r"RssAnon:\s+(\d+) kB", Path("/proc/self/status").read_text()).group(1))
+
+
+def test_the_free_heap_pages_the_stitching_process_leaves_go_back_to_the_system():
+    """Arrays freed in the middle of the C heap stay resident until malloc_trim gives their
+    pages back: release_free_memory does (glibc only; elsewhere it does nothing)."""
+    from kbs.tiles.streamed import _malloc_trim, release_free_memory
+
+    if not Path("/proc/self/status").exists() or _malloc_trim() is None:
+        pytest.skip("needs Linux's /proc and glibc's malloc_trim")
+    release_free_memory()
+    blocks = [np.ones(8192) for _ in range(3000)]  # 64 KB each (under the heap's map threshold): 196 MB
+    pin = np.ones(8192)  # above them: the heap's top cannot shrink past it
+    del blocks
+    before = _anonymous_kb()
+    release_free_memory()
+    after = _anonymous_kb()
+    assert before - after > 100_000, (before, after)
+    del pin
+
+
 def test_the_links_logged_to_a_file_are_the_notes_of_the_dict_in_the_order_found(tmp_path):
     from kbs.tiles.streamed import _Links, _Marked
 

@@ -61,6 +61,8 @@ from kbs.tiles.store import TileStore
 CHUNK_POINTS = 1_000_000
 #: Output clusters whose descriptors are computed at a time (their sums in files).
 DESCRIPTOR_STEP = 1 << 16
+#: Tiles whose per-point results are written into the output columns' maps between two write-backs.
+COLUMN_FLUSH_TILES = 256
 
 
 @dataclass(frozen=True)
@@ -435,6 +437,7 @@ def segment_streamed(segmenter: Any, spilled: Any, store: TileStore, *, schedule
     xyz_path = str(spilled.folder / "xyz.npy")
     n = int(spilled.xyz.shape[0])
     given = _ground(segmenter, xyz_path, n)
+    release_free_memory()  # what the spill's chunks and the ground's sample left
     store_folder = str(store.folder)  # one string for every job
     jobs = [TileJob(xyz_path, t, grid, store_folder, store._base, resume) for t in tiles]
     outs, failures, n_resumed = _dispatch(segmenter, run_job, [t.name for t in tiles], jobs.__getitem__, given,
@@ -492,6 +495,7 @@ def segment_copc(segmenter: Any, cloud: Any, store: TileStore, *, scheduler: str
     grid = cloud.grid
     n = int(cloud.xyz.shape[0])
     given = sample_ground(segmenter, cloud.sample, n)
+    release_free_memory()
     cells = tiles_of(cloud)
     xyz_path = str(cloud.folder / "xyz.npy")
 
@@ -815,6 +819,7 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], briefs: Sequenc
     shared = _Links.gather(folder, [t.name for t in tiles])
     roots = uf.roots()
     del uf
+    release_free_memory()
     core_sizes = np.asarray(tables.core_sizes) if total else np.zeros(0, dtype=np.int64)
     sizes = np.bincount(roots, weights=core_sizes, minlength=total).astype(np.int64) if total else \
         np.zeros(0, dtype=np.int64)
@@ -828,7 +833,12 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], briefs: Sequenc
     n = int(spilled.xyz.shape[0])
     columns = {name: _new_column(folder / f"out-{name}.npy", dtype, n)
                for name, dtype in (("cluster", np.int32), ("label", np.int32), ("membership", np.float32))}
-    for k, t in enumerate(tiles):  # each point takes the result of the tile whose core holds it
+    # each point takes the result of the tile whose core holds it; the columns' maps are opened
+    # once and, every COLUMN_FLUSH_TILES tiles, written back and dropped from this process's
+    # resident pages (not opened, flushed and closed for every tile: 3 maps of the whole cloud
+    # each time)
+    maps = {name: np.load(column.path, mmap_mode="r+") for name, column in columns.items()}
+    for k, t in enumerate(tiles):
         with np.load(store.path(t), allow_pickle=False) as f:
             local = f["cluster"].astype(np.int64)
             label, membership = f["label"], f["membership"]
@@ -837,13 +847,15 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], briefs: Sequenc
         local = local[in_core]
         values = {"cluster": np.where(local >= 0, out_of_node[np.maximum(local, 0) + offsets[k]] if total else -1, -1),
                   "label": label[in_core], "membership": membership[in_core]}
-        for name, column in columns.items():
-            mm = np.load(column.path, mmap_mode="r+")
+        for name, mm in maps.items():
             mm[core] = values[name]
-            mm.flush()
-            del mm
-    del out_of_node
+        if (k + 1) % COLUMN_FLUSH_TILES == 0 or k + 1 == len(tiles):
+            for mm in maps.values():
+                _write_back(mm)
+    del maps, out_of_node
+    release_free_memory()
     geometry = _descriptors(folder / "xyz.npy", columns["cluster"], columns["membership"], order.size, folder)
+    release_free_memory()
 
     # the tile clusters of each root, in increasing order: members[start[r]:start[r + 1]]; these
     # arrays (a few per tile cluster) go to files: the JSON is written from them, not held
@@ -878,9 +890,12 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], briefs: Sequenc
                         for t in tiles]}
     mapped = _in_files(folder, {"roots": roots, "out_of_root": out_of_root, "order": order, "members": members,
                                 "member_start": member_start, "sizes": sizes}, prefix="stitch")
+    n_out = int(order.size)
+    del roots, out_of_root, order, members, member_start, sizes
+    release_free_memory()
     return StreamedResult(
         n=n, columns=columns, label_names=label_names, explanation=explanation, tiling=tiling,
-        seconds=time.perf_counter() - t0, n_clusters=int(order.size), n_splits=sum(b.n_splits for b in briefs),
+        seconds=time.perf_counter() - t0, n_clusters=n_out, n_splits=sum(b.n_splits for b in briefs),
         points_per_label=per_label,
         _tiles=list(tiles), _tables=tables, _store=store, _offsets=offsets,
         _roots=mapped["roots"], _out_of_root=mapped["out_of_root"], _order=mapped["order"], _members=mapped["members"],
@@ -980,6 +995,39 @@ class FileColumn:
     def chunks(self, size: int = CHUNK_POINTS) -> Iterator[tuple[int, np.ndarray]]:
         for start in range(0, self.shape[0], size):
             yield start, self[start:start + size]
+
+
+@functools.lru_cache(maxsize=1)
+def _malloc_trim() -> Callable[[int], int] | None:
+    try:
+        import ctypes
+
+        return ctypes.CDLL(None).malloc_trim  # glibc (Linux); not on macOS, Windows or musl
+    except (AttributeError, OSError, TypeError):
+        return None
+
+
+def release_free_memory() -> None:
+    """Give the C heap's free pages back to the system (glibc's ``malloc_trim``; nothing where
+    there is none). The stitching process allocates and frees arrays of tens of MB (per tile
+    cluster, per chunk of points) between its steps; the C allocator keeps what they leave
+    free, and its resident memory then counts what it no longer holds: 284 of 435 MB at the
+    start of a 10^8-point run's tiles, 177 of 705 MB while its JSON was written (measured by
+    calling it in the running process). Called between the steps."""
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
+
+
+def _write_back(mm: np.memmap) -> None:
+    """Write a map's changed pages to its file and drop its pages from this process's resident
+    memory (they stay in the page cache): what a map written tile by tile holds stays bounded."""
+    import mmap
+
+    mm.flush()
+    raw = getattr(mm, "_mmap", None)
+    if raw is not None and hasattr(mmap, "MADV_DONTNEED"):
+        raw.madvise(mmap.MADV_DONTNEED)
 
 
 def _new_column(path: Path, dtype: Any, n: int) -> FileColumn:
@@ -1236,6 +1284,7 @@ class StreamedResult:
             yield "["
             for k, item in enumerate(self.cluster_items()):
                 yield ("," if k else "") + strict_json(item)
+            release_free_memory()
             yield "]"
 
         def records() -> Iterator[str]:
@@ -1243,6 +1292,7 @@ class StreamedResult:
             for k, text in enumerate(self.record_texts() if self._folder is not None else
                                      map(strict_json, self.records())):
                 yield ("," if k else "") + text
+            release_free_memory()
             yield "]"
 
         def ground_tiles(tiles: _GroundTiles) -> Iterator[str]:  # GroundFacts.to_dict's "tiles", text as kept
