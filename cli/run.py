@@ -528,7 +528,8 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
                                      comments=comments)
     else:
         run_id = write_result_pair(points, js, pc.xyz, fields, doc, run_id=new_run_id(), las=las, comments=comments,
-                                   pieces=seg.pieces() if spilled is not None else None)
+                                   pieces={k: v for k, v in seg.pieces().items() if k in doc} if spilled is not None
+                                   else None)
         if spilled is not None and (meshes or report):  # the whole result, read back, for the meshes and the page
             written = read_result(js, require=("clusters", "explanation"))
             clusters, doc["explanation"] = list(written.clusters or ()), written.explanation

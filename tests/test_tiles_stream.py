@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from kbs.tiles import TileGrid
-from kbs.tiles.stream import spill_las
+from kbs.tiles.stream import SpilledTiles, spill_las
 from scenes import ground_and_rocks
 from test_cli import kbs as kbs_cmd
 
@@ -57,6 +57,25 @@ def test_the_tiles_of_a_las_spilled_in_chunks_are_the_tiles_of_the_cloud_in_memo
         np.testing.assert_array_equal(got.in_core, want.in_core)
         assert got.core == want.core
     np.testing.assert_array_equal(spilled.xyz, X)
+    # the tiles are held as arrays (SpilledTiles), each tile made when asked for: its counts, its
+    # place by cell and by name, as the list of tiles gives them
+    tiles = spilled.tiles
+    assert isinstance(tiles, SpilledTiles) and tiles.i.dtype == np.int32
+    assert list(tiles.names) == [t.name for t in expected] and tiles.names[-1] == expected[-1].name
+    assert [t.name for t in tiles[1::2]] == [t.name for t in expected[1::2]]
+    for k, t in enumerate(expected):
+        assert tiles.at(t.i, t.j) == k == tiles.names.index(t.name) and t.name in tiles.names
+        assert (tiles[k].n_points, tiles[k].n_core) == (t.index.size, int(np.count_nonzero(t.in_core)))
+    held = {(t.i, t.j) for t in expected}
+    empty = [(i, j) for i in range(-1, grid.shape[0] + 1) for j in range(-1, grid.shape[1] + 1) if (i, j) not in held]
+    assert all(tiles.at(i, j) is None for i, j in empty)
+    assert "t999_0" not in tiles.names and "x" not in tiles.names
+    with pytest.raises(ValueError):
+        tiles.names.index(f"t{empty[0][0]}_{empty[0][1]}")
+    with pytest.raises(IndexError):
+        tiles[len(tiles)]
+    part = tiles.take(np.arange(0, len(tiles), 2))
+    assert [t.core for t in part] == [t.core for t in expected[::2]]
     spilled.remove()
     assert not (tmp_path / "spill").exists()
 

@@ -12,7 +12,9 @@ import laspy
 import numpy as np
 import pytest
 
+from kbs.errors import KbsError
 from kbs.inference import cluster_geometry
+from kbs.tiles import streamed
 from kbs.tiles import TileGrid
 from kbs.tiles.stream import spill_las
 from kbs.tiles.streamed import TileJob, Texts, _descriptors, _edge_mask, _new_column
@@ -315,13 +317,19 @@ def test_a_tile_summary_gives_back_every_cluster_label_and_id_and_every_limit(ro
 
     spilled = spill_las(rocks_las, tmp_path / "spill", 6.0, 1.0)
     assert len(spilled.tiles) >= 4
-    kept = []
+    kept, held = [], []
     stitch = streamed._stitch
-    monkeypatch.setattr(streamed, "_stitch", lambda sp, grid, tiles, briefs, *a: kept.extend(briefs) or
-                        stitch(sp, grid, tiles, briefs, *a))
+    monkeypatch.setattr(streamed, "_stitch", lambda sp, grid, tiles, briefs, *a: held.append(briefs) or
+                        kept.extend(briefs) or stitch(sp, grid, tiles, briefs, *a))
     out = streamed.segment_streamed(seg, spilled, TileStore(tmp_path / "store", seg))
     assert len(kept) == len(spilled.tiles)
-    # what the stitching process held of each tile while the others ran: numbers, its summary in a file
+    # what the stitching process held of each tile while the others ran: numbers in arrays, its
+    # summary in a file; no object per tile (the briefs are made again when asked for)
+    (briefs,) = held
+    assert isinstance(briefs, streamed.TileBriefs) and briefs.done.all()
+    assert not briefs.paths and not briefs.roots  # the files' paths and the roots follow from the names
+    assert set(briefs.notes) == {k for k, b in enumerate(kept) if b.notes}
+    assert [b.name for b in kept] == [t.name for t in spilled.tiles]
     assert all(isinstance(b, streamed.TileBrief) and b.head is kept[0].head for b in kept)
     assert all(Path(b.path).parent == spilled.folder for b in kept)
     assert out.summary()["limits"] == sum(b.n_limits for b in kept) > 0
@@ -387,3 +395,37 @@ def test_the_limits_by_kind_of_the_gathered_summaries_are_those_of_the_records(t
         assert isinstance(e["clusters"], streamed.LimitIds)
         assert e["clusters"][:2] == e["clusters"][0:2] and (not len(e["clusters"]) or e["clusters"][-1] == list(e["clusters"])[-1])
     assert streamed._gather(tmp_path, []).limits_by_kind([]) == {}
+
+
+def test_the_briefs_kept_as_arrays_give_back_each_brief(tmp_path):
+    """TileBriefs: what the stitching process keeps of each finished tile; each brief made again
+    from it is the brief that came back (notes, a root or a path out of the common case included)."""
+    names = ["t0_0", "t0_1", "t1_0", "t2_3"]
+    head = {"label_names": ["ground", "obstacle"]}
+
+    def brief(k, **kw):
+        base = dict(name=names[k], path=str(tmp_path / f"{names[k]}.summary.pkl"), n_clusters=3 + k, n_ids=7 * k,
+                    n_limits=k, n_splits=2 * k + 1, label_counts=np.array([k, 10, 0, 1]), root="root", notes=[],
+                    head=dict(head))
+        base.update(kw)
+        return streamed.TileBrief(**base)
+
+    given = [brief(0), brief(1, notes=["a note", "another"]), brief(2, root="r2", path="/elsewhere/t1_0.summary.pkl"),
+             brief(3)]
+    briefs = streamed.TileBriefs(names, tmp_path)
+    for k in (3, 0, 2, 1):  # as the tiles finish
+        briefs.add(k, given[k])
+    assert briefs.roots == {2: "r2"} and set(briefs.notes) == {1} and set(briefs.paths) == {2}
+    for k, b in enumerate(briefs):
+        want = given[k]
+        assert (b.name, b.path, b.n_clusters, b.n_ids, b.n_limits, b.n_splits, b.root, b.notes, b.head) == \
+               (want.name, want.path, want.n_clusters, want.n_ids, want.n_limits, want.n_splits, want.root, want.notes,
+                want.head)
+        np.testing.assert_array_equal(b.label_counts, want.label_counts)
+    np.testing.assert_array_equal(briefs.label_counts.sum(axis=0), np.sum([b.label_counts for b in given], axis=0))
+    part = briefs.take([1, 2], names[1:3])
+    assert [b.notes for b in part] == [given[1].notes, []] and part[1].root == "r2" and part[1].path == given[2].path
+    with pytest.raises(KbsError, match="t0_1"):  # a brief under another tile's place
+        streamed.TileBriefs(names, tmp_path).add(1, given[0])
+    with pytest.raises(KbsError, match="not finished"):
+        streamed.TileBriefs(names, tmp_path)[0]

@@ -40,7 +40,7 @@ import numpy as np
 from kbs.errors import CloudFileError
 from kbs.knowledge.segmenter import coordinate_problem
 from kbs.tiles.grid import TileGrid, ground_axes
-from kbs.tiles.stream import DEFAULT_CHUNK_POINTS, SpilledCloud, SpilledTile, _grid, _npy_header, _row_from
+from kbs.tiles.stream import DEFAULT_CHUNK_POINTS, SpilledCloud, SpilledTile, SpilledTiles, _grid, _npy_header, _row_from
 
 #: ``KBS_COPC=0`` reads a COPC file as a plain LAZ file (the spill path), e.g. to compare.
 ENV = "KBS_COPC"
@@ -332,12 +332,7 @@ class CopcJob:
     resume: bool
 
 
-def tiles_of(cloud: CopcCloud) -> list[SpilledTile]:
+def tiles_of(cloud: CopcCloud) -> SpilledTiles:
     """Every cell of the grid as a tile to read (which hold points is known once they are read)."""
-    grid = cloud.grid
-    out = []
-    for i in range(grid.shape[0]):
-        for j in range(grid.shape[1]):
-            u0, v0 = grid.origin[0] + i * grid.size, grid.origin[1] + j * grid.size
-            out.append(SpilledTile(f"t{i}_{j}", i, j, (u0, v0, u0 + grid.size, v0 + grid.size), cloud.folder, 0, 0))
-    return out
+    i, j = np.indices(cloud.grid.shape).reshape(2, -1)
+    return SpilledTiles(cloud.grid, cloud.folder, i, j, np.zeros(i.size, np.int64), np.zeros(i.size, np.int64))

@@ -27,7 +27,7 @@ import math
 import os
 import re
 import types
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -53,8 +53,9 @@ class SpilledCloud:
     index : ndarray (n,) int64
         0 .. n-1, memory-mapped (``PointCloud.index``).
     grid : TileGrid
-    tiles : list of Tile
-        As ``grid.tiles(xyz)``.
+    tiles : sequence of Tile
+        As ``grid.tiles(xyz)``: a :class:`SpilledTiles` (its numbers in arrays, each tile made when
+        asked for).
     header : laspy.LasHeader
         The input's header (point format, VLRs, CRS).
     folder : Path
@@ -67,7 +68,7 @@ class SpilledCloud:
     xyz: np.ndarray
     index: np.ndarray
     grid: TileGrid
-    tiles: list[Tile]
+    tiles: Sequence[Tile]
     header: Any
     folder: Path
     width: float = math.nan
@@ -143,7 +144,6 @@ def spill_las(path: str | os.PathLike[str], folder: str | os.PathLike[str], size
         raise CloudFileError(str(path), f"{count:,}" + first[first.index(" points have"):])
     grid = _grid(size, buffer, axes, lo, hi)
     folder.mkdir(parents=True, exist_ok=True)
-    files: dict[tuple[int, int], Path] = {}
     core_count = np.zeros(grid.shape, dtype=np.int64)
     tile_count = np.zeros(grid.shape, dtype=np.int64)
     start = 0
@@ -163,7 +163,7 @@ def spill_las(path: str | os.PathLike[str], folder: str | os.PathLike[str], size
             ij = grid.cells(uv)
             np.add.at(core_count, (ij[:, 0], ij[:, 1]), 1)
             for (i, j), rows in _tile_rows(grid, uv).items():
-                target = files.setdefault((i, j), folder / f"t{i}_{j}.idx")
+                target = folder / f"t{i}_{j}.idx"  # not a dict of paths: one per tile, millions at 10^10 points
                 with open(target, "ab") as stream:
                     gi[rows].tofile(stream)
                 with open(target.with_suffix(".core"), "ab") as stream:
@@ -174,14 +174,8 @@ def spill_las(path: str | os.PathLike[str], folder: str | os.PathLike[str], size
         raise CloudFileError(str(path), f"holds {start:,} points, its header says {n:,}")
     xyz = np.load(folder / "xyz.npy", mmap_mode="r")
     index = np.load(folder / "index.npy", mmap_mode="r")
-    tiles: list[Tile] = []
-    for i in range(grid.shape[0]):
-        for j in range(grid.shape[1]):
-            if not core_count[i, j]:
-                continue
-            u0, v0 = grid.origin[0] + i * grid.size, grid.origin[1] + j * grid.size
-            tiles.append(SpilledTile(f"t{i}_{j}", i, j, (u0, v0, u0 + grid.size, v0 + grid.size), folder,
-                                     int(tile_count[i, j]), int(core_count[i, j])))
+    rows, cols = np.nonzero(core_count)  # row by row, as TileGrid.tiles
+    tiles = SpilledTiles(grid, folder, rows, cols, tile_count[rows, cols], core_count[rows, cols])
     return SpilledCloud(xyz=xyz, index=index, grid=grid, tiles=tiles, header=header, folder=folder,
                         width=float((hi - lo).max()))
 
@@ -216,6 +210,102 @@ class SpilledTile(Tile):
     @property  # type: ignore[override]
     def in_core(self) -> np.ndarray:
         return np.fromfile(self.folder / f"{self.name}.core", dtype=np.bool_)
+
+
+class SpilledTiles(Sequence[SpilledTile]):
+    """The tiles of a spilled cloud, row by row: their cells and counts in arrays, each
+    :class:`SpilledTile` made when asked for. The process that plans and stitches holds a few
+    numbers a tile, not an object (about 430 bytes with its name, its core's tuple and its counts:
+    about 1 GB at the 2 million tiles of 10^10 points).
+
+    Parameters
+    ----------
+    grid : TileGrid
+    folder : Path
+        The spill folder (the tiles' ``.idx`` and ``.core`` files).
+    i, j : array of int
+        The tiles' cells, row by row (increasing ``i * grid.shape[1] + j``).
+    n_points, n_core : array of int
+        Each tile's points (core and buffer) and its core's.
+    """
+
+    def __init__(self, grid: TileGrid, folder: Path, i: Any, j: Any, n_points: Any, n_core: Any) -> None:
+        self.grid, self.folder = grid, Path(folder)
+        self.i = np.asarray(i, dtype=np.int32)
+        self.j = np.asarray(j, dtype=np.int32)
+        self.n_points = np.asarray(n_points, dtype=np.int64)
+        self.n_core = np.asarray(n_core, dtype=np.int64)
+        self.cell = self.i.astype(np.int64) * int(grid.shape[1]) + self.j
+        if self.cell.size > 1 and not np.all(np.diff(self.cell) > 0):
+            raise ValueError("the tiles are not in row order")
+        self.names = TileNames(self)
+
+    def __len__(self) -> int:
+        return int(self.i.size)
+
+    def _one(self, k: int) -> SpilledTile:
+        i, j = int(self.i[k]), int(self.j[k])
+        g = self.grid
+        u0, v0 = g.origin[0] + i * g.size, g.origin[1] + j * g.size  # as TileGrid.tiles computes them
+        return SpilledTile(f"t{i}_{j}", i, j, (u0, v0, u0 + g.size, v0 + g.size), self.folder,
+                           int(self.n_points[k]), int(self.n_core[k]))
+
+    def __getitem__(self, k: Any) -> Any:
+        if isinstance(k, slice):
+            return [self._one(x) for x in range(*k.indices(len(self)))]
+        k = int(k)
+        if not -len(self) <= k < len(self):
+            raise IndexError(k)
+        return self._one(k % len(self))
+
+    def __iter__(self) -> Iterator[SpilledTile]:
+        return (self._one(k) for k in range(len(self)))
+
+    def at(self, i: int, j: int) -> int | None:
+        """The place of the tile of cell (i, j), None where no tile is."""
+        if not (0 <= i < self.grid.shape[0] and 0 <= j < self.grid.shape[1]):
+            return None
+        key = i * int(self.grid.shape[1]) + j
+        k = int(np.searchsorted(self.cell, key))
+        return k if k < self.cell.size and int(self.cell[k]) == key else None
+
+    def take(self, keep: Any) -> SpilledTiles:
+        """The tiles at the places ``keep`` (increasing), with the same grid and folder."""
+        keep = np.asarray(keep, dtype=np.int64)
+        return SpilledTiles(self.grid, self.folder, self.i[keep], self.j[keep], self.n_points[keep], self.n_core[keep])
+
+
+class TileNames(Sequence[str]):
+    """The names of :class:`SpilledTiles` (``t<i>_<j>``), made when asked for; ``index`` finds a
+    name's place from its cell."""
+
+    def __init__(self, tiles: SpilledTiles) -> None:
+        self.tiles = tiles
+
+    def __len__(self) -> int:
+        return len(self.tiles)
+
+    def __getitem__(self, k: Any) -> Any:
+        if isinstance(k, slice):
+            return [self[x] for x in range(*k.indices(len(self)))]
+        return f"t{int(self.tiles.i[k])}_{int(self.tiles.j[k])}"
+
+    def __iter__(self) -> Iterator[str]:
+        return (f"t{i}_{j}" for i, j in zip(self.tiles.i.tolist(), self.tiles.j.tolist()))
+
+    def index(self, name: Any, start: int = 0, stop: Any = None) -> int:
+        m = re.fullmatch(r"t(\d+)_(\d+)", name) if isinstance(name, str) else None
+        k = None if m is None else self.tiles.at(int(m.group(1)), int(m.group(2)))
+        if k is None or k < start or (stop is not None and k >= stop):
+            raise ValueError(f"{name!r} is not a tile")
+        return k
+
+    def __contains__(self, name: object) -> bool:
+        try:
+            self.index(name)
+        except ValueError:
+            return False
+        return True
 
 
 def _row_from(start: int, m: re.Match[str]) -> str:

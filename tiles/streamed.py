@@ -23,15 +23,17 @@ results:
    one tile's record texts at a time, their stand-ins replaced, not decoded and encoded again) and
    the LAS/LAZ chunk by chunk (:class:`FileColumn`).
 
-What the stitching process holds while the tiles run is a brief per tile (a few numbers, its
-ground facts and notes; one head for all tiles). The arrays per tile cluster and per output
+What the stitching process holds while the tiles run is a few numbers per tile in arrays: its
+cell and counts (:class:`~kbs.tiles.stream.SpilledTiles`, each tile and its job made when asked
+for) and its brief's numbers (:class:`TileBriefs`; its notes where it has any, one head for all). The arrays per tile cluster and per output
 cluster (sizes, labels, ids, roots, members, descriptors) are in files and mapped when read.
 The summary's limits are made from those files too, their ids read when written
 (:class:`LimitIds`), and so are the links of the stitched clusters, their notes made when
 written (:class:`_Links`). What still grows with the cloud in memory: the union-find over the tile
 clusters while stitching (8 bytes each, and a few such arrays while they are made), the order of
-the limited records while the summary is written (8 bytes each), and per tile its brief, its job
-and its entry in the tiling's list.
+the limited records while the summary is written (8 bytes each), the numbers per tile above (about
+100 bytes a tile), and, while the JSON is made, the explanation root's children and the tiling's
+list (an entry per tile, as the JSON holds them).
 """
 from __future__ import annotations
 
@@ -192,6 +194,105 @@ def load_summary(brief: TileBrief) -> TileSummary:
     if not isinstance(summary, TileSummary) or summary.name != brief.name:
         raise KbsError(f"{brief.path} is not the summary of tile {brief.name}")
     return summary
+
+
+class TileBriefs(Sequence[TileBrief]):
+    """What the stitching process keeps of the finished tiles' :class:`TileBrief`, as they come
+    back: their numbers in arrays, their root ids and notes only where they differ from the first
+    tile's / are not empty, their summary files' paths only where not ``<folder>/<name>.summary.pkl``,
+    one head for all (the tiles' heads are equal). About 60 bytes a tile, not a brief object of
+    about 570 (about 1.2 GB at the 2 million tiles of 10^10 points). ``self[k]`` makes the k-th
+    brief again.
+
+    Parameters
+    ----------
+    names : sequence of str
+        The tiles' names (a :class:`~kbs.tiles.stream.TileNames`).
+    folder : Path
+        The spill folder, where the summaries are.
+    """
+
+    def __init__(self, names: Sequence[str], folder: Path) -> None:
+        n = len(names)
+        self.names, self.folder = names, Path(folder)
+        self.done = np.zeros(n, dtype=bool)
+        self.numbers = np.zeros((n, 4), dtype=np.int64)  # n_clusters, n_ids, n_limits, n_splits
+        self.label_counts: np.ndarray | None = None
+        self.head: dict[str, Any] | None = None
+        self.root: str | None = None
+        self.roots: dict[int, str] = {}
+        self.notes: dict[int, list[str]] = {}
+        self.paths: dict[int, str] = {}
+
+    def add(self, k: int, brief: TileBrief) -> None:
+        """Keep tile ``k``'s brief."""
+        if brief.name != self.names[k]:
+            raise KbsError(f"the brief of tile {brief.name} came back as tile {self.names[k]}'s")
+        self.numbers[k] = (brief.n_clusters, brief.n_ids, brief.n_limits, brief.n_splits)
+        counts = np.asarray(brief.label_counts, dtype=np.int64)
+        if self.label_counts is None:
+            self.label_counts = np.zeros((len(self.done), counts.size), dtype=np.int64)
+        self.label_counts[k] = counts
+        if self.head is None:
+            self.head = brief.head
+        if self.root is None:
+            self.root = brief.root
+        if brief.root != self.root:
+            self.roots[k] = brief.root
+        if brief.notes:
+            self.notes[k] = list(brief.notes)
+        if brief.path != self._path(k):
+            self.paths[k] = brief.path
+        self.done[k] = True
+
+    def _path(self, k: int) -> str:
+        return str(self.folder / f"{self.names[k]}.summary.pkl")
+
+    @property
+    def n_clusters(self) -> np.ndarray:
+        return self.numbers[:, 0]
+
+    @property
+    def n_splits(self) -> np.ndarray:
+        return self.numbers[:, 3]
+
+    def root_of(self, k: int) -> str:
+        return self.roots.get(k, self.root or "")
+
+    def path_of(self, k: int) -> str:
+        return self.paths.get(k) or self._path(k)
+
+    def take(self, keep: Any, names: Sequence[str]) -> TileBriefs:
+        """The briefs of the tiles at the places ``keep`` (increasing), named ``names``."""
+        keep = [int(k) for k in keep]
+        out = TileBriefs(names, self.folder)
+        out.done, out.numbers = self.done[keep], self.numbers[keep]
+        out.label_counts = None if self.label_counts is None else self.label_counts[keep]
+        out.head, out.root = self.head, self.root
+        new = {k: x for x, k in enumerate(keep)}
+        out.roots = {new[k]: v for k, v in self.roots.items() if k in new}
+        out.notes = {new[k]: v for k, v in self.notes.items() if k in new}
+        out.paths = {new[k]: v for k, v in self.paths.items() if k in new}
+        return out
+
+    def __len__(self) -> int:
+        return len(self.done)
+
+    def _one(self, k: int) -> TileBrief:
+        if not self.done[k]:
+            raise KbsError(f"tile {self.names[k]} has no brief: it was not finished")
+        n_clusters, n_ids, n_limits, n_splits = (int(x) for x in self.numbers[k])
+        assert self.label_counts is not None
+        return TileBrief(name=self.names[k], path=self.path_of(k), n_clusters=n_clusters, n_ids=n_ids,
+                         n_limits=n_limits, n_splits=n_splits, label_counts=self.label_counts[k].copy(),
+                         root=self.root_of(k), notes=list(self.notes.get(k, [])), head=self.head or {})
+
+    def __getitem__(self, k: Any) -> Any:
+        if isinstance(k, slice):
+            return [self._one(x) for x in range(*k.indices(len(self)))]
+        if not -len(self) <= int(k) < len(self):
+            raise IndexError(k)
+        return self._one(int(k) % len(self))
 
 
 def summary_path(job: Any) -> Path:
@@ -378,31 +479,23 @@ def _task(runner: Callable[..., Any], rules: str, sensor: tuple[float, float, fl
 
 
 def _dispatch(segmenter: Any, runner: Callable[..., Any], names: Sequence[str], job_of: Callable[[int], Any],
-              given: tuple[Any, GroundFacts], resumed_of: Callable[[Any], bool], scheduler: str | None,
-              workers: int | None, progress: Callable[[str], None] | None) -> tuple[list[Any], dict[int, BaseException], int]:
+              given: tuple[Any, GroundFacts], keep: Callable[[int, Any], bool], scheduler: str | None,
+              workers: int | None, progress: Callable[[str], None] | None) -> tuple[dict[int, BaseException], int]:
     """Run ``runner`` on the job of each tile (``job_of(k)``, made when it is run or submitted): in
-    this process one after the other, or as Dask tasks on ``scheduler``. Returns each tile's output
-    (None where it failed), the failures by tile, and how many outputs were resumed."""
+    this process one after the other, or as Dask tasks on ``scheduler``. Each tile's output goes to
+    ``keep(k, out)`` as it comes (which keeps what it needs of it and says whether it was resumed):
+    not held here. Returns the failures by tile and how many outputs were resumed."""
     from kbs.tiles.run import _segment_tile
 
-    outs: list[Any] = [None] * len(names)
     failures: dict[int, BaseException] = {}
     n_resumed = 0
-    heads: list[dict[str, Any]] = []  # the tiles' heads are equal: one is kept, not one per tile
 
     def finished(k: int, out: Any, done: int) -> None:
         nonlocal n_resumed
         if isinstance(out, BaseException):
             failures[k] = out
             return
-        summary = out[0] if isinstance(out, tuple) and out else None
-        if isinstance(summary, TileBrief):
-            if heads and summary.head == heads[0]:
-                out = (dataclasses.replace(summary, head=heads[0]), *out[1:])
-            elif not heads:
-                heads.append(summary.head)
-        outs[k] = out
-        resumed = resumed_of(out)
+        resumed = keep(k, out)
         n_resumed += resumed
         if progress is not None and not resumed:
             progress(f"{names[k]} ({done}/{len(names)} tiles)")
@@ -418,9 +511,26 @@ def _dispatch(segmenter: Any, runner: Callable[..., Any], names: Sequence[str], 
         from kbs.tiles.run import submit_all
 
         spec = (segmenter.rule_base.path, segmenter.sensor, segmenter.plugins)
-        submit_all(scheduler, workers, progress, finished, list(range(len(names))),
-                   lambda k: (_task, runner, *spec, job_of(k), given), list(names))
-    return outs, failures, n_resumed
+        submit_all(scheduler, workers, progress, finished, range(len(names)),
+                   lambda k: (_task, runner, *spec, job_of(k), given), names)
+    return failures, n_resumed
+
+
+class _Lazy(Sequence[Any]):
+    """``make(k)`` for k < n, made when asked for (the tiles' jobs: not one object per tile held)."""
+
+    def __init__(self, n: int, make: Callable[[int], Any]) -> None:
+        self.n, self.make = n, make
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, k: Any) -> Any:
+        if isinstance(k, slice):
+            return [self.make(x) for x in range(*k.indices(self.n))]
+        if not -self.n <= int(k) < self.n:
+            raise IndexError(k)
+        return self.make(int(k) % self.n)
 
 
 def segment_streamed(segmenter: Any, spilled: Any, store: TileStore, *, scheduler: str | None = None,
@@ -439,10 +549,16 @@ def segment_streamed(segmenter: Any, spilled: Any, store: TileStore, *, schedule
     given = _ground(segmenter, xyz_path, n)
     release_free_memory()  # what the spill's chunks and the ground's sample left
     store_folder = str(store.folder)  # one string for every job
-    jobs = [TileJob(xyz_path, t, grid, store_folder, store._base, resume) for t in tiles]
-    outs, failures, n_resumed = _dispatch(segmenter, run_job, [t.name for t in tiles], jobs.__getitem__, given,
-                                          lambda out: bool(out[1]), scheduler, workers, progress)
-    summaries = [None if o is None else o[0] for o in outs]
+    names = getattr(tiles, "names", None) or [t.name for t in tiles]
+    jobs = _Lazy(len(tiles), lambda k: TileJob(xyz_path, tiles[k], grid, store_folder, store._base, resume))
+    briefs = TileBriefs(names, spilled.folder)
+
+    def keep(k: int, out: tuple[TileBrief, bool]) -> bool:
+        briefs.add(k, out[0])
+        return bool(out[1])
+
+    failures, n_resumed = _dispatch(segmenter, run_job, names, jobs.__getitem__, given, keep, scheduler, workers,
+                                    progress)
     if resume and progress is not None:
         progress(f"resumed {n_resumed} of {len(tiles)} tiles from {store.folder}")
     if failures:
@@ -450,8 +566,7 @@ def segment_streamed(segmenter: Any, spilled: Any, store: TileStore, *, schedule
         raise TileError(tiles[first], _n_points(tiles[first]), failures[first],
                         failed=[tiles[k] for k in sorted(failures)], total=len(tiles),
                         kept=store.folder if len(failures) < len(tiles) else None)
-    done_summaries = [s for s in summaries if s is not None]
-    return _stitch(spilled, grid, tiles, done_summaries, _Edges(jobs), store, given[1], t0)
+    return _stitch(spilled, grid, tiles, briefs, _Edges(jobs), store, given[1], t0)
 
 
 def run_copc_job(segment: Callable[[np.ndarray], Segmentation], job: Any,
@@ -488,6 +603,7 @@ def segment_copc(segmenter: Any, cloud: Any, store: TileStore, *, scheduler: str
     stitch them as :func:`segment_streamed` does: the same result, byte for byte."""
     from kbs.errors import CloudFileError
     from kbs.tiles.copc import CopcJob, tile_box, tiles_of
+    from kbs.tiles.stream import SpilledTiles
     from kbs.tiles.run import TileError, sample_ground, warn_spacing
 
     t0 = time.perf_counter()
@@ -504,26 +620,38 @@ def segment_copc(segmenter: Any, cloud: Any, store: TileStore, *, scheduler: str
         return CopcJob(str(cloud.path), cloud.nodes_of(*tile_box(grid, t.i, t.j)), xyz_path, t, grid,
                        str(store.folder), store._base, resume)
 
-    outs, failures, n_resumed = _dispatch(segmenter, run_copc_job, [t.name for t in cells], job_of, given,
-                                          lambda out: bool(out[1]), scheduler, workers, progress)
+    briefs = TileBriefs(cells.names, cloud.folder)
+    n_points, n_core = np.zeros(len(cells), np.int64), np.zeros(len(cells), np.int64)
+    read = np.zeros(len(cells), np.int64)
+
+    def keep(k: int, out: tuple[TileBrief | None, bool, Any, int]) -> bool:
+        brief, resumed, tile, n_read = out
+        if brief is not None:
+            briefs.add(k, brief)
+        n_points[k], n_core[k], read[k] = tile.n_points, tile.n_core, n_read
+        return bool(resumed)
+
+    failures, n_resumed = _dispatch(segmenter, run_copc_job, cells.names, job_of, given, keep, scheduler, workers,
+                                    progress)
     if resume and progress is not None:
-        progress(f"resumed {n_resumed} of {sum(o is not None and o[0] is not None for o in outs)} tiles from "
-                 f"{store.folder}")
+        progress(f"resumed {n_resumed} of {int(np.count_nonzero(briefs.done))} tiles from {store.folder}")
     if failures:
         first = min(failures)
         raise TileError(cells[first], 0, failures[first], failed=[cells[k] for k in sorted(failures)],
                         total=len(cells), kept=store.folder if len(failures) < len(cells) else None)
-    kept = [k for k in range(len(cells)) if outs[k][0] is not None]
-    tiles = [outs[k][2] for k in kept]
+    kept = np.flatnonzero(briefs.done)
+    tiles = SpilledTiles(grid, cloud.folder, cells.i[kept], cells.j[kept], n_points[kept], n_core[kept])
     cloud.tiles = tiles
-    cloud.read_by_tiles = [int(o[3]) for o in outs]
-    held = sum(t.n_core for t in tiles)
+    cloud.read_by_tiles = read
+    held = int(tiles.n_core.sum())
     if held != n:  # a point outside the bounds of its node: no tile read it
         raise CloudFileError(str(cloud.path), f"the bounds of its COPC octree's nodes do not hold their points: the "
                                               f"tiles read by them hold {held:,} of its {n:,} points")
-    jobs = [dataclasses.replace(job_of(k), tile=outs[k][2], nodes=np.zeros((0, 8), dtype=np.int64)) for k in kept]
-    out = _stitch(cloud, grid, tiles, [outs[k][0] for k in kept], _Edges(jobs), store, given[1], t0)
-    top = max(cloud.read_by_tiles)
+    no_nodes = np.zeros((0, 8), dtype=np.int64)  # what stitching asks of a job: its tile and folder
+    jobs = _Lazy(len(tiles), lambda x: CopcJob(str(cloud.path), no_nodes, xyz_path, tiles[x], grid,
+                                               str(store.folder), store._base, resume))
+    out = _stitch(cloud, grid, tiles, briefs.take(kept, tiles.names), _Edges(jobs), store, given[1], t0)
+    top = int(read.max())
     out.read_note = (f"a COPC file: each of its {len(cells)} tiles read the nodes of its octree that meet its "
                      f"buffered bounds (at most {top:,} of its {n:,} points for one tile; {len(tiles)} hold points), "
                      f"no pass routed the points to the tiles")
@@ -771,7 +899,7 @@ class _GroundTiles(Mapping[str, GroundFacts]):
     writes the texts as they are)."""
 
     def __init__(self, names: Sequence[str], texts: FileTexts) -> None:
-        self.names = list(names)
+        self.names = names  # a TileNames finds a name's place from its cell: no dict of the names
         self.texts = texts
         self._at: dict[str, int] | None = None
 
@@ -779,9 +907,18 @@ class _GroundTiles(Mapping[str, GroundFacts]):
         return self.texts.slice(k, k + 1)[0]
 
     def __getitem__(self, name: str) -> GroundFacts:
-        if self._at is None:
-            self._at = {n: k for k, n in enumerate(self.names)}
-        return GroundFacts.from_dict(json.loads(self.text(self._at[name])))
+        from kbs.tiles.stream import TileNames
+
+        if isinstance(self.names, TileNames):
+            try:
+                k = self.names.index(name)
+            except ValueError:
+                raise KeyError(name) from None
+        else:
+            if self._at is None:
+                self._at = {n: k for k, n in enumerate(self.names)}
+            k = self._at[name]
+        return GroundFacts.from_dict(json.loads(self.text(k)))
 
     def __iter__(self) -> Iterator[str]:
         return iter(self.names)
@@ -791,19 +928,20 @@ class _GroundTiles(Mapping[str, GroundFacts]):
 
 
 
-def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], briefs: Sequence[TileBrief], edges: _Edges,
+def _stitch(spilled: Any, grid: TileGrid, tiles: Any, briefs: TileBriefs, edges: _Edges,
             store: TileStore, given: GroundFacts, t0: float) -> StreamedResult:
+    """``tiles``: a :class:`~kbs.tiles.stream.SpilledTiles`; ``briefs``: theirs, all finished."""
     folder = Path(spilled.folder)
+    names = tiles.names
     tables = _gather(folder, briefs)
-    offsets = np.concatenate([[0], np.cumsum([b.n_clusters for b in briefs])]).astype(np.int64)
+    offsets = np.concatenate([[0], np.cumsum(briefs.n_clusters)]).astype(np.int64)
     total = int(offsets[-1])
     uf = _Union(total)
-    by_cell = {(t.i, t.j): k for k, t in enumerate(tiles)}
     with open(folder / "stitch-links.bin", "wb") as log:  # each link, from each side, as it is found
         for ka, a in enumerate(tiles):
             size_a = np.asarray(tables.sizes[offsets[ka]:offsets[ka + 1]])
             for di, dj in NEIGHBOURS:
-                kb = by_cell.get((a.i + di, a.j + dj))
+                kb = tiles.at(a.i + di, a.j + dj)
                 if kb is None:
                     continue
                 (ia, ca, la), (ib, cb, lb) = edges.get(ka), edges.get(kb)
@@ -816,7 +954,7 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], briefs: Sequenc
                     rows[0::2] = np.column_stack([offsets[ka] + xyk[:, 0], np.full(len(xyk), kb), xyk[:, 1], xyk[:, 2]])
                     rows[1::2] = np.column_stack([offsets[kb] + xyk[:, 1], np.full(len(xyk), ka), xyk[:, 0], xyk[:, 2]])
                     log.write(rows.tobytes())
-    shared = _Links.gather(folder, [t.name for t in tiles])
+    shared = _Links.gather(folder, names)
     roots = uf.roots()
     del uf
     release_free_memory()
@@ -864,30 +1002,28 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], briefs: Sequenc
     in_core_parts = np.bincount(roots, weights=core_sizes > 0, minlength=total) if total else np.zeros(0)
     stitched = _Marked(_in_files(folder, {"stitched": in_core_parts[order] > 1}, prefix="stitch")["stitched"])
     del in_core_parts, core_sizes
-    head = briefs[0].head
+    head = briefs.head or {}
     label_names = list(head["label_names"])
-    grounds = _GroundTiles([t.name for t in tiles], tables.grounds)
+    grounds = _GroundTiles(names, tables.grounds)
     k_st = len(stitched)
     notes = [f"{len(tiles)} tiles; {k_st} output cluster{'s' if k_st != 1 else ''} stitched across tile edges",
-             *[f"{t.name}: {note}" for t, b in zip(tiles, briefs) for note in b.notes]]
+             *[f"{names[k]}: {note}" for k in sorted(briefs.notes) for note in briefs.notes[k]]]
     root_record = ClusterRecord(id=ROOT, parent=None, depth=0, n_points=n, action="partition",
-                                children=tuple(f"{t.name}/{b.root}" for t, b in zip(tiles, briefs)),
+                                children=tuple(f"{name}/{briefs.root_of(k)}" for k, name in enumerate(names)),
                                 notes=(f"{len(tiles)} tiles: " + ", ".join(t.bounds_text() for t in tiles),))
     ground = dataclasses.replace(given, tiles=grounds) if given else \
         GroundFacts(source=f"per tile ({', '.join(tables.ground_sources)})", tiles=grounds)
     explanation = Explanation(rule_base=head["rule_base"], rule_file=head["rule_file"], strategy=head["strategy"],
                               label_names=label_names, records={ROOT: root_record}, root=ROOT, ground=ground,
                               notes=notes, catalogue=head["catalogue"])
-    counts = np.sum([b.label_counts for b in briefs], axis=0)
+    assert briefs.label_counts is not None
+    counts = briefs.label_counts.sum(axis=0)
     per_label = {name: int(counts[i]) for i, name in enumerate(label_names)}
     per_label["noise (rejected)" if "noise" in per_label else "noise"] = int(counts[len(label_names)])
     if counts[len(label_names) + 1]:
         per_label[NO_LABEL] = int(counts[len(label_names) + 1])
     tiling = {"size": grid.size, "buffer": grid.buffer, "axes": grid.axes.tolist(), "origin": list(grid.origin),
-              "shape": list(grid.shape), "stitched": k_st,
-              "tiles": [{"name": t.name, "core": list(t.core), "points": _n_points(t),
-                         "core_points": int(getattr(t, "n_core", None) or np.count_nonzero(t.in_core))}
-                        for t in tiles]}
+              "shape": list(grid.shape), "stitched": k_st, "tiles": TilingEntries(tiles)}
     mapped = _in_files(folder, {"roots": roots, "out_of_root": out_of_root, "order": order, "members": members,
                                 "member_start": member_start, "sizes": sizes}, prefix="stitch")
     n_out = int(order.size)
@@ -895,12 +1031,41 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Sequence[Tile], briefs: Sequenc
     release_free_memory()
     return StreamedResult(
         n=n, columns=columns, label_names=label_names, explanation=explanation, tiling=tiling,
-        seconds=time.perf_counter() - t0, n_clusters=n_out, n_splits=sum(b.n_splits for b in briefs),
+        seconds=time.perf_counter() - t0, n_clusters=n_out, n_splits=int(briefs.n_splits.sum()),
         points_per_label=per_label,
-        _tiles=list(tiles), _tables=tables, _store=store, _offsets=offsets,
+        _tiles=tiles, _tables=tables, _store=store, _offsets=offsets,
         _roots=mapped["roots"], _out_of_root=mapped["out_of_root"], _order=mapped["order"], _members=mapped["members"],
         _member_start=mapped["member_start"], _shared=shared, _stitched=stitched, _geometry=geometry,
         _sizes=mapped["sizes"], _folder=folder)
+
+
+class TilingEntries(Sequence[dict[str, Any]]):
+    """The ``tiles`` of a streamed result's ``tiling``: each tile's entry (name, core, points, core
+    points) made when asked for, from the :class:`~kbs.tiles.stream.SpilledTiles`' arrays, and
+    written to the JSON one at a time (:meth:`StreamedResult.pieces`): not a list of dicts."""
+
+    def __init__(self, tiles: Any) -> None:
+        self.tiles = tiles
+
+    def __len__(self) -> int:
+        return len(self.tiles)
+
+    def _one(self, k: int) -> dict[str, Any]:
+        t = self.tiles[k]
+        return {"name": t.name, "core": list(t.core), "points": int(t.n_points), "core_points": int(t.n_core)}
+
+    def __getitem__(self, k: Any) -> Any:
+        if isinstance(k, slice):
+            return [self._one(x) for x in range(*k.indices(len(self)))]
+        if not -len(self) <= int(k) < len(self):
+            raise IndexError(k)
+        return self._one(int(k) % len(self))
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, (list, tuple, TilingEntries)) and len(other) == len(self) and \
+            all(a == b for a, b in zip(self, other))
+
+    __hash__ = None  # type: ignore[assignment]
 
 
 class _Links(Mapping[int, list[str]]):
@@ -1164,7 +1329,7 @@ class StreamedResult:
     n_clusters: int
     n_splits: int
     points_per_label: dict[str, int]
-    _tiles: list[Tile]
+    _tiles: Any  # a kbs.tiles.stream.SpilledTiles
     _tables: _Tables
     _store: TileStore
     _offsets: np.ndarray
@@ -1197,14 +1362,14 @@ class StreamedResult:
     @property
     def limits(self) -> list[tuple[int, str, Any]]:
         """The records a limit stopped, tile by tile: (n_points, id, limit); made when asked for."""
-        return self._tables.limits([t.name for t in self._tiles])
+        return self._tables.limits(self._tiles.names)
 
     def summary(self) -> dict[str, Any]:
         """As :meth:`Segmentation.summary` (equal to it: the same JSON), with the limits' ids read
         from the spill folder when asked for (:class:`LimitIds`)."""
         return {"points": self.n, "clusters": self.n_clusters, "splits": self.n_splits,
                 "limits": int(self._tables.limit_points.size),
-                "limits_by_kind": self._tables.limits_by_kind([t.name for t in self._tiles]),
+                "limits_by_kind": self._tables.limits_by_kind(self._tiles.names),
                 "points_per_label": dict(self.points_per_label), "seconds": round(self.seconds, 3)}
 
     def cluster_items(self) -> Iterator[dict[str, Any]]:
@@ -1223,8 +1388,9 @@ class StreamedResult:
                 in_core = int(core_sizes[g])
                 if in_core:
                     label, ids = self._tables.cluster(g)
-                    parts.append({"tile": self._tiles[k].name, "cluster": c, "label": label, "core_points": in_core,
-                                  "ids": [f"{self._tiles[k].name}/{i}" for i in ids]})
+                    name = self._tiles.names[k]
+                    parts.append({"tile": name, "cluster": c, "label": label, "core_points": in_core,
+                                  "ids": [f"{name}/{i}" for i in ids]})
             geo = ClusterGeometry(center=geo_all["center"][gi].copy(), covariance=geo_all["covariance"][gi].copy(),
                                   eigenvalues=geo_all["eigenvalues"][gi].copy(),
                                   eigenvectors=geo_all["eigenvectors"][gi].copy(), mass=float(geo_all["mass"][gi]))
@@ -1339,4 +1505,15 @@ class StreamedResult:
                 text = text[at + len(json.dumps(marker)):]
             yield text
 
-        return {"clusters": clusters, "explanation": explanation, "summary": summary}
+        def tiling() -> Iterator[str]:  # the tiling's entries written one by one, not made as a list
+            d = dict(self.tiling)
+            entries = d["tiles"]
+            d["tiles"] = "\x00kbs tiling tiles\x00"
+            text = strict_json(d)
+            at = text.index(json.dumps(d["tiles"]))
+            yield text[:at] + "["
+            for k, entry in enumerate(entries):
+                yield ("," if k else "") + strict_json(entry)
+            yield "]" + text[at + len(json.dumps(d["tiles"])):]
+
+        return {"clusters": clusters, "explanation": explanation, "summary": summary, "tiling": tiling}
