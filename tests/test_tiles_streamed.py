@@ -4,6 +4,7 @@ the tiles' edges, the output is computed and written from files in chunks, and t
 are those of the in-memory path (--chunk-points 0)."""
 from __future__ import annotations
 
+import json
 import pickle
 import re
 from pathlib import Path
@@ -160,6 +161,32 @@ def test_a_streamed_run_on_a_scan_with_too_large_coordinates_names_the_row_and_c
     assert streamed.returncode == whole.returncode == 3, (streamed.stderr, whole.stderr)
     assert "2 points have a coordinate beyond" in whole.stderr and "first: row 2500" in whole.stderr
     assert streamed.stderr == whole.stderr and "Traceback" not in streamed.stderr
+
+
+def test_a_streamed_run_whose_last_tile_holds_only_noise_is_the_run_in_memory(tmp_path):
+    """The last tile in row order holds a few points alone, rejected as noise: it has no cluster,
+    and its points' output cluster is -1 (the stitching looked up a cluster past the last one: an
+    IndexError, found at 20 m tiles of the 2x10^5-point bench cloud)."""
+    X, _ = ground_and_rocks()
+    far = X[:5].copy()
+    far[:, 0] = X[:, 0].max() + 20.0 + np.arange(5) * 0.3  # a row of tiles of its own, beyond every buffer
+    X = np.vstack([X, far])
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.offsets, header.scales = np.floor(X.min(axis=0)), np.array([1e-4, 1e-4, 1e-4])
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = X[:, 0], X[:, 1], X[:, 2]
+    las.write(str(tmp_path / "lone.las"))
+    base = ["run", "--rules", "outdoor", "-j", "1", "--tile", "6", "--buffer", "1", str(tmp_path / "lone.las")]
+    streamed = kbs_cmd(*base, "--chunk-points", "1000", "--out", str(tmp_path / "a"))
+    whole = kbs_cmd(*base, "--chunk-points", "0", "--out", str(tmp_path / "b"))
+    assert streamed.returncode == whole.returncode == 0, (streamed.stderr, whole.stderr)
+    cluster = laspy.read(tmp_path / "a" / "lone.las")["cluster"]
+    assert (cluster[-5:] == -1).all() and (cluster[:-5] >= 0).any()
+    doc = json.loads((tmp_path / "a" / "lone.json").read_text())
+    last = doc["tiling"]["tiles"][-1]
+    assert 0 < last["points"] == last["core_points"] <= 5  # far points alone, no buffer point
+    for name in ("lone.las", "lone.json"):
+        assert _normalised(tmp_path / "a" / name) == _normalised(tmp_path / "b" / name), name
 
 
 # -- faults: a tile that fails, a worker that dies ------------------------------------------------------

@@ -450,18 +450,19 @@ class _Edges:
     """The tiles' edge points read from their files, two rows of the grid at a time (the links of
     row i are with rows i and i + 1): what stitching holds is bounded by two rows of tiles."""
 
-    def __init__(self, jobs: Sequence[Any]) -> None:  # TileJob or kbs.tiles.copc.CopcJob
+    def __init__(self, jobs: Sequence[Any]) -> None:  # TileJob or kbs.tiles.copc.CopcJob, made when asked for
         self.jobs = jobs
-        self.cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self.cache: dict[int, tuple[int, tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}  # k: (row, edges)
 
     def get(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if k not in self.cache:
-            row = self.jobs[k].tile.i
-            for old in [c for c in self.cache if self.jobs[c].tile.i < row - 1]:
+            job = self.jobs[k]
+            row = job.tile.i
+            for old in [c for c, (r, _) in self.cache.items() if r < row - 1]:
                 del self.cache[old]
-            with np.load(edges_path(self.jobs[k])) as f:
-                self.cache[k] = (f["index"], f["cluster"], f["label"])
-        return self.cache[k]
+            with np.load(edges_path(job)) as f:
+                self.cache[k] = (row, (f["index"], f["cluster"], f["label"]))
+        return self.cache[k][1]
 
 
 def _task(runner: Callable[..., Any], rules: str, sensor: tuple[float, float, float], plugins: tuple[str, ...],
@@ -983,7 +984,10 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Any, briefs: TileBriefs, edges:
         in_core = t.in_core
         core = t.index[in_core]
         local = local[in_core]
-        values = {"cluster": np.where(local >= 0, out_of_node[np.maximum(local, 0) + offsets[k]] if total else -1, -1),
+        cluster = np.full(local.shape, -1, dtype=np.int64)  # noise stays -1; only the tile's clusters are looked up
+        clustered = local >= 0  # (a tile of noise alone, the last one, has no cluster at offsets[k] == total)
+        cluster[clustered] = out_of_node[local[clustered] + offsets[k]]
+        values = {"cluster": cluster,
                   "label": label[in_core], "membership": membership[in_core]}
         for name, mm in maps.items():
             mm[core] = values[name]
