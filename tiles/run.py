@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import itertools
 import logging
 import os
 import time
@@ -323,9 +324,8 @@ def submit_all(scheduler: str, workers: int | None, progress: Callable[[str], No
         n_workers = max(len(client.scheduler_info().get("workers", {})), workers or 1 if scheduler == "local" else 1)
         window = max(2, IN_FLIGHT_PER_WORKER * n_workers)
         futures: dict[Any, int] = {}
-        queue = list(todo)
-        pending = as_completed([submit(k) for k in queue[:window]])
-        queue = queue[window:]
+        queue = iter(todo)  # not a list popped from its front: that moved the whole list at each task
+        pending = as_completed([submit(k) for k in itertools.islice(queue, window)])
         for done, future in enumerate(pending, start=1):
             try:
                 out = future.result()
@@ -333,8 +333,9 @@ def submit_all(scheduler: str, workers: int | None, progress: Callable[[str], No
                 out = exc
             k = futures.pop(future)
             future.release()
-            if queue:
-                pending.add(submit(queue.pop(0)))
+            following = next(queue, None)
+            if following is not None:
+                pending.add(submit(following))
             finished(k, out, done)
     finally:
         cluster = client.cluster if scheduler == "local" else None
