@@ -212,7 +212,26 @@ class SpilledTile(Tile):
         return np.fromfile(self.folder / f"{self.name}.core", dtype=np.bool_)
 
 
-class SpilledTiles(Sequence[SpilledTile]):
+class MadeWhenAsked(Sequence[Any]):
+    """A sequence whose items are made when asked for, by ``_one(k)`` (0 <= k < len): indexing with
+    negative indices and slices as a list's, not one object per item held."""
+
+    def __len__(self) -> int:
+        raise NotImplementedError
+
+    def _one(self, k: int) -> Any:
+        raise NotImplementedError
+
+    def __getitem__(self, k: Any) -> Any:
+        if isinstance(k, slice):
+            return [self._one(x) for x in range(*k.indices(len(self)))]
+        k = int(k)
+        if not -len(self) <= k < len(self):
+            raise IndexError(k)
+        return self._one(k % len(self))
+
+
+class SpilledTiles(MadeWhenAsked):
     """The tiles of a spilled cloud, row by row: their cells and counts in arrays, each
     :class:`SpilledTile` made when asked for. The process that plans and stitches holds a few
     numbers a tile, not an object (about 430 bytes with its name, its core's tuple and its counts:
@@ -250,14 +269,6 @@ class SpilledTiles(Sequence[SpilledTile]):
         return SpilledTile(f"t{i}_{j}", i, j, (u0, v0, u0 + g.size, v0 + g.size), self.folder,
                            int(self.n_points[k]), int(self.n_core[k]))
 
-    def __getitem__(self, k: Any) -> Any:
-        if isinstance(k, slice):
-            return [self._one(x) for x in range(*k.indices(len(self)))]
-        k = int(k)
-        if not -len(self) <= k < len(self):
-            raise IndexError(k)
-        return self._one(k % len(self))
-
     def __iter__(self) -> Iterator[SpilledTile]:
         return (self._one(k) for k in range(len(self)))
 
@@ -275,7 +286,7 @@ class SpilledTiles(Sequence[SpilledTile]):
         return SpilledTiles(self.grid, self.folder, self.i[keep], self.j[keep], self.n_points[keep], self.n_core[keep])
 
 
-class TileNames(Sequence[str]):
+class TileNames(MadeWhenAsked):
     """The names of :class:`SpilledTiles` (``t<i>_<j>``), made when asked for; ``index`` finds a
     name's place from its cell."""
 
@@ -285,9 +296,7 @@ class TileNames(Sequence[str]):
     def __len__(self) -> int:
         return len(self.tiles)
 
-    def __getitem__(self, k: Any) -> Any:
-        if isinstance(k, slice):
-            return [self[x] for x in range(*k.indices(len(self)))]
+    def _one(self, k: int) -> str:
         return f"t{int(self.tiles.i[k])}_{int(self.tiles.j[k])}"
 
     def __iter__(self) -> Iterator[str]:

@@ -58,6 +58,7 @@ from kbs.knowledge.segmentation import STOP_KINDS
 from kbs.tiles.grid import Tile, TileGrid
 from kbs.tiles.stitch import NEIGHBOURS, ROOT, _Union, pair_links, stitched_record
 from kbs.tiles.store import TileStore
+from kbs.tiles.stream import MadeWhenAsked
 
 #: Points summed (and written) at a time when the output is computed from the files.
 CHUNK_POINTS = 1_000_000
@@ -196,7 +197,7 @@ def load_summary(brief: TileBrief) -> TileSummary:
     return summary
 
 
-class TileBriefs(Sequence[TileBrief]):
+class TileBriefs(MadeWhenAsked):
     """What the stitching process keeps of the finished tiles' :class:`TileBrief`, as they come
     back: their numbers in arrays, their root ids and notes only where they differ from the first
     tile's / are not empty, their summary files' paths only where not ``<folder>/<name>.summary.pkl``,
@@ -287,12 +288,6 @@ class TileBriefs(Sequence[TileBrief]):
                          n_limits=n_limits, n_splits=n_splits, label_counts=self.label_counts[k].copy(),
                          root=self.root_of(k), notes=list(self.notes.get(k, [])), head=self.head or {})
 
-    def __getitem__(self, k: Any) -> Any:
-        if isinstance(k, slice):
-            return [self._one(x) for x in range(*k.indices(len(self)))]
-        if not -len(self) <= int(k) < len(self):
-            raise IndexError(k)
-        return self._one(int(k) % len(self))
 
 
 def summary_path(job: Any) -> Path:
@@ -517,7 +512,7 @@ def _dispatch(segmenter: Any, runner: Callable[..., Any], names: Sequence[str], 
     return failures, n_resumed
 
 
-class _Lazy(Sequence[Any]):
+class _Lazy(MadeWhenAsked):
     """``make(k)`` for k < n, made when asked for (the tiles' jobs: not one object per tile held)."""
 
     def __init__(self, n: int, make: Callable[[int], Any]) -> None:
@@ -526,12 +521,8 @@ class _Lazy(Sequence[Any]):
     def __len__(self) -> int:
         return self.n
 
-    def __getitem__(self, k: Any) -> Any:
-        if isinstance(k, slice):
-            return [self.make(x) for x in range(*k.indices(self.n))]
-        if not -self.n <= int(k) < self.n:
-            raise IndexError(k)
-        return self.make(int(k) % self.n)
+    def _one(self, k: int) -> Any:
+        return self.make(k)
 
 
 def segment_streamed(segmenter: Any, spilled: Any, store: TileStore, *, scheduler: str | None = None,
@@ -1043,7 +1034,7 @@ def _stitch(spilled: Any, grid: TileGrid, tiles: Any, briefs: TileBriefs, edges:
         _sizes=mapped["sizes"], _folder=folder)
 
 
-class TilingEntries(Sequence[dict[str, Any]]):
+class TilingEntries(MadeWhenAsked):
     """The ``tiles`` of a streamed result's ``tiling``: each tile's entry (name, core, points, core
     points) made when asked for, from the :class:`~kbs.tiles.stream.SpilledTiles`' arrays, and
     written to the JSON one at a time (:meth:`StreamedResult.pieces`): not a list of dicts."""
@@ -1058,12 +1049,6 @@ class TilingEntries(Sequence[dict[str, Any]]):
         t = self.tiles[k]
         return {"name": t.name, "core": list(t.core), "points": int(t.n_points), "core_points": int(t.n_core)}
 
-    def __getitem__(self, k: Any) -> Any:
-        if isinstance(k, slice):
-            return [self._one(x) for x in range(*k.indices(len(self)))]
-        if not -len(self) <= int(k) < len(self):
-            raise IndexError(k)
-        return self._one(int(k) % len(self))
 
     def __eq__(self, other: object) -> bool:
         return isinstance(other, (list, tuple, TilingEntries)) and len(other) == len(self) and \
