@@ -280,10 +280,6 @@ class SpilledTiles(MadeWhenAsked):
         k = int(np.searchsorted(self.cell, key))
         return k if k < self.cell.size and int(self.cell[k]) == key else None
 
-    def take(self, keep: Any) -> SpilledTiles:
-        """The tiles at the places ``keep`` (increasing), with the same grid and folder."""
-        keep = np.asarray(keep, dtype=np.int64)
-        return SpilledTiles(self.grid, self.folder, self.i[keep], self.j[keep], self.n_points[keep], self.n_core[keep])
 
 
 class TileNames(MadeWhenAsked):
