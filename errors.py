@@ -20,6 +20,7 @@ class ExitCode(enum.IntEnum):
     FIT = 5  #: the engine could not fit the data (degenerate input)
     PARAMETER = 6  #: an invalid parameter value given through the library
     PLUGIN = 7  #: a predicate plugin that breaks the contract or fails
+    MEMORY = 8  #: the machine ran out of memory (not a bug: a smaller tile, fewer jobs)
 
 
 class KbsError(Exception):

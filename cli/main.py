@@ -137,7 +137,7 @@ def cli(ctx: click.Context, quiet: bool) -> None:
 
     Exit codes: 0 ok, 1 internal error (a bug), 2 bad usage or option, 3 unreadable or empty
     input file, 4 invalid rule file, 5 the engine could not fit the data, 6 invalid parameter,
-    7 a predicate plugin broke the contract or failed.
+    7 a predicate plugin broke the contract or failed, 8 out of memory.
     """
     ctx.ensure_object(dict)
     ctx.obj["quiet"] = quiet
@@ -166,7 +166,46 @@ def main(argv: list[str] | None = None) -> int:
         return int(exc.exit_code)
     except BrokenPipeError:
         return 0
+    except MemoryError:
+        click.echo("kbs: error: out of memory: segment the cloud in tiles (kbs run --tile SIZE, or the rule "
+                   "base's limits.tile), with fewer jobs (-j), or on a machine with more memory", err=True)
+        return int(ExitCode.MEMORY)
+    except Exception as exc:  # noqa: BLE001 - a bug in kbs, not the user's input: said as such, not a traceback
+        return _internal_error(exc, argv)
     return code if isinstance(code, int) else 0
+
+
+def _internal_error(exc: BaseException, argv: list[str] | None) -> int:
+    """An exception no part of kbs raised on purpose: one line saying it is a bug, the traceback
+    written to a report file (or printed with ``KBS_TRACEBACK=1``), exit code 1."""
+    import tempfile
+    import time
+    import traceback
+
+    from kbs import __version__
+
+    text = "".join(traceback.format_exception(exc))
+    args = sys.argv[1:] if argv is None else list(argv)
+    head = f"kbs {__version__}, Python {sys.version.split()[0]}, {sys.platform}\ncommand: kbs {' '.join(args)}\n\n"
+    where = None
+    try:
+        fd, where = tempfile.mkstemp(prefix=time.strftime("kbs-internal-error-%Y%m%d-%H%M%S-"), suffix=".txt")
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(head + text)
+    except OSError:
+        where = None
+    first = str(exc).splitlines()[0] if str(exc) else ""
+    click.echo(f"kbs: internal error (a bug in kbs, not in the input): {type(exc).__name__}"
+               + (f": {first}" if first else ""), err=True)
+    if os.environ.get("KBS_TRACEBACK", "") not in ("", "0"):
+        click.echo(text.rstrip("\n"), err=True)
+    elif where is None:
+        click.echo("kbs: the report file could not be written; run again with KBS_TRACEBACK=1 to see the "
+                   "traceback", err=True)
+    if where is not None:
+        click.echo(f"kbs: the traceback is in {where}: please report it with the command line "
+                   "(KBS_TRACEBACK=1 prints it here)", err=True)
+    return int(ExitCode.INTERNAL)
 
 
 def entry() -> None:

@@ -186,3 +186,41 @@ def test_help_lists_the_commands_without_importing_them():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip().splitlines()[-1] == "['kbs.cli.main']", r.stdout
+
+
+@pytest.mark.parametrize("fault", ["bug", "bug shown", "out of memory"])
+def test_a_bug_is_one_line_naming_its_report_not_a_traceback(tmp_path, fault):
+    """A bug in kbs (an exception no part of kbs raised on purpose) ends `kbs run` with exit code 1,
+    one line saying it is a bug and one naming the file its traceback was written to, not a
+    traceback; KBS_TRACEBACK=1 prints it. Running out of memory is exit code 8, one line saying
+    what to do. The fault is put into the real command, run as the console script runs it."""
+    exc = "MemoryError()" if fault == "out of memory" else "IndexError('index 7 is out of bounds for axis 0')"
+    code = ("import sys, kbs.knowledge.segmenter as s\n"
+            f"def boom(self, *a, **k):\n    raise {exc}\n"
+            "s.Segmenter.segment = boom\n"
+            "from kbs.cli.main import entry; sys.argv = ['kbs', *sys.argv[1:]]; entry()")
+    env = {k: v for k, v in os.environ.items() if k != "KBS_TRACEBACK"}
+    env["TMPDIR"] = str(tmp_path)
+    if fault == "bug shown":
+        env["KBS_TRACEBACK"] = "1"
+    out = tmp_path / "o"
+    r = subprocess.run([sys.executable, "-c", code, "run", "--rules", "outdoor", str(EXAMPLE), "--out", str(out)],
+                       capture_output=True, text=True, timeout=300, env=env)
+    lines = [line for line in r.stderr.splitlines() if not line.startswith("kbs: run ")]
+    reports = sorted(tmp_path.glob("kbs-internal-error-*.txt"))
+    assert not list(out.glob("outdoor.*")), "a failed run wrote a result"
+    if fault == "out of memory":
+        assert r.returncode == 8, r.stderr
+        assert lines[-1].startswith("kbs: error: out of memory") and "--tile" in lines[-1], r.stderr
+        assert "Traceback" not in r.stderr and not reports
+        return
+    assert r.returncode == 1, r.stderr
+    assert len(reports) == 1, r.stderr
+    report = reports[0].read_text()
+    assert "Traceback" in report and "IndexError: index 7 is out of bounds" in report and "in boom" in report
+    assert "command: kbs run --rules outdoor" in report
+    said = [line for line in lines if line.startswith("kbs: internal error")]
+    assert said == ["kbs: internal error (a bug in kbs, not in the input): IndexError: index 7 is out of bounds for axis 0"]
+    assert lines[-1] == f"kbs: the traceback is in {reports[0]}: please report it with the command line " \
+                        "(KBS_TRACEBACK=1 prints it here)", r.stderr
+    assert ("Traceback" in r.stderr) == (fault == "bug shown"), r.stderr
