@@ -23,6 +23,20 @@ class ExitCode(enum.IntEnum):
     MEMORY = 8  #: the machine ran out of memory (not a bug: a smaller tile, fewer jobs)
 
 
+def interrupted(exc: BaseException | None) -> bool:
+    """Whether ``exc`` is, or was caused by, a KeyboardInterrupt (Ctrl-C). A Ctrl-C that arrives while
+    a compiled kernel runs comes out of the kernel's call as a SystemError ("returned a result with
+    an exception set") whose cause is the KeyboardInterrupt: a wrapper that names a failed part must
+    not report it as that part's failure, and a tiled run must not go on to the next tile."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
 class KbsError(Exception):
     """Base class of every error a user can cause."""
 

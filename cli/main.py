@@ -15,7 +15,7 @@ import threading
 
 import click
 
-from kbs.errors import ExitCode, KbsError
+from kbs.errors import ExitCode, KbsError, interrupted
 
 #: command name -> "module:attribute". Commands are imported when used (click's lazy-group
 #: pattern), so `kbs run` does not pay for the imports of `kbs eval` or `kbs synth`.
@@ -158,9 +158,8 @@ def main(argv: list[str] | None = None) -> int:
     except click.ClickException as exc:
         exc.show()
         return int(ExitCode.USAGE if isinstance(exc, click.UsageError) else exc.exit_code)
-    except click.exceptions.Abort:
-        click.echo("kbs: aborted", err=True)
-        return 130
+    except (click.exceptions.Abort, KeyboardInterrupt) as exc:  # Ctrl-C (click turns it into Abort)
+        return _aborted(exc)
     except KbsError as exc:
         click.echo(f"kbs: error: {exc}", err=True)
         return int(exc.exit_code)
@@ -171,8 +170,24 @@ def main(argv: list[str] | None = None) -> int:
                    "base's limits.tile), with fewer jobs (-j), or on a machine with more memory", err=True)
         return int(ExitCode.MEMORY)
     except Exception as exc:  # noqa: BLE001 - a bug in kbs, not the user's input: said as such, not a traceback
+        if interrupted(exc):  # Ctrl-C inside a compiled kernel comes out as a SystemError caused by it
+            return _aborted(exc)
         return _internal_error(exc, argv)
     return code if isinstance(code, int) else 0
+
+
+def _aborted(exc: BaseException) -> int:
+    """Ctrl-C: one line, with what the interrupted work left for a next run (the notes added to
+    the KeyboardInterrupt on its way up: a tiled run's finished tiles), exit code 130."""
+    notes: list[str] = []
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        notes.extend(getattr(e, "__notes__", ()))
+        e = e.__cause__ or e.__context__
+    click.echo("kbs: aborted" + "".join(f"; {note}" for note in dict.fromkeys(notes)), err=True)
+    return 130
 
 
 def _internal_error(exc: BaseException, argv: list[str] | None) -> int:

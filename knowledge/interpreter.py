@@ -70,7 +70,9 @@ class Interpreter:
 
             methods = multiprocessing.get_all_start_methods()
             ctx = multiprocessing.get_context("fork" if "fork" in methods else None)
-            pool = self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx)
+            # the workers leave Ctrl-C to this process, which stops them (a worker interrupted
+            # inside a compiled kernel or numba's finalizers printed its own traceback)
+            pool = self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx, initializer=_ignore_sigint)
             # stopped when this interpreter is collected or the process exits, before
             # multiprocessing joins its children (in a process that is itself a multiprocessing
             # child, that join comes first and would wait for ever on idle workers)
@@ -157,6 +159,13 @@ def available_cores() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except (AttributeError, OSError):
         return max(1, os.cpu_count() or 1)
+
+
+def _ignore_sigint() -> None:
+    """A split worker's start: Ctrl-C is for the process that started it."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _shutdown_pool(pool) -> None:

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from kbs.errors import ParameterError
+from kbs.errors import ParameterError, interrupted
 from kbs.knowledge.interpreter import Interpreter, Segmentation
 from kbs.knowledge.predicates import PredicateRegistry
 from kbs.knowledge.rulebase import RuleBase, load_rule_base
@@ -160,6 +160,8 @@ class Segmenter:
             coordinate beyond :data:`MAX_COORDINATE` (once in the rule base's unit); an unknown unit.
         FitError
             The engine could not fit the data.
+        KeyboardInterrupt
+            Ctrl-C, wherever it arrived (inside a compiled kernel too).
         """
         X = as_points(points)
         scan_units = as_scan_units(units)
@@ -183,6 +185,10 @@ class Segmenter:
             self._interpreter.sensor = np.asarray(_check_sensor(sensor), dtype=np.float64) * f
         try:
             return self._interpreter.run(X)
+        except Exception as exc:
+            if interrupted(exc):  # Ctrl-C inside a compiled kernel (a SystemError caused by it): as Ctrl-C
+                raise KeyboardInterrupt from exc
+            raise
         finally:
             self._interpreter.progress = None
             self._interpreter.sensor = np.asarray(self.sensor, dtype=np.float64)

@@ -224,3 +224,28 @@ def test_a_bug_is_one_line_naming_its_report_not_a_traceback(tmp_path, fault):
     assert lines[-1] == f"kbs: the traceback is in {reports[0]}: please report it with the command line " \
                         "(KBS_TRACEBACK=1 prints it here)", r.stderr
     assert ("Traceback" in r.stderr) == (fault == "bug shown"), r.stderr
+
+
+@pytest.mark.parametrize("tiled", [False, True])
+def test_ctrl_c_inside_a_compiled_kernel_is_an_abort_not_a_failure(tmp_path, tiled):
+    """A Ctrl-C that arrives while a compiled kernel runs comes out of the kernel's call as a
+    SystemError caused by the KeyboardInterrupt (numba's dispatcher: "returned a result with an
+    exception set"). Put into the ground surface's k-NN, which a predicate calls, it was reported
+    as that predicate's failure (exit 7), and a tiled run went on to its other tiles; now it is
+    the command's abort, exit code 130, and nothing is written."""
+    code = ("import sys, kbs.geometry.groundmodel as g\n"
+            "def knn(self, *a, **k):\n"
+            "    try:\n        raise KeyboardInterrupt\n"
+            "    except KeyboardInterrupt as exc:\n"
+            "        raise SystemError('CPUDispatcher(<function grid_knn>) returned a result with an exception set') from exc\n"
+            "g.LocalGround._knn = knn\n"
+            "from kbs.cli.main import entry; sys.argv = ['kbs', *sys.argv[1:]]; entry()")
+    out = tmp_path / "o"
+    args = ["run", "--rules", "outdoor", "-j", "1", str(EXAMPLE), "--out", str(out)]
+    if tiled:
+        args[5:5] = ["--tile", "6"]
+    r = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 130, r.stderr
+    assert r.stderr.strip().splitlines()[-1].startswith("kbs: aborted"), r.stderr
+    assert "Traceback" not in r.stderr and "failed" not in r.stderr and "internal error" not in r.stderr
+    assert not list(out.glob("outdoor.*")), "an aborted run wrote a result"

@@ -352,3 +352,28 @@ def test_a_process_that_never_closes_its_segmenter_still_exits(tmp_path):
     assert r.returncode == 0, r.stderr
     lines = r.stdout.split()
     assert int(lines[0]) > 1 and r.stdout.strip().endswith("exitcode 0"), r.stdout
+
+
+def test_ctrl_c_inside_a_compiled_kernel_reaches_the_caller_as_ctrl_c(monkeypatch):
+    """A KeyboardInterrupt inside a compiled kernel leaves the kernel's call as a SystemError
+    caused by it; the loaded segmenter gives its caller the KeyboardInterrupt, wherever in the
+    run it came (here in the engine's Gath-Geva fit, outside any predicate), and stays usable."""
+    import importlib
+
+    u = importlib.import_module("kbs.inference.ufp_onc")  # the module (kbs.inference.ufp_onc is also a function's name)
+
+    def gg_fit(*a, **k):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as exc:
+            raise SystemError("CPUDispatcher(<function gg_run>) returned a result with an exception set") from exc
+
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(2000, 3)) * [5, 5, 0.05]
+    seg = kbs.Segmenter("outdoor", jobs=1)
+    original = u.gg_fit
+    monkeypatch.setattr(u, "gg_fit", gg_fit)
+    with pytest.raises(KeyboardInterrupt):
+        seg.segment(X)
+    monkeypatch.setattr(u, "gg_fit", original)
+    assert seg.segment(X).label.shape == (2000,)

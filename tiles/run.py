@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from kbs.errors import ExitCode, KbsError, ParameterError
+from kbs.errors import ExitCode, KbsError, ParameterError, interrupted
 from kbs.knowledge.groundfacts import GroundFacts
 from kbs.knowledge.interpreter import Segmentation
 from kbs.knowledge.segmenter import Segmenter, as_points
@@ -75,6 +75,11 @@ class TileError(KbsError):
             kept_text = (f"; the finished tiles are kept in {kept}: run again with --resume (resume=True) to "
                          f"segment only the failed ones")
         super().__init__(f"tile {tile.bounds_text()} ({n_points:,} points): {what}{more}{kept_text}")
+
+
+def kept_note(folder: Path) -> str:
+    """What an interrupted tiled run says of the tiles it finished."""
+    return f"the finished tiles are kept in {folder}: run again with --resume (resume=True) to segment only the others"
 
 
 class SchedulerError(ParameterError):
@@ -196,15 +201,20 @@ def segment_tiled(segmenter: Segmenter, points: Any, size: float, buffer: float 
         if progress is not None:
             progress(f"{tiles[k].name} ({done}/{len(todo)} tiles)")
 
-    if scheduler is None:
-        for done, k in enumerate(todo, start=1):
-            try:
-                out: Segmentation | BaseException = _segment_tile(segmenter, X[tiles[k].index], given)
-            except KbsError as exc:
-                out = exc
-            finished(k, out, done)
-    elif todo:
-        _segment_on_dask(segmenter, X, tiles, todo, scheduler, workers, progress, finished, given)
+    try:
+        if scheduler is None:
+            for done, k in enumerate(todo, start=1):
+                try:
+                    out: Segmentation | BaseException = _segment_tile(segmenter, X[tiles[k].index], given)
+                except KbsError as exc:
+                    out = exc
+                finished(k, out, done)
+        elif todo:
+            _segment_on_dask(segmenter, X, tiles, todo, scheduler, workers, progress, finished, given)
+    except KeyboardInterrupt as exc:  # Ctrl-C: the tiles finished so far are saved; say so
+        if store is not None and any(r is not None for r in results):
+            exc.add_note(kept_note(store.folder))
+        raise
     if failures:
         first = min(failures)
         raise TileError(tiles[first], tiles[first].index.size, failures[first],
@@ -330,6 +340,8 @@ def submit_all(scheduler: str, workers: int | None, progress: Callable[[str], No
             try:
                 out = future.result()
             except Exception as exc:  # the task died twice (a worker lost), or a bug in it
+                if interrupted(exc):
+                    raise KeyboardInterrupt from exc
                 out = exc
             k = futures.pop(future)
             future.release()

@@ -476,39 +476,49 @@ def _task(runner: Callable[..., Any], rules: str, sensor: tuple[float, float, fl
 
 def _dispatch(segmenter: Any, runner: Callable[..., Any], names: Sequence[str], job_of: Callable[[int], Any],
               given: tuple[Any, GroundFacts], keep: Callable[[int, Any], bool], scheduler: str | None,
-              workers: int | None, progress: Callable[[str], None] | None) -> tuple[dict[int, BaseException], int]:
+              workers: int | None, progress: Callable[[str], None] | None,
+              kept: Path | None = None) -> tuple[dict[int, BaseException], int]:
     """Run ``runner`` on the job of each tile (``job_of(k)``, made when it is run or submitted): in
     this process one after the other, or as Dask tasks on ``scheduler``. Each tile's output goes to
     ``keep(k, out)`` as it comes (which keeps what it needs of it and says whether it was resumed):
-    not held here. Returns the failures by tile and how many outputs were resumed."""
-    from kbs.tiles.run import _segment_tile
+    not held here. Returns the failures by tile and how many outputs were resumed. Interrupted
+    (Ctrl-C) once a tile is finished, the KeyboardInterrupt says that the finished tiles are kept in
+    ``kept`` (the store's folder)."""
+    from kbs.tiles.run import _segment_tile, kept_note
 
     failures: dict[int, BaseException] = {}
     n_resumed = 0
+    n_kept = 0
 
     def finished(k: int, out: Any, done: int) -> None:
-        nonlocal n_resumed
+        nonlocal n_resumed, n_kept
         if isinstance(out, BaseException):
             failures[k] = out
             return
         resumed = keep(k, out)
         n_resumed += resumed
+        n_kept += 1
         if progress is not None and not resumed:
             progress(f"{names[k]} ({done}/{len(names)} tiles)")
 
-    if scheduler is None:
-        for done, k in enumerate(range(len(names)), start=1):
-            try:
-                out: Any = runner(lambda X: _segment_tile(segmenter, X, given), job_of(k), given)
-            except KbsError as exc:
-                out = exc
-            finished(k, out, done)
-    else:
-        from kbs.tiles.run import submit_all
+    try:
+        if scheduler is None:
+            for done, k in enumerate(range(len(names)), start=1):
+                try:
+                    out: Any = runner(lambda X: _segment_tile(segmenter, X, given), job_of(k), given)
+                except KbsError as exc:
+                    out = exc
+                finished(k, out, done)
+        else:
+            from kbs.tiles.run import submit_all
 
-        spec = (segmenter.rule_base.path, segmenter.sensor, segmenter.plugins)
-        submit_all(scheduler, workers, progress, finished, range(len(names)),
-                   lambda k: (_task, runner, *spec, job_of(k), given), names)
+            spec = (segmenter.rule_base.path, segmenter.sensor, segmenter.plugins)
+            submit_all(scheduler, workers, progress, finished, range(len(names)),
+                       lambda k: (_task, runner, *spec, job_of(k), given), names)
+    except KeyboardInterrupt as exc:  # Ctrl-C: the tiles finished so far are saved; say so
+        if kept is not None and n_kept:
+            exc.add_note(kept_note(kept))
+        raise
     return failures, n_resumed
 
 
@@ -550,7 +560,7 @@ def segment_streamed(segmenter: Any, spilled: Any, store: TileStore, *, schedule
         return bool(out[1])
 
     failures, n_resumed = _dispatch(segmenter, run_job, names, jobs.__getitem__, given, keep, scheduler, workers,
-                                    progress)
+                                    progress, store.folder)
     if resume and progress is not None:
         progress(f"resumed {n_resumed} of {len(tiles)} tiles from {store.folder}")
     if failures:
@@ -624,7 +634,7 @@ def segment_copc(segmenter: Any, cloud: Any, store: TileStore, *, scheduler: str
         return bool(resumed)
 
     failures, n_resumed = _dispatch(segmenter, run_copc_job, cells.names, job_of, given, keep, scheduler, workers,
-                                    progress)
+                                    progress, store.folder)
     if resume and progress is not None:
         progress(f"resumed {n_resumed} of {int(np.count_nonzero(briefs.done))} tiles from {store.folder}")
     if failures:
