@@ -23,6 +23,11 @@ class ExitCode(enum.IntEnum):
     MEMORY = 8  #: the machine ran out of memory (not a bug: a smaller tile, fewer jobs)
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill PID``, a batch scheduler's notice) received by the ``kbs`` command: stops the
+    run as Ctrl-C does (nothing half-written, the workers stopped), with exit code 143."""
+
+
 def interrupted(exc: BaseException | None) -> bool:
     """Whether ``exc`` is, or was caused by, a KeyboardInterrupt (Ctrl-C). A Ctrl-C that arrives while
     a compiled kernel runs comes out of the kernel's call as a SystemError ("returned a result with

@@ -7,15 +7,17 @@ errors exit with 2. Anything else is a bug: it prints a traceback and exits with
 from __future__ import annotations
 
 import atexit
+import contextlib
 import importlib
 import logging
 import os
+import signal
 import sys
 import threading
 
 import click
 
-from kbs.errors import ExitCode, KbsError, interrupted
+from kbs.errors import ExitCode, KbsError, Terminated, interrupted
 
 #: command name -> "module:attribute". Commands are imported when used (click's lazy-group
 #: pattern), so `kbs run` does not pay for the imports of `kbs eval` or `kbs synth`.
@@ -177,17 +179,24 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _aborted(exc: BaseException) -> int:
-    """Ctrl-C: one line, with what the interrupted work left for a next run (the notes added to
-    the KeyboardInterrupt on its way up: a tiled run's finished tiles), exit code 130."""
+    """Ctrl-C (exit code 130) or SIGTERM (143): one line, with what the interrupted work left for a
+    next run (the notes added to the KeyboardInterrupt on its way up: a tiled run's finished tiles)."""
     notes: list[str] = []
     seen: set[int] = set()
+    term = False
     e: BaseException | None = exc
     while e is not None and id(e) not in seen:
         seen.add(id(e))
+        term = term or isinstance(e, Terminated)
         notes.extend(getattr(e, "__notes__", ()))
         e = e.__cause__ or e.__context__
-    click.echo("kbs: aborted" + "".join(f"; {note}" for note in dict.fromkeys(notes)), err=True)
-    return 130
+    said = "kbs: terminated (SIGTERM)" if term else "kbs: aborted"
+    click.echo(said + "".join(f"; {note}" for note in dict.fromkeys(notes)), err=True)
+    return 128 + signal.SIGTERM if term else 130
+
+
+def _on_sigterm(signum: int, frame: object) -> None:
+    raise Terminated
 
 
 def _internal_error(exc: BaseException, argv: list[str] | None) -> int:
@@ -226,7 +235,10 @@ def _internal_error(exc: BaseException, argv: list[str] | None) -> int:
 def entry() -> None:
     """The ``kbs`` command (the console script, ``python -m kbs.cli.main``): :func:`main`, then the
     process ends without the interpreter's teardown (:func:`fast_exit`). :func:`main` is for
-    callers that go on after it (tests, scripts): it returns."""
+    callers that go on after it (tests, scripts): it returns. SIGTERM stops the run as Ctrl-C
+    does (exit code 143), where it arrives in the main thread."""
+    with contextlib.suppress(ValueError, OSError):  # not the main thread: the default action
+        signal.signal(signal.SIGTERM, _on_sigterm)
     fast_exit(main())
 
 

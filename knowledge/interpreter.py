@@ -162,10 +162,12 @@ def available_cores() -> int:
 
 
 def _ignore_sigint() -> None:
-    """A split worker's start: Ctrl-C is for the process that started it."""
+    """A split worker's start: Ctrl-C is for the process that started it, and SIGTERM ends the worker
+    (not the ``kbs`` command's handler, inherited through fork)."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def _shutdown_pool(pool) -> None:

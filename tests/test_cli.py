@@ -249,3 +249,32 @@ def test_ctrl_c_inside_a_compiled_kernel_is_an_abort_not_a_failure(tmp_path, til
     assert r.stderr.strip().splitlines()[-1].startswith("kbs: aborted"), r.stderr
     assert "Traceback" not in r.stderr and "failed" not in r.stderr and "internal error" not in r.stderr
     assert not list(out.glob("outdoor.*")), "an aborted run wrote a result"
+
+
+def test_sigterm_stops_the_command_as_ctrl_c_does_with_exit_code_143(tmp_path):
+    """`kill PID` (a batch scheduler's notice) while `kbs run` segments: one line, exit code 143
+    (128 + SIGTERM), nothing written, as Ctrl-C; before, the process died at once (-15) and a
+    tiled run on Dask left multiprocessing's warning of leaked semaphores."""
+    import signal
+    import time
+
+    started = tmp_path / "started"
+    code = ("import sys, time, pathlib, kbs.knowledge.segmenter as s\n"
+            "def slow(self, *a, **k):\n"
+            f"    pathlib.Path({str(started)!r}).write_text('')\n"
+            "    time.sleep(120)\n"
+            "s.Segmenter.segment = slow\n"
+            "from kbs.cli.main import entry; sys.argv = ['kbs', *sys.argv[1:]]; entry()")
+    out = tmp_path / "o"
+    p = subprocess.Popen([sys.executable, "-c", code, "run", "--rules", "outdoor", str(EXAMPLE), "--out", str(out)],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.monotonic()
+    while not started.exists() and p.poll() is None and time.monotonic() - t0 < 120:
+        time.sleep(0.02)
+    assert p.poll() is None, p.communicate()[1]
+    p.send_signal(signal.SIGTERM)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 143, (p.returncode, err)
+    assert err.strip().splitlines()[-1] == "kbs: terminated (SIGTERM)", err
+    assert "Traceback" not in err
+    assert not list(out.glob("outdoor.*"))
