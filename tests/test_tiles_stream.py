@@ -16,9 +16,9 @@ from scenes import ground_and_rocks
 from test_cli import kbs as kbs_cmd
 
 
-def _write_las(path: Path, X: np.ndarray, *, extra: dict[str, np.ndarray] | None = None) -> None:
+def _write_las(path: Path, X: np.ndarray, *, extra: dict[str, np.ndarray] | None = None, scale: float = 1e-4) -> None:
     header = laspy.LasHeader(point_format=6, version="1.4")
-    header.offsets, header.scales = np.floor(X.min(axis=0)), np.array([1e-4, 1e-4, 1e-4])
+    header.offsets, header.scales = np.floor(X.min(axis=0)), np.array([scale, scale, scale])
     for name, values in (extra or {}).items():
         header.add_extra_dim(laspy.ExtraBytesParams(name, values.dtype, description=f"input {name}"))
     las = laspy.LasData(header)
@@ -198,3 +198,106 @@ def test_scheduler_for_one_untiled_scan_is_a_usage_error(rocks_las, tmp_path):
     assert r.returncode == 2
     assert "--scheduler only applies to a tiled run: give --tile SIZE too (or several scans: a folder's scans run " \
            "as Dask tasks); rule base 'outdoor' has no limits.tile" in r.stderr
+
+
+# -- a few far points: a grid of millions of cells, nearly all empty --------------------------------
+
+
+def _tiles_by_definition(X: np.ndarray, grid: TileGrid) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """What each tile holds, from the definition: the cells holding a point's core, and for each the
+    points inside its core widened by the buffer (the grid's outer edges reaching everything)."""
+    uv = X @ grid.axes.T
+    ij = grid.cells(uv)
+    out = {}
+    for i, j in sorted({(int(a), int(b)) for a, b in ij}):
+        lo = [grid.origin[k] + c * grid.size - grid.buffer for k, c in ((0, i), (1, j))]
+        hi = [grid.origin[k] + (c + 1) * grid.size + grid.buffer for k, c in ((0, i), (1, j))]
+        lo = [-np.inf if c == 0 else v for c, v in zip((i, j), lo)]
+        hi = [np.inf if c == grid.shape[k] - 1 else v for k, (c, v) in enumerate(zip((i, j), hi))]
+        index = np.flatnonzero((uv[:, 0] >= lo[0]) & (uv[:, 0] <= hi[0]) & (uv[:, 1] >= lo[1]) & (uv[:, 1] <= hi[1]))
+        out[f"t{i}_{j}"] = (index, (ij[index, 0] == i) & (ij[index, 1] == j))
+    return out
+
+
+@pytest.mark.parametrize("dense", [True, False])
+def test_far_points_make_a_huge_sparse_grid_whose_tiles_are_those_holding_points(tmp_path, dense, monkeypatch):
+    """A cloud of 500 points in 30 m and three points thousands of km away: tiles of 10 m make a grid
+    of 2.5 x 10^11 cells. Before, TileGrid.tiles visited every cell (an airborne scan with a stray
+    point ran for ever) and the spill held a count per cell (MemoryError); now both visit only the
+    cells holding points, and give the tiles of the definition. ``dense=False`` also puts a grid of
+    a few cells through the spill's sparse counts, which must agree with its array."""
+    from kbs.tiles import stream
+
+    rng = np.random.default_rng(3)
+    X = np.vstack([rng.uniform([0, 0, 0], [30, 30, 2], (500, 3)),
+                   [[5e6, 5e6, 1.0], [5e6 + 3, 5e6 + 4, 1.0], [1e3, 4.9e6, 0.0]]]).round(3)
+    _write_las(tmp_path / "far.las", X, scale=1e-2)
+    X = laspy.read(tmp_path / "far.las").xyz.astype(np.float64)
+    grid = TileGrid.fit(X, 10.0, 2.0)
+    assert grid.shape[0] * grid.shape[1] > 10 ** 11
+    want = _tiles_by_definition(X, grid)
+    got = grid.tiles(X)
+    assert [t.name for t in got] == list(want)  # row by row
+    for t in got:
+        np.testing.assert_array_equal(t.index, want[t.name][0])
+        np.testing.assert_array_equal(t.in_core, want[t.name][1])
+    if not dense:
+        monkeypatch.setattr(stream._Counts, "DENSE", 0)
+        _write_las(tmp_path / "near.las", X[:500], scale=1e-2)
+        near = laspy.read(tmp_path / "near.las").xyz.astype(np.float64)
+        spilled_near = spill_las(tmp_path / "near.las", tmp_path / "spill-near", 10.0, 2.0, chunk_points=97)
+        expected = TileGrid.fit(near, 10.0, 2.0).tiles(near)
+        assert [t.name for t in spilled_near.tiles] == [t.name for t in expected]
+        for got_t, want_t in zip(spilled_near.tiles, expected):
+            assert (got_t.n_points, got_t.n_core) == (want_t.index.size, int(np.count_nonzero(want_t.in_core)))
+            np.testing.assert_array_equal(got_t.index, want_t.index)
+    spilled = spill_las(tmp_path / "far.las", tmp_path / "spill", 10.0, 2.0, chunk_points=97)
+    assert spilled.grid.shape == grid.shape
+    assert [t.name for t in spilled.tiles] == list(want)
+    for t in spilled.tiles:
+        np.testing.assert_array_equal(t.index, want[t.name][0])
+        np.testing.assert_array_equal(t.in_core, want[t.name][1])
+
+
+def test_a_tile_size_whose_grid_a_number_cannot_index_is_a_parameter_error():
+    from kbs.errors import ParameterError
+
+    X = np.array([[0.0, 0.0, 0.0], [1e15, 1e15, 0.0]])
+    with pytest.raises(ParameterError, match=r"tiles of 1e-05 over a cloud 1e\+15 x 1e\+15 wide would make .* more "
+                                             r"than a tile's number can index \(2\^62\): a larger tile size"):
+        TileGrid.fit(X, 1e-5, 0.0)
+
+
+@pytest.mark.slow  # a real scan, four kbs processes: pytest --runslow (CI) runs it
+@pytest.mark.parametrize("form", ["las", "npy"])
+def test_a_stray_point_thousands_of_km_away_leaves_the_scan_s_labels_as_they_were(shared_data, tmp_path, form):
+    """An airborne scan with one stray point 3,000 km away (a bad GPS fix): its rule base tiles it
+    (wider than limits.tile.wider_than), over a grid of 9 x 10^8 cells. Before, the run never ended
+    (the in-memory tiles visited every cell) or ran out of memory (the spill's counts per cell);
+    now it takes the time of the scan, the stray point is noise, and every point of the scan has
+    the label of the scan run alone in the same tiles."""
+    from kbs.io import read_cloud
+
+    X = read_cloud(shared_data / "isprs" / "samp21-utm.pcd").xyz.astype(np.float64)
+    stray = X.max(axis=0) + [3e6, 3e6, 0.0]  # beyond the scan: the grid's origin is the scan's
+    both = np.vstack([X, stray])
+    alone, far = tmp_path / f"alone.{form}", tmp_path / f"far.{form}"
+    if form == "las":
+        _write_las(alone, X, scale=1e-2)
+        _write_las(far, both, scale=1e-2)
+    else:
+        np.save(alone, X)
+        np.save(far, both)
+    r = kbs_cmd("-q", "run", "--rules", "airborne", "-j", "1", str(far), "--out", str(tmp_path / "o"), "--out-format", "ply")
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((tmp_path / "o" / "far.json").read_text())
+    assert doc["tiled_by"]["from"] == "limits.tile" and doc["tiling"]["shape"][0] * doc["tiling"]["shape"][1] > 10 ** 8
+    ref = kbs_cmd("-q", "run", "--rules", "airborne", "-j", "1", "--tile", "100", str(alone), "--out", str(tmp_path / "r"),
+                  "--out-format", "ply")
+    assert ref.returncode == 0, ref.stderr
+    from plyfile import PlyData
+
+    got = np.asarray(PlyData.read(str(tmp_path / "o" / "far.ply"))["vertex"]["scalar_label"])
+    want = np.asarray(PlyData.read(str(tmp_path / "r" / "alone.ply"))["vertex"]["scalar_label"])
+    np.testing.assert_array_equal(got[:-1], want)
+    assert got[-1] == -1  # the stray point: noise

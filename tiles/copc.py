@@ -40,7 +40,8 @@ import numpy as np
 from kbs.errors import CloudFileError
 from kbs.knowledge.segmenter import coordinate_problem
 from kbs.tiles.grid import TileGrid, ground_axes
-from kbs.tiles.stream import DEFAULT_CHUNK_POINTS, SpilledCloud, SpilledTile, SpilledTiles, _grid, _npy_header, _row_from
+from kbs.tiles.stream import (DEFAULT_CHUNK_POINTS, SpilledCloud, SpilledTile, SpilledTiles, _Counts, _grid, _npy_header,
+                             _row_from)
 
 #: ``KBS_COPC=0`` reads a COPC file as a plain LAZ file (the spill path), e.g. to compare.
 ENV = "KBS_COPC"
@@ -332,7 +333,18 @@ class CopcJob:
     resume: bool
 
 
-def tiles_of(cloud: CopcCloud) -> SpilledTiles:
-    """Every cell of the grid as a tile to read (which hold points is known once they are read)."""
-    i, j = np.indices(cloud.grid.shape).reshape(2, -1)
-    return SpilledTiles(cloud.grid, cloud.folder, i, j, np.zeros(i.size, np.int64), np.zeros(i.size, np.int64))
+def tiles_of(cloud: CopcCloud, chunk_points: int = DEFAULT_CHUNK_POINTS) -> SpilledTiles:
+    """Every cell of the grid as a tile to read (which hold points is known once they are read);
+    on a grid of more than :attr:`~kbs.tiles.stream._Counts.DENSE` cells (a few far points
+    stretching it), only the cells whose core holds points, from one pass over the coordinates
+    :func:`read_copc` wrote (a tile whose core holds none gives nothing either way)."""
+    grid = cloud.grid
+    if grid.shape[0] * grid.shape[1] <= _Counts.DENSE:
+        i, j = np.indices(grid.shape).reshape(2, -1)
+    else:
+        held = np.zeros(0, dtype=np.int64)
+        for s in range(0, cloud.xyz.shape[0], chunk_points):
+            ij = grid.cells(np.asarray(cloud.xyz[s:s + chunk_points]) @ grid.axes.T)
+            held = np.union1d(held, ij[:, 0] * grid.shape[1] + ij[:, 1])
+        i, j = held // grid.shape[1], held % grid.shape[1]
+    return SpilledTiles(grid, cloud.folder, i, j, np.zeros(i.size, np.int64), np.zeros(i.size, np.int64))

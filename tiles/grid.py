@@ -40,6 +40,30 @@ def ground_axes(normal: np.ndarray | None) -> np.ndarray:
     return np.stack([e1, np.cross(n, e1)])
 
 
+#: The most cells a grid may have: a cell's number ``i * columns + j`` is an int64.
+MAX_CELLS = 2 ** 62
+
+
+def _count(n: int) -> str:
+    return f"{n:,}" if n < 10 ** 12 else f"{float(n):.3g}"
+
+
+def grid_shape(lo: np.ndarray, hi: np.ndarray, size: float) -> tuple[int, int]:
+    """Rows and columns of tiles of ``size`` over the ground extent ``lo`` .. ``hi``.
+
+    Raises
+    ------
+    ParameterError
+        More cells than :data:`MAX_CELLS` (a tile size far too small for the cloud's extent).
+    """
+    shape = tuple(max(1, math.ceil((float(hi[k]) - float(lo[k])) / size)) for k in range(2))
+    if shape[0] * shape[1] > MAX_CELLS:
+        raise ParameterError(f"tiles of {size:g} over a cloud {float(hi[0] - lo[0]):.6g} x {float(hi[1] - lo[1]):.6g} "
+                             f"wide would make {_count(shape[0])} x {_count(shape[1])} tiles, more than a tile's number can index "
+                             "(2^62): a larger tile size")
+    return int(shape[0]), int(shape[1])
+
+
 @dataclass(frozen=True, eq=False)
 class Tile:
     """One tile of a :class:`TileGrid`.
@@ -108,8 +132,7 @@ class TileGrid:
         axes = ground_axes(normal)
         uv = X @ axes.T
         lo, hi = uv.min(axis=0), uv.max(axis=0)
-        shape = tuple(max(1, math.ceil((hi[k] - lo[k]) / size)) for k in range(2))
-        return cls(float(size), float(buffer), axes, (float(lo[0]), float(lo[1])), (int(shape[0]), int(shape[1])))
+        return cls(float(size), float(buffer), axes, (float(lo[0]), float(lo[1])), grid_shape(lo, hi, float(size)))
 
     def cells(self, uv: np.ndarray) -> np.ndarray:
         """The (i, j) core of each point, shape (n_points, 2) int64 (points outside the grid go
@@ -118,18 +141,23 @@ class TileGrid:
         return np.clip(ij, 0, np.asarray(self.shape) - 1)
 
     def tiles(self, X: np.ndarray) -> list[Tile]:
-        """The tiles whose core holds at least one point of ``X``, row by row."""
+        """The tiles whose core holds at least one point of ``X``, row by row. Only the cells that
+        hold points are visited: a few far points (a grid of millions of empty cells) cost nothing."""
         uv = X @ self.axes.T
         ij = self.cells(uv)
         out = []
         order = np.argsort(uv[:, 0], kind="stable")
         u_sorted = uv[order, 0]
-        for i in range(self.shape[0]):
+        occupied = np.unique(ij[:, 0] * self.shape[1] + ij[:, 1])  # row by row
+        occ_i, occ_j = occupied // self.shape[1], occupied % self.shape[1]
+        cut = np.flatnonzero(np.diff(occ_i)) + 1
+        for cols in np.split(np.arange(occupied.size), cut):
+            i = int(occ_i[cols[0]])
             u0 = self.origin[0] + i * self.size
             lo_u = -np.inf if i == 0 else u0 - self.buffer
             hi_u = np.inf if i == self.shape[0] - 1 else u0 + self.size + self.buffer
             row = np.sort(order[np.searchsorted(u_sorted, lo_u, "left"):np.searchsorted(u_sorted, hi_u, "right")])
-            for j in range(self.shape[1]):
+            for j in (int(c) for c in occ_j[cols]):
                 v0 = self.origin[1] + j * self.size
                 lo_v = -np.inf if j == 0 else v0 - self.buffer
                 hi_v = np.inf if j == self.shape[1] - 1 else v0 + self.size + self.buffer

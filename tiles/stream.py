@@ -36,7 +36,7 @@ import numpy as np
 
 from kbs.errors import CloudFileError
 from kbs.knowledge.segmenter import coordinate_problem
-from kbs.tiles.grid import Tile, TileGrid, ground_axes
+from kbs.tiles.grid import Tile, TileGrid, grid_shape, ground_axes
 
 #: Points read at a time from a LAS/LAZ file (``kbs run --chunk-points``).
 DEFAULT_CHUNK_POINTS = 1_000_000
@@ -144,8 +144,7 @@ def spill_las(path: str | os.PathLike[str], folder: str | os.PathLike[str], size
         raise CloudFileError(str(path), f"{count:,}" + first[first.index(" points have"):])
     grid = _grid(size, buffer, axes, lo, hi)
     folder.mkdir(parents=True, exist_ok=True)
-    core_count = np.zeros(grid.shape, dtype=np.int64)
-    tile_count = np.zeros(grid.shape, dtype=np.int64)
+    core_count, tile_count = _Counts(grid.shape), _Counts(grid.shape)
     start = 0
     # written with plain writes, not through a memory map: the pages written do not stay in this
     # process's resident memory (a map's dirty pages would, the whole cloud's)
@@ -161,21 +160,21 @@ def spill_las(path: str | os.PathLike[str], folder: str | os.PathLike[str], size
             index_out.write(gi.astype("<i8").tobytes())
             uv = X @ grid.axes.T
             ij = grid.cells(uv)
-            np.add.at(core_count, (ij[:, 0], ij[:, 1]), 1)
+            core_count.add(ij[:, 0], ij[:, 1], 1)
             for (i, j), rows in _tile_rows(grid, uv).items():
                 target = folder / f"t{i}_{j}.idx"  # not a dict of paths: one per tile, millions at 10^10 points
                 with open(target, "ab") as stream:
                     gi[rows].tofile(stream)
                 with open(target.with_suffix(".core"), "ab") as stream:
                     ((ij[rows, 0] == i) & (ij[rows, 1] == j)).tofile(stream)
-                tile_count[i, j] += rows.size
+                tile_count.add(i, j, rows.size)
             start += m
     if start != n:
         raise CloudFileError(str(path), f"holds {start:,} points, its header says {n:,}")
     xyz = np.load(folder / "xyz.npy", mmap_mode="r")
     index = np.load(folder / "index.npy", mmap_mode="r")
-    rows, cols = np.nonzero(core_count)  # row by row, as TileGrid.tiles
-    tiles = SpilledTiles(grid, folder, rows, cols, tile_count[rows, cols], core_count[rows, cols])
+    rows, cols = core_count.nonzero()  # row by row, as TileGrid.tiles
+    tiles = SpilledTiles(grid, folder, rows, cols, tile_count.at(rows, cols), core_count.at(rows, cols))
     return SpilledCloud(xyz=xyz, index=index, grid=grid, tiles=tiles, header=header, folder=folder,
                         width=float((hi - lo).max()))
 
@@ -325,11 +324,44 @@ def _npy_header(stream: Any, dtype: Any, shape: tuple[int, ...]) -> None:
                                                   "fortran_order": False, "shape": shape})
 
 
+class _Counts:
+    """Counts per cell of a grid of ``shape``: an array when the grid has at most :attr:`DENSE`
+    cells, else a dict of the cells counted (a cloud with a few far points spans a grid of
+    millions of cells, nearly all empty: an array of them all would not fit in memory)."""
+
+    DENSE = 10 ** 7
+
+    def __init__(self, shape: tuple[int, int]) -> None:
+        self.shape = shape
+        self.dense = np.zeros(shape, dtype=np.int64) if shape[0] * shape[1] <= self.DENSE else None
+        self.sparse: dict[int, int] = {}
+
+    def add(self, i: Any, j: Any, n: int) -> None:
+        """Add ``n`` at each cell (i, j) (arrays: once per pair, repeated cells counted each time)."""
+        if self.dense is not None:
+            np.add.at(self.dense, (i, j), n)
+            return
+        cells, counts = np.unique(np.asarray(i, np.int64) * self.shape[1] + np.asarray(j, np.int64), return_counts=True)
+        for c, k in zip(cells.tolist(), counts.tolist()):
+            self.sparse[c] = self.sparse.get(c, 0) + k * n
+
+    def nonzero(self) -> tuple[np.ndarray, np.ndarray]:
+        """The cells counted, row by row."""
+        if self.dense is not None:
+            return np.nonzero(self.dense)
+        cells = np.array(sorted(c for c, k in self.sparse.items() if k), dtype=np.int64)
+        return cells // self.shape[1], cells % self.shape[1]
+
+    def at(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        if self.dense is not None:
+            return self.dense[i, j]
+        return np.array([self.sparse.get(c, 0) for c in (i * self.shape[1] + j).tolist()], dtype=np.int64)
+
+
 def _grid(size: float, buffer: float, axes: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> TileGrid:
     """The grid :meth:`TileGrid.fit` gives for a cloud of ground extent ``lo`` .. ``hi``."""
     TileGrid.fit(np.zeros((1, 3)), size, buffer)  # its checks of size and buffer
-    shape = tuple(max(1, math.ceil((hi[k] - lo[k]) / size)) for k in range(2))
-    return TileGrid(float(size), float(buffer), axes, (float(lo[0]), float(lo[1])), (int(shape[0]), int(shape[1])))
+    return TileGrid(float(size), float(buffer), axes, (float(lo[0]), float(lo[1])), grid_shape(lo, hi, float(size)))
 
 
 def _tile_rows(grid: TileGrid, uv: np.ndarray) -> dict[tuple[int, int], np.ndarray]:
