@@ -162,3 +162,36 @@ def test_a_copc_file_run_whole_is_written_as_plain_laz_without_its_copc_records(
     out = laspy.read(str(tmp_path / "out" / copc_file.name))
     assert len(out.points) == 14408 and "cluster" in out.point_format.extra_dimension_names
     assert not [v for v in [*out.header.vlrs, *(out.header.evlrs or [])] if v.user_id == "copc"]
+
+
+@pytest.mark.slow  # two tiled runs
+def test_a_copc_file_with_a_stray_point_reads_only_the_tiles_holding_points(shared_data, tmp_path):
+    """A COPC file with one stray point 3,000 km away: tiles of 30 m make a grid of 10^10 cells.
+    Every cell was a tile to read (an array of 10^10 tiles: out of memory); now, past 10^7 cells,
+    only the cells holding points are, and the bytes are those of the file read as a plain LAZ
+    (the spill path, whose counts per cell went sparse too)."""
+    import laspy
+
+    from copc_files import write_copc
+
+    las = laspy.read(str(shared_data / "las" / "sample_c.las"))
+    xyz = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
+    xyz = np.vstack([xyz, xyz.max(axis=0) + [3e6, 3e6, 0.0]])
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.offsets, header.scales = np.floor(xyz.min(axis=0)), np.array([0.01, 0.01, 0.01])
+    crs = las.header.parse_crs()
+    if crs is not None:
+        header.add_crs(crs)
+    out = laspy.LasData(header)
+    out.x, out.y, out.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    out.write(str(tmp_path / "stray.las"))
+    path = tmp_path / "stray.copc.laz"
+    assert write_copc(tmp_path / "stray.las", path, levels=4) > 5
+    args = ["run", "--rules", "airborne", "--tile", "30", "-j", "1", str(path)]
+    plain = _kbs_env("-q", *args, "--out", str(tmp_path / "plain"), env={"KBS_COPC": "0"})
+    assert plain.returncode == 0, plain.stderr
+    here = kbs_cmd(*args, "--out", str(tmp_path / "here"))
+    assert here.returncode == 0, here.stderr
+    assert "a COPC file: each of its" in here.stderr
+    for name in ("stray.copc.laz", "stray.copc.json"):
+        assert _normalised(tmp_path / "here" / name) == _normalised(tmp_path / "plain" / name), name
