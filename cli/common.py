@@ -12,6 +12,8 @@ from collections.abc import Callable, Iterator, Mapping
 from typing import TYPE_CHECKING, Any, TextIO
 
 import click
+
+from kbs.cli.types import FiniteFloatRange
 import numpy as np
 
 from kbs.errors import CloudFileError
@@ -182,7 +184,7 @@ def setting_type(name: str) -> click.ParamType:
     if c.kind is numbers.Integral:
         return click.IntRange(None if c.low is None else int(c.low), None if c.high is None else int(c.high),
                               min_open=lo_open, max_open=hi_open)
-    return click.FloatRange(c.low, c.high, min_open=lo_open, max_open=hi_open)
+    return FiniteFloatRange(c.low, c.high, min_open=lo_open, max_open=hi_open)
 
 
 def setting_option(flag: str, name: str, **kw: Any):

@@ -5,6 +5,8 @@ import time
 from pathlib import Path
 
 import click
+
+from kbs.cli.types import FiniteFloatRange
 import numpy as np
 
 from kbs.cli.run import _check_scheduler, _jobs, _vector3, plugin_option
@@ -44,9 +46,9 @@ def _crs(ctx, param, value):
               help="The KITTI calib.txt of a KITTI poses file (default: the one beside it, if any).")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=Path("kbs-map"),
               show_default=True, help="Directory for map.tif, map.npy, map.png, cloud.ply, objects/ and map.json.")
-@click.option("--cell-size", type=click.FloatRange(0, None, min_open=True), default=0.2, show_default=True,
+@click.option("--cell-size", type=FiniteFloatRange(0, None, min_open=True), default=0.2, show_default=True,
               help="Side of a grid cell, metres.")
-@click.option("--voxel-size", type=click.FloatRange(0, None, min_open=True), default=0.1, show_default=True,
+@click.option("--voxel-size", type=FiniteFloatRange(0, None, min_open=True), default=0.1, show_default=True,
               help="Voxel side of the fused cloud and of the objects' points, metres.")
 @click.option("--max-gap", type=click.IntRange(1, None), default=1, show_default=True,
               help="Obstacle clusters of frames up to this many frames apart that overlap are one object.")

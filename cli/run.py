@@ -15,6 +15,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import click
+
+from kbs.cli.types import FiniteFloatRange
 import numpy as np
 
 from kbs import __version__
@@ -44,8 +46,10 @@ def _vector3(ctx, param, value):
         v = [float(x) for x in value.split(",")]
     except ValueError:
         v = []
-    if len(v) != 3 or not all(np.isfinite(v)):
-        raise click.BadParameter(f"expected X,Y,Z (three numbers), got {value!r}")
+    from kbs.knowledge.segmenter import MAX_COORDINATE
+
+    if len(v) != 3 or not all(np.isfinite(v)) or max(abs(x) for x in v) > MAX_COORDINATE:
+        raise click.BadParameter(f"expected X,Y,Z (three finite numbers, each within +-{MAX_COORDINATE:g}), got {value!r}")
     return v
 
 
@@ -688,13 +692,13 @@ def time_table(results: list[ScanResult | ScanFailure], t_load: float, t_total: 
 @click.option("-j", "--jobs", type=click.IntRange(min=-1), default=-1, show_default=True, callback=_jobs,
               help="Processes computing the UFP-ONC splits side by side; -1: one per available core. The result "
               "does not depend on it.")
-@click.option("--tile", "tile", type=click.FloatRange(min=0, min_open=True), metavar="SIZE",
+@click.option("--tile", "tile", type=FiniteFloatRange(min=0, min_open=True), metavar="SIZE",
               help="Segment in square tiles of SIZE (cloud units) in the ground plane, each with a buffer, and "
               "stitch them: clusters crossing a tile edge become one.")
 @click.option("--no-tile", "no_tile", is_flag=True,
               help="Run the whole cloud at once even when it is wider than the rule base's limits.tile.wider_than "
               "(which otherwise segments it in tiles of limits.tile.size, as --tile does).")
-@click.option("--buffer", "buffer", type=click.FloatRange(min=0), metavar="B",
+@click.option("--buffer", "buffer", type=FiniteFloatRange(min=0), metavar="B",
               help="How far each tile reaches beyond its core, with --tile or for the tiles of the rule base's "
               "limits.tile (default: a tenth of the tile size, at least twice the local ground surface's radius).")
 @click.option("--scheduler", "scheduler", metavar="ADDRESS|local",

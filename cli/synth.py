@@ -7,6 +7,8 @@ from pathlib import Path
 
 import click
 
+from kbs.cli.types import FiniteFloatRange
+
 from kbs.synth import Scene, outdoor_scene, polyhedral_scene
 
 
@@ -49,11 +51,11 @@ def synth() -> None:
 @click.option("--boxes", "n_boxes", type=click.IntRange(0, None), default=3, show_default=True)
 @click.option("--wedges", "n_wedges", type=click.IntRange(0, None), default=1, show_default=True)
 @resolution_option
-@click.option("--noise", type=click.FloatRange(0, None), default=0.002, show_default=True,
+@click.option("--noise", type=FiniteFloatRange(0, None), default=0.002, show_default=True,
               help="Range noise (standard deviation), metres.")
-@click.option("--sensor-height", type=click.FloatRange(0, None, min_open=True), default=1.2, show_default=True,
+@click.option("--sensor-height", type=FiniteFloatRange(0, None, min_open=True), default=1.2, show_default=True,
               help="Metres above the ground.")
-@click.option("--tilt", "tilt_deg", type=click.FloatRange(0, 90, min_open=True), default=50.0, show_default=True,
+@click.option("--tilt", "tilt_deg", type=FiniteFloatRange(0, 90, min_open=True), default=50.0, show_default=True,
               help="Depression of the optical axis, degrees.")
 def synth_polyhedral(seed: int, out: Path | None, resolution, **options) -> None:
     """Boxes and wedges on a ground plane, seen by a range sensor; label = planar face id."""
@@ -72,22 +74,22 @@ def synth_polyhedral(seed: int, out: Path | None, resolution, **options) -> None
 @click.option("--frames", "n_frames", type=click.IntRange(1, None), default=None,
               help="Ray-cast a drive of this many frames through one scene instead of one view: the sensor moves "
               "--step metres and turns --yaw-rate degrees between frames; objects stand beside the path.")
-@click.option("--step", type=click.FloatRange(0, None, min_open=True), default=1.0, show_default=True,
+@click.option("--step", type=FiniteFloatRange(0, None, min_open=True), default=1.0, show_default=True,
               help="With --frames: metres between consecutive poses.")
-@click.option("--yaw-rate", type=click.FloatRange(-45, 45), default=2.0, show_default=True,
+@click.option("--yaw-rate", type=FiniteFloatRange(-45, 45), default=2.0, show_default=True,
               help="With --frames: heading change between consecutive poses, degrees (positive: left).")
 @click.option("--street", is_flag=True,
               help="With --frames: line the path as a street (buildings, trees and poles on both sides), which "
               "also gives `kbs map --estimate-poses` surfaces to register on.")
-@click.option("--extent", type=click.FloatRange(5, None), default=25.0, show_default=True,
+@click.option("--extent", type=FiniteFloatRange(5, None), default=25.0, show_default=True,
               help="Farthest range measured, metres.")
 @click.option("--rocks", "n_rocks", type=click.IntRange(0, None), default=None,
               help="Rocks in the scene  [default: 3; 6 with --frames]")
 @click.option("--bin/--no-bin", "with_bin", default=True, show_default=True, help="Put a bin (open box) in the scene.")
 @resolution_option
-@click.option("--noise", type=click.FloatRange(0, None), default=5e-4, show_default=True,
+@click.option("--noise", type=FiniteFloatRange(0, None), default=5e-4, show_default=True,
               help="Range noise coefficient: standard deviation noise * range^2.")
-@click.option("--sensor-height", type=click.FloatRange(0, None, min_open=True), default=1.5, show_default=True,
+@click.option("--sensor-height", type=FiniteFloatRange(0, None, min_open=True), default=1.5, show_default=True,
               help="Metres above the ground's mean level.")
 def synth_outdoor(seed: int, out: Path | None, resolution, n_frames: int | None, step: float, yaw_rate: float,
                   street: bool, n_rocks: int | None, **options) -> None:
@@ -126,9 +128,9 @@ def synth_outdoor(seed: int, out: Path | None, resolution, n_frames: int | None,
               help="Write PREFIX.range (the range image) and PREFIX.gt-seg (its ground truth), as SegComp.")
 @click.option("--boxes", "n_boxes", type=click.IntRange(0, None), default=3, show_default=True)
 @click.option("--wedges", "n_wedges", type=click.IntRange(0, None), default=1, show_default=True)
-@click.option("--tilt", "tilt_deg", type=click.FloatRange(0, 60, max_open=True), default=30.0, show_default=True,
+@click.option("--tilt", "tilt_deg", type=FiniteFloatRange(0, 60, max_open=True), default=30.0, show_default=True,
               help="Tilt of the table from fronto-parallel, degrees.")
-@click.option("--noise", type=click.FloatRange(0, None), default=0.0, show_default=True,
+@click.option("--noise", type=FiniteFloatRange(0, None), default=0.0, show_default=True,
               help="Range noise (standard deviation) in range levels, before the rounding to 8 bits.")
 def synth_abw(seed: int, prefix: Path | None, **options) -> None:
     """Boxes and wedges on a tilted table seen through the ABW camera: a 512 x 512 8-bit SegComp

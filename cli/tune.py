@@ -7,6 +7,8 @@ import time
 from pathlib import Path
 
 import click
+
+from kbs.cli.types import FiniteFloatRange
 import numpy as np
 
 from kbs import __version__
@@ -45,7 +47,7 @@ from kbs.units import UNITS as LENGTH_UNITS, ScanUnits, scale_factors, unit
 @click.option("--max-evals", type=click.IntRange(min=1), default=None, metavar="N",
               help="Evaluate at most N settings of the grid (the file's own values first, then groups sharing a "
                    "split tree in a shuffled order).")
-@click.option("--time-limit", type=click.FloatRange(min=0, min_open=True), default=None, metavar="S",
+@click.option("--time-limit", type=FiniteFloatRange(min=0, min_open=True), default=None, metavar="S",
               help="Start no new setting after S seconds (the file's own values are always scored).")
 @click.option("--ground-values", callback=_int_list, metavar="V,V,...",
               help="GT labels that are ground, for every GT  [default for a SemanticKITTI .label: "

@@ -360,7 +360,7 @@ def _check_sensor(sensor: Any) -> tuple[float, float, float]:
         v = np.asarray(sensor, dtype=np.float64)
     except (ValueError, TypeError):
         v = np.zeros(0)
-    if v.shape != (3,) or not np.isfinite(v).all():
-        raise ParameterError(f"The 'sensor' parameter of Segmenter must be three finite numbers (x, y, z). "
-                             f"Got {sensor!r} instead.")
+    if v.shape != (3,) or not np.isfinite(v).all() or (np.abs(v) > MAX_COORDINATE).any():
+        raise ParameterError(f"The 'sensor' parameter of Segmenter must be three finite numbers (x, y, z), each within "
+                             f"+-{MAX_COORDINATE:g} as the points are. Got {sensor!r} instead.")
     return (float(v[0]), float(v[1]), float(v[2]))

@@ -1,0 +1,22 @@
+"""Click parameter types of the commands' options (no import beyond click: the commands' modules
+are imported when they run, and this one with them)."""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import click
+
+
+class FiniteFloatRange(click.FloatRange):
+    """``click.FloatRange`` for finite numbers only: NaN passes every comparison of a range (``nan
+    > 0`` is False, so ``min_open`` does not catch it) and ``inf`` passes an open upper end, and
+    either would run on as a silently wrong setting (a scene of infinite noise, no time limit)."""
+
+    name = "float range"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        rv = super().convert(value, param, ctx)
+        if not math.isfinite(rv):
+            self.fail(f"{value!r} is not a finite number.", param, ctx)
+        return rv
