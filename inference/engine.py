@@ -65,11 +65,15 @@ class GGState:
     dropped: tuple[DroppedCluster, ...] = ()
 
 
-def _drop_dead(mass: np.ndarray, min_mass: float, layer: str, iteration: int) -> tuple[np.ndarray, list]:
+def _drop_dead(mass: np.ndarray, min_mass: float, layer: str, iteration: int,
+               all_may_die: bool = False) -> tuple[np.ndarray, list]:
+    """Which clusters keep at least ``min_mass``, and the drops of the others. Every cluster dying
+    is a FitError, unless ``all_may_die`` (a sweep that stops at its first drop: the K before is
+    its last, however many died)."""
     alive = mass >= min_mass
     if alive.all():
         return alive, []
-    if not alive.any():
+    if not alive.any() and not all_may_die:
         raise FitError(
             f"every cluster fell below the minimum effective size {min_mass:g} in {layer} iteration "
             f"{iteration}; lower min_cluster_size or give more points"
@@ -175,7 +179,7 @@ def fcm_fit(mom: Moments, u0: np.ndarray, *, m: float, tol: float, max_iter: int
         if status == 0:
             return FCMState(centers=centers, memberships=u, n_iter=it, converged=converged)
         if stop_at_drop:  # u: the new memberships of the update in which a cluster died
-            _, dead = _drop_dead(u @ mom.w, min_mass, "fcm", it)
+            _, dead = _drop_dead(u @ mom.w, min_mass, "fcm", it, all_may_die=True)
             return FCMState(centers=centers, memberships=u, n_iter=it, converged=False, dropped=tuple(dead))
         # a cluster died: the reference below records the drop and carries on
 
@@ -183,7 +187,9 @@ def fcm_fit(mom: Moments, u0: np.ndarray, *, m: float, tol: float, max_iter: int
         centers = mom.centers(u, m)
         un = memberships_from_sq_dist(sq_euclidean(mom.XT, centers), m)
         # judged on the new memberships: a new prototype first gets a centre
-        alive, dead = _drop_dead(un @ mom.w, min_mass, "fcm", it)
+        alive, dead = _drop_dead(un @ mom.w, min_mass, "fcm", it, all_may_die=stop_at_drop)
+        if dead and not alive.any():  # every cluster died (stop_at_drop): the sweep ends here
+            return _Step(un, alive, dead, (centers,))
         if dead:
             un, centers = un[alive], centers[alive]
             un /= un.sum(axis=0)
@@ -214,7 +220,7 @@ def gg_fit(mom: Moments, u0: np.ndarray, *, m: float, center_power: float, tol: 
             return GGState(centers=centers, gaussians=gauss, priors=priors, memberships=u, maha=maha, n_iter=it,
                            converged=converged)
         if stop_at_drop:  # u: the memberships the update in which a cluster died started from
-            _, dead = _drop_dead(u @ mom.w, min_mass, "gg", it)
+            _, dead = _drop_dead(u @ mom.w, min_mass, "gg", it, all_may_die=True)
             return GGState(centers=centers, gaussians=FlooredGaussians(lam, vec, whit, logdet), priors=priors,
                            memberships=u, maha=maha, n_iter=it, converged=False, dropped=tuple(dead))
         # a cluster died: the reference below records the drop and carries on
@@ -223,7 +229,9 @@ def gg_fit(mom: Moments, u0: np.ndarray, *, m: float, center_power: float, tol: 
     def step(u: np.ndarray, it: int) -> _Step:
         centers = mom.centers(u, center_power)
         cov, mass = fuzzy_covariances(mom, u, centers)
-        alive, dead = _drop_dead(mass, min_mass, "gg", it)
+        alive, dead = _drop_dead(mass, min_mass, "gg", it, all_may_die=stop_at_drop)
+        if dead and not alive.any():  # every cluster died (stop_at_drop): the sweep ends here
+            return _Step(u, alive, dead, (centers, None, None, None))
         if dead:
             centers, cov, mass = centers[alive], cov[alive], mass[alive]
         gauss = floor_covariances(cov, min_variance, max_condition)

@@ -323,9 +323,14 @@ def ufp_onc(
                 state = gg_fit(mom, fcm.memberships, stop_at_drop=True, **gg_kw)
                 dropped = state.dropped
             if dropped:
-                notes.append(
-                    f"K={k}: " + "; ".join(str(d) for d in dropped) + f"; the sweep stopped at K={k - 1}"
-                )
+                if len(dropped) == k and k > 2:  # every cluster (identical points, a K past the points' count)
+                    masses = [d.mass for d in dropped]
+                    said = (f"all {k} clusters fell below the minimum effective size {min_mass:g} in "
+                            f"{dropped[0].layer} iteration {dropped[0].iteration} (effective sizes "
+                            f"{min(masses):.3g}-{max(masses):.3g})")
+                else:
+                    said = "; ".join(str(d) for d in dropped)
+                notes.append(f"K={k}: {said}; the sweep stopped at K={k - 1}")
                 stop_reason = "no_growth"
                 break
         if not state.converged:

@@ -464,3 +464,25 @@ def test_min_k_seeks_the_first_apd_maximum_among_larger_k():
     assert two.chosen_k >= 2
     assert two.chosen_k == eligible[first_local_max([p.apd for p in eligible])].k
     assert two.partitions[0].apd > two.best.apd  # K = 1 would have won
+
+
+@pytest.mark.parametrize("jit", [True, False])
+def test_a_sweep_in_which_every_cluster_dies_stops_at_the_k_before(jit, monkeypatch):
+    """1,000 identical points swept to K = 1,000: at K = 251 every cluster's effective size (1000 /
+    251 < 4) falls below the minimum at once. A sweep that stops at its first drop stopped at
+    K - 1 when some clusters died, but raised a FitError when all did (`kbs cluster --k-max 1000`
+    failed where `--k-max 2` succeeded); now it stops at K = 250 either way, with one note, on the
+    compiled kernels and on numpy alike."""
+    from kbs.inference import _flags
+
+    monkeypatch.setattr(_flags, "JIT", jit)
+    X = np.ones((1000, 3))
+    res = ufp_onc(X, k_max=1000, stop="k_max")
+    assert [p.k for p in res.partitions] == list(range(1, 251)) and res.stop_reason == "no_growth"
+    assert res.notes[-1] == ("K=251: all 251 clusters fell below the minimum effective size 4 in fcm iteration 1 "
+                             "(effective sizes 3.98-3.98); the sweep stopped at K=250")
+    with pytest.raises(FitError, match="every cluster fell below"):  # outside a sweep, still an error
+        from kbs.inference.engine import fcm_fit
+
+        fcm_fit(Moments.build(X, np.ones(1000)), np.full((300, 1000), 1 / 300), m=2.0, tol=1e-3, max_iter=10,
+                min_mass=4.0)
