@@ -242,6 +242,9 @@ def eval_(result: Path, ground_truth: str, tolerance: float, ground_values: tupl
     except UnknownFieldError as exc:
         raise click.BadParameter(str(exc), param_hint="GROUND_TRUTH") from None
     clusters = cloud.fields["cluster"]
+    if len(gt) and not np.count_nonzero(~np.isin(gt, np.asarray(unlabelled, dtype=np.int64))):
+        raise CloudFileError(str(ground_truth), f"no point is labelled: all {len(gt):,} labels are unlabelled values "
+                                                f"({','.join(map(str, unlabelled))}), nothing to compare")
 
     ground = None
     ground_doc = None

@@ -428,3 +428,17 @@ def test_kbs_eval_on_semantickitti(shared_data, tmp_path, capsys):
     doc = json.loads((tmp_path / "e.json").read_text())
     assert doc["ground"]["n_ignored"] == int((np.load(shared_data / "semantickitti" / "000001.labels.npy") == 0).sum())
     assert doc["ground"]["f1"] > 0.92 and doc["ground"]["precision"] > 0.9 and doc["ground"]["recall"] > 0.9
+
+
+@pytest.mark.slow
+def test_a_ground_truth_with_no_labelled_point_is_an_input_error(rocks_result):
+    """Every label of GROUND_TRUTH an unlabelled value: every metric was printed as 0 ("undefined")
+    and the ARI as nan, with exit code 0; now one line naming the file, exit code 3, no JSON."""
+    tmp, ply, truth = rocks_result
+    np.save(tmp / "none.npy", np.full(truth.size, 7, dtype=np.int32))
+    r = kbs("eval", str(ply), str(tmp / "none.npy"), "--unlabelled-values", "7", "--ground-values", "0",
+            "--json", str(tmp / "none.json"))
+    assert r.returncode == 3, r.stderr
+    assert r.stderr.strip() == (f"kbs: error: {tmp / 'none.npy'}: no point is labelled: all {truth.size:,} labels are "
+                                "unlabelled values (7), nothing to compare")
+    assert not (tmp / "none.json").exists()
