@@ -415,7 +415,10 @@ def test_ctrl_c_stops_a_tiled_run_at_once_keeping_its_tiles_and_resume_ends_it(s
     out = tmp_path / "cut"
     exe = shutil.which("kbs", path=str(Path(sys.executable).parent)) or shutil.which("kbs")
     assert exe, "the kbs command is not installed"
-    p = subprocess.Popen([exe, *args, "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # SIGINT's default action in the child: a shell starting a job in the background (CI may) makes it
+    # ignored, and Python then installs no KeyboardInterrupt for it
+    p = subprocess.Popen([exe, *args, "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     store = out / "samp31-utm.tiles"
     t0 = time.monotonic()
     while time.monotonic() - t0 < 240 and p.poll() is None and len(list(store.glob("*.npz"))) < 3:

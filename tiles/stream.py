@@ -348,7 +348,8 @@ class _Counts:
     def nonzero(self) -> tuple[np.ndarray, np.ndarray]:
         """The cells counted, row by row."""
         if self.dense is not None:
-            return np.nonzero(self.dense)
+            rows, cols = np.nonzero(self.dense)
+            return rows, cols
         cells = np.array(sorted(c for c, k in self.sparse.items() if k), dtype=np.int64)
         return cells // self.shape[1], cells % self.shape[1]
 
