@@ -2,7 +2,9 @@
 
 Data goes to stdout, progress and diagnostics to stderr. Errors a user can cause print one line
 ``kbs: error: ...`` and exit with the code of :class:`kbs.errors.ExitCode`; click's own usage
-errors exit with 2. Anything else is a bug: it prints a traceback and exits with 1.
+errors exit with 2. Anything else is a bug: one line says so and names the file its traceback
+was written to (``KBS_TRACEBACK=1`` prints it), exit code 1. Ctrl-C is exit code 130 and SIGTERM
+143, wherever they arrive (inside a compiled kernel too).
 """
 from __future__ import annotations
 
@@ -139,7 +141,7 @@ def cli(ctx: click.Context, quiet: bool) -> None:
 
     Exit codes: 0 ok, 1 internal error (a bug), 2 bad usage or option, 3 unreadable or empty
     input file, 4 invalid rule file, 5 the engine could not fit the data, 6 invalid parameter,
-    7 a predicate plugin broke the contract or failed, 8 out of memory.
+    7 a predicate plugin broke the contract or failed, 8 out of memory, 130 Ctrl-C, 143 SIGTERM.
     """
     ctx.ensure_object(dict)
     ctx.obj["quiet"] = quiet
@@ -239,7 +241,10 @@ def entry() -> None:
     does (exit code 143), where it arrives in the main thread."""
     with contextlib.suppress(ValueError, OSError):  # not the main thread: the default action
         signal.signal(signal.SIGTERM, _on_sigterm)
-    fast_exit(main())
+    code = main()
+    with contextlib.suppress(ValueError, OSError):  # the run is over: a late SIGTERM just ends the process
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    fast_exit(code)
 
 
 def fast_exit(code: int) -> None:
