@@ -298,6 +298,8 @@ class GroundSpec:
 
 #: Evenly spaced values a ``tune: {min, max}`` mark tries when it gives no ``steps``.
 TUNE_STEPS = 5
+#: The most ``steps`` a mark may give (the schema's maximum).
+TUNE_MAX_STEPS = 101
 
 
 @dataclass(frozen=True)
@@ -1109,8 +1111,8 @@ class _Validator:
                 self.add(at + ("min",), f"tune on {what}.{field}: min {lo:g} > max {hi:g}")
                 return None
             steps = mark.get("steps", TUNE_STEPS)
-            if isinstance(steps, bool) or not isinstance(steps, int):
-                return None  # the schema reported it
+            if isinstance(steps, bool) or not isinstance(steps, int) or not 2 <= steps <= TUNE_MAX_STEPS:
+                return None  # the schema reported it (a grid of 10^9 steps would fill the memory before)
             grid = [float(v) for v in np.linspace(float(lo), float(hi), max(int(steps), 2))]
             if integer:
                 grid = [float(round(v)) for v in grid]

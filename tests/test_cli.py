@@ -316,3 +316,16 @@ def test_a_sensor_beyond_the_coordinates_the_engine_takes_is_refused(tmp_path):
     assert not (tmp_path / "o").exists()
     with pytest.raises(ParameterError, match=r"within \+-1e\+50"):
         kbs_lib.Segmenter("outdoor", sensor=[0.0, -1e300, 0.0])
+
+
+def test_a_tune_mark_of_a_billion_steps_is_a_rule_file_problem_not_a_grid_built(tmp_path):
+    """`tune: {min, max, steps: 1000000000}`: the schema reported steps > 101, but the loader built
+    the grid of values first (24 GB, killed; 50 million steps still running at 60 s). Now the
+    rule file is refused at once, positioned."""
+    text = (ROOT / "examples" / "rules" / "outdoor-tune.yaml").read_text()
+    bad = tmp_path / "steps.yaml"
+    bad.write_text(text.replace("tune: [0.04, 0.05, 0.07]", "tune: {min: 0.01, max: 0.1, steps: 1000000000}", 1))
+    r = kbs("rules", "check", str(bad))
+    assert r.returncode == 4, r.stderr
+    line = next(k for k, t in enumerate(bad.read_text().splitlines(), 1) if "steps: 1000000000" in t)
+    assert f"steps.yaml:{line}:11: checks.planar.tune is invalid" in r.stderr, r.stderr

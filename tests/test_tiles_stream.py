@@ -301,3 +301,34 @@ def test_a_stray_point_thousands_of_km_away_leaves_the_scan_s_labels_as_they_wer
     want = np.asarray(PlyData.read(str(tmp_path / "r" / "alone.ply"))["vertex"]["scalar_label"])
     np.testing.assert_array_equal(got[:-1], want)
     assert got[-1] == -1  # the stray point: noise
+
+
+def test_a_streamed_run_with_no_cluster_at_all_writes_what_the_in_memory_run_writes(tmp_path):
+    """Ten points 50 m apart, tiled: every point is noise and no tile has a cluster. The streamed
+    LAS run crashed writing the explanation (IndexError in record_texts: an empty array of roots
+    indexed; the shipped simple.las with the airborne rules did it too); now its JSON is the PLY run's."""
+    rng = np.random.default_rng(0)
+    _write_las(tmp_path / "ten.las", rng.uniform(0, 50, (10, 3)), scale=1e-3)
+    for fmt in ("las", "ply"):
+        r = kbs_cmd("-q", "run", "--rules", "outdoor", "--tile", "100", "--out-format", fmt, str(tmp_path / "ten.las"),
+                    "--out", str(tmp_path / fmt))
+        assert r.returncode == 0, r.stderr
+    docs = []
+    for fmt in ("las", "ply"):
+        doc = json.loads((tmp_path / fmt / "ten.json").read_text())
+        docs.append((doc["summary"]["points_per_label"], doc["clusters"], doc["explanation"]))
+    assert docs[0] == docs[1] and docs[0][1] == [] and docs[0][0]["noise"] == 10
+
+
+def test_a_buffer_far_wider_than_the_grid_gives_every_tile_every_point(tmp_path):
+    """--buffer 1e9 (or a rule base's ground radius of 1e9, which the default buffer follows) on tiles
+    of 20 m: the spill looped over buffer / size = 5 x 10^7 cells each way for every chunk (a hang,
+    memory growing); the reach is now the grid's, and each tile holds the whole cloud."""
+    rng = np.random.default_rng(1)
+    X = rng.uniform(0, 100, (1010, 3)).round(3)
+    _write_las(tmp_path / "k.las", X, scale=1e-3)
+    spilled = spill_las(tmp_path / "k.las", tmp_path / "spill", 20.0, 1e9, chunk_points=300)
+    X = laspy.read(tmp_path / "k.las").xyz.astype(np.float64)
+    expected = TileGrid.fit(X, 20.0, 1e9).tiles(X)
+    assert [t.name for t in spilled.tiles] == [t.name for t in expected]
+    assert all(t.n_points == len(X) for t in spilled.tiles)

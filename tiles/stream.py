@@ -372,6 +372,7 @@ def _tile_rows(grid: TileGrid, uv: np.ndarray) -> dict[tuple[int, int], np.ndarr
     # a point lies in the tiles at most this many cells from its core: the buffer reaches
     # floor(buffer / size) cells past the neighbour (a margin for a ratio a rounding away from whole)
     reach = int(math.floor(grid.buffer / grid.size + 1e-9)) + 1
+    reach = min(reach, max(grid.shape))  # no tile lies farther: a buffer of 1e9 is the whole grid, not 10^8 steps
     steps = range(-reach, reach + 1)
     # each axis's test alone (the tile holds a point when both hold), made once per axis and step
     inside: list[dict[int, np.ndarray]] = []

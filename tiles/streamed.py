@@ -1426,7 +1426,9 @@ class StreamedResult:
                 texts = bytes(f["text"]).decode("utf-8").split("\n")
                 local = f["out"]
             g = int(self._offsets[k]) + local
-            outs = np.where(local >= 0, np.asarray(self._out_of_root)[np.asarray(self._roots)[np.where(local >= 0, g, 0)]], -1)
+            outs = np.full(local.shape, -1, dtype=np.int64)
+            held = local >= 0  # a record of a tile cluster (none at all when every point was noise)
+            outs[held] = np.asarray(self._out_of_root)[np.asarray(self._roots)[g[held]]]
             for text, lo, gi, out in zip(texts, local.tolist(), g.tolist(), outs.tolist()):
                 if lo < 0:
                     yield text
