@@ -7,6 +7,7 @@ Every error a user can trigger (a bad file, a bad parameter, a cloud the engine 
 from __future__ import annotations
 
 import enum
+from collections.abc import Iterator
 
 
 class ExitCode(enum.IntEnum):
@@ -28,18 +29,28 @@ class Terminated(KeyboardInterrupt):
     run as Ctrl-C does (nothing half-written, the workers stopped), with exit code 143."""
 
 
+def exception_chain(exc: BaseException | None) -> Iterator[BaseException]:
+    """``exc``, then what caused it or was being handled when it arose, and so on (each once)."""
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        yield exc
+        exc = exc.__cause__ or exc.__context__
+
+
 def interrupted(exc: BaseException | None) -> bool:
     """Whether ``exc`` is, or was caused by, a KeyboardInterrupt (Ctrl-C). A Ctrl-C that arrives while
     a compiled kernel runs comes out of the kernel's call as a SystemError ("returned a result with
     an exception set") whose cause is the KeyboardInterrupt: a wrapper that names a failed part must
     not report it as that part's failure, and a tiled run must not go on to the next tile."""
-    seen = set()
-    while exc is not None and id(exc) not in seen:
-        if isinstance(exc, KeyboardInterrupt):
-            return True
-        seen.add(id(exc))
-        exc = exc.__cause__ or exc.__context__
-    return False
+    return any(isinstance(e, KeyboardInterrupt) for e in exception_chain(exc))
+
+
+def raise_if_interrupted(exc: BaseException) -> None:
+    """Raise a KeyboardInterrupt (from ``exc``) when ``exc`` is a Ctrl-C (:func:`interrupted`): for a
+    wrapper about to report ``exc`` as the failure of the part it wraps."""
+    if interrupted(exc):
+        raise KeyboardInterrupt from exc
 
 
 class KbsError(Exception):

@@ -19,7 +19,7 @@ import threading
 
 import click
 
-from kbs.errors import ExitCode, KbsError, Terminated, interrupted
+from kbs.errors import ExitCode, KbsError, Terminated, exception_chain, interrupted
 
 #: command name -> "module:attribute". Commands are imported when used (click's lazy-group
 #: pattern), so `kbs run` does not pay for the imports of `kbs eval` or `kbs synth`.
@@ -183,15 +183,9 @@ def main(argv: list[str] | None = None) -> int:
 def _aborted(exc: BaseException) -> int:
     """Ctrl-C (exit code 130) or SIGTERM (143): one line, with what the interrupted work left for a
     next run (the notes added to the KeyboardInterrupt on its way up: a tiled run's finished tiles)."""
-    notes: list[str] = []
-    seen: set[int] = set()
-    term = False
-    e: BaseException | None = exc
-    while e is not None and id(e) not in seen:
-        seen.add(id(e))
-        term = term or isinstance(e, Terminated)
-        notes.extend(getattr(e, "__notes__", ()))
-        e = e.__cause__ or e.__context__
+    chain = list(exception_chain(exc))
+    term = any(isinstance(e, Terminated) for e in chain)
+    notes = [note for e in chain for note in getattr(e, "__notes__", ())]
     said = "kbs: terminated (SIGTERM)" if term else "kbs: aborted"
     click.echo(said + "".join(f"; {note}" for note in dict.fromkeys(notes)), err=True)
     return 128 + signal.SIGTERM if term else 130

@@ -21,7 +21,7 @@ import numpy as np
 
 from kbs import __version__
 from kbs.cli.common import ProgressLines, check_writable_folder, force_option, progress_interval, result_fields
-from kbs.errors import CloudFileError, ExitCode, KbsError, interrupted, require
+from kbs.errors import CloudFileError, ExitCode, KbsError, raise_if_interrupted, require
 from kbs.io import SUPPORTED_EXTENSIONS, PointCloud, read_cloud, read_result
 from kbs.io.atomic import replacing
 from kbs.io.las import check_classes_fit, class_codes
@@ -909,8 +909,7 @@ def _scans_on_dask(segmenter: Segmenter, scans: list[Path], out_dir: Path, sched
             try:
                 result, code, message, out, err = future.result()
             except Exception as exc:  # noqa: BLE001 - the task died twice (a worker lost), or a bug in it
-                if interrupted(exc):
-                    raise KeyboardInterrupt from exc
+                raise_if_interrupted(exc)  # Ctrl-C inside a compiled kernel: not this part's failure
                 result, code, message, out, err = None, int(ExitCode.INTERNAL), f"{type(exc).__name__}: {exc}", "", ""
             click.echo(out, nl=False)
             click.echo(err, nl=False, err=True)

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from kbs.errors import ExitCode, KbsError, interrupted
+from kbs.errors import ExitCode, KbsError, raise_if_interrupted
 from kbs.inference import ClusterGeometry, angle_between_planes, cluster_geometry
 import kbs.geometry.connexity as _connexity
 
@@ -313,8 +313,7 @@ class Predicate:
                                  f"({cluster.n_points:,} points): a predicate returns a number or raises an "
                                  "exception; it must not end the program") from None
         except BaseException as exc:  # its bug: name the predicate, its file and line, and the cluster
-            if interrupted(exc):  # Ctrl-C inside a compiled kernel: not the predicate's failure
-                raise KeyboardInterrupt from exc
+            raise_if_interrupted(exc)  # Ctrl-C inside a compiled kernel: not this part's failure
             hint = ("; a predicate must not change the cluster or the scene it is given (they are read-only)"
                     if _is_mutation(exc) else "")
             raise PredicateError(f"{self.where} failed on cluster {cluster.id} ({cluster.n_points:,} points)"
@@ -512,8 +511,7 @@ class PredicateRegistry:
                 except KeyboardInterrupt:
                     raise
                 except BaseException as exc:  # a broken third-party package must say who it is (sys.exit too)
-                    if interrupted(exc):
-                        raise KeyboardInterrupt from exc
+                    raise_if_interrupted(exc)  # Ctrl-C inside a compiled kernel: not this part's failure
                     what = f"called sys.exit({exc.code!r})" if isinstance(exc, SystemExit) else f"failed to load: {exc}"
                     raise PredicateError(f"entry point '{ep.name}' ({ep.value}) {what}") from exc
                 reg.add_object(obj, origin=f"entry point {ep.name}")
@@ -597,8 +595,7 @@ class PredicateRegistry:
             raise PredicateError(f"{_at_line(path, exc)}: the plugin called sys.exit({exc.code!r}) while being "
                                  "imported: a plugin file declares predicates; it must not end the program") from None
         except BaseException as exc:
-            if interrupted(exc):
-                raise KeyboardInterrupt from exc
+            raise_if_interrupted(exc)  # Ctrl-C inside a compiled kernel: not this part's failure
             raise PredicateError(f"{_at_line(path, exc)}: the plugin failed to import: "
                                  f"{type(exc).__name__}: {exc}") from exc
         return self.add_object(module, origin=str(path))

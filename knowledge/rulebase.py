@@ -32,7 +32,7 @@ import yaml
 import yaml.cyaml  # noqa: F401 (libyaml when present)
 from jsonschema import Draft202012Validator
 
-from kbs.errors import ExitCode, KbsError, interrupted
+from kbs.errors import ExitCode, KbsError, raise_if_interrupted
 from kbs.knowledge.engine_settings import ENGINE_DEFAULTS as _ENGINE_DEFAULTS
 from kbs.knowledge.predicates import Predicate, PredicateRegistry, did_you_mean
 
@@ -1399,8 +1399,7 @@ class _Validator:
             except KbsError:
                 raise
             except Exception as exc:  # a plugin step's bug: say which step, where
-                if interrupted(exc):
-                    raise KeyboardInterrupt from exc
+                raise_if_interrupted(exc)  # Ctrl-C inside a compiled kernel: not this part's failure
                 if not invalid:
                     self.add(path, f"post step '{key}' failed to read its settings: {type(exc).__name__}: {exc}",
                              key=True)

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from kbs.errors import FitError, KbsError, interrupted
+from kbs.errors import FitError, KbsError, raise_if_interrupted
 from kbs.inference import UFPONCResult
 from kbs.knowledge import ground as ground_search
 from kbs.knowledge.actions import DEFAULT
@@ -164,8 +164,7 @@ class Measuring:
             except KbsError:
                 raise
             except Exception as exc:  # a predicate's bug must name the predicate and cluster
-                if interrupted(exc):  # Ctrl-C inside a compiled kernel: not the predicate's failure
-                    raise KeyboardInterrupt from exc
+                raise_if_interrupted(exc)  # Ctrl-C inside a compiled kernel: not this part's failure
                 raise PredicateError(f"predicate '{check.predicate.name}' failed on cluster {cluster.id} "
                                      f"({cluster.n_points} points): {type(exc).__name__}: {exc}") from exc
             self.done[name] = m.defined and check.passes(m.value)  # an undefined value fails its check

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from kbs.errors import ParameterError, interrupted
+from kbs.errors import ParameterError, raise_if_interrupted
 from kbs.knowledge.interpreter import Interpreter, Segmentation
 from kbs.knowledge.predicates import PredicateRegistry
 from kbs.knowledge.rulebase import RuleBase, load_rule_base
@@ -186,8 +186,7 @@ class Segmenter:
         try:
             return self._interpreter.run(X)
         except Exception as exc:
-            if interrupted(exc):  # Ctrl-C inside a compiled kernel (a SystemError caused by it): as Ctrl-C
-                raise KeyboardInterrupt from exc
+            raise_if_interrupted(exc)  # Ctrl-C inside a compiled kernel: not this part's failure
             raise
         finally:
             self._interpreter.progress = None

@@ -11,6 +11,7 @@ byte for byte, in process and on any number of Dask workers.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import itertools
@@ -18,13 +19,13 @@ import logging
 import os
 import time
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from kbs.errors import ExitCode, KbsError, ParameterError, interrupted
+from kbs.errors import ExitCode, KbsError, ParameterError, raise_if_interrupted
 from kbs.knowledge.groundfacts import GroundFacts
 from kbs.knowledge.interpreter import Segmentation
 from kbs.knowledge.segmenter import Segmenter, as_points
@@ -77,9 +78,17 @@ class TileError(KbsError):
         super().__init__(f"tile {tile.bounds_text()} ({n_points:,} points): {what}{more}{kept_text}")
 
 
-def kept_note(folder: Path) -> str:
-    """What an interrupted tiled run says of the tiles it finished."""
-    return f"the finished tiles are kept in {folder}: run again with --resume (resume=True) to segment only the others"
+@contextlib.contextmanager
+def noting_kept_tiles(folder: Path | None, any_kept: Callable[[], bool]) -> Iterator[None]:
+    """Interrupted (Ctrl-C, SIGTERM) inside the block once a tile is saved (``any_kept()``), the
+    KeyboardInterrupt says where the finished tiles are kept (``folder``, the store's)."""
+    try:
+        yield
+    except KeyboardInterrupt as exc:
+        if folder is not None and any_kept():
+            exc.add_note(f"the finished tiles are kept in {folder}: run again with --resume (resume=True) to "
+                         "segment only the others")
+        raise
 
 
 class SchedulerError(ParameterError):
@@ -201,7 +210,7 @@ def segment_tiled(segmenter: Segmenter, points: Any, size: float, buffer: float 
         if progress is not None:
             progress(f"{tiles[k].name} ({done}/{len(todo)} tiles)")
 
-    try:
+    with noting_kept_tiles(store.folder if store is not None else None, lambda: any(r is not None for r in results)):
         if scheduler is None:
             for done, k in enumerate(todo, start=1):
                 try:
@@ -211,10 +220,6 @@ def segment_tiled(segmenter: Segmenter, points: Any, size: float, buffer: float 
                 finished(k, out, done)
         elif todo:
             _segment_on_dask(segmenter, X, tiles, todo, scheduler, workers, progress, finished, given)
-    except KeyboardInterrupt as exc:  # Ctrl-C: the tiles finished so far are saved; say so
-        if store is not None and any(r is not None for r in results):
-            exc.add_note(kept_note(store.folder))
-        raise
     if failures:
         first = min(failures)
         raise TileError(tiles[first], tiles[first].index.size, failures[first],
@@ -340,8 +345,7 @@ def submit_all(scheduler: str, workers: int | None, progress: Callable[[str], No
             try:
                 out = future.result()
             except Exception as exc:  # the task died twice (a worker lost), or a bug in it
-                if interrupted(exc):
-                    raise KeyboardInterrupt from exc
+                raise_if_interrupted(exc)  # Ctrl-C inside a compiled kernel: not this part's failure
                 out = exc
             k = futures.pop(future)
             future.release()

@@ -484,7 +484,7 @@ def _dispatch(segmenter: Any, runner: Callable[..., Any], names: Sequence[str], 
     not held here. Returns the failures by tile and how many outputs were resumed. Interrupted
     (Ctrl-C) once a tile is finished, the KeyboardInterrupt says that the finished tiles are kept in
     ``kept`` (the store's folder)."""
-    from kbs.tiles.run import _segment_tile, kept_note
+    from kbs.tiles.run import _segment_tile, noting_kept_tiles
 
     failures: dict[int, BaseException] = {}
     n_resumed = 0
@@ -501,7 +501,7 @@ def _dispatch(segmenter: Any, runner: Callable[..., Any], names: Sequence[str], 
         if progress is not None and not resumed:
             progress(f"{names[k]} ({done}/{len(names)} tiles)")
 
-    try:
+    with noting_kept_tiles(kept, lambda: n_kept > 0):
         if scheduler is None:
             for done, k in enumerate(range(len(names)), start=1):
                 try:
@@ -515,10 +515,6 @@ def _dispatch(segmenter: Any, runner: Callable[..., Any], names: Sequence[str], 
             spec = (segmenter.rule_base.path, segmenter.sensor, segmenter.plugins)
             submit_all(scheduler, workers, progress, finished, range(len(names)),
                        lambda k: (_task, runner, *spec, job_of(k), given), names)
-    except KeyboardInterrupt as exc:  # Ctrl-C: the tiles finished so far are saved; say so
-        if kept is not None and n_kept:
-            exc.add_note(kept_note(kept))
-        raise
     return failures, n_resumed
 
 
