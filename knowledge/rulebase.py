@@ -300,6 +300,10 @@ class GroundSpec:
 TUNE_STEPS = 5
 #: The most ``steps`` a mark may give (the schema's maximum).
 TUNE_MAX_STEPS = 101
+#: The most settings the marks of one file may make together (the product of their numbers of
+#: values): ``kbs tune`` holds every setting and its scores, and at a second a segmentation a grid
+#: this size already takes more than a day per scan.
+TUNE_MAX_SETTINGS = 100_000
 
 
 @dataclass(frozen=True)
@@ -1048,6 +1052,16 @@ class _Validator:
                 if t is not None:
                     out.append(t)
         out.sort(key=lambda t: (t.mark.line, t.mark.col))
+        total = 1
+        for i, t in enumerate(out):
+            total *= len(t.values)
+            if total > TUNE_MAX_SETTINGS:
+                sizes = " x ".join(str(len(u.values)) for u in out)
+                self.add(t.path[:-1] + ("tune",),
+                         f"the tune marks make {math.prod(len(u.values) for u in out):,} settings together ({sizes} "
+                         f"values); kbs tune tries at most {TUNE_MAX_SETTINGS:,}: give fewer steps or values, or mark "
+                         "fewer thresholds", key=True)
+                return out[:i]
         return out
 
     def _tunable(self, base: tuple, spec: dict, present: tuple[str, ...], allowed: tuple[str, ...],

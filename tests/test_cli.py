@@ -329,3 +329,37 @@ def test_a_tune_mark_of_a_billion_steps_is_a_rule_file_problem_not_a_grid_built(
     assert r.returncode == 4, r.stderr
     line = next(k for k, t in enumerate(bad.read_text().splitlines(), 1) if "steps: 1000000000" in t)
     assert f"steps.yaml:{line}:11: checks.planar.tune is invalid" in r.stderr, r.stderr
+
+
+def test_tune_marks_whose_settings_multiply_past_the_cap_are_refused_before_any_scan_is_read(tmp_path):
+    """Four marks of 101 steps each make 10^8 settings: kbs tune built the list of every setting (and
+    a score matrix) before its first segmentation and ran out of memory, --max-evals 2 or not.
+    Now the rule file is refused, positioned at the mark that passes the cap, and `kbs run` of the
+    same file too (the marks are part of the file)."""
+    import re
+
+    from kbs.knowledge.rulebase import TUNE_MAX_SETTINGS
+
+    text = (ROOT / "examples" / "rules" / "outdoor-tune.yaml").read_text()
+    marks = re.findall(r"tune: \[[^\]]*\]", text)
+    assert len(marks) == 4
+    ranges = iter(["{min: 0.03, max: 0.08, steps: 101}", "{min: 0.1, max: 0.4, steps: 101}",
+                   "{min: 0.05, max: 0.2, steps: 101}", "{min: 0.02, max: 0.09, steps: 101}"])
+    big = tmp_path / "big.yaml"
+    big.write_text(re.sub(r"tune: \[[^\]]*\]", lambda m: "tune: " + next(ranges), text))
+    third = [k for k, t in enumerate(big.read_text().splitlines(), 1) if "steps: 101" in t][2]
+    scans = []
+    for name in ("a", "b"):  # never read: the file is refused first
+        scans += [str(tmp_path / f"{name}.npy"), str(tmp_path / f"{name}.labels.npy")]
+    r = kbs("tune", "--rules", str(big), *scans, "--max-evals", "2", "--out", str(tmp_path / "t.yaml"))
+    assert r.returncode == 4, r.stderr
+    assert re.search(rf"big.yaml:{third}:\d+: the tune marks make 106,131,204 settings together "
+                     rf"\(101 x 101 x 102 x 102 values\); kbs tune tries at most {TUNE_MAX_SETTINGS:,}", r.stderr), r.stderr
+    assert not (tmp_path / "t.yaml").exists()
+    # two of the marks (10^4 settings) are a grid kbs tune takes
+    two = big.read_text()
+    for mark in ("tune: {min: 0.05, max: 0.2, steps: 101}", "tune: {min: 0.02, max: 0.09, steps: 101}"):
+        two = two.replace(mark, "")
+    assert two.count("steps: 101") == 2
+    (tmp_path / "two.yaml").write_text(two)
+    assert kbs("rules", "check", str(tmp_path / "two.yaml")).returncode == 0
