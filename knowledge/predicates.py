@@ -330,7 +330,15 @@ class Predicate:
         if not isinstance(m.value, (int, float, np.floating, np.integer)) or math.isnan(float(m.value)):
             raise PredicateError(f"{self.where} returned {m.value!r} for cluster {cluster.id}, not a number "
                                  "(when there is none, return Measurement(nan, undefined='why'))")
-        return Measurement(float(m.value), m.details)
+        value = float(m.value)
+        lo, hi = self.value_range
+        if not self.builtin and ((lo is not None and value < lo) or (hi is not None and value > hi)):
+            # a rule file's thresholds were checked against the declared range: a value outside it
+            # would be judged by thresholds that were never meant for it
+            raise PredicateError(f"{self.where} returned {value:g} for cluster {cluster.id}, outside its declared "
+                                 f"value_range [{'-inf' if lo is None else f'{lo:g}'}, "
+                                 f"{'inf' if hi is None else f'{hi:g}'}]: fix the predicate or its value_range")
+        return Measurement(value, m.details)
 
     def _line(self, exc: BaseException) -> str:
         """' at my_plugin.py:17': the last line of the predicate's own file the error went
@@ -400,7 +408,8 @@ def predicate(
     unit : str
         One of :data:`UNITS`.
     value_range : (low, high)
-        The values it can return; thresholds outside are rejected when a rule file is loaded.
+        The values it can return (numbers or None for no bound); thresholds outside are rejected
+        when a rule file is loaded, and a plugin's value outside is a :class:`PredicateError`.
     needs_ground : bool
         Whether it uses ``scene.ground``.
     needs_ground_model : bool
@@ -445,7 +454,13 @@ def make_predicate(func: Callable, *, name: str, unit: str, value_range, needs_g
     doc = inspect.getdoc(func) or ""
     if not doc.strip():
         raise PredicateError(f"{where}: a docstring saying what it measures is required")
-    lo, hi = value_range
+    try:
+        lo, hi = value_range
+        lo, hi = (None if lo is None else float(lo)), (None if hi is None else float(hi))
+    except (TypeError, ValueError):
+        raise PredicateError(f"{where}: value_range must be (low, high), numbers or None, got {value_range!r}") from None
+    if any(b is not None and math.isnan(b) for b in (lo, hi)):
+        raise PredicateError(f"{where}: value_range {value_range} has a NaN bound (use None for no bound)")
     if lo is not None and hi is not None and lo > hi:
         raise PredicateError(f"{where}: empty value range {value_range}")
     sig = inspect.signature(func)

@@ -145,6 +145,37 @@ def test_a_predicate_returning_nan_names_its_file(tmp_path):
     assert f"predicate 'nan' ({plugin}:5) returned nan for cluster c0, not a number" in r.stderr, r.stderr
 
 
+@pytest.mark.slow
+def test_a_predicate_returning_a_value_outside_its_declared_range_is_a_plugin_error(tmp_path):
+    """value_range=(0, 1) declared, 2.5 returned: the rule file's thresholds were checked against the
+    declared range when it was loaded, and the run went on judging the value with them (exit 0).
+    Now a plugin error naming the predicate, its file and the value (exit 7); a value inside runs."""
+    for name, value, code in (("over", 2.5, 7), ("inside", 0.5, 0)):
+        plugin = tmp_path / f"{name}_plugin.py"
+        plugin.write_text(PLUGIN_HEAD + "@predicate(unit='ratio', value_range=(0.0, 1.0))\n"
+                          f"def {name}(cluster, scene) -> float:\n    \"\"\"A test predicate.\"\"\"\n"
+                          f"    return {value}\n")
+        r = _run(tmp_path, plugin, name, "--force")
+        assert r.returncode == code, r.stderr
+        if code:
+            assert (f"predicate '{name}' ({plugin}:5) returned 2.5 for cluster c0, outside its declared "
+                    "value_range [0, 1]") in r.stderr, r.stderr
+
+
+def test_a_value_range_with_a_nan_bound_or_not_numbers_is_refused_when_declared():
+    from kbs.knowledge import predicate
+
+    def p(cluster, scene) -> float:
+        """A test predicate."""
+        return 0.0
+
+    with pytest.raises(PredicateError, match="NaN bound"):
+        predicate(unit="ratio", value_range=(float("nan"), 1.0))(p)
+    with pytest.raises(PredicateError, match="value_range must be"):
+        predicate(unit="ratio", value_range=("low", 1.0))(p)
+    assert predicate(unit="ratio", value_range=(0, None))(p).value_range == (0.0, None)
+
+
 # --- read-only views -----------------------------------------------------------------------------------
 
 

@@ -16,7 +16,7 @@ def elongation(cluster, scene, *, min_eigenvalue: float = 1e-12) -> float:
     """sqrt(mu3 / mu2): how much longer the cluster is along its main axis than along the
     second one (1 for a disc or a ball; large for a pole, a trunk or a cable)."""
     mu = cluster.geometry.eigenvalues
-    return float(np.sqrt(mu[2] / max(mu[1], min_eigenvalue)))
+    return float(np.sqrt(max(mu[2], min_eigenvalue) / max(mu[1], min_eigenvalue)))
 
 
 @predicate(unit="deg", value_range=(0.0, 90.0), needs_ground=True)
