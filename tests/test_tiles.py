@@ -15,6 +15,7 @@ from kbs.errors import ParameterError
 from kbs.io import write_ply
 from kbs.tiles import TileGrid, ground_axes, segment_tiled
 from scenes import ground_and_rocks
+from test_cli import ROOT
 from test_cli import kbs as kbs_cmd
 
 
@@ -67,10 +68,29 @@ def test_the_ground_plane_axes_are_orthonormal_and_across_the_normal():
     (0.0, 1.0, "The 'tile size' parameter must be a positive length. Got 0.0 instead."),
     (float("nan"), 1.0, "The 'tile size' parameter must be a positive length. Got nan instead."),
     (10.0, -1.0, "The 'buffer' parameter must be a length >= 0. Got -1.0 instead."),
+    (1.0, 4.6, "tiles of 1 with a buffer of 4.6: each tile would be segmented over 104 times its own area, every "
+               "point as many times; the buffer may be at most 4.5 tiles wide: give tiles of at least 1.02, or a "
+               "smaller buffer"),
 ])
 def test_bad_tile_size_or_buffer_is_a_parameter_error(size, buffer, message):
     with pytest.raises(ParameterError, match=re.escape(message)):
         TileGrid.fit(np.zeros((3, 3)), size, buffer)
+
+
+def test_a_buffer_of_at_most_4_5_tiles_is_a_grid():
+    assert TileGrid.fit(np.zeros((3, 3)), 1.0, 4.5).buffer == 4.5
+
+
+def test_tiles_far_below_the_buffer_are_refused_by_the_command_before_any_tile(tmp_path):
+    """`kbs run --tile 0.0001` on the 26k-point example made about 26,000 one-point tiles, each
+    segmented with the 6 m buffer (twice the ground surface's radius) around it: minutes of work
+    with no warning. Now a parameter error (exit 6) saying how small the tiles may be."""
+    r = kbs_cmd("run", "--rules", "outdoor", "--tile", "0.0001", str(ROOT / "examples" / "data" / "outdoor.ply"),
+                "--out", str(tmp_path / "o"), "-j", "1")
+    assert r.returncode == 6, r.stderr
+    assert "kbs: error: tiles of 0.0001 with a buffer of 6: each tile would be segmented over 1.44e+10 times its " \
+           "own area" in r.stderr and "give tiles of at least 1.33, or a smaller buffer" in r.stderr, r.stderr
+    assert not list((tmp_path / "o").glob("*.ply"))
 
 
 # -- 2. stitching, through the command -----------------------------------------------------------

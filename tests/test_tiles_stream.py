@@ -10,7 +10,9 @@ import laspy
 import numpy as np
 import pytest
 
+from kbs.errors import ParameterError
 from kbs.tiles import TileGrid
+from kbs.tiles.grid import MAX_BUFFER_TILES
 from kbs.tiles.stream import SpilledTiles, spill_las
 from scenes import ground_and_rocks
 from test_cli import kbs as kbs_cmd
@@ -321,14 +323,20 @@ def test_a_streamed_run_with_no_cluster_at_all_writes_what_the_in_memory_run_wri
 
 
 def test_a_buffer_far_wider_than_the_grid_gives_every_tile_every_point(tmp_path):
-    """--buffer 1e9 (or a rule base's ground radius of 1e9, which the default buffer follows) on tiles
-    of 20 m: the spill looped over buffer / size = 5 x 10^7 cells each way for every chunk (a hang,
-    memory growing); the reach is now the grid's, and each tile holds the whole cloud."""
+    """A buffer reaching past the whole grid: the spill looped over buffer / size cells each way
+    for every chunk (--buffer 1e9 on tiles of 20 m: 5 x 10^7, a hang, memory growing); the reach is
+    now the grid's, and each tile holds the whole cloud. A buffer wider than MAX_BUFFER_TILES tiles
+    (--buffer 1e9 on tiles of 20) is refused before any chunk is read."""
     rng = np.random.default_rng(1)
     X = rng.uniform(0, 100, (1010, 3)).round(3)
     _write_las(tmp_path / "k.las", X, scale=1e-3)
-    spilled = spill_las(tmp_path / "k.las", tmp_path / "spill", 20.0, 1e9, chunk_points=300)
+    buffer = MAX_BUFFER_TILES * 20.0  # 90 m: past every edge of a 100 m cloud from any tile
+    spilled = spill_las(tmp_path / "k.las", tmp_path / "spill", 20.0, buffer, chunk_points=300)
     X = laspy.read(tmp_path / "k.las").xyz.astype(np.float64)
-    expected = TileGrid.fit(X, 20.0, 1e9).tiles(X)
+    expected = TileGrid.fit(X, 20.0, buffer).tiles(X)
     assert [t.name for t in spilled.tiles] == [t.name for t in expected]
     assert all(t.n_points == len(X) for t in spilled.tiles)
+    with pytest.raises(ParameterError, match=r"tiles of 20 with a buffer of 1e\+09: .* give tiles of at least "
+                                             r"2\.22e\+08, or a smaller buffer"):
+        spill_las(tmp_path / "k.las", tmp_path / "spill2", 20.0, 1e9, chunk_points=300)
+    assert not (tmp_path / "spill2").exists() or not any((tmp_path / "spill2").iterdir())

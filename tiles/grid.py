@@ -93,6 +93,12 @@ class Tile:
         return f"{self.name} [{u0:.6g}, {u1:.6g}] x [{v0:.6g}, {v1:.6g}]"
 
 
+#: The widest buffer, in tile sizes: a tile with its buffer then covers at most (1 + 2 x 4.5)^2 = 100
+#: times its core's area. (A tile of 0.0001 m with the outdoor rules' 6 m buffer made 26,000 tiles
+#: of one point each, every one segmented with the 12 m wide neighbourhood around it.)
+MAX_BUFFER_TILES = 4.5
+
+
 @dataclass(frozen=True)
 class TileGrid:
     """Square tiles of side ``size`` with a ``buffer``, from ``origin`` along ``axes``.
@@ -121,7 +127,8 @@ class TileGrid:
         Raises
         ------
         ParameterError
-            ``size`` not a positive finite number, ``buffer`` negative or not finite.
+            ``size`` not a positive finite number, ``buffer`` negative or not finite, or wider
+            than :data:`MAX_BUFFER_TILES` tiles.
         """
         if isinstance(size, bool) or not isinstance(size, (int, float, np.number)) or not math.isfinite(size) \
                 or size <= 0:
@@ -129,6 +136,12 @@ class TileGrid:
         if isinstance(buffer, bool) or not isinstance(buffer, (int, float, np.number)) \
                 or not math.isfinite(buffer) or buffer < 0:
             raise ParameterError(f"The 'buffer' parameter must be a length >= 0. Got {buffer!r} instead.")
+        if buffer > MAX_BUFFER_TILES * size:
+            reach = ((size + 2.0 * buffer) / size) ** 2
+            raise ParameterError(f"tiles of {size:g} with a buffer of {buffer:g}: each tile would be segmented over "
+                                 f"{reach:.3g} times its own area, every point as many times; the buffer may be at "
+                                 f"most {MAX_BUFFER_TILES:g} tiles wide: give tiles of at least "
+                                 f"{buffer / MAX_BUFFER_TILES:.3g}, or a smaller buffer")
         axes = ground_axes(normal)
         uv = X @ axes.T
         lo, hi = uv.min(axis=0), uv.max(axis=0)
