@@ -28,10 +28,12 @@ from kbs.evaluation.hoover import check_tolerance
 from kbs.evaluation.segcomp import DEFAULT_TOLERANCES, segcomp_table
 from kbs.io.segcomp import FIRST_REGION_LABEL, NON_REGION_VALUES, read_gt_seg, read_ms_nor, read_range, read_sunraster
 from kbs.io.atomic import replacing
+from kbs.cli.common import force_option
 from kbs.io.result import (
     InputFiles,
     check_output,
     check_pair,
+    new_run_id,
     read_result,
     read_result_cloud,
     require_fields,
@@ -181,7 +183,8 @@ def format_ground(g: GroundMetrics) -> str:
 @click.option("--ground-label", default="ground", show_default=True, metavar="NAME",
               help="The result's label that means ground (from its <stem>.json label_names).")
 @click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), metavar="OUT.json",
-              help="Also write every number to this JSON file.")
+              help="Also write every number to this JSON file (never over an input; over an existing file kbs "
+                   "did not write only with --force; an earlier kbs eval JSON is replaced).")
 @click.option("--hoover/--no-hoover", "do_hoover", default=None,
               help="Compute the Hoover region classification (MS regions: the result's clusters). Default: yes, "
                    "except for a ground evaluation (--ground-values, or a .label GT), which prints the ground "
@@ -191,9 +194,11 @@ def format_ground(g: GroundMetrics) -> str:
                    "[default for X.ms-seg: 0.51,0.6,0.7,0.8,0.9].")
 @click.option("--image", "image_path", type=click.Path(dir_okay=False, path_type=Path), metavar="X.range",
               help="SegComp only: the range image, for the angle error [default: GROUND_TRUTH's X.range beside it].")
+@force_option
 def eval_(result: Path, ground_truth: str, tolerance: float, ground_values: tuple[int, ...] | None,
           unlabelled_values: tuple[int, ...] | None, ground_label: str, json_out: Path | None,
-          do_hoover: bool | None, tolerances: tuple[float, ...] | None, image_path: Path | None) -> None:
+          do_hoover: bool | None, tolerances: tuple[float, ...] | None, image_path: Path | None,
+          force: bool = False) -> None:
     """Compare a `kbs run` RESULT (.ply) with GROUND_TRUTH: a label file (.npy, a SemanticKITTI
     .label, or text with one integer per line) or field:NAME, a field of RESULT (e.g.
     field:label_in, the input's own 'label').
@@ -215,7 +220,14 @@ def eval_(result: Path, ground_truth: str, tolerance: float, ground_values: tupl
     tolerance) and the regions at --tolerance. The angle error needs the range image (--image);
     the MS normals come from X.ms-nor beside X.ms-seg when it exists.
     """
-    _check_json_out(json_out, result, result.with_suffix(".json"), ground_truth)
+    inputs: list[str | Path] = [result, result.with_suffix(".json"), ground_truth]
+    if _is_seg(str(result), ".ms-seg"):  # the normals beside X.ms-seg and the range image are read too
+        inputs.append(result.with_name(result.name[:-len(".ms-seg")] + ".ms-nor"))
+    if image_path is not None:
+        inputs.append(image_path)
+    elif _is_seg(ground_truth, ".gt-seg"):
+        inputs.append(ground_truth[:-len(".gt-seg")] + ".range")
+    _check_json_out(json_out, *inputs, force=force)
     if _is_seg(str(result), ".ms-seg") or _is_seg(ground_truth, ".gt-seg"):
         given = [name for name, value in (("--ground-values", ground_values),
                                           ("--unlabelled-values", unlabelled_values)) if value is not None]
@@ -298,7 +310,7 @@ def eval_(result: Path, ground_truth: str, tolerance: float, ground_values: tupl
     click.echo(f"adjusted Rand index: {ari:.4f} (clusters vs GT labels, on the labelled points)")
 
     if json_out is not None:
-        doc = {"kbs_version": __version__, "result": str(result), "ground_truth": ground_truth,
+        doc = {"kbs_version": __version__, "run_id": new_run_id(), "result": str(result), "ground_truth": ground_truth,
                "n_points": len(cloud), "n_labelled": n_labelled, "unlabelled_values": list(unlabelled),
                "hoover": None if h is None else h.to_dict(), "ground": ground_doc,
                "adjusted_rand": _nan_none(ari)}
@@ -320,11 +332,13 @@ def _write_json(json_out: Path, doc: dict) -> None:
     click.echo(f"wrote {json_out}")
 
 
-def _check_json_out(json_out: Path | None, *inputs: str | Path) -> None:
-    """Before the work: --json is never one of the inputs (the result's own JSON included)."""
+def _check_json_out(json_out: Path | None, *inputs: str | Path, force: bool) -> None:
+    """Before the work: --json is never one of the inputs (the result's own JSON included), nor an
+    existing file kbs did not write unless ``force`` (the JSON eval writes carries ``kbs_version``
+    and a ``run_id``: an earlier one is replaced)."""
     if json_out is not None:
         files = [p for p in inputs if not str(p).startswith("field:")]
-        check_output(json_out, inputs=InputFiles(files), force=True)
+        check_output(json_out, inputs=InputFiles(files), force=force, option="--json")
 
 
 def _is_seg(name: str, suffix: str) -> bool:
@@ -375,7 +389,7 @@ def _eval_segcomp(ms_path: Path, gt_path: Path, image_path: Path | None, toleran
     click.echo(format_table(rows))
     click.echo(format_hoover(detail))
     if json_out is not None:
-        doc = {"kbs_version": __version__, "result": str(ms_path), "ground_truth": str(gt_path),
+        doc = {"kbs_version": __version__, "run_id": new_run_id(), "result": str(ms_path), "ground_truth": str(gt_path),
                "segcomp": {"image": None if xyz is None else str(image_path),
                            "ms_normals": str(nor_path) if ms_normals is not None else None,
                            "n_pixels": int(ms.size)},

@@ -9,6 +9,7 @@ import click
 from kbs.cli.types import FiniteFloatRange
 import numpy as np
 
+from kbs.cli.common import check_writable_folder, force_option
 from kbs.cli.run import _check_scheduler, _jobs, _vector3, plugin_option
 from kbs.knowledge import Segmenter
 from kbs.knowledge.rulebase import shipped_rule_bases
@@ -45,7 +46,9 @@ def _crs(ctx, param, value):
 @click.option("--calib", type=click.Path(path_type=Path), metavar="FILE",
               help="The KITTI calib.txt of a KITTI poses file (default: the one beside it, if any).")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=Path("kbs-map"),
-              show_default=True, help="Directory for map.tif, map.npy, map.png, cloud.ply, objects/ and map.json.")
+              show_default=True, help="Directory for map.tif, map.npy, map.png, cloud.ply, objects/ and map.json "
+              "(checked before any frame is segmented: a file there kbs did not write is replaced only with --force).")
+@force_option
 @click.option("--cell-size", type=FiniteFloatRange(0, None, min_open=True), default=0.2, show_default=True,
               help="Side of a grid cell, metres.")
 @click.option("--voxel-size", type=FiniteFloatRange(0, None, min_open=True), default=0.1, show_default=True,
@@ -73,7 +76,7 @@ def map_(ctx: click.Context, rules: str, scans: tuple[Path, ...], poses: Path | 
          estimate_poses: bool,
          calib: Path | None,
          out_dir: Path, cell_size: float, voxel_size: float, max_gap: int, report: bool, crs: str | None, sensor,
-         plugins: tuple[Path, ...], scheduler: str | None, jobs: int) -> None:
+         plugins: tuple[Path, ...], scheduler: str | None, jobs: int, force: bool = False) -> None:
     """Segment every frame of a drive (SCANS: scan files and folders of scans in name order, one
     KITTI sequence folder holding velodyne/*.bin and poses.txt, or one ROS 1/2 bag) with one rule base, bring each into
     the world frame with its pose and fuse them into DIR/: an obstacle grid in log-odds (map.tif,
@@ -81,7 +84,7 @@ def map_(ctx: click.Context, rules: str, scans: tuple[Path, ...], poses: Path | 
     labelled cloud (cloud.ply) and an index of frames, objects and cells (map.json); with --report,
     the map view (map.html)."""
     from kbs.maps import map_drive, read_drive
-    from kbs.maps.files import write_map
+    from kbs.maps.files import check_map_outputs, write_map
 
     quiet = ctx.obj.get("quiet", False)
     t0 = time.perf_counter()
@@ -99,6 +102,10 @@ def map_(ctx: click.Context, rules: str, scans: tuple[Path, ...], poses: Path | 
         drive = read_drive(scans, poses, calib=calib, topic=topic)
     except TopicError as exc:
         raise click.BadParameter(str(exc), param_hint="--topic") from exc
+    inputs = [*scans, *(p for p in (poses, calib, drive.poses.path) if p is not None),
+              *(f.path for f in drive.frames if f.path is not None)]
+    check_map_outputs(out_dir, inputs=inputs, force=force, report=report)  # before any frame is segmented
+    check_writable_folder(out_dir, create=True)
     odometry = None
     if estimate_poses:
         from kbs.maps.odometry import Odometry
@@ -133,7 +140,7 @@ def map_(ctx: click.Context, rules: str, scans: tuple[Path, ...], poses: Path | 
                           workers=None if jobs == -1 else jobs)
         except SchedulerError as exc:
             raise click.BadParameter(str(exc), param_hint="--scheduler") from exc
-    doc = write_map(m, out_dir, crs=crs, report=report)
+    doc = write_map(m, out_dir, crs=crs, report=report, force=force)
     g = m.grid
     c = g.counts()
     kinds: dict[str, int] = {}

@@ -6,9 +6,10 @@ from pathlib import Path
 
 import click
 
+from kbs.cli.common import force_option
 from kbs.errors import CloudFileError, require
 from kbs.io.atomic import replacing
-from kbs.io.result import InputFiles, check_output
+from kbs.io.result import InputFiles, check_output, distinct_outputs, new_run_id, png_metadata
 
 KINDS = ("series", "map", "clusters", "cah")
 #: What ``--kind all`` draws (``cah`` too when ``--cluster`` is given).
@@ -32,8 +33,10 @@ def _outputs(result: Path, out: Path | None, kind: str, cluster: str | None = No
 @click.command()
 @click.argument("result", type=click.Path(path_type=Path, readable=False))
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="PNG to write (default: <stem>-<kind>.png next to RESULT). With --kind all, three "
-                   "files: <out stem>-series.png, -map.png, -clusters.png.")
+              help="PNG to write (default: <stem>-<kind>.png next to RESULT; the only format: .png, or no suffix). "
+                   "With --kind all, three files: <out stem>-series.png, -map.png, -clusters.png. Never over the "
+                   "result; over an existing file kbs did not write only with --force (kbs marks its PNGs with a "
+                   "run id, and replaces them).")
 @click.option("--kind", type=click.Choice([*KINDS, "all"]), default="all", show_default=True,
               help="series: the K-partitions with each cluster's eigen-box (seed paper's figure 2): those the "
                    "global strategy judged, or for the divisive strategy UFP-ONC's sweep re-run for K = 2,4,5,6,8,10; "
@@ -48,21 +51,28 @@ def _outputs(result: Path, out: Path | None, kind: str, cluster: str | None = No
 @click.option("--dpi", type=click.IntRange(30, 600), default=100, show_default=True)
 @click.option("--ground-label", default="ground", show_default=True, metavar="NAME",
               help="The map's ground: cells whose points all have this label (from RESULT's label_names).")
+@force_option
 def render(result: Path, out: Path | None, kind: str, cluster_id: str | None, max_points: int, dpi: int,
-           ground_label: str) -> None:
+           ground_label: str, force: bool = False) -> None:
     """Draw figures of a `kbs run` RESULT.json (its points are read from the sibling RESULT.ply;
     the two must be the same run's)."""
     if kind == "cah" and cluster_id is None:
         raise click.UsageError("--kind cah draws one cluster: give it with --cluster ID (kbs explain RESULT lists them)")
+    outputs = _outputs(result, out, kind, cluster_id)
+    for path in outputs.values():  # before any work: matplotlib would refuse it after the drawing
+        if path.suffix.lower() != ".png":
+            raise click.BadParameter(f"{path}: kbs render writes PNG figures: give a name ending with .png (or no "
+                                     f"suffix), not {path.suffix!r}", param_hint="--out")
     matplotlib = require("matplotlib", "render", "kbs render")
     matplotlib.use("Agg")  # headless whatever MPLBACKEND says
     from kbs.report import figures
 
     t0 = time.perf_counter()
-    outputs = _outputs(result, out, kind, cluster_id)
-    sources = InputFiles((result, result.with_suffix(".ply")))
-    for path in outputs.values():  # a figure never replaces the result it is drawn from
-        check_output(path, inputs=sources, force=True)
+    sources = InputFiles((result, result.with_suffix(".ply"), result.with_suffix(".las"), result.with_suffix(".laz")))
+    distinct_outputs(*((f"the {k} figure", p) for k, p in outputs.items()))
+    for path in outputs.values():  # a figure never replaces the result it is drawn from, nor another program's file
+        check_output(path, inputs=sources, force=force)
+    run_id = new_run_id()
     res = figures.load_result(result)
     if "map" in outputs and ground_label not in res.label_names:
         raise click.BadParameter(f"no label {ground_label!r} in this result (labels: {', '.join(res.label_names) or 'none'}): "
@@ -88,7 +98,7 @@ def render(result: Path, out: Path | None, kind: str, cluster_id: str | None, ma
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             with replacing(path) as (tmp,):  # whole or not at all; the temporary name keeps the suffix
-                fig.savefig(tmp, dpi=dpi, format=path.suffix[1:].lower() or "png")
+                fig.savefig(tmp, dpi=dpi, format="png", metadata=png_metadata(run_id))  # the run id marks it as kbs's
         except OSError as exc:
             raise CloudFileError(str(path), f"cannot write: {exc.strerror or exc}") from exc
         click.echo(f"wrote {path} ({time.perf_counter() - t:.2f} s)")

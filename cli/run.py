@@ -280,6 +280,10 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
         sources = inputs if isinstance(inputs, InputFiles) else InputFiles((cloud, *inputs))
         for target in (points, js, *([html] if report else [])):
             check_output(target, inputs=sources, force=force)
+        if meshes:  # before the work too: a mesh kbs did not write is replaced only with --force
+            from kbs.report.meshes import check_meshes_folder
+
+            check_meshes_folder(out_dir / f"{stem}-meshes", force=force)
     spilled: SpilledCloud | None = None  # a LAS/LAZ file read in chunks, or a COPC file by its octree
     why_tiled = None
     if tiling is None and auto_tile and not stdin and not to_stdout and sensor is None:
@@ -323,7 +327,8 @@ def run_scan(segmenter: Segmenter, cloud: Path, out_dir: Path | None, *, color_b
                                   points=points, js=js, html=html, to_stdout=to_stdout, color_by=color_by,
                                   meshes=meshes, report=report, quiet=quiet, units=units, sensor=sensor,
                                   tiling=tiling, auto_tile=auto_tile, auto_scheduler=auto_scheduler,
-                                  why_tiled=why_tiled, say=say, tile_options=tile_options, chunk_note=chunk_note)
+                                  why_tiled=why_tiled, say=say, tile_options=tile_options, chunk_note=chunk_note,
+                                  force=force)
     finally:
         if spilled is not None:
             spilled.remove()
@@ -434,7 +439,7 @@ def _buffer(segmenter: Segmenter, tiling: Tiling) -> float:
 
 def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, stem, fmt, points, js, html, to_stdout,
                        color_by, meshes, report, quiet, units, sensor, tiling, auto_tile, auto_scheduler, why_tiled,
-                       say, tile_options=TileOptions(), chunk_note=None) -> ScanResult:
+                       say, tile_options=TileOptions(), chunk_note=None, force=False) -> ScanResult:
     rb = segmenter.rule_base
     name = "<stdin>" if stdin else str(cloud)
     if fmt != "ply":
@@ -565,7 +570,7 @@ def _segment_and_write(segmenter, cloud, pc, spilled, out_dir, t0, *, stdin, ste
         from kbs.report.meshes import write_meshes
 
         say(write_meshes(out_dir / f"{stem}-meshes", pc.xyz, seg.cluster, seg.label,
-                         seg.label_names).describe())
+                         seg.label_names, run_id=run_id, force=force).describe())
     if report:
         from kbs.report.html import write_report
 
@@ -686,7 +691,9 @@ def time_table(results: list[ScanResult | ScanFailure], t_load: float, t_total: 
 @click.option("--color-by", "color_by", type=click.Choice(["cluster", "label"]), default="cluster", show_default=True,
               help="Colour of each vertex (red green blue) in a PLY result: one per output cluster or per label.")
 @click.option("--meshes", is_flag=True, help="Also write DIR/<stem>-meshes/: a convex hull per obstacle cluster "
-              "(obstacle-<index>.ply) and the ground surface (ground.ply).")
+              "(obstacle-<index>.ply) and the ground surface (ground.ply), each with the result's run id; checked "
+              "before the work: a folder holding other files is refused, a mesh kbs did not write is replaced only "
+              "with --force.")
 @click.option("--report", is_flag=True, help="Also write DIR/<stem>.html: a self-contained report (3D view by "
               "cluster or label, centres and eigen-boxes, APD curve, the explanation tree; opens offline).")
 @click.option("-j", "--jobs", type=click.IntRange(min=-1), default=-1, show_default=True, callback=_jobs,

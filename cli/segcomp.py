@@ -6,10 +6,12 @@ from pathlib import Path
 import click
 import numpy as np
 
+from kbs.cli.common import check_writable_folder
 from kbs.errors import CloudFileError
 from kbs.evaluation.segcomp import image_region_normals, segmentation_to_image
 from kbs.io import PointCloud
-from kbs.io.result import read_result_cloud, require_fields
+from kbs.io.atomic import replacing
+from kbs.io.result import InputFiles, check_output, distinct_outputs, read_result_cloud, require_fields
 from kbs.io.segcomp import FIRST_REGION_LABEL, read_sunraster, write_ms_nor, write_ms_seg
 
 
@@ -48,10 +50,26 @@ def _check_against_image(result: Path, image_path: Path, image: np.ndarray, pixe
         raise CloudFileError(str(result), "two points share a pixel: not a `kbs run` result on a range image")
 
 
-def _not_an_input(path: Path, *inputs: Path) -> None:
-    for source in inputs:
-        if path.resolve() == source.resolve():
-            raise CloudFileError(str(path), "the output would overwrite an input; choose another path")
+def _prefix(path: Path, suffix: str) -> Path:
+    """``path`` without ``suffix`` (any case) when it ends with it, else without its last suffix."""
+    if path.name.lower().endswith(suffix):
+        return path.with_name(path.name[:-len(suffix)])
+    return path.with_suffix("")
+
+
+def _check_outputs(result: Path, image_path: Path, out: Path, normals: Path | None, force: bool) -> None:
+    """Before the work: the outputs are two files, never an input (RESULT, its <stem>.json, the
+    image, the ground truth <prefix>.gt-seg beside the image or beside --out), and an existing one
+    only with ``force`` (kbs cannot tell its own .ms-seg / .ms-nor from another program's)."""
+    distinct_outputs(("--out", out), ("--normals", normals))
+    sources = InputFiles([result, result.with_suffix(".json"), image_path,
+                          _prefix(image_path, ".range").with_name(_prefix(image_path, ".range").name + ".gt-seg"),
+                          _prefix(out, ".ms-seg").with_name(_prefix(out, ".ms-seg").name + ".gt-seg")])
+    for path, what in ((out, "--out"), (normals, "--normals")):
+        if path is None:
+            continue
+        check_output(path, inputs=sources, force=force, option=what)
+        check_writable_folder(path.parent, create=False, name=path)
 
 
 @click.command()
@@ -63,20 +81,26 @@ def _not_an_input(path: Path, *inputs: Path) -> None:
 @click.option("--normals", type=click.Path(dir_okay=False, path_type=Path), metavar="X.ms-nor",
               help="Region normals file to write [default: the --out path with the suffix .ms-nor].")
 @click.option("--no-normals", is_flag=True, help="Do not write the normals file (for compare -noNormals).")
+@click.option("--force", is_flag=True,
+              help="Replace an existing --out / --normals file. The SegComp formats have no room for a kbs run "
+                   "id, so kbs cannot tell its own earlier .ms-seg / .ms-nor from another program's: an existing "
+                   "one is replaced only with --force. Never an input (RESULT, its .json, the image, a .gt-seg).")
 @click.pass_context
 def segcomp(ctx: click.Context, result: Path, image_path: Path, out: Path | None, normals: Path | None,
-            no_normals: bool) -> None:
+            no_normals: bool, force: bool = False) -> None:
     """Write the SegComp machine segmentation of a `kbs run` RESULT.ply on a range image.
 
     Cluster k becomes region 10 + k (labels consecutive from 10, at most 246 regions); noise and
     pixels without data are 0. The normals file holds each region's least-squares plane normal.
     Name the outputs <prefix>.ms-seg / <prefix>.ms-nor beside <prefix>.gt-seg for `compare`.
+    Existing output files are replaced only with --force (checked before any work).
     """
     quiet = ctx.obj.get("quiet", False)
     if no_normals and normals is not None:
         raise click.UsageError("--normals and --no-normals exclude each other")
     out = out if out is not None else result.with_suffix(".ms-seg")
     normals = None if no_normals else (normals if normals is not None else out.with_suffix(".ms-nor"))
+    _check_outputs(result, image_path, out, normals, force)
     cloud = read_result_cloud(result)
     cluster, pixel = _result_arrays(result, cloud)
     image = read_sunraster(image_path)
@@ -86,12 +110,17 @@ def segcomp(ctx: click.Context, result: Path, image_path: Path, out: Path | None
     if n_regions == 0:
         raise CloudFileError(str(result), "no cluster of at least 3 points: nothing to segment (every point is noise)")
     region_normal = image_region_normals(labels, cloud.xyz, pixel) if normals is not None else None
-    for path in (out, normals):
-        if path is not None:
-            _not_an_input(path, result, image_path)
-    write_ms_seg(out, labels)
-    if region_normal is not None:
-        write_ms_nor(normals, region_normal)
+    targets = (out,) if normals is None else (out, normals)
+    with replacing(*targets) as temps:  # both whole, or neither
+        for target, temp in zip(targets, temps):
+            try:
+                if target == out:
+                    write_ms_seg(temp, labels)
+                else:
+                    assert region_normal is not None
+                    write_ms_nor(temp, region_normal)
+            except CloudFileError as exc:  # named where the user looks, not the temporary file
+                raise CloudFileError(str(target), exc.problem) from exc
     n_clusters = np.unique(cluster[cluster >= 0]).size
     labelled = int(np.count_nonzero(labels >= FIRST_REGION_LABEL))
     click.echo(f"{result}: {len(cluster):,} points, {n_clusters} clusters -> {n_regions} regions "

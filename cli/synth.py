@@ -7,7 +7,9 @@ from pathlib import Path
 
 import click
 
+from kbs.cli.common import check_writable_folder
 from kbs.cli.types import FiniteFloatRange
+from kbs.io.result import check_output, listed_by_index
 
 from kbs.synth import Scene, outdoor_scene, polyhedral_scene
 
@@ -27,7 +29,18 @@ def _resolution(ctx, param, value):
 seed_option = click.option("--seed", type=click.IntRange(0, None), default=0, show_default=True,
                            help="Seed of the random generator (same seed and options, same scene).")
 out_option = click.option("--out", type=click.Path(dir_okay=False, path_type=Path),
-                          help="Write the scene to this PLY file (per-vertex label, object, ground, pixel).")
+                          help="Write the scene to this PLY file (per-vertex label, object, ground, pixel; a kbs run "
+                               "id in its header).")
+force_option = click.option("--force", is_flag=True,
+                            help="Replace existing output files that kbs did not write (checked before the scene is "
+                                 "made).")
+
+
+def _check_out(out: Path | None, force: bool) -> None:
+    """Before the work: a file kbs did not write only with ``force``; the folder must accept files."""
+    if out is not None:
+        check_output(out, force=force)
+        check_writable_folder(out.parent, create=False, name=out)
 resolution_option = click.option("--resolution", callback=_resolution, metavar="ROWSxCOLS",
                                   help="Image size of the simulated sensor.")
 
@@ -48,6 +61,7 @@ def synth() -> None:
 @synth.command("polyhedral")
 @seed_option
 @out_option
+@force_option
 @click.option("--boxes", "n_boxes", type=click.IntRange(0, None), default=3, show_default=True)
 @click.option("--wedges", "n_wedges", type=click.IntRange(0, None), default=1, show_default=True)
 @resolution_option
@@ -57,8 +71,9 @@ def synth() -> None:
               help="Metres above the ground.")
 @click.option("--tilt", "tilt_deg", type=FiniteFloatRange(0, 90, min_open=True), default=50.0, show_default=True,
               help="Depression of the optical axis, degrees.")
-def synth_polyhedral(seed: int, out: Path | None, resolution, **options) -> None:
+def synth_polyhedral(seed: int, out: Path | None, resolution, force: bool = False, **options) -> None:
     """Boxes and wedges on a ground plane, seen by a range sensor; label = planar face id."""
+    _check_out(out, force)
     if resolution is not None:
         options["resolution"] = resolution
     t0 = time.perf_counter()
@@ -70,7 +85,9 @@ def synth_polyhedral(seed: int, out: Path | None, resolution, **options) -> None
 @seed_option
 @click.option("--out", type=click.Path(path_type=Path),
               help="Write the scene to this PLY file (per-vertex label, object, ground, pixel); with --frames, the "
-              "drive to this folder (scans/NNNNNN.ply, poses.txt, truth.json).")
+              "drive to this folder (scans/NNNNNN.ply, poses.txt, truth.json: each marked as kbs's by a run id, "
+              "poses.txt by its digest in truth.json).")
+@force_option
 @click.option("--frames", "n_frames", type=click.IntRange(1, None), default=None,
               help="Ray-cast a drive of this many frames through one scene instead of one view: the sensor moves "
               "--step metres and turns --yaw-rate degrees between frames; objects stand beside the path.")
@@ -92,7 +109,7 @@ def synth_polyhedral(seed: int, out: Path | None, resolution, **options) -> None
 @click.option("--sensor-height", type=FiniteFloatRange(0, None, min_open=True), default=1.5, show_default=True,
               help="Metres above the ground's mean level.")
 def synth_outdoor(seed: int, out: Path | None, resolution, n_frames: int | None, step: float, yaw_rate: float,
-                  street: bool, n_rocks: int | None, **options) -> None:
+                  street: bool, n_rocks: int | None, force: bool = False, **options) -> None:
     """Uneven ground, rocks and a bin, seen by a stereo-like sensor; label 0 ground, 1.. objects.
 
     With --frames N: a drive of N frames through one such scene (each frame in its sensor frame,
@@ -102,7 +119,16 @@ def synth_outdoor(seed: int, out: Path | None, resolution, n_frames: int | None,
         options["resolution"] = resolution
     t0 = time.perf_counter()
     if n_frames is not None:
-        from kbs.synth.drive import outdoor_drive
+        from kbs.synth.drive import drive_files, outdoor_drive
+
+        if out is not None:  # before the work: each file the drive would replace
+            if out.exists() and not out.is_dir():
+                raise click.BadParameter(f"{out} is a file; give a folder for the drive (--frames)",
+                                         param_hint="--out")
+            scans, poses, truth = drive_files(out, n_frames)
+            for target in (*scans, truth):
+                check_output(target, force=force)
+            check_output(poses, force=force, own=listed_by_index(poses, truth))
 
         drive = outdoor_drive(seed, n_frames=n_frames, step=step, yaw_rate=yaw_rate, street=street,
                               n_rocks=6 if n_rocks is None else n_rocks, **options)
@@ -117,6 +143,7 @@ def synth_outdoor(seed: int, out: Path | None, resolution, n_frames: int | None,
     if out is not None and out.is_dir():
         raise click.BadParameter(f"{out} is a directory; give a PLY file name (a folder is for --frames)",
                                  param_hint="--out")
+    _check_out(out, force)
     options["n_rocks"] = 3 if n_rocks is None else n_rocks
     scene = outdoor_scene(seed, **options)
     _finish(scene, out, time.perf_counter() - t0)
@@ -125,14 +152,17 @@ def synth_outdoor(seed: int, out: Path | None, resolution, n_frames: int | None,
 @synth.command("abw")
 @seed_option
 @click.option("--out", "prefix", type=click.Path(dir_okay=False, path_type=Path), metavar="PREFIX",
-              help="Write PREFIX.range (the range image) and PREFIX.gt-seg (its ground truth), as SegComp.")
+              help="Write PREFIX.range (the range image) and PREFIX.gt-seg (its ground truth), as SegComp. These "
+                   "8-bit rasterfiles have no room for a kbs run id: existing ones are replaced only with --force.")
+@click.option("--force", is_flag=True, help="Replace an existing PREFIX.range / PREFIX.gt-seg (checked before the "
+                                            "scene is made).")
 @click.option("--boxes", "n_boxes", type=click.IntRange(0, None), default=3, show_default=True)
 @click.option("--wedges", "n_wedges", type=click.IntRange(0, None), default=1, show_default=True)
 @click.option("--tilt", "tilt_deg", type=FiniteFloatRange(0, 60, max_open=True), default=30.0, show_default=True,
               help="Tilt of the table from fronto-parallel, degrees.")
 @click.option("--noise", type=FiniteFloatRange(0, None), default=0.0, show_default=True,
               help="Range noise (standard deviation) in range levels, before the rounding to 8 bits.")
-def synth_abw(seed: int, prefix: Path | None, **options) -> None:
+def synth_abw(seed: int, prefix: Path | None, force: bool = False, **options) -> None:
     """Boxes and wedges on a tilted table seen through the ABW camera: a 512 x 512 8-bit SegComp
     range image (.range) and its ground truth (.gt-seg: 10 the table, 11.. the faces).
 
@@ -140,11 +170,14 @@ def synth_abw(seed: int, prefix: Path | None, **options) -> None:
     from kbs.synth.abw import abw_scene
 
     t0 = time.perf_counter()
-    scene = abw_scene(seed, **options)
-    line = f"{scene.summary()}; {time.perf_counter() - t0:.2f} s"
     if prefix is not None:
         if prefix.suffix.lower() in (".range", ".gt-seg"):
             prefix = prefix.with_suffix("")
+        for target in (Path(f"{prefix}.range"), Path(f"{prefix}.gt-seg")):
+            _check_out(target, force)
+    scene = abw_scene(seed, **options)
+    line = f"{scene.summary()}; {time.perf_counter() - t0:.2f} s"
+    if prefix is not None:
         range_path, gt_path = scene.save(prefix)
         line += f"; wrote {range_path} and {gt_path}"
     click.echo(line)

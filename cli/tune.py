@@ -26,7 +26,7 @@ from kbs.evaluation import (
 from kbs.evaluation.tune import METRICS, LabelledScan, format_report, tune, tuned_text
 from kbs.io import read_cloud
 from kbs.io.atomic import replacing
-from kbs.io.result import check_output, new_run_id
+from kbs.io.result import InputFiles, check_output, distinct_outputs, new_run_id
 from kbs.knowledge.rulebase import Problem, RuleFileError, SourcePos, load_rule_base, resolve
 from kbs.units import UNITS as LENGTH_UNITS, ScanUnits, scale_factors, unit
 
@@ -62,7 +62,7 @@ from kbs.units import UNITS as LENGTH_UNITS, ScanUnits, scale_factors, unit
 @click.option("--units", type=click.Choice(list(LENGTH_UNITS)), default=None,
               help="Unit of the scans' coordinates, for files that do not declare one (as kbs run).")
 @click.option("--report", "report", type=click.Path(dir_okay=False, path_type=Path), metavar="FILE.json",
-              help="Also write the report as JSON.")
+              help="Also write the report as JSON (another file than --out).")
 @click.option("-j", "--jobs", type=click.IntRange(min=-1), default=-1, show_default=True, callback=_jobs,
               help="Processes computing the UFP-ONC splits (as kbs run).")
 @click.option("--force", is_flag=True,
@@ -117,9 +117,12 @@ def tune_(ctx: click.Context, rules: str, pairs: tuple[str, ...], out: Path, fol
             raise click.BadParameter(f"{target} is an input: write the tuned rule file elsewhere", param_hint=what)
     if not out.parent.is_dir():
         raise click.BadParameter(f"no such folder: {out.parent}", param_hint="--out")
-    for target in (out, report):  # before the work, as kbs run: a file kbs did not write only with --force
-        if target is not None:
-            check_output(target, force=force)
+    distinct_outputs(("--out", out), ("--report", report))  # one would replace the other
+    sources = InputFiles([rules if Path(rules).is_file() else Path(rb.path), *scans_in,
+                          *(g for g in pairs[1::2] if not g.startswith("field:"))])
+    for target, what in ((out, "--out"), (report, "--report")):  # before the work, as kbs run: a file kbs did
+        if target is not None:                                    # not write only with --force
+            check_output(target, inputs=sources, force=force, option=what)
     target_unit = None if rb.units == "scan" else unit(rb.units)
     scans = []
     for cloud, truth in zip(scans_in, pairs[1::2]):

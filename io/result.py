@@ -607,16 +607,107 @@ def read_result_pair(path: str | os.PathLike[str], *, require: Iterable[str] = (
 # -- telling kbs's own files from others -----------------------------------------------------------
 
 
+#: Suffixes of files whose format has no room for a run id (SegComp's 8-bit Sun rasterfiles and
+#: normals text, read by its ``compare`` program): kbs cannot tell its own from another's, so an
+#: existing one is replaced only with ``--force``.
+UNMARKED_SUFFIXES = (".ms-seg", ".ms-nor", ".gt-seg", ".range")
+#: The GeoTIFF tag holding the run id of a ``kbs map`` grid (``map.tif``).
+GEOTIFF_RUN_ID_TAG = "KBS_RUN_ID"
+
+
+def png_text(path: str | os.PathLike[str]) -> dict[str, str]:
+    """The uncompressed text chunks (``tEXt``, ``iTXt``) of a PNG file, keyword -> text; {} when
+    the file is not a PNG. Only the chunk headers are read, the image data is skipped."""
+    out: dict[str, str] = {}
+    with open(path, "rb") as stream:
+        if stream.read(8) != b"\x89PNG\r\n\x1a\n":
+            return out
+        while True:
+            head = stream.read(8)
+            if len(head) < 8:
+                return out
+            length, kind = int.from_bytes(head[:4], "big"), head[4:]
+            if kind == b"IEND":
+                return out
+            if kind in (b"tEXt", b"iTXt") and length <= 65536:
+                data = stream.read(length)
+                key, _, rest = data.partition(b"\0")
+                if kind == b"iTXt":  # compression flag, method, language\0, translated keyword\0, text
+                    if rest[:1] != b"\0":
+                        stream.seek(4, os.SEEK_CUR)
+                        continue
+                    rest = rest[2:].split(b"\0", 2)[-1]
+                out[key.decode("latin-1")] = rest.decode("latin-1" if kind == b"tEXt" else "utf-8", "replace")
+                stream.seek(4, os.SEEK_CUR)  # the CRC
+            else:
+                stream.seek(length + 4, os.SEEK_CUR)
+
+
+def png_metadata(run_id: str) -> dict[str, str]:
+    """The PNG text chunks of a figure kbs writes (matplotlib's ``savefig(metadata=...)``): who
+    wrote it and its run id (:func:`is_kbs_output` reads it)."""
+    from kbs import __version__
+
+    return {"Software": f"kbs {__version__}", RUN_ID_COMMENT: run_id}
+
+
+def _geotiff_run_id(path: Path) -> str | None:
+    try:
+        import rasterio
+    except ImportError:  # kbs writes no GeoTIFF without rasterio
+        return None
+    try:
+        with rasterio.open(path) as src:
+            return src.tags().get(GEOTIFF_RUN_ID_TAG)
+    except Exception:  # noqa: BLE001 -- any file rasterio cannot read is not kbs's GeoTIFF
+        return None
+
+
+def file_digest(path: str | os.PathLike[str]) -> str:
+    """The SHA-256 of a file's bytes (hex): how an index kbs writes (``map.json``, a drive's
+    ``truth.json``) names a file of a format that cannot carry a run id (``map.npy``, ``poses.txt``)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as stream:
+        for block in iter(lambda: stream.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def listed_by_index(target: str | os.PathLike[str], index: str | os.PathLike[str]) -> bool:
+    """True when ``index`` is a JSON kbs wrote (:func:`is_kbs_output`) whose ``sha256`` object
+    gives ``target``'s name (its path relative to the index's folder) the digest of ``target``'s
+    bytes as they are now: a file without room for a run id that kbs wrote beside its index and
+    nobody changed since."""
+    target, index = Path(os.fspath(target)), Path(os.fspath(index))
+    if not target.is_file() or not is_kbs_output(index):
+        return False
+    try:
+        digests = json.loads(index.read_bytes()).get("sha256")
+        name = os.path.relpath(target, index.parent).replace(os.sep, "/")
+        return isinstance(digests, dict) and digests.get(name) == file_digest(target)
+    except (OSError, ValueError):
+        return False
+
+
 def is_kbs_output(path: str | os.PathLike[str]) -> bool:
     """True when ``path`` is a file kbs wrote with a run id: a PLY whose header has the
     ``kbs_run_id`` comment, a LAS/LAZ file with the run id VLR, a JSON object with ``kbs_version`` and ``run_id``, a rule
-    file ``kbs tune`` wrote (its first line ``# kbs tune: ...``), any other file (the HTML report) ending with the
-    ``kbs_run_id`` marker."""
+    file ``kbs tune`` wrote (its first line ``# kbs tune: ...``), a PNG with a ``kbs_run_id`` text chunk
+    (:func:`png_metadata`), a GeoTIFF with the ``KBS_RUN_ID`` tag, any other file (the HTML report) ending with the
+    ``kbs_run_id`` marker. Never a file of :data:`UNMARKED_SUFFIXES` (nothing in them can say so)."""
     path = Path(os.fspath(path))
     if not path.is_file():
         return False
     suffix = path.suffix.lower()
+    if path.name.lower().endswith(UNMARKED_SUFFIXES):
+        return False
     try:
+        if suffix == ".png":
+            return bool(png_text(path).get(RUN_ID_COMMENT))
+        if suffix in (".tif", ".tiff"):
+            return _geotiff_run_id(path) is not None
         if suffix == ".ply":
             return ply_run_id(path) is not None
         if suffix in (".las", ".laz"):
@@ -656,8 +747,41 @@ class InputFiles:
         return self._ids.get((st.st_dev, st.st_ino))
 
 
+def _file_key(path: str | os.PathLike[str]) -> tuple[Any, ...]:
+    try:
+        st = os.stat(path)
+    except OSError:
+        return ("path", os.path.normcase(os.path.realpath(path)))
+    return ("file", st.st_dev, st.st_ino)
+
+
+def distinct_outputs(*targets: tuple[str, str | os.PathLike[str] | None]) -> None:
+    """Refuse two outputs of one command that are one file (the same path, or links to one file).
+
+    Parameters
+    ----------
+    *targets : (str, path or None)
+        What each output is (``"--out"``) and its path; None is left out.
+
+    Raises
+    ------
+    CloudFileError
+        Naming the second path and both options (exit code 3), before any work.
+    """
+    seen: dict[tuple[Any, ...], str] = {}
+    for what, target in targets:
+        if target is None:
+            continue
+        key = _file_key(target)
+        if key in seen:
+            raise CloudFileError(os.fspath(target), f"is both {seen[key]} and {what}: one file cannot hold both; "
+                                                    "give them two different paths")
+        seen[key] = what
+
+
 def check_output(target: str | os.PathLike[str], *,
-                 inputs: InputFiles | Iterable[str | os.PathLike[str]] = (), force: bool = False) -> None:
+                 inputs: InputFiles | Iterable[str | os.PathLike[str]] = (), force: bool = False,
+                 own: bool = False, option: str = "--out") -> None:
     """Refuse to write ``target`` where that would destroy something that is not kbs's.
 
     Parameters
@@ -668,6 +792,10 @@ def check_output(target: str | os.PathLike[str], *,
         The command's input files: never overwritten, even with ``force``.
     force : bool
         Replace an existing file that kbs did not write (``--force``).
+    own : bool
+        The caller knows ``target`` is kbs's own by other means (:func:`listed_by_index`).
+    option : str
+        The option the messages tell to change (``--json``, ``--report`` ...).
 
     Raises
     ------
@@ -680,9 +808,13 @@ def check_output(target: str | os.PathLike[str], *,
     source = (inputs if isinstance(inputs, InputFiles) else InputFiles(inputs)).match(target)
     if source is not None:
         named = "" if os.path.normpath(source) == os.path.normpath(target) else f" {source}"
-        raise CloudFileError(str(target), f"is the input{named}: kbs never overwrites its input; choose another --out")
+        raise CloudFileError(str(target), f"is the input{named}: kbs never overwrites its input; choose another {option}")
     if target.is_dir():
-        raise CloudFileError(str(target), "is a directory; choose another --out")
-    if not force and os.path.lexists(target) and not is_kbs_output(target):
+        raise CloudFileError(str(target), f"is a directory; choose another {option}")
+    if not force and not own and os.path.lexists(target) and not is_kbs_output(target):
+        if target.name.lower().endswith(UNMARKED_SUFFIXES):
+            raise CloudFileError(str(target), "exists, and kbs cannot tell whether it wrote it (this format has no "
+                                              f"room for a kbs run id); give --force to replace it, or choose another "
+                                              f"{option}")
         raise CloudFileError(str(target), "exists and was not written by kbs (it has no kbs run id); give --force "
-                                          "to replace it, or choose another --out")
+                                          f"to replace it, or choose another {option}")

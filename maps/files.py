@@ -13,6 +13,12 @@ name, then renamed):
 
 Every file goes through :func:`kbs.io.atomic.replacing` (a temporary file beside it, renamed over
 it when whole): an interrupted write leaves the previous file.
+
+One run id marks the files as kbs's (:func:`kbs.io.result.is_kbs_output`): the ``KBS_RUN_ID``
+tag of ``map.tif``, a ``kbs_run_id`` text chunk in ``map.png``, a ``comment kbs_run_id`` in the
+PLY files, the closing comment of ``map.html``, the ``run_id`` key of ``map.json``; ``map.npy``
+(no room for it) by its SHA-256 in ``map.json``'s ``sha256``. ``kbs map`` checks them all before
+segmenting (:func:`check_map_outputs`): a file kbs did not write is replaced only with ``--force``.
 """
 from __future__ import annotations
 
@@ -27,6 +33,18 @@ import numpy as np
 
 from kbs import __version__
 from kbs.errors import CloudFileError, ParameterError
+from kbs.io.result import (
+    GEOTIFF_RUN_ID_TAG,
+    RUN_ID_COMMENT,
+    InputFiles,
+    check_output,
+    file_digest,
+    is_kbs_output,
+    listed_by_index,
+    new_run_id,
+    png_metadata,
+    result_comments,
+)
 from kbs.maps.build import DriveMap
 from kbs.maps.grid import BANDS, CLASS_NAMES, OBSTACLE
 
@@ -95,7 +113,7 @@ def check_crs(crs: str) -> Any:
             from exc
 
 
-def write_geotiff(m: DriveMap, path: Path, crs: str | None = None) -> str:
+def write_geotiff(m: DriveMap, path: Path, crs: str | None = None, *, run_id: str | None = None) -> str:
     """Write the grid's bands as a GeoTIFF; returns what the CRS is (one line).
 
     Parameters
@@ -134,11 +152,12 @@ def write_geotiff(m: DriveMap, path: Path, crs: str | None = None) -> str:
             dst.update_tags(KBS_VERSION=__version__, KBS_MAP_FORMAT=str(MAP_FORMAT), KBS_CRS=crs_note,
                             KBS_CLASSES="class band: " + ", ".join(f"{i} {n}" for i, n in enumerate(CLASS_NAMES)),
                             KBS_RULE_BASE=m.rule_base, KBS_FRAMES=str(len(m.frames)),
-                            KBS_POSES=m.poses.note or m.poses.source)
+                            KBS_POSES=m.poses.note or m.poses.source,
+                            **({GEOTIFF_RUN_ID_TAG: run_id} if run_id else {}))
     return crs_note
 
 
-def write_png(m: DriveMap, path: Path) -> None:
+def write_png(m: DriveMap, path: Path, *, run_id: str | None = None) -> None:
     """A picture of the grid (ground, obstacles shaded by height, unknown), the trajectory and the
     objects' ids."""
     import matplotlib
@@ -171,7 +190,7 @@ def write_png(m: DriveMap, path: Path) -> None:
                  fontsize=9)
     ax.legend(loc="upper right", fontsize=7)
     with _atomic(path) as tmp:
-        fig.savefig(tmp, format="png", bbox_inches="tight")
+        fig.savefig(tmp, format="png", bbox_inches="tight", metadata=png_metadata(run_id) if run_id else None)
     plt.close(fig)
 
 
@@ -223,8 +242,47 @@ def _index(m: DriveMap, files: dict[str, Any], crs_note: str) -> dict[str, Any]:
     }
 
 
+def map_files(out_dir: str | os.PathLike[str], *, geotiff: bool | None = None, png: bool | None = None,
+              report: bool = False) -> dict[str, Path]:
+    """The files :func:`write_map` writes in ``out_dir`` but the objects' meshes, key -> path
+    (``geotiff``, ``png``: None as write_map decides, by what is installed)."""
+    out = Path(out_dir)
+    geotiff = geotiff_available() if geotiff is None else geotiff
+    png = png_available() if png is None else png
+    files = {"geotiff": out / "map.tif"} if geotiff else {}
+    files["npy"] = out / "map.npy"
+    if png:
+        files["png"] = out / "map.png"
+    files["cloud"] = out / "cloud.ply"
+    if report:
+        files["report"] = out / "map.html"
+    files["index"] = out / "map.json"
+    return files
+
+
+def check_map_outputs(out_dir: str | os.PathLike[str], *, inputs: Any = (), force: bool = False,
+                      geotiff: bool | None = None, report: bool = False) -> None:
+    """Refuse, before any work, a map :func:`write_map` must not write in ``out_dir``.
+
+    Each file it would write or replace, the earlier map's ``objects/object-*.ply`` it would
+    remove included, is checked with :func:`kbs.io.result.check_output`: never one of ``inputs``
+    (the scans, the poses); an existing file kbs did not write only with ``force``.
+
+    Raises
+    ------
+    CloudFileError
+    """
+    out = Path(out_dir)
+    files = map_files(out, geotiff=geotiff, report=report)
+    sources = inputs if isinstance(inputs, InputFiles) else InputFiles(inputs)
+    stale = sorted((out / "objects").glob("object-*.ply")) if (out / "objects").is_dir() else []
+    for path in (*files.values(), *stale):
+        own = path == files["npy"] and listed_by_index(path, files["index"])
+        check_output(path, inputs=sources, force=force, own=own)
+
+
 def write_map(m: DriveMap, out_dir: str | os.PathLike[str], *, crs: str | None = None,
-              geotiff: bool | None = None, report: bool = False) -> dict[str, Any]:
+              geotiff: bool | None = None, report: bool = False, force: bool = False) -> dict[str, Any]:
     """Write every file of the map in ``out_dir``; returns the index (``map.json``'s content).
 
     Parameters
@@ -237,6 +295,9 @@ def write_map(m: DriveMap, out_dir: str | os.PathLike[str], *, crs: str | None =
     report : bool
         Also write ``map.html``, the map view (:func:`kbs.report.mapview.write_map_report`; plotly,
         the ``report`` extra); its explanations are those ``map_drive(..., explain=True)`` kept.
+    force : bool
+        Remove an earlier ``objects/object-*.ply`` that kbs did not write (no run id) too; without
+        it such a file is refused (:func:`check_map_outputs` says so before the work).
 
     Raises
     ------
@@ -255,7 +316,11 @@ def write_map(m: DriveMap, out_dir: str | os.PathLike[str], *, crs: str | None =
         (out / "objects").mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise CloudFileError(str(out), f"cannot create the output directory: {exc.strerror or exc}") from exc
+    run_id = new_run_id()
     for stale in (out / "objects").glob("object-*.ply"):  # an earlier map's objects would mislead
+        if not force and not is_kbs_output(stale):
+            raise CloudFileError(str(stale), "exists and was not written by kbs (it has no kbs run id); give --force "
+                                             "to replace it, or choose another --out")
         try:
             stale.unlink()
         except OSError as exc:
@@ -268,14 +333,15 @@ def write_map(m: DriveMap, out_dir: str | os.PathLike[str], *, crs: str | None =
             notes.append("map.tif not written: rasterio is not installed (pip install 'kbs[map]')")
     crs_note = "none"
     if geotiff:
-        crs_note = write_geotiff(m, out / "map.tif", crs)
+        crs_note = write_geotiff(m, out / "map.tif", crs, run_id=run_id)
         files["geotiff"] = "map.tif"
     with _atomic(out / "map.npy") as tmp:
         with open(tmp, "wb") as fh:
             np.save(fh, m.grid.bands())
+        digests = {"map.npy": file_digest(tmp)}
     files["npy"] = "map.npy"
     if png_available():
-        write_png(m, out / "map.png")
+        write_png(m, out / "map.png", run_id=run_id)
         files["png"] = "map.png"
     else:
         notes.append("map.png not written: matplotlib is not installed (pip install 'kbs[map]')")
@@ -284,22 +350,27 @@ def write_map(m: DriveMap, out_dir: str | os.PathLike[str], *, crs: str | None =
         write_ply(tmp, cl.xyz, {"label": cl.label, "obstacle": cl.obstacle.astype(np.uint8), "object": cl.object,
                                 "frames": cl.frames, "count": cl.count},
                   comments=[f"kbs map: fused cloud of {len(m.frames)} frames, voxel {m.params['voxel_size']:g} m",
-                            "labels: " + ", ".join(f"{i} {n}" for i, n in enumerate(m.label_names))])
+                            "labels: " + ", ".join(f"{i} {n}" for i, n in enumerate(m.label_names)),
+                            *result_comments(run_id)])
     files["cloud"] = "cloud.ply"
     for o in m.objects:
         if o.faces is None:
             continue
         name = f"objects/object-{o.id}.ply"
         with _atomic(out / name) as tmp:
-            write_mesh_ply(tmp, o.vertices, o.faces)
+            write_mesh_ply(tmp, o.vertices, o.faces, run_id=run_id)
         files["objects"][o.id] = name
     if report:
         from kbs.report.mapview import write_map_report
 
         with _atomic(out / "map.html") as tmp:
             write_map_report(m, tmp)
+            with open(tmp, "a", encoding="utf-8") as stream:  # marks the page as kbs's own (--force)
+                stream.write(f"<!-- {RUN_ID_COMMENT} {run_id} -->\n")
         files["report"] = "map.html"
     doc = _index(m, files, crs_note)
+    doc = {"kbs_map": doc.pop("kbs_map"), "kbs_version": doc.pop("kbs_version"), "run_id": run_id, **doc,
+           "sha256": digests}
     doc["notes"] += notes
     with _atomic(out / "map.json") as tmp:
         tmp.write_text(json.dumps(doc, indent=1, default=_jsonable))

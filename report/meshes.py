@@ -120,13 +120,17 @@ def ground_mesh(points: np.ndarray, *, edge_factor: float = 3.0) -> tuple[np.nda
     return P, tri.astype(np.int32), max_edge
 
 
-def write_mesh_ply(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
-    """Write a triangle mesh as a binary PLY (``vertex``: x y z double; ``face``: vertex_indices)."""
+def write_mesh_ply(path: Path, vertices: np.ndarray, faces: np.ndarray, *, run_id: str | None = None) -> None:
+    """Write a triangle mesh as a binary PLY (``vertex``: x y z double; ``face``: vertex_indices);
+    with ``run_id``, header comments saying kbs wrote it (``kbs_run_id <hex>``: :func:`kbs.io.result.is_kbs_output`)."""
+    from kbs.io.result import result_comments
+
     v = np.empty(vertices.shape[0], dtype=[("x", "f8"), ("y", "f8"), ("z", "f8")])
     v["x"], v["y"], v["z"] = vertices.T
     f = np.empty(faces.shape[0], dtype=[("vertex_indices", "i4", (3,))])
     f["vertex_indices"] = faces
-    data = plyfile.PlyData([plyfile.PlyElement.describe(v, "vertex"), plyfile.PlyElement.describe(f, "face")])
+    data = plyfile.PlyData([plyfile.PlyElement.describe(v, "vertex"), plyfile.PlyElement.describe(f, "face")],
+                           comments=result_comments(run_id) if run_id else [])
     try:
         data.write(str(path))
     except OSError as exc:
@@ -151,8 +155,39 @@ class MeshSummary:
         return "\n".join(lines)
 
 
+def check_meshes_folder(directory: Path, *, force: bool = False) -> None:
+    """Refuse a mesh folder :func:`write_meshes` must not replace (``kbs run`` calls it before any work).
+
+    Raises
+    ------
+    CloudFileError
+        ``directory`` is a file or a link; it holds a file of another name than the meshes'
+        (never removed, even with ``force``: move it); or a mesh-named file kbs did not write (no
+        ``kbs_run_id`` comment: another program's, or a mesh of kbs before run ids), unless ``force``.
+    """
+    from kbs.io.result import is_kbs_output
+
+    directory = Path(directory)
+    if not (directory.exists() or directory.is_symlink()):
+        return
+    if not directory.is_dir() or directory.is_symlink():
+        raise CloudFileError(str(directory), "exists and is not a folder of meshes kbs wrote; choose another --out")
+    names = sorted(p.name for p in directory.iterdir())
+    foreign = [n for n in names if not _MESH_NAME.fullmatch(n)]
+    if foreign:
+        raise CloudFileError(str(directory), f"holds files kbs did not write ({', '.join(foreign[:3])}"
+                                             f"{', ...' if len(foreign) > 3 else ''}): move them, or choose another --out")
+    if not force:
+        unmarked = [n for n in names if not is_kbs_output(directory / n)]
+        if unmarked:
+            raise CloudFileError(str(directory / unmarked[0]),
+                                 "exists and was not written by kbs (it has no kbs run id); give --force to replace "
+                                 "the mesh folder, or choose another --out")
+
+
 def write_meshes(directory: Path, X: np.ndarray, cluster: np.ndarray, label: np.ndarray,
-                 label_names: list[str], *, ground_label: str = "ground") -> MeshSummary:
+                 label_names: list[str], *, ground_label: str = "ground", run_id: str | None = None,
+                 force: bool = False) -> MeshSummary:
     """Write ``directory/obstacle-<index>.ply`` for every output cluster whose label is not
     ``ground_label`` (noise excluded) and ``directory/ground.ply`` for the points labelled
     ``ground_label``.
@@ -160,7 +195,9 @@ def write_meshes(directory: Path, X: np.ndarray, cluster: np.ndarray, label: np.
     The folder appears whole or not at all: the meshes are written into a hidden temporary folder
     beside it, which then takes its place (an earlier run's folder, stale meshes included, goes
     only once the new one is complete; a full disk or Ctrl-C leaves it as it was). An existing
-    folder holding other files than kbs's meshes is refused, not replaced.
+    folder holding other files than kbs's meshes is refused, not replaced, and one holding a mesh
+    kbs did not write only with ``force`` (:func:`check_meshes_folder`). Each mesh carries
+    ``run_id`` (default: a fresh one) in its header.
 
     Parameters
     ----------
@@ -169,21 +206,19 @@ def write_meshes(directory: Path, X: np.ndarray, cluster: np.ndarray, label: np.
         Output cluster and label index of each point (-1 = noise).
     label_names : list of str
     """
+    from kbs.io.result import new_run_id
+
     directory = Path(directory)
-    if directory.exists() or directory.is_symlink():
-        if not directory.is_dir() or directory.is_symlink():
-            raise CloudFileError(str(directory), "exists and is not a folder of meshes kbs wrote; choose another --out")
-        foreign = sorted(p.name for p in directory.iterdir() if not _MESH_NAME.fullmatch(p.name))
-        if foreign:
-            raise CloudFileError(str(directory), f"holds files kbs did not write ({', '.join(foreign[:3])}"
-                                                 f"{', ...' if len(foreign) > 3 else ''}): move them, or choose another --out")
+    check_meshes_folder(directory, force=force)
+    run_id = run_id or new_run_id()
     staging = temporary_path(directory)
     try:
         staging.mkdir(parents=True)
     except OSError as exc:
         raise CloudFileError(str(directory), f"cannot create the mesh directory: {exc.strerror or exc}") from exc
     try:
-        out = _write_meshes(staging, directory, X, cluster, label, label_names, ground_label=ground_label)
+        out = _write_meshes(staging, directory, X, cluster, label, label_names, ground_label=ground_label,
+                            run_id=run_id)
         _swap_in(staging, directory)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
@@ -210,16 +245,16 @@ def _swap_in(staging: Path, directory: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
-def _put(staging: Path, directory: Path, name: str, V: np.ndarray, F: np.ndarray) -> None:
+def _put(staging: Path, directory: Path, name: str, V: np.ndarray, F: np.ndarray, run_id: str) -> None:
     """write_mesh_ply into the staging folder; an error names the file where the user looks for it."""
     try:
-        write_mesh_ply(staging / name, V, F)
+        write_mesh_ply(staging / name, V, F, run_id=run_id)
     except CloudFileError as exc:
         raise CloudFileError(str(directory / name), exc.problem) from exc
 
 
 def _write_meshes(staging: Path, directory: Path, X: np.ndarray, cluster: np.ndarray, label: np.ndarray,
-                  label_names: list[str], *, ground_label: str) -> MeshSummary:
+                  label_names: list[str], *, ground_label: str, run_id: str) -> MeshSummary:
     """The meshes written into ``staging``, described as they will be in ``directory``."""
     X = np.asarray(X, dtype=np.float64)
     gi = label_names.index(ground_label) if ground_label in label_names else None
@@ -238,7 +273,7 @@ def _write_meshes(staging: Path, directory: Path, X: np.ndarray, cluster: np.nda
             out.skipped.append((int(idx), str(exc)))
             continue
         name = f"obstacle-{int(idx)}.ply"
-        _put(staging, directory, name, V, F)
+        _put(staging, directory, name, V, F, run_id)
         out.obstacles.append(directory / name)
     if gi is None:
         out.ground_note = f"none (no label named {ground_label!r})"
@@ -249,6 +284,6 @@ def _write_meshes(staging: Path, directory: Path, X: np.ndarray, cluster: np.nda
             out.ground_note = f"not written: {exc}"
         else:
             out.ground = directory / "ground.ply"
-            _put(staging, directory, "ground.ply", V, F)
+            _put(staging, directory, "ground.ply", V, F, run_id)
             out.ground_note = f"{out.ground.name} ({F.shape[0]:,} triangles, edges <= {max_edge:.3g})"
     return out

@@ -26,7 +26,8 @@ from typing import Any
 import numpy as np
 from shapely.geometry import box as shapely_box
 
-from kbs.errors import ParameterError
+from kbs.errors import CloudFileError, ParameterError
+from kbs.io.atomic import replacing
 from kbs.inference import Interval, validate_params
 from kbs.io.segcomp import (
     ABW_CALIBRATION,
@@ -109,8 +110,12 @@ class ABWScene:
         """
         base = os.fspath(prefix)
         paths = (base + ".range", base + ".gt-seg")
-        write_sunraster(paths[0], self.range_image)
-        write_sunraster(paths[1], self.gt_image)
+        with replacing(*paths) as temps:  # both whole, or neither
+            for path, temp, image in zip(paths, temps, (self.range_image, self.gt_image)):
+                try:
+                    write_sunraster(temp, image)
+                except CloudFileError as exc:  # named where the user looks, not the temporary file
+                    raise CloudFileError(path, exc.problem) from exc
         return paths
 
 

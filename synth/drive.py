@@ -323,26 +323,43 @@ class DriveScene:
     def save(self, directory: str | os.PathLike[str]) -> None:
         """Write ``DIR/scans/NNNNNN.ply`` (each frame as :meth:`Scene.save`), ``DIR/poses.txt``
         (KITTI format: the 3x4 of each sensor-to-world pose; they are LiDAR poses, there is no
-        calib.txt) and ``DIR/truth.json`` (the layout and the poses).
+        calib.txt) and ``DIR/truth.json`` (the layout and the poses), each whole or not at all.
+        One run id marks them as kbs's: in each frame's PLY header and in ``truth.json``, which also
+        holds the SHA-256 of ``poses.txt`` (a format with no room for it: :func:`kbs.io.result.listed_by_index`).
 
         Raises
         ------
         CloudFileError
             The folder cannot be written.
         """
+        from kbs import __version__
+        from kbs.io.atomic import replacing
+        from kbs.io.result import file_digest, new_run_id
         from kbs.maps.poses import write_kitti_poses
 
         d = Path(directory)
+        run_id = new_run_id()
         try:
             (d / "scans").mkdir(parents=True, exist_ok=True)
-            for i, f in enumerate(self.frames):
-                f.save(d / "scans" / f"{i:06d}.ply")
-            write_kitti_poses(d / "poses.txt", self.poses)
-            doc = {"description": self.description, "params": {k: v for k, v in self.params.items()},
-                   **self.truth.to_dict()}
-            (d / "truth.json").write_text(json.dumps(doc, default=_jsonable))
+            for path, f in zip(drive_files(d, len(self.frames))[0], self.frames):
+                f.save(path, run_id=run_id)
+            with replacing(d / "poses.txt") as (tmp,):
+                write_kitti_poses(tmp, self.poses)
+                digest = file_digest(tmp)
+            doc = {"kbs_version": __version__, "run_id": run_id, "description": self.description,
+                   "params": {k: v for k, v in self.params.items()}, **self.truth.to_dict(),
+                   "sha256": {"poses.txt": digest}}
+            with replacing(d / "truth.json") as (tmp,):
+                tmp.write_text(json.dumps(doc, default=_jsonable))
         except OSError as exc:
             raise CloudFileError(str(d), f"cannot write the drive: {exc.strerror or exc}") from exc
+
+
+def drive_files(directory: str | os.PathLike[str], n_frames: int) -> tuple[list[Path], Path, Path]:
+    """The files :meth:`Drive.save` writes in ``directory``: the frames' PLY files, ``poses.txt``
+    and ``truth.json``."""
+    d = Path(directory)
+    return [d / "scans" / f"{i:06d}.ply" for i in range(n_frames)], d / "poses.txt", d / "truth.json"
 
 
 def _jsonable(o: Any) -> Any:

@@ -152,13 +152,14 @@ class Scene:
     def _present_names(self) -> list[str]:
         return [self.object_names[i] for i in np.unique(self.objects)]
 
-    def save(self, path: str | os.PathLike[str]) -> None:
-        """Write the scene as a binary PLY file.
+    def save(self, path: str | os.PathLike[str], *, run_id: str | None = None) -> str:
+        """Write the scene as a binary PLY file, whole or not at all; returns its run id.
 
         Per vertex: ``x y z`` (double), ``label`` and ``object`` (int), ``ground`` (uchar 0/1),
         and ``pixel`` (int) for a scene seen through an image. Header comments: the description,
         the object names, the image shape, and for polyhedral scenes one line per face
-        (``face LABEL object OBJ normal NX NY NZ offset D``).
+        (``face LABEL object OBJ normal NX NY NZ offset D``), then who wrote it and the run id
+        (``kbs_run_id <hex>``, default a fresh one: it marks the file as kbs's, :func:`kbs.io.result.is_kbs_output`).
 
         Raises
         ------
@@ -166,6 +167,7 @@ class Scene:
             The file cannot be written.
         """
         from kbs.io import write_ply
+        from kbs.io.result import new_run_id, result_comments
 
         fields: dict[str, np.ndarray] = {"label": self.labels, "object": self.objects, "ground": self.ground}
         comments = [f"kbs synth: {self.description}",
@@ -177,4 +179,6 @@ class Scene:
             nx, ny, nz = face.normal
             comments.append(f"face {label} object {face.object} normal {nx:.9g} {ny:.9g} {nz:.9g} "
                             f"offset {face.offset:.9g}")
-        write_ply(path, self.xyz, fields, comments=comments)
+        run_id = run_id or new_run_id()
+        write_ply(path, self.xyz, fields, comments=[*comments, *result_comments(run_id)])
+        return run_id

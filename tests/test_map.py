@@ -434,6 +434,47 @@ def two_scans(tmp_path_factory) -> Path:
     return d
 
 
+def test_kbs_map_replaces_its_own_files_but_not_another_without_force(two_scans, tmp_path, monkeypatch, capsys):
+    """map.json, map.png, map.npy ... of another program in --out were replaced; now refused before any
+    frame is segmented, replaced with --force; kbs's own (a run id, map.npy by its digest in map.json)
+    are replaced without it."""
+    import kbs.maps
+    from kbs.cli.main import main as kbs_main
+    from kbs.io.result import is_kbs_output, png_text
+    from kbs.maps.files import png_available
+
+    def map_drive(*a, **kw):
+        raise AssertionError("segmented before checking --out")
+
+    out = tmp_path / "m"
+    (out / "objects").mkdir(parents=True)
+    args = ["-q", "map", "--rules", "outdoor", str(two_scans / "scans"), "--out", str(out), "-j", "1"]
+    names = ["map.json", "map.npy", "cloud.ply", *(["map.png"] if png_available() else []), "objects/object-1.ply"]
+    with monkeypatch.context() as patch:
+        patch.setattr(kbs.maps, "map_drive", map_drive)
+        for name in names:
+            (out / name).write_text("mine")
+            assert kbs_main(args) == 3, name
+            err = capsys.readouterr().err
+            assert err == (f"kbs: error: {out / name}: exists and was not written by kbs (it has no kbs run id); "
+                           "give --force to replace it, or choose another --out\n"), err
+            assert (out / name).read_text() == "mine"
+            (out / name).unlink()
+    (out / "map.npy").write_text("mine")
+    (out / "objects" / "object-7.ply").write_text("mine")
+    assert kbs_main([*args, "--force"]) == 0
+    assert not (out / "objects" / "object-7.ply").exists()  # an earlier map's object, removed with --force
+    doc = json.loads((out / "map.json").read_text())
+    marked = [out / f for k, f in doc["files"].items() if k != "npy"] + [out / o["mesh"] for o in doc["objects"] if o["mesh"]]
+    assert all(is_kbs_output(p) for p in marked), [p for p in marked if not is_kbs_output(p)]
+    assert not is_kbs_output(out / "map.npy") and doc["sha256"]["map.npy"]  # known by its digest instead
+    if png_available():
+        assert png_text(out / "map.png")["kbs_run_id"] == doc["run_id"]
+    assert kbs_main(args) == 0  # its own, map.npy included: replaced without --force
+    (out / "map.npy").write_bytes((out / "map.npy").read_bytes() + b"\0")  # changed since: no longer kbs's
+    assert kbs_main(args) == 3 and "map.npy: exists and was not written by kbs" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("name, text, code, words", [
     ("poses.txt", "1 0 0 0 0 1 0 0 0 0 1 0\n", 3, "poses.txt: 1 poses for 2 frames"),
     ("poses.txt", "1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 0 0 1 0 0 0 0 1 zero\n", 3, "poses.txt:2:23: 'zero' is not a number"),
@@ -482,9 +523,16 @@ def test_map_drive_in_python_takes_arrays_and_poses(two_scans, tmp_path):
         np.testing.assert_allclose(m.poses.matrices, poses)
         assert m.cloud.xyz.shape[1] == 3 and (m.cloud.count > 0).all()
         assert m.cloud.count.sum() == sum(len(f) for f in frames)
+        from kbs.errors import CloudFileError
+        from kbs.report.meshes import write_mesh_ply
+
         (tmp_path / "objects").mkdir()
-        (tmp_path / "objects" / "object-99.ply").write_text("an earlier map's")
-        doc = write_map(m, tmp_path, geotiff=False)
+        (tmp_path / "objects" / "object-99.ply").write_text("another program's")
+        with pytest.raises(CloudFileError, match="object-99.ply: exists and was not written by kbs"):
+            write_map(m, tmp_path, geotiff=False)  # not kbs's: removed only with force
+        assert (tmp_path / "objects" / "object-99.ply").read_text() == "another program's"
+        write_mesh_ply(tmp_path / "objects" / "object-99.ply", np.eye(3), np.array([[0, 1, 2]]), run_id="0" * 32)
+        doc = write_map(m, tmp_path, geotiff=False)  # an earlier map's (kbs's): removed
         assert sorted(p.name for p in (tmp_path / "objects").iterdir()) == sorted(
             Path(o["mesh"]).name for o in doc["objects"] if o["mesh"])
         assert not (tmp_path / "map.tif").exists() and doc["grid"]["crs"] == "none"

@@ -264,13 +264,42 @@ def test_cluster_replaces_its_own_output_but_not_another_file(tmp_path, capsys):
 
 
 def test_render_never_draws_over_the_result_it_reads(out, capsys):
+    (out / "alias.png").symlink_to(out / "outdoor.ply")
     before = _snapshot(out)
-    assert main(["render", str(out / "outdoor.json"), "--kind", "map", "--out", str(out / "outdoor.ply")]) == 3
-    assert "outdoor.ply: is the input" in capsys.readouterr().err
+    for force in ([], ["--force"]):
+        assert main(["render", str(out / "outdoor.json"), "--kind", "map", "--out", str(out / "alias.png"),
+                     *force]) == 3
+        assert f"alias.png: is the input {out / 'outdoor.ply'}" in capsys.readouterr().err
+    # named as the result itself: not a PNG name, refused first (exit 2)
+    assert main(["render", str(out / "outdoor.json"), "--kind", "map", "--out", str(out / "outdoor.ply")]) == 2
     assert _snapshot(out) == before
     assert main(["render", str(out / "outdoor.json"), "--kind", "map", "--out", str(out / "figure")]) == 0
     # no suffix: a PNG named as matplotlib's savefig names it (and as kbs render says it wrote)
     assert (out / "figure.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and not (out / "figure").exists()
+
+
+def test_render_replaces_its_own_png_but_not_another_file(out, capsys):
+    from kbs.io.result import is_kbs_output, png_text
+
+    fig = out / "fig.png"
+    fig.write_bytes(b"\x89PNG\r\n\x1a\nsomeone else's picture")
+    args = ["render", str(out / "outdoor.json"), "--kind", "map", "--out", str(fig)]
+    assert main(args) == 3
+    err = capsys.readouterr().err
+    assert err == (f"kbs: error: {fig}: exists and was not written by kbs (it has no kbs run id); give --force to "
+                   "replace it, or choose another --out\n")
+    assert fig.read_bytes().endswith(b"someone else's picture")
+    assert main([*args, "--force"]) == 0
+    assert is_kbs_output(fig) and len(png_text(fig)["kbs_run_id"]) == 32  # a text chunk marks it as kbs's
+    assert main(args) == 0  # its own: replaced without --force
+
+
+def test_render_refuses_a_format_other_than_png_before_drawing(out, capsys):
+    before = _snapshot(out)
+    assert main(["render", str(out / "outdoor.json"), "--kind", "map", "--out", str(out / "x.txt")]) == 2
+    err = capsys.readouterr().err
+    assert "kbs render writes PNG figures" in err and "'.txt'" in err and "Traceback" not in err
+    assert _snapshot(out) == before
 
 
 def test_an_unusable_out_folder_is_reported_before_any_segmentation(tmp_path, monkeypatch, capsys):
@@ -550,6 +579,55 @@ def test_eval_json_is_never_the_results_own_json(out, capsys):
     assert _snapshot(out) == before
 
 
+def test_eval_json_replaces_its_own_file_but_not_another_without_force(out, capsys):
+    truth = out / "truth.npy"
+    np.save(truth, np.zeros(len(read_cloud(out / "outdoor.ply").xyz), dtype=np.int32))
+    report = out / "notes.json"
+    report.write_text('{"mine": 1}')
+    args = ["eval", str(out / "outdoor.ply"), str(truth), "--ground-values", "0", "--json", str(report)]
+    assert main(args) == 3
+    err = capsys.readouterr().err
+    assert err == (f"kbs: error: {report}: exists and was not written by kbs (it has no kbs run id); give --force "
+                   "to replace it, or choose another --json\n")
+    assert report.read_text() == '{"mine": 1}'
+    assert main([*args, "--force"]) == 0
+    doc = json.loads(report.read_text())
+    assert doc["kbs_version"] and len(doc["run_id"]) == 32
+    assert main(args) == 0  # its own: replaced without --force
+    assert json.loads(report.read_text())["run_id"] != doc["run_id"]
+
+
+def test_run_meshes_never_replaces_a_mesh_it_did_not_write_without_force(tmp_path, monkeypatch, capsys):
+    """A foreign ground.ply in <stem>-meshes/ is refused before the scan is read (it was replaced,
+    and only after the result pair was written); with --force the folder is replaced."""
+    import kbs.knowledge.segmenter
+
+    o = tmp_path / "o"
+    folder = o / "outdoor-meshes"
+    folder.mkdir(parents=True)
+    (folder / "ground.ply").write_text("ply\nmine\n")
+    real = kbs.knowledge.segmenter.Segmenter.segment
+
+    def segment(*args, **kwargs):
+        raise AssertionError("segmented before checking the meshes folder")
+
+    monkeypatch.setattr(kbs.knowledge.segmenter.Segmenter, "segment", segment)
+    assert main(["-q", *RUN, str(EXAMPLE), "--out", str(o), "--meshes"]) == 3
+    err = capsys.readouterr().err
+    assert err == (f"kbs: error: {folder / 'ground.ply'}: exists and was not written by kbs (it has no kbs run id); "
+                   "give --force to replace the mesh folder, or choose another --out\n")
+    assert (folder / "ground.ply").read_text() == "ply\nmine\n"
+    assert sorted(p.name for p in o.iterdir()) == ["outdoor-meshes"]  # no result pair either
+    monkeypatch.setattr(kbs.knowledge.segmenter.Segmenter, "segment", real)
+    assert main(["-q", *RUN, str(EXAMPLE), "--out", str(o), "--meshes", "--force"]) == 0
+    from kbs.io.result import is_kbs_output, ply_run_id
+
+    run_id = json.loads((o / "outdoor.json").read_text())["run_id"]
+    meshes = sorted(folder.iterdir())
+    assert meshes and all(is_kbs_output(p) and ply_run_id(p) == run_id for p in meshes)
+    assert main(["-q", *RUN, str(EXAMPLE), "--out", str(o), "--meshes"]) == 0  # its own: replaced
+
+
 @pytest.mark.slow
 def test_a_full_disk_while_writing_the_meshes_leaves_the_previous_folder(tmp_path, monkeypatch, capsys):
     """The meshes folder of a scan run again on other points: a failure half-way through leaves the
@@ -569,11 +647,11 @@ def test_a_full_disk_while_writing_the_meshes_leaves_the_previous_folder(tmp_pat
     real = meshes.write_mesh_ply
     calls = []
 
-    def second_fails(path, V, F):
+    def second_fails(path, V, F, **kwargs):
         calls.append(path)
         if len(calls) == 2:
             raise CloudFileError(str(path), "cannot write: No space left on device")
-        real(path, V, F)
+        real(path, V, F, **kwargs)
 
     from kbs.errors import CloudFileError
 

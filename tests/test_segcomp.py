@@ -401,7 +401,7 @@ def test_segcomp_errors_are_one_line_with_exit_codes(tmp_path, capsys):
         (("good.ply", "--image", str(tmp_path / "missing.range")), 3, "missing.range: no such file"),
         (("good.ply", "--image", str(tmp_path / "good.ply")), 3, "not a Sun rasterfile"),
         (("nowhere.ply", "--image", str(scan)), 3, "nowhere.ply: no such file"),
-        (("good.ply", "--image", str(scan), "--out", str(scan)), 3, "would overwrite an input"),
+        (("good.ply", "--image", str(scan), "--out", str(scan)), 3, "is the input"),
         (("good.ply",), 2, "--image"),
     ]
     for (name, *rest), code, needle in cases:  # in-process: the same entry point as the command
@@ -417,6 +417,51 @@ def test_segcomp_errors_are_one_line_with_exit_codes(tmp_path, capsys):
     assert (tmp_path / "g.ms-seg").exists() and not (tmp_path / "g.ms-nor").exists()
     np.testing.assert_array_equal(read_sunraster(tmp_path / "g.ms-seg"), np.where(facet >= 0, facet + 10, 0))
     assert kbs("segcomp", str(tmp_path / "flat.ply"), "--image", str(scan)).returncode == 3
+
+
+def test_segcomp_replaces_no_input_and_no_existing_file_without_force(tmp_path, capsys):
+    """--out / --normals over the ground truth or the result's JSON (a later kbs eval then scores
+    the wrong files), over each other, or over any existing file: refused before the work, exit 3;
+    an existing .ms-seg / .ms-nor (no room for a run id) replaced only with --force."""
+    image, facet = _facets_image()
+    scan = tmp_path / "scene.range"
+    write_sunraster(scan, image)
+    pixel = np.flatnonzero(image)
+    xyz = range_to_points(image)[0]
+    write_ply(tmp_path / "good.ply", xyz, {"cluster": facet.ravel()[pixel].astype(np.int32),
+                                           "pixel": pixel.astype(np.int32)})
+    (tmp_path / "good.json").write_text('{"kbs_version": "0", "run_id": "x"}')
+    gt = tmp_path / "scene.gt-seg"
+    write_sunraster(gt, image)
+    protected = {p: p.read_bytes() for p in (scan, gt, tmp_path / "good.json", tmp_path / "good.ply")}
+    good = str(tmp_path / "good.ply")
+    cases = [
+        (["--out", str(gt), "--no-normals"], f"{gt}: is the input"),
+        (["--out", str(tmp_path / "x.ms-seg"), "--normals", str(tmp_path / "good.json")], "good.json: is the input"),
+        (["--out", str(tmp_path / "x.ms-seg"), "--normals", str(tmp_path / "x.ms-seg")],
+         "x.ms-seg: is both --out and --normals"),
+    ]
+    for force in ([], ["--force"]):  # never over an input, even with --force
+        for args, needle in cases:
+            assert main(["segcomp", good, "--image", str(scan), *args, *force]) == 3, args
+            err = capsys.readouterr().err
+            assert needle in err and len(err.splitlines()) == 1, err
+    assert {p: p.read_bytes() for p in protected} == protected
+    assert not (tmp_path / "x.ms-seg").exists()
+    mine = tmp_path / "mine.ms-seg"
+    mine.write_text("someone else's segmentation")
+    assert main(["segcomp", good, "--image", str(scan), "--out", str(mine), "--no-normals"]) == 3
+    err = capsys.readouterr().err
+    assert f"kbs: error: {mine}: exists, and kbs cannot tell whether it wrote it" in err and "--force" in err
+    assert mine.read_text() == "someone else's segmentation"
+    assert main(["segcomp", good, "--image", str(scan), "--out", str(mine), "--no-normals", "--force"]) == 0
+    np.testing.assert_array_equal(read_sunraster(mine), np.where(facet >= 0, facet + 10, 0))
+    # the normals too: a foreign one stops both files before the work
+    nor = tmp_path / "other.ms-nor"
+    nor.write_text("mine")
+    assert main(["segcomp", good, "--image", str(scan), "--out", str(tmp_path / "other.ms-seg")]) == 3
+    assert f"{nor}: exists" in capsys.readouterr().err and nor.read_text() == "mine"
+    assert not (tmp_path / "other.ms-seg").exists()
 
 
 # --------------------------------------------------------------------------------------------

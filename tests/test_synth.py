@@ -341,3 +341,40 @@ def test_kbs_synth_errors_are_one_line_with_exit_codes(tmp_path, capsys):
     assert main(["synth", "polyhedral", "--resolution", "30x40", "--out", str(tmp_path / "missing" / "x.ply")]) == 3
     err = capsys.readouterr().err
     assert err.startswith("kbs: error: ") and "cannot write" in err and len(err.splitlines()) == 1
+
+
+def test_kbs_synth_replaces_its_own_files_but_not_another_without_force(tmp_path, capsys):
+    """Every synth command replaced any file at --out; now a file kbs did not write needs --force
+    (checked before the scene is made), its own (a run id in the PLY; a drive's poses.txt by its
+    digest in truth.json) is replaced; the SegComp rasters, with no room for a run id, need --force."""
+    from kbs.cli.main import main
+    from kbs.io.result import is_kbs_output
+
+    def refused(args, path, text="mine"):
+        assert main(args) == 3, args
+        err = capsys.readouterr().err
+        assert err.startswith(f"kbs: error: {path}: exists") and "--force" in err and len(err.splitlines()) == 1
+        assert path.read_text() == text
+
+    scene = tmp_path / "scene.ply"
+    scene.write_text("mine")
+    args = ["synth", "polyhedral", "--resolution", "20x30", "--out", str(scene)]
+    refused(args, scene)
+    assert main([*args, "--force"]) == 0 and is_kbs_output(scene)
+    assert main(args) == 0  # its own
+    drive = tmp_path / "drive"
+    drive.mkdir()
+    (drive / "poses.txt").write_text("mine")
+    args = ["synth", "outdoor", "--frames", "2", "--resolution", "20x30", "--rocks", "1", "--out", str(drive)]
+    refused(args, drive / "poses.txt")
+    assert not (drive / "scans").exists()
+    assert main([*args, "--force"]) == 0
+    assert main(args) == 0  # its own: the frames by their run id, poses.txt by its digest
+    (drive / "poses.txt").write_text((drive / "poses.txt").read_text() + "\n")  # changed since
+    refused(args, drive / "poses.txt", (drive / "poses.txt").read_text())
+    prefix = tmp_path / "abw"
+    (tmp_path / "abw.gt-seg").write_text("mine")
+    args = ["synth", "abw", "--boxes", "1", "--wedges", "0", "--out", str(prefix)]
+    refused(args, tmp_path / "abw.gt-seg")
+    assert not (tmp_path / "abw.range").exists()
+    assert main([*args, "--force"]) == 0 and (tmp_path / "abw.range").exists()

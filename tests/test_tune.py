@@ -347,6 +347,26 @@ def test_kbs_tune_bad_inputs(tmp_path, capsys, scenes):
     assert not Path(out).exists()
 
 
+def test_kbs_tune_refuses_one_file_for_out_and_report(tmp_path, capsys, scenes):
+    """--out X --report X: one replaced the other (the tuned rule file lost); refused before the work."""
+    rules = marked(tmp_path, a=(PLANAR, PLANAR + "    tune: [0.03, 0.1]\n"))
+    truth = tmp_path / "t.npy"
+    np.save(truth, np.zeros(len(read_cloud(scenes[0]).xyz), dtype=np.int32))
+    same = tmp_path / "same.yaml"
+    (tmp_path / "link").symlink_to(tmp_path, target_is_directory=True)
+    for other in (same, tmp_path / "link" / "same.yaml"):
+        code, out, err = run_kbs(capsys, "tune", "--rules", str(rules), str(scenes[0]), str(truth), str(scenes[1]),
+                                 str(truth), "--ground-values", "1", "--out", str(same), "--report", str(other))
+        assert code == 3 and err == (f"kbs: error: {other}: is both --out and --report: one file cannot hold both; "
+                                     "give them two different paths\n"), err
+        assert not same.exists() and out == ""
+    report = tmp_path / "notes.json"
+    report.write_text("mine")
+    code, _, err = run_kbs(capsys, "tune", "--rules", str(rules), str(scenes[0]), str(truth), str(scenes[1]),
+                           str(truth), "--ground-values", "1", "--out", str(same), "--report", str(report))
+    assert code == 3 and "or choose another --report" in err and report.read_text() == "mine"
+
+
 # --- SemanticKITTI .label in kbs eval ------------------------------------------------------------
 
 
