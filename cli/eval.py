@@ -24,7 +24,7 @@ from kbs.evaluation import (
     is_semantickitti_label,
     load_ground_truth,
 )
-from kbs.evaluation.hoover import check_tolerance
+from kbs.evaluation.hoover import LABEL_MAX, LABEL_MIN, check_tolerance
 from kbs.evaluation.segcomp import DEFAULT_TOLERANCES, segcomp_table
 from kbs.io.segcomp import FIRST_REGION_LABEL, NON_REGION_VALUES, read_gt_seg, read_ms_nor, read_range, read_sunraster
 from kbs.io.atomic import replacing
@@ -46,9 +46,14 @@ def _int_list(ctx: click.Context, param: click.Parameter, value: str | None) -> 
     if value.strip().lower() in ("", "none"):
         return ()
     try:
-        return tuple(int(v) for v in value.split(","))
+        values = tuple(int(v) for v in value.split(","))
     except ValueError:
         raise click.BadParameter(f"expected integers separated by commas (e.g. 9,10,11), got {value!r}") from None
+    beyond = next((v for v in values if not LABEL_MIN <= v <= LABEL_MAX), None)
+    if beyond is not None:  # no GT label can be it (labels are int64): a typo, not a value to compare
+        raise click.BadParameter(f"{beyond} is beyond the range of a label (a 64-bit signed integer, "
+                                 f"{LABEL_MIN} .. {LABEL_MAX})")
+    return values
 
 
 def _tolerance(ctx: click.Context, param: click.Parameter, value: float) -> float:

@@ -77,7 +77,8 @@ def map_(ctx: click.Context, rules: str, scans: tuple[Path, ...], poses: Path | 
          calib: Path | None,
          out_dir: Path, cell_size: float, voxel_size: float, max_gap: int, report: bool, crs: str | None, sensor,
          plugins: tuple[Path, ...], scheduler: str | None, jobs: int, force: bool = False) -> None:
-    """Segment every frame of a drive (SCANS: scan files and folders of scans in name order, one
+    """Segment every frame of a drive (SCANS: scan files and folders of scans in name order, without
+    the files that are not scans: poses.txt and other poses files, calib.txt, labels; one
     KITTI sequence folder holding velodyne/*.bin and poses.txt, or one ROS 1/2 bag) with one rule base, bring each into
     the world frame with its pose and fuse them into DIR/: an obstacle grid in log-odds (map.tif,
     map.npy, map.png), the obstacles tracked across frames with a mesh each (objects/), a fused

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from kbs.errors import CloudFileError, KbsError, ParameterError
-from kbs.evaluation.hoover import as_labels
+from kbs.evaluation.hoover import LABEL_MAX, LABEL_MIN, LabelRangeError, as_labels
 from kbs.io import PointCloud
 
 #: Prefix of a ground-truth spec naming a field of the cloud.
@@ -81,8 +81,9 @@ def load_ground_truth(spec: str | os.PathLike[str], cloud: PointCloud | None = N
     Raises
     ------
     CloudFileError
-        The file is missing, unreadable, malformed, not integer labels, or does not have one
-        label per point of ``cloud`` (exit code 3 on the command line).
+        The file is missing, unreadable, malformed, not integer labels, holds a label beyond
+        int64 (refused, never wrapped: its line, or its index), or does not have one label per
+        point of ``cloud`` (exit code 3 on the command line).
     UnknownFieldError
         ``field:NAME`` names a field ``cloud`` does not have.
     ParameterError
@@ -98,6 +99,8 @@ def load_ground_truth(spec: str | os.PathLike[str], cloud: PointCloud | None = N
             raise UnknownFieldError(name, tuple(cloud.fields), where)
         try:
             return as_labels(cloud.fields[name], f"field {name!r}")
+        except LabelRangeError as exc:
+            raise CloudFileError(where, f"{exc} (point {exc.index})") from exc
         except ParameterError as exc:
             raise CloudFileError(where, f"field {name!r} does not hold integer labels "
                                         f"({cloud.fields[name].dtype})") from exc
@@ -127,6 +130,8 @@ def _read_npy(path: Path) -> np.ndarray:
         raise CloudFileError(str(path), "not a single NPY array")
     try:
         return as_labels(a, "labels")
+    except LabelRangeError as exc:
+        raise CloudFileError(str(path), str(exc)) from exc
     except KbsError as exc:
         raise CloudFileError(str(path), f"expected integer labels of shape (N,) or (N, 1), "
                                         f"got {a.dtype} {a.shape}") from exc
@@ -176,7 +181,7 @@ def _read_text(path: Path) -> np.ndarray:
     if len(tokens) == len(lines):
         try:
             return np.array(tokens, dtype=np.int64)
-        except ValueError:
+        except (ValueError, OverflowError):  # not an integer, or beyond int64: the line, below
             pass
     for i, line in enumerate(lines, start=1):  # find the first bad line for the message
         parts = line.split()
@@ -185,7 +190,10 @@ def _read_text(path: Path) -> np.ndarray:
             raise CloudFileError(str(path), f"line {i} {what}; a label file holds one integer per line "
                                             f"(for a column of a cloud, use field:NAME with the cloud)")
         try:
-            int(parts[0])
+            value = int(parts[0])
         except ValueError:
             raise CloudFileError(str(path), f"line {i}: {parts[0]!r} is not an integer label") from None
+        if not LABEL_MIN <= value <= LABEL_MAX:
+            raise CloudFileError(str(path), f"line {i}: {parts[0]} is beyond the range of a label (a 64-bit "
+                                            f"signed integer, {LABEL_MIN} .. {LABEL_MAX})")
     raise CloudFileError(str(path), "malformed label file")  # pragma: no cover - every case is caught above

@@ -220,12 +220,37 @@ def as_labels(values: object, name: str) -> np.ndarray:
     if a.ndim != 1:
         raise ParameterError(f"{name} must have shape (N,) or (N, 1), got {a.shape}")
     if a.dtype.kind in "iub":
+        if a.dtype.kind == "u" and a.dtype.itemsize >= 8 and a.size:  # beyond int64: it would wrap
+            _refuse_beyond_int64(a, a > np.uint64(LABEL_MAX), name)
         return a.astype(np.int64, copy=False)
     if a.dtype.kind == "f":
         if not np.isfinite(a).all() or not (a == np.round(a)).all():
             raise ParameterError(f"{name} must hold integer labels, got non-integer values")
+        if a.size:  # 2^63 and beyond (as a float) has no int64: the cast would give another number
+            _refuse_beyond_int64(a, (a < -2.0 ** 63) | (a >= 2.0 ** 63), name)
         return a.astype(np.int64)
     raise ParameterError(f"{name} must hold integer labels, got dtype {a.dtype}")
+
+
+#: The range of a label (int64): a label outside it is refused, never wrapped or rounded.
+LABEL_MIN, LABEL_MAX = -(2 ** 63), 2 ** 63 - 1
+
+
+class LabelRangeError(ParameterError):
+    """A label beyond :data:`LABEL_MIN` .. :data:`LABEL_MAX`: ``index`` (0-based) and ``value``."""
+
+    def __init__(self, name: str, index: int, value: object) -> None:
+        self.index, self.value = index, value
+        super().__init__(f"{name}[{index}] = {value} is beyond the range of a label (a 64-bit signed integer, "
+                         f"{LABEL_MIN} .. {LABEL_MAX})")
+
+
+def _refuse_beyond_int64(a: np.ndarray, beyond: np.ndarray, name: str) -> None:
+    bad = np.flatnonzero(beyond)
+    if bad.size:
+        i = int(bad[0])
+        value = a[i].item()
+        raise LabelRangeError(name, i, f"{value:g}" if isinstance(value, float) else value)
 
 
 def check_tolerance(tolerance: float) -> float:

@@ -481,11 +481,30 @@ def _stat_problem(file: Path) -> str | None:
     return None
 
 
+#: Files of a drive's folder that are never scans, by name: a KITTI sequence's (and ``kbs synth
+#: --frames``') poses, the KITTI calibration and timestamps (text of 12, 2 x 12 or 1 columns).
+NOT_SCANS = {"poses.txt": "a poses file", "calib.txt": "a KITTI calibration file",
+             "times.txt": "a KITTI timestamps file"}
+
+
+def _is_pose_row(row: list[str]) -> bool:
+    """Whether 12 text numbers are a KITTI pose: a 3x4 matrix, row by row, whose 3x3 part is a
+    rotation."""
+    try:
+        m = np.array([float(v) for v in row]).reshape(3, 4)
+    except ValueError:
+        return False
+    r = m[:, :3]
+    return bool(np.isfinite(r).all() and np.abs(r.T @ r - np.eye(3)).max() < 1e-3)
+
+
 def why_not_a_scan(path: Path) -> str | None:
-    """Why a file found in a scanned directory is not a point cloud, judged from its first bytes
-    (a label or grid ``.npy`` array, a one-column text file of labels), or None when it may be
-    one (the reader will tell). Never raises."""
+    """Why a file found in a scanned directory is not a point cloud: by its name (:data:`NOT_SCANS`),
+    or judged from its first bytes (a label or grid ``.npy`` array, a one-column text file of
+    labels); None when it may be one (the reader will tell). Never raises."""
     extension = path.suffix.lower()
+    if path.name.lower() in NOT_SCANS:
+        return NOT_SCANS[path.name.lower()]
     try:
         if extension == ".npy":
             with open(path, "rb") as stream:
@@ -507,6 +526,8 @@ def why_not_a_scan(path: Path) -> str | None:
             widest = max(map(len, rows), default=3)
             if widest < 3:
                 return f"{widest} column{'s' if widest > 1 else ''} of text, not x y z"
+            if rows and all(len(r) == 12 for r in rows) and all(_is_pose_row(r) for r in rows):
+                return "a poses file (12 numbers a line: a rotation and a translation, KITTI's poses.txt)"
     except (OSError, ValueError):
         return None
     return None

@@ -33,7 +33,11 @@ format:
 - **Reading.** :func:`read_result` gives a frozen :class:`ResultDoc`: the format version and the
   fields readers use (run id, input, rule base, label names, clusters, summary, the explanation's
   dictionary form) as attributes, each checked for its type (a wrong one is an error at its
-  position). ``kbs explain``, ``kbs eval``, ``kbs render``, the report and ``kbs run``'s read-back
+  position); the output clusters' fields the readers use are checked against
+  :data:`CLUSTERS_SCHEMA`, and the explanation, when a reader turns it into records, against
+  its own (:mod:`kbs.knowledge.explain_schema`): a hand-edited field of the wrong type is an
+  input error naming its position and JSON path (``clusters[0].index: expected an integer, got
+  null``). ``kbs explain``, ``kbs eval``, ``kbs render``, the report and ``kbs run``'s read-back
   of a streamed result read it; none of them indexes the JSON's keys. Results written before read as version 1.0: those with the integer
   ``result_format`` key of kbs 0.1 (its value is the major version), and those without any
   (kbs before run ids), which have no run id to check either. Version 1.1 added the
@@ -50,6 +54,7 @@ import os
 import uuid
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -61,6 +66,7 @@ from kbs.io.atomic import replacing
 from kbs.io.cloud import PointCloud
 from kbs.io.ply import build_ply, write_built_ply
 from kbs.io.readers import read_cloud
+from kbs.jsoncheck import JsonPath, compile_schema, dotted
 
 #: The ``format`` of a result JSON, and the version this kbs writes (it reads every 1.x).
 RESULT_FORMAT = "kbs-result"
@@ -363,10 +369,10 @@ def _version_key(doc: Mapping[str, Any]) -> str:
     return "version" if "version" in doc or LEGACY_VERSION_KEY not in doc else LEGACY_VERSION_KEY
 
 
-def json_position(path: str | os.PathLike[str], *keys: str) -> str:
-    """``'file:line:col'`` (1-based) of the value at ``keys`` (object keys from the top) in the
-    JSON file ``path``; the file's name alone when it cannot be found there (only read when a
-    problem is reported)."""
+def json_position(path: str | os.PathLike[str], *keys: str | int) -> str:
+    """``'file:line:col'`` (1-based) of the value at ``keys`` (object keys and array indices from
+    the top) in the JSON file ``path``; the file's name alone when it cannot be found there (only
+    read when a problem is reported)."""
     where = os.fspath(path)
     try:
         text = Path(where).read_text(encoding="utf-8")
@@ -379,8 +385,9 @@ def json_position(path: str | os.PathLike[str], *keys: str) -> str:
     return f"{where}:{line}:{at - (text.rfind(chr(10), 0, at) + 1) + 1}"
 
 
-def _value_at(text: str, keys: Sequence[str]) -> int | None:
-    """The offset in the JSON ``text`` of the value at ``keys``, None when there is none."""
+def _value_at(text: str, keys: Sequence[str | int]) -> int | None:
+    """The offset in the JSON ``text`` of the value at ``keys`` (an int: an array's index), None
+    when there is none."""
     decoder = json.JSONDecoder()
     ws = " \t\n\r"
 
@@ -391,6 +398,21 @@ def _value_at(text: str, keys: Sequence[str]) -> int | None:
 
     i = skip(0)
     for key in keys:
+        if isinstance(key, int):
+            if text[i] != "[":
+                return None
+            i = skip(i + 1)
+            for _ in range(key):
+                if text[i] == "]":
+                    return None
+                _, i = decoder.raw_decode(text, i)
+                i = skip(i)
+                if text[i] != ",":
+                    return None
+                i = skip(i + 1)
+            if text[i] == "]":
+                return None
+            continue
         if text[i] != "{":
             return None
         i = skip(i + 1)
@@ -409,6 +431,35 @@ def _value_at(text: str, keys: Sequence[str]) -> int | None:
         else:
             return None
     return i
+
+
+#: A coordinate or a variance of a cluster's descriptors: within what a cloud's coordinates may be
+#: (kbs.knowledge.segmenter.MAX_COORDINATE, 1e50) and its square.
+_COORD = {"type": "number", "minimum": -1e50, "maximum": 1e50}
+_VEC3 = {"type": "array", "items": _COORD, "minItems": 3, "maxItems": 3, "x-expected": "3 numbers within +-1e50"}
+
+#: The JSON Schema (kbs.jsoncheck's keywords) of a result's output clusters, as far as their readers
+#: (kbs render, the report) use them; other keys are allowed (a newer minor version may add some).
+CLUSTERS_SCHEMA: dict[str, Any] = {
+    "type": "array",
+    "items": {
+        "type": "object",
+        "required": ["index"],
+        "properties": {
+            "index": {"type": "integer", "minimum": 0}, "n_points": {"type": "integer", "minimum": 0},
+            "label": {"type": ["string", "null"]}, "ids": {"type": "array", "items": {"type": "string"}},
+            "descriptors": {"type": ["object", "null"], "properties": {
+                "center": _VEC3, "normal": {**_VEC3, "type": ["array", "null"]},
+                "eigenvalues": {**_VEC3, "items": {"type": "number", "minimum": -1e100, "maximum": 1e100},
+                                "x-expected": "3 numbers within +-1e100"}}},
+        },
+    },
+}
+
+
+@cache
+def _clusters_check() -> Callable[[Any], tuple[JsonPath, str] | None]:
+    return compile_schema(CLUSTERS_SCHEMA)
 
 
 @dataclass(frozen=True)
@@ -485,6 +536,12 @@ class ResultDoc:
         clusters = doc.get("clusters")
         if clusters is not None and (not isinstance(clusters, list) or not all(isinstance(c, dict) for c in clusters)):
             raise bad("clusters", "a list of objects")
+        if clusters is not None:
+            problem = _clusters_check()(clusters)
+            if problem is not None:
+                at, what = problem
+                raise CloudFileError(json_position(path, "clusters", *at),
+                                     f"not a kbs result file ({dotted(('clusters', *at))}: {what})")
         sensor = doc.get("sensor")
         if sensor is not None and (not isinstance(sensor, list) or len(sensor) != 3
                                    or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in sensor)):
@@ -500,8 +557,9 @@ class ResultDoc:
                    clusters=None if clusters is None else tuple(clusters), summary=mapping("summary"),
                    explanation=mapping("explanation"))
 
-    def position(self, *keys: str) -> str:
-        """``'file:line:col'`` of the value at ``keys`` in the file (the file alone when not found)."""
+    def position(self, *keys: str | int) -> str:
+        """``'file:line:col'`` of the value at ``keys`` (object keys, array indices) in the file (the
+        file alone when not found)."""
         return json_position(self.path, *keys)
 
 

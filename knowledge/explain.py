@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 
 from kbs.errors import CloudFileError
 from kbs.formats import FormatVersionError, Version, document_version
+from kbs.knowledge.explain_schema import ExplanationError, check_explanation
 from kbs.knowledge.groundfacts import GroundFacts
 
 if TYPE_CHECKING:
@@ -418,16 +419,21 @@ class Explanation:
         Raises
         ------
         kbs.errors.CloudFileError
-            It has none, or not one this kbs reads (a newer major version, at its position).
+            It has none, or not one this kbs reads: a newer major version, a field of the wrong
+            type or missing, a cluster tree with a cycle or a dangling id
+            (:func:`kbs.knowledge.explain_schema.check_explanation`), at its position.
         """
         if doc.explanation is None:
             raise CloudFileError(str(doc.path), "not a kbs result file (it has no explanation)")
+        d = dict(doc.explanation)
         try:
-            return cls.from_dict(dict(doc.explanation))
+            document_version(d, format=EXPLANATION_FORMAT, reads=EXPLANATION_VERSION)
+            check_explanation(d)  # every field the readers use, and the tree: nothing below can fail on the file
         except FormatVersionError as exc:
             raise CloudFileError(doc.position("explanation", "version"), f"its explanation: {exc}") from exc
-        except (KeyError, TypeError, ValueError) as exc:
-            raise CloudFileError(str(doc.path), f"not a kbs result file ({type(exc).__name__}: {exc})") from exc
+        except ExplanationError as exc:
+            raise CloudFileError(doc.position("explanation", *exc.path), f"not a kbs result file ({exc})") from exc
+        return cls.from_dict(d)
 
     def to_networkx(self):
         """A ``networkx.DiGraph`` parent -> child with each record's fields as node attributes."""

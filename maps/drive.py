@@ -133,7 +133,8 @@ def is_kitti_sequence(path: Path) -> bool:
 
 def scan_files(paths: Iterable[str | os.PathLike[str]]) -> list[Path]:
     """The scans named by ``paths``: a file as given, a folder as every point-cloud file directly
-    inside it (extensions :data:`kbs.io.SUPPORTED_EXTENSIONS`), in name order.
+    inside it (extensions :data:`kbs.io.SUPPORTED_EXTENSIONS`), in name order, except the files
+    that are not scans (a ``poses.txt``, a label file: :func:`kbs.io.readers.why_not_a_scan`).
 
     Raises
     ------
@@ -142,7 +143,7 @@ def scan_files(paths: Iterable[str | os.PathLike[str]]) -> list[Path]:
         that cannot be listed.
     """
     from kbs.io import SUPPORTED_EXTENSIONS
-    from kbs.io.readers import cloud_files_in
+    from kbs.io.readers import cloud_files_in, why_not_a_scan
 
     out: list[Path] = []
     for arg in map(Path, paths):
@@ -156,10 +157,16 @@ def scan_files(paths: Iterable[str | os.PathLike[str]]) -> list[Path]:
             out.append(arg)
             continue
         found = cloud_files_in(arg)
-        if not found:
+        skipped = {p.name: why for p in found if (why := why_not_a_scan(p)) is not None}
+        kept = [p for p in found if p.name not in skipped]
+        if not kept:
+            what = "; ".join(f"{name}: {why}" for name, why in skipped.items())
+            hint = (f"; its scans are in {arg / 'scans'}: kbs map {arg / 'scans'} --poses {arg / 'poses.txt'}"
+                    if (arg / "scans").is_dir() and "poses.txt" in skipped else "")
             raise CloudFileError(str(arg), f"no point-cloud file in this directory (extensions: "
-                                 f"{', '.join(SUPPORTED_EXTENSIONS)})")
-        out.extend(found)
+                                 f"{', '.join(SUPPORTED_EXTENSIONS)}" + (f"; skipped {what}" if what else "")
+                                 + f"){hint}")
+        out.extend(kept)
     return out
 
 

@@ -98,6 +98,11 @@ def rigid_problem(m: np.ndarray) -> str | None:
     :data:`ROTATION_TOLERANCE`)."""
     if not np.isfinite(m).all():
         return "a NaN or infinite value"
+    from kbs.knowledge.segmenter import MAX_COORDINATE
+
+    far = float(m[:3, 3][np.argmax(np.abs(m[:3, 3]))])
+    if abs(far) > MAX_COORDINATE:  # as a point's coordinate: the map would be built in a frame it cannot hold
+        return f"a translation of {far:g}, beyond +-{MAX_COORDINATE:g} (the bound of a point's coordinates)"
     if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
         return f"last row is {' '.join(f'{v:g}' for v in m[3])}, not 0 0 0 1"
     r = m[:3, :3]

@@ -325,6 +325,52 @@ def test_load_ground_truth_from_files_and_fields(tmp_path):
         load_ground_truth(tmp_path / "absent.npy")
 
 
+@pytest.mark.parametrize("text, problem", [
+    ("1\n12345678901234567890123\n3\n4\n", "line 2: 12345678901234567890123 is beyond the range of a label"),
+    ("1\n2\n18446744073709551615\n4\n", "line 3: 18446744073709551615 is beyond the range of a label"),
+    ("1\n2\n3\n-9223372036854775809\n", "line 4: -9223372036854775809 is beyond the range of a label"),
+])
+def test_a_text_label_beyond_int64_is_refused_at_its_line(tmp_path, text, problem):
+    """A 23-digit label overflowed (an internal error, exit 1): now the file and the line."""
+    (tmp_path / "big.txt").write_text(text)
+    with pytest.raises(CloudFileError, match=f"big.txt: {problem}"):
+        load_ground_truth(tmp_path / "big.txt")
+    (tmp_path / "edge.txt").write_text("-9223372036854775808\n9223372036854775807\n")  # int64's own ends: read
+    assert load_ground_truth(tmp_path / "edge.txt").tolist() == [-(2 ** 63), 2 ** 63 - 1]
+
+
+def test_a_label_beyond_int64_is_never_wrapped_nor_rounded(tmp_path):
+    """uint64 2^64-1 became -1 (then an unlabelled value, or another region) without a word; a
+    float label of 1e19 became another number: now each is refused with its index."""
+    u = np.array([1, 2, 2 ** 64 - 1, 4], np.uint64)
+    np.save(tmp_path / "u.npy", u)
+    with pytest.raises(CloudFileError, match=r"u.npy: labels\[2\] = 18446744073709551615 is beyond the range"):
+        load_ground_truth(tmp_path / "u.npy")
+    np.save(tmp_path / "f.npy", np.array([1.0, 1e19, 3.0]))
+    with pytest.raises(CloudFileError, match=r"f.npy: labels\[1\] = 1e\+19 is beyond the range"):
+        load_ground_truth(tmp_path / "f.npy")
+    cloud = PointCloud.from_arrays(np.zeros((4, 3)), {"label": u}, path="c.pcd")
+    with pytest.raises(CloudFileError, match=r"c.pcd: field 'label'\[2\] = 18446744073709551615 .* \(point 2\)"):
+        load_ground_truth("field:label", cloud)
+    fine = np.array([0, 2 ** 63 - 1], np.uint64)  # uint64 labels within int64 read unchanged
+    np.save(tmp_path / "ok.npy", fine)
+    assert load_ground_truth(tmp_path / "ok.npy").tolist() == [0, 2 ** 63 - 1]
+
+
+def test_eval_refuses_labels_beyond_int64_with_exit_3(tmp_path, capsys):
+    n = 300
+    xyz = np.random.default_rng(0).normal(size=(n, 3))
+    write_ply(tmp_path / "r.ply", xyz, {"cluster": np.zeros(n, np.int32)})
+    (tmp_path / "gt.txt").write_text("0\n" * 10 + "12345678901234567890123\n" + "0\n" * (n - 11))
+    capsys.readouterr()
+    assert main(["eval", str(tmp_path / "r.ply"), str(tmp_path / "gt.txt")]) == 3
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "gt.txt: line 11: 12345678901234567890123 is beyond the range of a label" in err
+    assert main(["eval", str(tmp_path / "r.ply"), str(tmp_path / "gt.txt"), "--unlabelled-values",
+                 "18446744073709551615"]) == 2
+    assert "18446744073709551615 is beyond the range of a label" in capsys.readouterr().err
+
+
 # --- the command -------------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
