@@ -49,7 +49,8 @@ SHORT_HELP = {
         '(label names, clusters, the explanation tree).'
     ),
     "map": (
-        'Segment every frame of a drive (SCANS: scan files and folders of scans in name order, one KITTI '
+        'Segment every frame of a drive (SCANS: scan files and folders of scans in name order, without '
+        'the files that are not scans: poses.txt and other poses files, calib.txt, labels; one KITTI '
         'sequence folder holding velodyne/*.bin and poses.txt, or one ROS 1/2 bag) with one rule base, '
         'bring each into the world frame with its pose and fuse them into DIR/: an obstacle grid in log-'
         'odds (map.tif, map.npy, map.png), the obstacles tracked across frames with a mesh each '

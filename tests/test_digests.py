@@ -105,7 +105,7 @@ def _scan(spec: str, tmp: Path) -> Path:
     _, kind, seed = spec.split(":")
     out = tmp / (f"{kind}.synth.{seed}" + ("" if kind == "abw" else ".ply"))  # abw writes NAME.range
     with contextlib.redirect_stdout(io.StringIO()):
-        assert main(["synth", kind, "--seed", seed, "--out", str(out)]) == 0
+        assert main(["synth", kind, "--seed", seed, "--out", str(out), "--force"]) == 0  # the test's own file
     rng = out.with_name(out.name + ".range")
     return rng if rng.exists() else out
 
