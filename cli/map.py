@@ -106,7 +106,8 @@ def map_(ctx: click.Context, rules: str, scans: tuple[Path, ...], poses: Path | 
     inputs = [*scans, *(p for p in (poses, calib, drive.poses.path) if p is not None),
               *(f.path for f in drive.frames if f.path is not None)]
     check_map_outputs(out_dir, inputs=inputs, force=force, report=report)  # before any frame is segmented
-    check_writable_folder(out_dir, create=True)
+    if out_dir.is_dir():  # a folder that does not exist yet is made with the map, not before a frame can fail
+        check_writable_folder(out_dir, create=False)
     odometry = None
     if estimate_poses:
         from kbs.maps.odometry import Odometry

@@ -8,7 +8,8 @@ The layers, lowest first (a folder may import every folder of a lower layer):
 rank  folders (and root modules)                 what they are
 ====  =========================================  ==================================================
 0     errors                                     the exception family and exit codes
-1     units, formats                             length units; shared facts of the file formats
+1     units, formats, jsoncheck                  length units; shared facts of the file formats;
+                                                 the check of a JSON document against a schema
 2     inference, io                              the inference motor (arrays in, arrays out); the
                                                  point-cloud file formats (no engine, no rules)
 3     geometry                                   pure geometry of point sets (PCA, connexity, the
@@ -43,7 +44,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 LAYERS: dict[str, int] = {
     "errors": 0,
-    "units": 1, "formats": 1,
+    "units": 1, "formats": 1, "jsoncheck": 1,
     "inference": 2, "io": 2,
     "geometry": 3,
     "knowledge": 4,
