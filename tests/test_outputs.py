@@ -502,6 +502,28 @@ def test_run_on_a_folder_skips_label_and_grid_files(tmp_path, capsys):
     assert r.out.startswith(f"{folder / '000001.points.npy'}: 26,233 points")
 
 
+def test_run_on_a_folder_skips_poses_and_calibration_files(tmp_path, capsys):
+    """A KITTI-like folder: its poses.txt and calib.txt by name, a trajectory under another name by
+    content (12 numbers a line holding a rotation) are not scans; kbs run segments only the scan
+    (a poses file read as text was 12 columns: a 'scan' of one point per pose)."""
+    folder = tmp_path / "drive"
+    folder.mkdir()
+    np.save(folder / "000000.npy", read_cloud(EXAMPLE).xyz.astype(np.float32))
+    rows = "1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 1.5 0 1 0 0.2 0 0 1 0\n"
+    (folder / "poses.txt").write_text(rows)
+    (folder / "traj.txt").write_text(rows)
+    (folder / "calib.txt").write_text("P0: 7.1e+02 0 6.0e+02 0 0 7.1e+02 1.8e+02 0 0 0 1 0\n")
+    out = tmp_path / "out"
+    assert main([*RUN, str(folder), "--out", str(out)]) == 0
+    r = capsys.readouterr()
+    assert sorted(p.name for p in out.iterdir()) == ["000000.json", "000000.ply"]
+    skipped = [line for line in r.err.splitlines() if line.startswith("kbs: skipped")]
+    assert skipped == [f"kbs: skipped {folder / 'calib.txt'}: not a point cloud (a KITTI calibration file)",
+                       f"kbs: skipped {folder / 'poses.txt'}: not a point cloud (a poses file)",
+                       f"kbs: skipped {folder / 'traj.txt'}: not a point cloud (a poses file (12 numbers a line: a "
+                       "rotation and a translation, KITTI's poses.txt))"]
+
+
 def test_quiet_run_prints_nothing(tmp_path, capsys):
     assert main(["-q", *RUN, str(EXAMPLE), str(ROOT / "examples" / "data" / "polyhedral.ply"),
                  "--out", str(tmp_path)]) == 0
