@@ -119,14 +119,14 @@ def synth_outdoor(seed: int, out: Path | None, resolution, n_frames: int | None,
         options["resolution"] = resolution
     t0 = time.perf_counter()
     if n_frames is not None:
-        from kbs.synth.drive import drive_files, outdoor_drive
+        from kbs.synth.drive import drive_files, outdoor_drive, stale_frames
 
         if out is not None:  # before the work: each file the drive would replace
             if out.exists() and not out.is_dir():
                 raise click.BadParameter(f"{out} is a file; give a folder for the drive (--frames)",
                                          param_hint="--out")
             scans, poses, truth = drive_files(out, n_frames)
-            for target in (*scans, truth):
+            for target in (*scans, truth, *stale_frames(out, n_frames)):  # an earlier drive's extra frames go
                 check_output(target, force=force)
             check_output(poses, force=force, own=listed_by_index(poses, truth))
 
@@ -134,7 +134,7 @@ def synth_outdoor(seed: int, out: Path | None, resolution, n_frames: int | None,
                               n_rocks=6 if n_rocks is None else n_rocks, **options)
         line = f"{drive.summary()}; {time.perf_counter() - t0:.2f} s"
         if out is not None:
-            drive.save(out)
+            drive.save(out, force=force)
             line += f"; wrote {out / 'scans'} ({n_frames} PLY), {out / 'poses.txt'} and {out / 'truth.json'}"
         click.echo(line)
         return

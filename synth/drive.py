@@ -320,12 +320,14 @@ class DriveScene:
                 f"{n:,} points, {count(len(seen), 'object', 'objects')} seen of {len(self.truth.solids)}, "
                 f"path {self.params['step'] * (len(self.frames) - 1):g} m")
 
-    def save(self, directory: str | os.PathLike[str]) -> None:
+    def save(self, directory: str | os.PathLike[str], *, force: bool = False) -> None:
         """Write ``DIR/scans/NNNNNN.ply`` (each frame as :meth:`Scene.save`), ``DIR/poses.txt``
         (KITTI format: the 3x4 of each sensor-to-world pose; they are LiDAR poses, there is no
         calib.txt) and ``DIR/truth.json`` (the layout and the poses), each whole or not at all.
         One run id marks them as kbs's: in each frame's PLY header and in ``truth.json``, which also
         holds the SHA-256 of ``poses.txt`` (a format with no room for it: :func:`kbs.io.result.listed_by_index`).
+        Frames of an earlier, longer drive in ``DIR/scans`` (:func:`stale_frames`) are removed when kbs
+        wrote them, or with ``force``: left, they would be read as frames of this drive.
 
         Raises
         ------
@@ -334,7 +336,7 @@ class DriveScene:
         """
         from kbs import __version__
         from kbs.io.atomic import replacing
-        from kbs.io.result import file_digest, new_run_id
+        from kbs.io.result import file_digest, is_kbs_output, new_run_id
         from kbs.maps.poses import write_kitti_poses
 
         d = Path(directory)
@@ -343,6 +345,9 @@ class DriveScene:
             (d / "scans").mkdir(parents=True, exist_ok=True)
             for path, f in zip(drive_files(d, len(self.frames))[0], self.frames):
                 f.save(path, run_id=run_id)
+            for path in stale_frames(d, len(self.frames)):
+                if force or is_kbs_output(path):
+                    path.unlink()
             with replacing(d / "poses.txt") as (tmp,):
                 write_kitti_poses(tmp, self.poses)
                 digest = file_digest(tmp)
@@ -353,6 +358,16 @@ class DriveScene:
                 tmp.write_text(json.dumps(doc, default=_jsonable))
         except OSError as exc:
             raise CloudFileError(str(d), f"cannot write the drive: {exc.strerror or exc}") from exc
+
+
+def stale_frames(directory: str | os.PathLike[str], n_frames: int) -> list[Path]:
+    """The frame files ``DIR/scans/NNNNNN.ply`` numbered ``n_frames`` or more: an earlier, longer
+    drive's, which a drive of ``n_frames`` written there would leave behind."""
+    scans = Path(directory) / "scans"
+    if not scans.is_dir():
+        return []
+    return sorted(p for p in scans.iterdir()
+                  if len(p.name) == 10 and p.name.endswith(".ply") and p.name[:6].isdigit() and int(p.name[:6]) >= n_frames)
 
 
 def drive_files(directory: str | os.PathLike[str], n_frames: int) -> tuple[list[Path], Path, Path]:

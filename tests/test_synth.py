@@ -378,3 +378,24 @@ def test_kbs_synth_replaces_its_own_files_but_not_another_without_force(tmp_path
     refused(args, tmp_path / "abw.gt-seg")
     assert not (tmp_path / "abw.range").exists()
     assert main([*args, "--force"]) == 0 and (tmp_path / "abw.range").exists()
+
+
+def test_a_shorter_drive_over_a_longer_one_leaves_none_of_its_frames(tmp_path, capsys):
+    """A drive of 2 frames written over one of 4: frames 000002-000003 stayed in scans/ beside the
+    new poses.txt, and `kbs map DIR/scans` would have read 4 frames. kbs's own are removed; one kbs
+    did not write is refused (exit 3, before the work) and removed only with --force."""
+    from kbs.cli.main import main
+
+    drive = tmp_path / "drive"
+    args = ["synth", "outdoor", "--resolution", "20x30", "--rocks", "1", "--out", str(drive)]
+    assert main([*args, "--frames", "4"]) == 0
+    assert main([*args, "--frames", "2"]) == 0
+    assert sorted(p.name for p in (drive / "scans").iterdir()) == ["000000.ply", "000001.ply"]
+    (drive / "scans" / "000005.ply").write_text("mine")
+    (drive / "scans" / "notes.ply").write_text("not a frame's name")
+    capsys.readouterr()
+    assert main([*args, "--frames", "1"]) == 3
+    assert capsys.readouterr().err.startswith(f"kbs: error: {drive / 'scans' / '000005.ply'}: exists")
+    assert (drive / "scans" / "000001.ply").exists()  # nothing done
+    assert main([*args, "--frames", "1", "--force"]) == 0
+    assert sorted(p.name for p in (drive / "scans").iterdir()) == ["000000.ply", "notes.ply"]
