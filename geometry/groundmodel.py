@@ -17,8 +17,9 @@ global plane, the ground-contact step leaves such points alone).
 from __future__ import annotations
 
 import functools
+import hashlib
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -125,6 +126,10 @@ class LocalGround:
     workers: int = 1
     per_range: float = 0.0
     sensor: np.ndarray | None = None
+    #: the heights :meth:`height` gave, by ``exclude`` and the points' bytes: the checks of a relabel
+    #: measure the same cluster on the same surface with several statistics (airborne: `raised`,
+    #: `stands_up`, `joins`), each asking for the same heights
+    _heights: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     #: how many more neighbours are fetched when a cluster's own points are left out
     EXCLUDE_FACTOR = 8
@@ -506,7 +511,14 @@ class LocalGround:
 
     def height(self, P: np.ndarray, exclude: str | None = None) -> np.ndarray:
         """Heights (q,) of points ``P`` above the local ground surface (NaN where it is unknown);
-        ``exclude``: a cluster whose own points do not count (see :meth:`query`)."""
-        P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
-        ground, _ = self.query(P, exclude, nearest_of="none")
-        return (P - self.point) @ self.normal - ground
+        ``exclude``: a cluster whose own points do not count (see :meth:`query`). Read-only: the
+        same points asked again get the same array."""
+        P = np.ascontiguousarray(P, dtype=np.float64).reshape(-1, 3)
+        key = (exclude, hashlib.blake2b(P.tobytes(), digest_size=16).digest())
+        h = self._heights.get(key)
+        if h is None:
+            ground, _ = self.query(P, exclude, nearest_of="none")
+            h = (P - self.point) @ self.normal - ground
+            h.flags.writeable = False  # shared by the callers that ask again
+            self._heights[key] = h
+        return h
