@@ -807,6 +807,32 @@ def test_pruned_slope_surface_equals_the_plain_grid_and_the_k_d_tree(monkeypatch
     assert visited >= 9  # the pruned kernel ran (the finest grid may be refused as too large)
 
 
+def test_a_surface_whose_box_is_mostly_empty_gets_the_plain_grid_with_the_same_bits(monkeypatch):
+    """Two patches of ground 2 km apart (airborne samples side by side): the finer cells of the
+    pruned slope surface would be mostly empty, more than SLOPE_CELLS_PER_POINT per surface
+    point, so the plain grid answers; the values are those of the pruned path (the cap raised)
+    and of the k-d tree, bit for bit."""
+    from kbs.inference import _flags
+
+    monkeypatch.setattr(_flags, "JIT", True)
+    rng = np.random.default_rng(9)
+    patch = rng.random((2000, 2)) * 60.0
+    xy = np.vstack([patch, patch + [2000.0, 0.0]])
+    X = np.column_stack([xy, np.round(rng.normal(0, 2.0, len(xy)), 2)])
+    model = LocalGround.build(X, np.arange(len(X)), np.array([0.0, 0.0, 1.0]), np.zeros(3))
+    P = np.vstack([X[::7] + [0.2, -0.1, 3.0], [[1000.0, 30.0, 0.0]]])
+    got = model.height_above_slope(P, 40.0, 10.0)
+    assert model._slope_cells(10.0) is None and model._slope_grid(10.0) is not None  # 4,000 points, 824 x 24 cells of 2.5 m
+    monkeypatch.setattr(LocalGround, "SLOPE_CELLS_PER_POINT", 1000)
+    fresh = LocalGround.build(X, np.arange(len(X)), np.array([0.0, 0.0, 1.0]), np.zeros(3))
+    pruned = fresh.height_above_slope(P, 40.0, 10.0)
+    assert fresh._slope_cells(10.0) is not None
+    monkeypatch.setattr(_flags, "JIT", False)
+    want = fresh.height_above_slope(P, 40.0, 10.0)
+    assert got.tobytes() == pruned.tobytes() == want.tobytes()
+    assert np.isnan(got[-1]) and np.isfinite(got[:-1]).all()
+
+
 def test_pruned_slope_kernel_equals_the_plain_kernel_on_random_surfaces():
     """_compiled.slope_lowest_pruned against slope_lowest: the same minimum bit for bit, on
     random surfaces (continuous and rounded positions, zero heights), radii, slopes and owners."""
