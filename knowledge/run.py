@@ -38,12 +38,21 @@ from kbs.knowledge.strategies import STRATEGIES
 _ACCEPT = DEFAULT()
 
 
+#: from this many points, the split workers (jobs > 1) are forked before the first partition, not at
+#: the first split: they then hold the input only (docs/PERFORMANCE.md, session 20); on smaller
+#: clouds, forked later, they inherit the compiled kernels loaded by the first partition instead of
+#: loading them again (about 0.4 s each)
+EARLY_WORKERS = 500_000
+
+
 def run(interpreter: Any, X: np.ndarray) -> Segmentation:
     """Segment points ``X`` (n, 3) with the interpreter's rule base."""
     t0 = time.perf_counter()
     X = np.ascontiguousarray(X, dtype=np.float64)
     if X.ndim != 2 or X.shape[1] != 3 or X.shape[0] == 0:
         raise FitError(f"expected a non-empty (n, 3) cloud, got shape {X.shape}")
+    if X.shape[0] >= EARLY_WORKERS:
+        interpreter.start_workers()
     ctx = RunContext(interpreter, X)
     root = Node.root(X.shape[0])
     _, root_draft = ctx.record(root)  # its descriptors; the cluster itself (a copy of X) is not kept

@@ -513,6 +513,62 @@ def test_parallel_splits_give_the_same_segmentation_and_explanation():
     assert one.clusters == two.clusters
 
 
+def test_splits_side_by_side_are_started_within_a_window():
+    """At most 2 x jobs splits are in the workers' hands or finished and not taken (their (n, K)
+    memberships would pile up in memory otherwise); the rest start as results are taken, in
+    order; a split released unstarted never runs; each result is that of the split done alone."""
+    from kbs.inference import ufp_onc
+    from kbs.knowledge.interpreter import _Splitter
+
+    X, _ = ground_with_small_obstacles()
+    interp = Interpreter(load_rule_base("outdoor"), jobs=2)
+    kwargs = interp._ufp_kwargs("first_max")
+    parts = [X[i::8] for i in range(8)]
+    with interp, _Splitter(interp, kwargs) as splitter:
+        assert splitter.window == 4
+        jobs = [splitter.submit(p) for p in parts]
+        assert len(splitter.started) == 4 and len(splitter.waiting) == 4
+        assert all(j.future is not None for j in jobs[:4]) and all(j.future is None for j in jobs[4:])
+        jobs[4].release()  # its cluster was not divided after all: never started, its place goes on
+        assert jobs[4].X is None and len(splitter.waiting) == 3
+        first = jobs[0].result()
+        assert len(splitter.started) == 4 and jobs[5].future is not None and jobs[4].future is None
+        alone = ufp_onc(parts[0], **kwargs)
+        assert first.chosen_k == alone.chosen_k and np.array_equal(first.memberships, alone.memberships)
+        last = jobs[7].result()  # taken out of turn: started at once, whatever the window
+        assert np.array_equal(last.memberships, ufp_onc(parts[7], **kwargs).memberships)
+        for j in jobs[1:4] + [jobs[5], jobs[6]]:
+            j.result()
+        assert not splitter.started and not splitter.waiting
+        with pytest.raises(AssertionError, match="taken once"):
+            jobs[1].result()
+
+
+def test_workers_forked_before_the_first_partition_on_large_clouds(monkeypatch):
+    """From EARLY_WORKERS points, the split workers are forked when the run starts (they then hold
+    the input only, not the first partition's arrays): before any UFP-ONC fit, and the result is
+    that of one process."""
+    import kbs.knowledge.run as run_mod
+    from kbs.knowledge import interpreter as interp_mod
+
+    X, _ = ground_with_small_obstacles()
+    rb = load_rule_base("outdoor")
+    one = Interpreter(rb, jobs=1).run(X)
+    monkeypatch.setattr(run_mod, "EARLY_WORKERS", X.shape[0])
+    two = Interpreter(rb, jobs=2)
+    seen = []
+    fit = interp_mod.Interpreter._ufp_onc
+    monkeypatch.setattr(interp_mod.Interpreter, "_ufp_onc",
+                        lambda self, *a, **k: (seen.append(self._pool is not None), fit(self, *a, **k))[1])
+    with two:
+        res = two.run(X)
+        assert seen and seen[0], "the workers were forked before the first partition"
+        assert len([p for p in two._pool._processes.values() if p.is_alive()]) == 2
+    for a in ("cluster", "label", "membership"):
+        assert np.array_equal(getattr(one, a), getattr(res, a)), a
+    assert one.explanation.render() == res.explanation.render()
+
+
 @pytest.mark.slow  # whole real scans / a browser: pytest --runslow (CI) runs it
 def test_parallel_splits_on_semantickitti_stop_at_the_same_limits(shared_data):
     """With a rule file that sets max_clusters (the shipped ones do not), the real scan reaches it:
