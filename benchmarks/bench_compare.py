@@ -17,7 +17,7 @@ compiles them (without ``KBS_JIT=1`` it would run the numpy reference, its cache
 The post steps column is the time of ``Interpreter.finish`` in each frame (labels, the post
 steps, the result), median of the same frames.
 
-Usage: python benchmarks/bench_compare.py [--base REV] [--repeats 5] [--rounds 2] [--scan NAME ...]
+Usage: python benchmarks/bench_compare.py [--base REV] [--repeats 5] [--rounds 2] [--jobs 1] [--scan NAME ...]
 (scans: the five defaults, and the airborne samp11, samp61 and isprs-tile, 131,951 points of the
 ISPRS samples side by side, run in tiles by the rules' limits.tile)
 """
@@ -57,7 +57,7 @@ import kbs
 from kbs.io import read_cloud
 path, rules, sensor, repeats, out = sys.argv[1], sys.argv[2], json.loads(sys.argv[3]), int(sys.argv[4]), sys.argv[5]
 X = read_cloud(path).xyz
-seg = kbs.Segmenter(rules, jobs=1, sensor=sensor)
+seg = kbs.Segmenter(rules, jobs=int(sys.argv[6]), sensor=sensor)
 from kbs.knowledge.interpreter import Interpreter
 post = [0.0]
 _finish = Interpreter.finish
@@ -84,7 +84,7 @@ print(json.dumps({"times": times, "posts": posts, "kbs": kbs.__file__, "clusters
 """
 
 
-def run_side(pythonpath: str | None, scan: str, repeats: int, out: Path) -> dict:
+def run_side(pythonpath: str | None, scan: str, repeats: int, out: Path, jobs: int = 1) -> dict:
     path, rules, sensor = SCANS[scan]
     if scan == "isprs-tile" and not path.exists():
         sys.path.insert(0, str(REPO / "benchmarks"))
@@ -94,7 +94,7 @@ def run_side(pythonpath: str | None, scan: str, repeats: int, out: Path) -> dict
     env = dict(os.environ, KBS_JIT="1")  # compiled on both sides (the base's cache is cold: its warm-up compiles)
     if pythonpath:
         env["PYTHONPATH"] = pythonpath
-    proc = subprocess.run([sys.executable, "-c", CHILD, str(path), rules, json.dumps(sensor), str(repeats), str(out)],
+    proc = subprocess.run([sys.executable, "-c", CHILD, str(path), rules, json.dumps(sensor), str(repeats), str(out), str(jobs)],
                           capture_output=True, text=True, env=env, cwd=tempfile.gettempdir())
     if proc.returncode:
         raise SystemExit(f"{scan}: the child failed:\n{proc.stderr[-2000:]}")
@@ -107,6 +107,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5, help="timed frames per side and round")
     ap.add_argument("--rounds", type=int, default=2, help="alternating rounds per scan")
     ap.add_argument("--scan", nargs="*", default=DEFAULT, choices=list(SCANS))
+    ap.add_argument("--jobs", type=int, default=1, help="the segmenters' jobs (default 1: one core)")
     a = ap.parse_args()
     import numpy as np
 
@@ -122,7 +123,7 @@ def main() -> None:
         subprocess.run(["tar", "-x", "-C", tmp], input=archive, check=True)
         sides = {"base": tmp, "this": None}
         print(f"base: {a.base} ({rev}); this: the working tree at {head}{' with uncommitted changes' if dirty else ''}; "
-              f"{a.repeats} frames x {a.rounds} rounds per side, load average {os.getloadavg()[0]:.2f} at the start\n")
+              f"{a.repeats} frames x {a.rounds} rounds per side, jobs={a.jobs}, load average {os.getloadavg()[0]:.2f} at the start\n")
         print("| scan | rules | points | base ms | this ms | base / this | post steps, base ms | this ms | result |")
         print("|---|---|---:|---:|---:|---:|---:|---:|---|")
         for scan in a.scan:
@@ -132,7 +133,7 @@ def main() -> None:
             for _ in range(a.rounds):
                 for side in ("base", "this"):
                     out = Path(tmp) / f"{scan}-{side}.npy"
-                    r = run_side(sides[side], scan, a.repeats, out)
+                    r = run_side(sides[side], scan, a.repeats, out, a.jobs)
                     times[side] += r["times"]
                     posts[side] += r.get("posts", [])
                     info[side] = r

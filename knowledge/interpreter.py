@@ -7,7 +7,6 @@ the parts it is made of are tables of modules: :mod:`kbs.knowledge.strategies`,
 """
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Callable
 from typing import Any, Self
 
@@ -183,11 +182,11 @@ def _shutdown_pool(pool) -> None:
     pool.shutdown(wait=True, cancel_futures=True)
 
 
+_malloc_trim: Any = None
+
+
 def _trim_heap() -> None:
-    """Give the C heap's free pages back to the system (glibc's ``malloc_trim``; nothing elsewhere).
-    A split worker calls it before each split: the previous split's arrays, freed, would otherwise
-    stay in the worker's heap (fragments of a large split kept for the next small ones: about
-    0.1-0.15 GB per worker on 10^7 points)."""
+    """Give the C heap's free pages back to the system (glibc's ``malloc_trim``; nothing elsewhere)."""
     global _malloc_trim
     if _malloc_trim is None:
         import ctypes
@@ -195,18 +194,28 @@ def _trim_heap() -> None:
 
         try:
             _malloc_trim = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+            _malloc_trim.argtypes = [ctypes.c_size_t]
         except (OSError, AttributeError, TypeError):
             _malloc_trim = False
     if _malloc_trim:
         _malloc_trim(0)
 
 
-_malloc_trim: Any = None
+#: a split worker trims its heap (:func:`_trim_heap`) before a split when its previous split had at
+#: least this many points
+TRIM_AFTER = 50_000
+_last_split = 0  # in a worker: the points of its previous split
 
 
 def _worker_split_job(X: np.ndarray, kwargs: dict[str, Any]) -> tuple[str, Any]:
-    """:func:`_split_job` in a split worker, its heap trimmed first."""
-    _trim_heap()
+    """:func:`_split_job` in a split worker. The arrays of a large split, freed, would stay in the
+    worker's heap, kept for the next small splits (60-90 MB per worker on 10^7 points), so the
+    heap is trimmed after one; after every split, trimming cost a vehicle frame 5 % with -j 2 (the
+    next split's arrays are taken from the system again)."""
+    global _last_split
+    if _last_split >= TRIM_AFTER:
+        _trim_heap()
+    _last_split = X.shape[0]
     return _split_job(X, kwargs)
 
 
@@ -219,107 +228,62 @@ def _split_job(X: np.ndarray, kwargs: dict[str, Any]) -> tuple[str, Any]:
 
 
 class _Job:
-    """A split: waiting for a worker (``splitter`` set, ``future`` None), under way in a worker
-    process (``future``), or computed here on demand (``jobs`` is 1, or the pool broke)."""
+    """A split under way: in a worker process (``future``) or not started yet (computed here, on
+    demand, when ``jobs`` is 1)."""
 
-    def __init__(self, X: np.ndarray, kwargs: dict[str, Any], splitter: _Splitter | None = None) -> None:
+    def __init__(self, X: np.ndarray, kwargs: dict[str, Any], future=None) -> None:
         self.X: np.ndarray | None = X
-        self.kwargs, self.splitter = kwargs, splitter
-        self.future: Any = None
+        self.kwargs, self.future = kwargs, future
 
     def result(self) -> UFPONCResult:
         X = self.X
         assert X is not None, "a split's result is taken once"
-        splitter = self.splitter
-        if splitter is not None:
-            splitter.start(self)  # not started yet (taken out of turn): now, whatever the window
-        status: str | None = None
-        value: Any = None
-        if self.future is not None:  # concurrent.futures imported only with workers (-j 1 does not)
+        if self.future is None:
+            status, value = _split_job(X, self.kwargs)
+        else:  # concurrent.futures.process imported only with workers (-j 1 does not load multiprocessing)
             from concurrent.futures.process import BrokenProcessPool
 
             try:
                 status, value = self.future.result()
             except BrokenProcessPool:  # a worker died (killed, out of memory): do this split here
-                status = None
-        if status is None:
-            status, value = _split_job(X, self.kwargs)
-        self.release()
+                status, value = _split_job(X, self.kwargs)
+        self.X = self.future = None  # the points and the result are the caller's now: nothing kept here
         if status == "error":
             raise FitError(value)
-        assert isinstance(value, UFPONCResult)
         return value
-
-    def release(self) -> None:
-        """The split's points and result are the caller's now, or not wanted (its cluster was not
-        divided): nothing is kept here, and its place in the window goes to the next split."""
-        if self.future is not None and not self.future.done():
-            self.future.cancel()
-        splitter, self.splitter = self.splitter, None
-        self.X = self.future = None
-        if splitter is not None:
-            splitter.done(self)
 
 
 class _Splitter:
     """Starts the UFP-ONC splits of a wave: in the interpreter's pool of ``jobs`` worker
     processes (forked, so nothing is imported again; started at the first split and kept for
     the next runs, so a loaded segmenter does not fork again frame after frame), or lazily in
-    this process when ``jobs`` is 1.
+    this process when ``jobs`` is 1."""
 
-    At most ``2 * jobs`` splits are in the workers' hands or finished and not yet taken (the
-    ``window``); the others wait here, in the order they were asked for, and start as results
-    are taken. Without the window, every split of a wave would be started at once and the
-    finished ones (an (n, K) membership array each) would pile up while this process applies
-    the decisions one after another: on 10^7 points, hundreds of megabytes for nothing. The
-    results are the same whatever the window (each split is computed alone)."""
-
-    def __init__(self, owner: Interpreter, kwargs: dict[str, Any], window: int | None = None) -> None:
+    def __init__(self, owner: Interpreter, kwargs: dict[str, Any]) -> None:
         self.owner, self.jobs, self.kwargs = owner, owner.jobs, kwargs
-        self.window = max(1, window if window is not None else 2 * self.jobs)
-        self.waiting: deque[_Job] = deque()  # asked for, not started
-        self.started: set[_Job] = set()  # in a worker or finished, not taken yet
+        self.jobs_started: list[_Job] = []
 
     def __enter__(self) -> Self:
         return self
 
     def __exit__(self, exc_type, *exc) -> None:
-        for job in list(self.started) + list(self.waiting):  # splits nobody took: not kept for the next run
-            job.release()
-        if exc_type is not None and exc_type is not FitError and not issubclass(exc_type, KbsError):
-            self.owner.close()  # interrupted or failed: do not leave splits running for the next run
+        if exc_type is not None:  # interrupted or failed: do not leave splits running for the next run
+            for job in self.jobs_started:
+                if job.future is not None:
+                    job.future.cancel()
+            if exc_type is not FitError and not issubclass(exc_type, KbsError):
+                self.owner.close()
 
     def submit(self, X: np.ndarray) -> _Job:
         if self.jobs <= 1:
             return _Job(X, self.kwargs)
-        job = _Job(X, self.kwargs, self)
-        self.waiting.append(job)
-        self._fill()
-        return job
-
-    def start(self, job: _Job) -> None:
-        """Hand ``job`` to a worker (here if the pool broke), if it was not yet."""
-        if job in self.started:
-            return
         from concurrent.futures.process import BrokenProcessPool
 
-        if self.waiting and self.waiting[0] is job:
-            self.waiting.popleft()
-        else:  # taken out of turn (a user's action): rare
-            self.waiting.remove(job)
-        self.started.add(job)
         try:
-            job.future = self.owner._worker_pool().submit(_worker_split_job, job.X, self.kwargs)
+            future = self.owner._worker_pool().submit(_worker_split_job, X, self.kwargs)
         except BrokenProcessPool:  # a worker died in an earlier wave or run: split here, fresh pool next run
             self.owner.close()
-
-    def done(self, job: _Job) -> None:
-        if job in self.started:
-            self.started.discard(job)
-        else:  # released before it started (its cluster was not divided)
-            self.waiting.remove(job)
-        self._fill()
-
-    def _fill(self) -> None:
-        while self.waiting and len(self.started) < self.window:
-            self.start(self.waiting[0])
+            return _Job(X, self.kwargs)
+        job = _Job(X, self.kwargs, future)
+        self.jobs_started.append(job)
+        return job

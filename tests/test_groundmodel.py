@@ -479,12 +479,8 @@ def test_a_worker_that_dies_does_not_lose_the_split(monkeypatch):
         def result(self):
             raise BrokenProcessPool("a worker died")
 
-        def done(self):
-            return True
-
     X, _ = ground_and_rocks()
-    job = interp._Job(X[:3000], Interpreter(load_rule_base("outdoor"))._ufp_kwargs("first_max"))
-    job.future = Broken()
+    job = interp._Job(X[:3000], Interpreter(load_rule_base("outdoor"))._ufp_kwargs("first_max"), Broken())
     res = job.result()
     assert res.n_samples == 3000 and res.chosen_k >= 1
 

@@ -513,35 +513,27 @@ def test_parallel_splits_give_the_same_segmentation_and_explanation():
     assert one.clusters == two.clusters
 
 
-def test_splits_side_by_side_are_started_within_a_window():
-    """At most 2 x jobs splits are in the workers' hands or finished and not taken (their (n, K)
-    memberships would pile up in memory otherwise); the rest start as results are taken, in
-    order; a split released unstarted never runs; each result is that of the split done alone."""
-    from kbs.inference import ufp_onc
-    from kbs.knowledge.interpreter import _Splitter
+def test_a_split_worker_trims_its_heap_after_a_large_split(monkeypatch):
+    """After a split of TRIM_AFTER points or more, the worker gives its free heap back before the
+    next split (and only then: trimming after every split slows a frame); the result is unchanged."""
+    from kbs.knowledge import interpreter as interp_mod
 
+    interp_mod._trim_heap()  # glibc here; a no-op where malloc_trim is missing
+    trims = []
+    monkeypatch.setattr(interp_mod, "_trim_heap", lambda: trims.append(interp_mod._last_split))
+    monkeypatch.setattr(interp_mod, "_last_split", 0)
+    monkeypatch.setattr(interp_mod, "TRIM_AFTER", 2000)
     X, _ = ground_with_small_obstacles()
-    interp = Interpreter(load_rule_base("outdoor"), jobs=2)
-    kwargs = interp._ufp_kwargs("first_max")
-    parts = [X[i::8] for i in range(8)]
-    with interp, _Splitter(interp, kwargs) as splitter:
-        assert splitter.window == 4
-        jobs = [splitter.submit(p) for p in parts]
-        assert len(splitter.started) == 4 and len(splitter.waiting) == 4
-        assert all(j.future is not None for j in jobs[:4]) and all(j.future is None for j in jobs[4:])
-        jobs[4].release()  # its cluster was not divided after all: never started, its place goes on
-        assert jobs[4].X is None and len(splitter.waiting) == 3
-        first = jobs[0].result()
-        assert len(splitter.started) == 4 and jobs[5].future is not None and jobs[4].future is None
-        alone = ufp_onc(parts[0], **kwargs)
-        assert first.chosen_k == alone.chosen_k and np.array_equal(first.memberships, alone.memberships)
-        last = jobs[7].result()  # taken out of turn: started at once, whatever the window
-        assert np.array_equal(last.memberships, ufp_onc(parts[7], **kwargs).memberships)
-        for j in jobs[1:4] + [jobs[5], jobs[6]]:
-            j.result()
-        assert not splitter.started and not splitter.waiting
-        with pytest.raises(AssertionError, match="taken once"):
-            jobs[1].result()
+    kwargs = Interpreter(load_rule_base("outdoor"))._ufp_kwargs("first_max")
+    small, large = X[:1500], X[:2500]
+    first = interp_mod._worker_split_job(small, kwargs)
+    interp_mod._worker_split_job(large, kwargs)
+    assert trims == []
+    again = interp_mod._worker_split_job(small, kwargs)
+    assert trims == [2500]
+    interp_mod._worker_split_job(small, kwargs)
+    assert trims == [2500]
+    assert first[0] == again[0] == "ok" and np.array_equal(first[1].memberships, again[1].memberships)
 
 
 def test_workers_forked_before_the_first_partition_on_large_clouds(monkeypatch):

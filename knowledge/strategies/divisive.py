@@ -53,7 +53,7 @@ class Divisive(Strategy):
         jobs > 1), then the decisions are applied in order — exactly the order of a first-in
         first-out queue, so the optional max_clusters, when a rule file sets it, stops the same
         clusters whatever the number of jobs."""
-        from kbs.knowledge.interpreter import _Job, _Splitter
+        from kbs.knowledge.interpreter import _Splitter
 
         rb = run.rule_base
         records["c"].set(children=tuple(c.id for c in children))
@@ -93,8 +93,6 @@ class Divisive(Strategy):
                         if why_not is None and len(division.children) < 2:
                             why_not = "single_cluster", "the split gave a single cluster"
                     if why_not is not None:
-                        if isinstance(prepared, _Job):  # started for nothing: its place goes to the next
-                            prepared.release()
                         run.stop(rec, *why_not)
                         leaves.append((node, cl, rec))
                         continue
