@@ -209,7 +209,7 @@ _last_split = 0  # in a worker: the points of its previous split
 
 def _worker_split_job(X: np.ndarray, kwargs: dict[str, Any]) -> tuple[str, Any]:
     """:func:`_split_job` in a split worker. The arrays of a large split, freed, would stay in the
-    worker's heap, kept for the next small splits (60-90 MB per worker on 10^7 points), so the
+    worker's heap, kept for the next small splits (40-60 MB per worker on 10^7 airborne points), so the
     heap is trimmed after one; after every split, trimming cost a vehicle frame 5 % with -j 2 (the
     next split's arrays are taken from the system again)."""
     global _last_split
