@@ -54,17 +54,23 @@ def run(interpreter: Any, X: np.ndarray) -> Segmentation:
     if X.shape[0] >= EARLY_WORKERS:
         interpreter.start_workers()
     ctx = RunContext(interpreter, X)
-    root = Node.root(X.shape[0])
-    _, root_draft = ctx.record(root)  # its descriptors; the cluster itself (a copy of X) is not kept
+    n = X.shape[0]
+    root_draft = ctx.record(Node.root(n))[1]  # its descriptors; neither the root nor its cluster is kept
     root_draft.set(action="partition")
     records: dict[str, Draft] = {"c": root_draft}
     strategy = STRATEGIES[ctx.rule_base.strategy]()
     try:
         first = strategy.partition(ctx, X)  # 1. partition
     except FitError as exc:  # too few or degenerate points: the scene is one cluster
-        judged = unpartitioned(ctx, root, records, exc)
+        judged = unpartitioned(ctx, Node.root(n), records, exc)
     else:
-        judged = strategy.run(ctx, X, root, records, first)  # 2. strategy
+        # 2. strategy. The root (three (n,) arrays) and the first partition (its (n, K) memberships)
+        # are handed over with no reference left in this frame, so a strategy that is done with
+        # them frees them (the divisive one does once the first clusters are made): held here,
+        # they stayed until the end of the run, 0.5 GB at 10^7 points (docs/PERFORMANCE.md)
+        hand = [first]
+        del first
+        judged = strategy.run(ctx, X, Node.root(n), records, hand.pop())
     return interpreter.finish(judged, t0)
 
 
@@ -76,7 +82,11 @@ def finish(ctx: RunContext, judged: Judged, t0: float) -> Segmentation:
     if state.leaves:
         post = PostContext(judged.X, rb, ctx.jobs, ctx.measure, ctx.names)
         for step in rb.post:
-            state = step.apply(state, post)
+            # handed over, not held here: a step that builds a new ground surface frees the old one
+            # with the state it came in (docs/PERFORMANCE.md, session 21)
+            hand = [state]
+            del state
+            state = step.apply(hand.pop(), post)
     return result(judged, state, rb, t0)
 
 
@@ -292,7 +302,9 @@ class RunContext:
 
     def record(self, node: Node) -> tuple[Cluster, Draft]:
         """The cluster of a node and the draft of its new record (with its descriptors)."""
-        cl = Cluster(node.id, self.X[node.idx], node.weight)
+        # the root's points are the cloud (the same values as X[arange(n)], without the copy)
+        cl = Cluster(node.id, self.X if node.parent is None and node.size == self.X.shape[0] else self.X[node.idx],
+                     node.weight)
         descriptors: dict[str, Any] = {}
         notes: tuple[str, ...] = ()
         if node.size:

@@ -254,3 +254,32 @@ def test_a_later_relabel_step_measures_its_surface_checks_against_its_own_surfac
         assert set(first) == {"raised"} and first["raised"]["passed"]  # what the first step decided on
         now = {c.check: c for c in r.checks}
         assert not now["low"].passed and now["low"].value > 2.5  # measured against the second surface
+
+
+def test_a_surface_built_again_frees_the_one_before(monkeypatch):
+    """Each ground surface a run builds (the model, the terraces' passes, the rebuild after the
+    relabelling) replaces the one before: when a surface is built, no earlier one is alive (three
+    were at once at airborne 10^7's peak, docs/PERFORMANCE.md session 21); the result is unchanged."""
+    import gc
+    import weakref
+
+    from kbs.geometry.groundmodel import LocalGround
+
+    before, *_ = _run(_rules())
+    built: list[weakref.ref] = []
+    alive_at_build: list[int] = []
+    build = LocalGround.build.__func__
+
+    def spy_build(cls, *a, **k):
+        gc.collect()  # anything left is held, not waiting for the cycle collector
+        alive_at_build.append(sum(r() is not None for r in built))
+        model = build(cls, *a, **k)
+        built.append(weakref.ref(model))
+        return model
+
+    monkeypatch.setattr(LocalGround, "build", classmethod(spy_build))
+    after, *_ = _run(_rules())
+    assert len(built) >= 3, "the model, at least one terraces pass and the rebuild after the relabelling"
+    assert alive_at_build == [0] * len(built)
+    for a in ("cluster", "label", "membership"):
+        assert np.array_equal(getattr(before, a), getattr(after, a)), a

@@ -75,6 +75,7 @@ class GroundModel(PostStep):
         if state.scene.ground is None:  # the rule base has no way to orient the ground: say so, do nothing
             skipped = LocalModel(note="no ground plane: post.ground_model skipped")
             return replace(state, surface=None, ground_facts=replace(state.ground_facts, local_model=skipped))
+        state = replace(state, surface=None)  # a surface from an earlier step, freed before this one is built
         surface = self.build(state, ctx)
         built = LocalModel(label=self.label, points=surface.model.n_points, neighbours=self.neighbours,
                            radius=self.radius, per_range=self.per_range or None, source=self.pos.short)

@@ -10,7 +10,7 @@ from kbs.knowledge.explain import ClusterRecord
 from kbs.knowledge.parts import PostContext, PostStep, SpecContext
 from kbs.knowledge.predicates import Scene
 from kbs.knowledge.rulebase import Condition, SourcePos
-from kbs.knowledge.state import Leaf, PostState
+from kbs.knowledge.state import Leaf, PostState, Surface
 
 #: the most passes an undoing rule may ask for (each rebuilds the surface)
 MAX_PASSES = 64
@@ -156,7 +156,34 @@ class Relabel(PostStep):
         surface = state.surface
         if surface is None and state.ground_facts.local_model is not None:  # a ground_model step was skipped (no ground plane)
             return state
-        scene = state.scene
+        leaves, changed = self._first_rules(state, ctx)
+        state = replace(state, leaves=tuple(leaves))
+        if surface is None:
+            return state
+        # from here the state holds the surface, not this frame: a surface built again frees the old
+        spec = surface.spec
+        del surface
+        state = replace(state, ground_facts=state.ground_facts.with_local_model(relabelled=changed))
+        built = False  # the surface in the state was built again from labels this step changed
+        for r in self.rules:
+            if r.undoes is not None:
+                hand = [state]
+                del state
+                state, changed, passes = self._undo(r, hand.pop(), ctx, changed)
+                built = built or passes > 0
+        if changed:
+            state = replace(state, surface=None)  # the old surface freed before the new one is built
+            state = replace(state, surface=spec.build(state, ctx))
+        elif not built:
+            return state
+        assert state.surface is not None
+        return replace(state, ground_facts=state.ground_facts.with_local_model(
+            points_after_relabel=state.surface.model.n_points))
+
+    def _first_rules(self, state: PostState, ctx: PostContext) -> tuple[list[Leaf], int]:
+        """The leaves after the rules that undo nothing (each leaf's first rule that holds), and how
+        many labels they changed; measured against the state's surface."""
+        scene, surface = state.scene, state.surface
         post_scene = Scene(scene.sensor, scene.ground, scene.unit,
                            ground_model=surface.model if surface is not None else None)
         changed = 0
@@ -174,22 +201,7 @@ class Relabel(PostStep):
                 break
             else:
                 leaves[i] = lf.with_record(fact.record)  # with the checks measured
-        state = replace(state, leaves=tuple(leaves))
-        if surface is None:
-            return state
-        state = replace(state, ground_facts=state.ground_facts.with_local_model(relabelled=changed))
-        built = False  # the surface in the state was built again from labels this step changed
-        for r in self.rules:
-            if r.undoes is not None:
-                state, changed, passes = self._undo(r, state, ctx, changed)
-                built = built or passes > 0
-        if changed:
-            state = replace(state, surface=surface.spec.build(state, ctx))
-        elif not built:
-            return state
-        assert state.surface is not None
-        return replace(state, ground_facts=state.ground_facts.with_local_model(
-            points_after_relabel=state.surface.model.n_points))
+        return leaves, changed
 
     def _undo(self, rule: RelabelRule, state: PostState, ctx: PostContext,
               changed: int) -> tuple[PostState, int, int]:
@@ -203,13 +215,20 @@ class Relabel(PostStep):
         leaves = list(state.leaves)
         given_back = 0
         passes = 0
+        spec = state.surface.spec
+        surface: Surface | None = None
+        post_scene: Scene | None = None
         while passes < rule.passes:
             todo = [i for i, lf in enumerate(leaves) if lf.record.relabel and lf.record.relabel["rule"] == rule.undoes
                     and lf.label == rule.source]
             if not todo:
                 break
-            surface = state.surface.spec.build(replace(state, leaves=tuple(leaves)), ctx) if changed else state.surface
-            state, changed = replace(state, surface=surface), 0
+            if changed:  # built again from the labels the passes before left, the old surface freed first
+                surface = post_scene = None
+                state = replace(state, leaves=tuple(leaves), surface=None)
+                state = replace(state, surface=spec.build(state, ctx))
+            surface, changed = state.surface, 0
+            assert surface is not None
             passes += 1
             scene = state.scene
             post_scene = Scene(scene.sensor, scene.ground, scene.unit, ground_model=surface.model)
