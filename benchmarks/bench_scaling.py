@@ -10,7 +10,11 @@ Data (real scans of ../shared/data, tiled; nothing is written to the repository)
   below 184,856 points a fixed stride of the same pool.
 
 Each measurement runs in a fresh child process (its peak RSS is its own; the largest of the
-split workers it forks is given beside it). Reading and writing files are not included.
+split workers it forks is given beside it). Those two count the pages a forked worker shares with
+the child twice, so the physical memory of the whole run is given too: the peak of the summed PSS
+(proportional set size: a shared page counted once, split between its sharers) of the child and
+its workers, sampled every 0.2 s from ``/proc/PID/smaps_rollup`` (Linux; "n/a" elsewhere), from
+the child's start, so building the cloud counts too. Reading and writing files are not included.
 
 Usage: python benchmarks/bench_scaling.py [--sizes 10000 100000 1000000 10000000]
            [--rules outdoor airborne] [--repeats 1] [--jobs -1] [--timeout 1800]
@@ -86,6 +90,37 @@ def _child(rules: str, n: int, q, jobs: int) -> None:
     q.put((dt, rss, workers, s["clusters"], s["splits"], s["limits"], lim))
 
 
+def _tree(pid: int) -> list[int]:
+    """``pid`` and its descendants (Linux: /proc/PID/task/TID/children)."""
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        try:
+            for tid in Path(f"/proc/{p}/task").iterdir():
+                todo += [int(c) for c in (tid / "children").read_text().split()]
+        except OSError:  # gone meanwhile, or no /proc
+            pass
+    return out
+
+
+def _pss(pid: int) -> int | None:
+    """Bytes of PSS of one process (/proc/PID/smaps_rollup), None where it cannot be read."""
+    try:
+        for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines():
+            if line.startswith("Pss:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def tree_pss(pid: int) -> int | None:
+    """The summed PSS of ``pid`` and its descendants, None where /proc does not say."""
+    values = [_pss(p) for p in _tree(pid)]
+    return sum(v for v in values if v is not None) if any(v is not None for v in values) else None
+
+
 def measure(rules: str, n: int, repeats: int, jobs: int, timeout: float):
     ctx = mp.get_context("spawn")
     runs = []
@@ -93,14 +128,29 @@ def measure(rules: str, n: int, repeats: int, jobs: int, timeout: float):
         q = ctx.Queue()
         p = ctx.Process(target=_child, args=(rules, n, q, jobs))
         p.start()
-        try:
-            runs.append(q.get(timeout=timeout))
-        except queue_mod.Empty:
-            p.kill()
-            p.join()
-            return None
+        assert p.pid is not None
+        end = time.monotonic() + timeout
+        peak: int | None = None
+        while True:  # the result, sampling the process tree's PSS meanwhile
+            now = tree_pss(p.pid)
+            if now is not None:
+                peak = now if peak is None else max(peak, now)
+            try:
+                got = q.get(timeout=0.2)
+                break
+            except queue_mod.Empty:
+                if not p.is_alive():  # ended without a result: it failed
+                    p.join()
+                    return f"failed (exit code {p.exitcode})"
+                if time.monotonic() > end:
+                    p.kill()
+                    p.join()
+                    return None
         p.join()
-    return (statistics.median(r[0] for r in runs), max(r[1] for r in runs), max(r[2] for r in runs)) + runs[0][3:]
+        runs.append(got + (peak,))
+    peaks = [r[-1] for r in runs if r[-1] is not None]
+    return ((statistics.median(r[0] for r in runs), max(r[1] for r in runs), max(r[2] for r in runs))
+            + runs[0][3:-1] + (max(peaks) if peaks else None,))
 
 
 def main() -> None:
@@ -114,18 +164,20 @@ def main() -> None:
     if not DATA.is_dir():
         sys.exit(f"the benchmark needs the real scans in {DATA}")
     print(f"whole segmentation (kbs.Segmenter, jobs = {args.jobs}), reading and writing excluded\n")
-    print("| rules | points | seconds | s per 10^5 points | peak RSS MB | largest worker MB | clusters | splits | "
-          "limits | limits by kind |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---|")
+    print("| rules | points | seconds | s per 10^5 points | peak RSS MB | largest worker MB | whole run PSS MiB | "
+          "clusters | splits | limits | limits by kind |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|")
     for rules in args.rules:
         for n in args.sizes:
             r = measure(rules, n, args.repeats if n <= 1_000_000 else 1, args.jobs, args.timeout)
-            if r is None:
-                print(f"| {rules} | {n:,} | > {args.timeout:.0f} (given up) | | | | | | | |", flush=True)
+            if r is None or isinstance(r, str):
+                what = f"> {args.timeout:.0f} (given up)" if r is None else r
+                print(f"| {rules} | {n:,} | {what} | | | | | | | | |", flush=True)
                 continue
-            dt, rss, workers, clusters, splits, limits, kinds = r
+            dt, rss, workers, clusters, splits, limits, kinds, pss = r
+            whole = "n/a" if pss is None else f"{pss / 2**20:,.0f}"
             print(f"| {rules} | {n:,} | {dt:.2f} | {dt / n * 1e5:.3f} | {rss / 1e6:.0f} | "
-                  f"{workers / 1e6:.0f} | {clusters:,} | {splits:,} | {limits:,} | {kinds} |", flush=True)
+                  f"{workers / 1e6:.0f} | {whole} | {clusters:,} | {splits:,} | {limits:,} | {kinds} |", flush=True)
 
 
 if __name__ == "__main__":
