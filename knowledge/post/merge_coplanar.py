@@ -1,4 +1,5 @@
-"""``merge_coplanar``: clusters of one label whose planes agree become one output cluster."""
+"""``merge_coplanar``: clusters of one label whose planes agree become one output cluster; with
+``absorb``, clusters of other labels lying in such a plane take its label and join it."""
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
@@ -19,6 +20,13 @@ class MergeCoplanar(PostStep):
     max_offset of the other's plane; agreement is transitive. A cluster with no plane (its points
     on a line) and a cluster whose points all left for others take no part. Each merged group
     takes the place of its first member.
+
+    With ``absorb`` (labels), a cluster of one of those labels that agrees with a cluster of
+    ``label`` (the same test) takes ``label`` and joins its group: the pieces of a wall that the
+    objects in front of it cut off, each too small to be called a wall on its own. Only agreement
+    with a cluster of ``label`` counts: two absorbable clusters that agree with each other but
+    with none of ``label`` stay as they were. The explanation records the change as a relabel by
+    this step.
     """
 
     key: ClassVar[str] = "merge_coplanar"
@@ -26,6 +34,8 @@ class MergeCoplanar(PostStep):
         "type": "object", "additionalProperties": False, "required": ["label"],
         "properties": {
             "label": {"$ref": "#/$defs/name"},
+            "absorb": {"description": "labels whose clusters lying in the plane of a cluster of label take it",
+                       "type": "array", "items": {"$ref": "#/$defs/name"}},
             "max_angle": {"description": "degrees", "type": "number", "minimum": 0, "maximum": 90},
             "max_offset": {"description": "length units, plane-to-centre distance", "type": "number", "minimum": 0},
             "tune": {"$ref": "#/$defs/tune"},
@@ -37,14 +47,19 @@ class MergeCoplanar(PostStep):
     max_angle: float
     max_offset: float
     pos: SourcePos
+    absorb: tuple[str, ...] = ()
 
     @classmethod
     def parse(cls, raw: Any, ctx: SpecContext) -> MergeCoplanar | None:
         if not isinstance(raw, dict):
             return None
         ctx.label_ref(ctx.path + ("label",), raw.get("label"))
+        absorb = raw.get("absorb") or []
+        for i, name in enumerate(absorb if isinstance(absorb, list) else []):
+            ctx.label_ref(ctx.path + ("absorb", i), name)
         return cls(label=str(raw.get("label")), max_angle=ctx.number(raw.get("max_angle"), 10.0),
-                   max_offset=ctx.number(raw.get("max_offset"), 0.15), pos=ctx.pos(ctx.path, key=True))
+                   max_offset=ctx.number(raw.get("max_offset"), 0.15), pos=ctx.pos(ctx.path, key=True),
+                   absorb=tuple(str(a) for a in absorb) if isinstance(absorb, list) else ())
 
     def apply(self, state: PostState, ctx: PostContext) -> PostState:
         from scipy.sparse import coo_matrix
@@ -54,8 +69,10 @@ class MergeCoplanar(PostStep):
         n = len(leaves)
         rows: list[np.ndarray] = []
         cols: list[np.ndarray] = []
+        takers = {self.label, *self.absorb}
         cand = np.array([i for i, lf in enumerate(leaves)
-                         if lf.label == self.label and lf.size and not lf.cluster.geometry.degenerate], dtype=int)
+                         if lf.label in takers and lf.size and not lf.cluster.geometry.degenerate], dtype=int)
+        own = np.array([leaves[i].label == self.label for i in cand], dtype=bool)
         if cand.size > 1:
             geos = [leaves[i].cluster.geometry for i in cand]
             N = np.array([g.normal for g in geos])
@@ -63,6 +80,7 @@ class MergeCoplanar(PostStep):
             cos = np.clip(np.abs(N @ N.T), 0.0, 1.0)
             off = np.abs(np.einsum("id,ijd->ij", N, C[None, :, :] - C[:, None, :]))  # j's centre to i's plane
             ok = (np.degrees(np.arccos(cos)) <= self.max_angle) & (np.maximum(off, off.T) <= self.max_offset)
+            ok &= own[:, None] | own[None, :]  # an absorbed cluster joins through a cluster of the label only
             a, b = np.nonzero(ok)
             rows.append(cand[a])
             cols.append(cand[b])
@@ -75,4 +93,14 @@ class MergeCoplanar(PostStep):
         out: dict[int, list[int]] = {}
         for i, g in enumerate(comp):  # a group takes the place of its first member (leaf order)
             out.setdefault(int(g), []).append(i)
+        if self.absorb:
+            joined = {int(comp[i]) for i, o in zip(cand, own) if o}
+            new = list(leaves)
+            for i, o in zip(cand, own):
+                lf = leaves[i]
+                if not o and int(comp[i]) in joined:
+                    new[i] = lf.with_record(label=self.label, relabel={
+                        "rule": self.key, "source": self.pos.short, "from": lf.label, "to": self.label,
+                        "checks": []})
+            state = replace(state, leaves=tuple(new))
         return replace(state, groups=tuple(tuple(m) for m in out.values()))
