@@ -81,3 +81,27 @@ def test_absorb_names_only_labels_of_the_rule_base():
         parse_rule_base(RULES + POST.replace("absorb: [small]", "absorb: [smal]"), "absorb.yaml",
                         PredicateRegistry.default())
     assert "absorb.yaml:19:43: unknown label 'smal'" in str(e.value)  # line and column of the name
+
+
+def test_a_cluster_an_earlier_step_grouped_is_not_absorbed():
+    """An earlier merge_coplanar groups the small patches of the plane z = 1.5 (3 and 4) and, with a
+    wide offset, the small patch on the large one's plane (1) with nothing; a later absorbing
+    step must not give one member of a group another label than its group-mates: the grouped
+    patches keep theirs, the ungrouped one is absorbed as before."""
+    grouping = """post:
+  - merge_coplanar: {label: small, max_angle: 10, max_offset: 0.15}
+  - merge_coplanar: {label: big, absorb: [small], max_angle: 10, max_offset: 0.15}
+"""
+    X, part = patches()
+    # a sixth patch: small, on the large one's plane like patch 1, and coplanar with patch 1
+    rng = np.random.default_rng(1)
+    extra = np.c_[rng.uniform(12, 15, 400), rng.uniform(-1.5, 1.5, 400), rng.normal(0, 0.005, 400)]
+    X, part = np.vstack([X, extra]), np.r_[part, np.full(400, 5)]
+    res = Segmenter(parse_rule_base(RULES + grouping, "absorb.yaml", PredicateRegistry.default()), jobs=1).segment(X)
+    label = np.array(res.label_names)[res.label]
+    # 1 and 5 lie on the large patch's plane, but the first step grouped them: both stay small,
+    # and every output cluster holds one label
+    assert (label[part == 1] == "small").all() and (label[part == 5] == "small").all()
+    assert (label[part == 0] == "big").all()
+    for c in np.unique(res.cluster[res.cluster >= 0]):
+        assert len(set(label[res.cluster == c])) == 1

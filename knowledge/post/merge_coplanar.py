@@ -25,8 +25,9 @@ class MergeCoplanar(PostStep):
     ``label`` (the same test) takes ``label`` and joins its group: the pieces of a wall that the
     objects in front of it cut off, each too small to be called a wall on its own. Only agreement
     with a cluster of ``label`` counts: two absorbable clusters that agree with each other but
-    with none of ``label`` stay as they were. The explanation records the change as a relabel by
-    this step.
+    with none of ``label`` stay as they were, and so does a cluster an earlier step grouped with
+    others (a group keeps one label). The explanation records the change as a relabel by this
+    step.
     """
 
     key: ClassVar[str] = "merge_coplanar"
@@ -69,9 +70,10 @@ class MergeCoplanar(PostStep):
         n = len(leaves)
         rows: list[np.ndarray] = []
         cols: list[np.ndarray] = []
-        takers = {self.label, *self.absorb}
+        grouped = {i for g in state.groups or () if len(g) > 1 for i in g}
         cand = np.array([i for i, lf in enumerate(leaves)
-                         if lf.label in takers and lf.size and not lf.cluster.geometry.degenerate], dtype=int)
+                         if lf.size and not lf.cluster.geometry.degenerate
+                         and (lf.label == self.label or (lf.label in self.absorb and i not in grouped))], dtype=int)
         own = np.array([leaves[i].label == self.label for i in cand], dtype=bool)
         if cand.size > 1:
             geos = [leaves[i].cluster.geometry for i in cand]
