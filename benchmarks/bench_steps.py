@@ -8,9 +8,10 @@ Usage: python benchmarks/bench_steps.py [--part tune|validate|all] [--before FIL
 
 Prints one markdown row per scan (total error % with each rule file, the difference) and the
 median per part. The generated scenes are ``tests/scenes.airborne_step_and_building`` (level
-terrain 160 m x 160 m, 1 point per square metre, a terrain step of 3, 4 or 5 m with a 2 m wide
-bank, a flat-roofed building 7 m up beside it; seeds 9, 1, 2), whole (the upper terrace and its
-bank one patch) and cropped to their middle 90 m x 90 m (the bank a patch of its own). kbs runs
+terrain 160 m x 160 m, 1 point per square metre, a terrain step of 1.5, 2, 3, 4 or 5 m with a 2 m
+wide bank, a flat-roofed building 7 m up beside it; seeds 9, 1, 2), whole (the upper terrace and
+its bank one patch) and cropped to their middle 90 m x 90 m (the bank a patch of its own). Steps of
+1.5 and 2 m are below `roofs`' 2.5 m: what `understory` and `low_terraces` decide. kbs runs
 in one process (``jobs=1``: the same labels as any number of processes), as bench_ground.py's
 'kbs airborne' rows. The urban blocks are ``benchmarks/roof_scenes.roofs_scene``, the seeds of
 each part as benchmarks/splits.yaml's ``airborne-roofs-generated`` declares them (part
@@ -38,7 +39,7 @@ from kbs.knowledge import Interpreter, load_rule_base  # noqa: E402
 def generated() -> list[bg.Scan]:
     out = []
     for crop in (False, True):
-        for step, seed in ((3.0, 9), (4.0, 9), (5.0, 9), (4.0, 1), (4.0, 2)):
+        for step, seed in ((1.5, 9), (2.0, 9), (3.0, 9), (4.0, 9), (5.0, 9), (4.0, 1), (4.0, 2)):
             X, labels = airborne_step_and_building(seed=seed, step=step)
             if crop:
                 keep = (np.abs(X[:, 0] - 512000.0) < 45) & (np.abs(X[:, 1] - 5400000.0) < 45)
