@@ -51,8 +51,10 @@ def test_indoor_rule_base_labels_a_room_floor_walls_ceiling_furniture(tmp_path):
 @pytest.mark.slow
 def test_indoor_rule_base_on_the_bobkov_room_scan(shared_data, tmp_path):
     """Bobkov room1 (real, labelled: 0 = the room's structure, walls mostly; > 0 furniture parts).
-    The F1 of structure (floor, wall, ceiling) against GT 0 and of furniture against GT > 0, as
-    measured when the rule base was written (docs/BENCHMARKS.md, indoor): 0.688 and 0.804."""
+    The F1 of structure (floor, wall, ceiling) against GT 0 and of furniture against GT > 0:
+    0.688 and 0.804 when the rule base was written, 0.740 and 0.813 since the walls absorb the
+    pieces in their planes (session 22; the half x >= 0, not tuned on: 0.412 -> 0.514)
+    (docs/BENCHMARKS.md, indoor)."""
     from kbs.io import read_cloud
 
     scan = shared_data / "bobkov" / "room1_gt_fine.pcd"
@@ -66,9 +68,11 @@ def test_indoor_rule_base_on_the_bobkov_room_scan(shared_data, tmp_path):
     def f1(p, g):
         return 2 * (p & g).sum() / (p.sum() + g.sum())
 
-    assert f1(pred, gt) > 0.66 and f1(~pred, ~gt) > 0.78, (f1(pred, gt), f1(~pred, ~gt))
+    assert f1(pred, gt) > 0.72 and f1(~pred, ~gt) > 0.80, (f1(pred, gt), f1(~pred, ~gt))
+    half = read_cloud(scan).xyz[:, 0] >= 0
+    assert f1(pred[half], gt[half]) > 0.49, f1(pred[half], gt[half])  # 0.412 without merge_coplanar's absorb
     wall = lab == names.index("wall")
-    assert gt[wall].mean() > 0.9  # what is called wall is structure
+    assert gt[wall].mean() > 0.89  # what is called wall is structure (0.90; 0.95 before the pieces joined)
 
 
 @pytest.mark.slow
