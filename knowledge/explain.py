@@ -503,7 +503,14 @@ class Explanation:
         if r.get("measured") is not None:  # judged again by a rule that undoes another: its own measurements
             rec = replace(rec, checks=tuple(CheckRecord(**_known(CheckRecord, c)) for c in r["measured"])
                           + tuple(c for c in rec.checks if c.check not in {m["check"] for m in r["measured"]}))
-        if info is None:
+        if r.get("joined"):  # post.merge_coplanar's absorb: no checks, a plane it lies in
+            j = r["joined"]
+            unit = f" {j['unit']}" if j.get("unit") else ""
+            why = (f"in the plane of {j['cluster']} (normals {j['angle']:.3g} deg apart"
+                   + (f" <= {j['max_angle']:g} deg" if "max_angle" in j else "")
+                   + f", each centre {j['offset']:.3g}{unit} off the other's plane"
+                   + (f" <= {j['max_offset']:g}{unit}" if "max_offset" in j else "") + ")")
+        elif info is None:
             names = set(r["checks"])
             why = "; ".join(c.sentence() for c in rec.checks if c.check in names)
         else:

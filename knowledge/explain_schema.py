@@ -130,7 +130,12 @@ _RELABEL = {
     "dependentRequired": {"undid": ["pass"]},
     "properties": {"rule": _STR, "source": _STR, "from": _STR, "to": _STR, "checks": _STRS, "pass": _COUNT,
                    "measured": {"type": ["array", "null"], "items": _CHECK}, "surface_points": _COUNT,
-                   "undid": {"$ref": "#/$defs/relabel"}, "judged_again": {"type": "array", "items": _JUDGED}},
+                   "undid": {"$ref": "#/$defs/relabel"}, "judged_again": {"type": "array", "items": _JUDGED},
+                   # post.merge_coplanar's absorb: the cluster of the label whose plane it lies in
+                   "joined": {"type": "object", "required": ["cluster", "angle", "offset"],
+                              "properties": {"cluster": _STR, "angle": {"type": "number"}, "offset": {"type": "number"},
+                                             "max_angle": {"type": "number"}, "max_offset": {"type": "number"},
+                                             "unit": _STR}}},
 }
 
 _LIMIT = {

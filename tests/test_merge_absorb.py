@@ -74,6 +74,14 @@ def test_a_small_patch_in_the_plane_of_a_large_one_takes_its_label_and_joins_it(
     moved = [r for r in res.explanation.records.values() if r.relabel and r.relabel.get("rule") == "merge_coplanar"]
     assert moved and all(r.relabel["from"] == "small" and r.relabel["to"] == "big" and r.label == "big" for r in moved)
     assert sum(r.n_points for r in moved) == int((part == 1).sum())
+    # and in which cluster's plane it lies: a cluster of the label, within the step's bounds
+    big = {r.id for r in res.explanation.records.values() if r.label == "big" and not r.relabel and not r.children}
+    for r in moved:
+        j = r.relabel["joined"]
+        assert j["cluster"] in big and j["angle"] <= 10 and j["offset"] <= 0.15 and j["unit"] == "m"
+        assert (f"relabelled big by merge_coplanar [absorb.yaml:19]: in the plane of {j['cluster']} (normals "
+                in res.explanation.line(r)), res.explanation.line(r)
+        assert "m off the other's plane <= 0.15 m)" in res.explanation.line(r)
 
 
 def test_absorb_names_only_labels_of_the_rule_base():
