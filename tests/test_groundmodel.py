@@ -607,6 +607,54 @@ def test_ground_release_moves_raised_ground_points_to_the_nearest_obstacle(share
         assert c["n_points"] == (seg.cluster == c["index"]).sum()
 
 
+
+@pytest.mark.slow  # whole real scans: pytest --runslow (CI) runs it
+def test_airborne_rules_release_the_points_standing_on_a_ground_patch(shared_data, tmp_path):
+    """Session 23: rules/airborne.yaml ends with post.ground_release (0.7 m). On ISPRS sample 31
+    (the validation part), against the same rules without the step: only ground -> object
+    changes, exactly the counted points, each more than 0.7 m above the final surface; most of them
+    are objects by the reference, and the total error falls (4.50 -> 3.72 %). Through the command,
+    the explanation says where they went."""
+    from kbs.io import read_cloud
+
+    scan = shared_data / "isprs" / "samp31-utm.pcd"
+    pc = read_cloud(scan)
+    X = pc.xyz - pc.xyz.mean(axis=0)
+    truth = np.loadtxt(shared_data / "isprs" / "samp31-utm.labels.txt")[pc.index] == 0
+    rb = load_rule_base("airborne")
+    assert rb.release is not None and rb.release.tolerance == 0.7 and rb.release.target == "object"
+    lines = rb.text.splitlines()
+    start = lines.index(next(line for line in lines if line.startswith("  - ground_release:")))
+    end = next(i for i in range(start + 1, len(lines)) if not lines[i].startswith("      "))
+    rb_off = parse_rule_base("\n".join(lines[:start] + lines[end:]), "airborne.yaml",
+                             PredicateRegistry.default(entry_points_too=False))
+    assert rb_off.release is None
+    seg, off = Interpreter(rb, jobs=1).run(X), Interpreter(rb_off, jobs=1).run(X)
+    released = seg.explanation.ground.local_model.released
+    assert released == sum(r.released for r in seg.explanation.records.values()) > 100
+    moved = seg.label != off.label
+    assert moved.sum() == released and np.all(off.label[moved] == 0) and np.all(seg.label[moved] == 1)
+    g = off.explanation.ground
+    surface = LocalGround.build(X, np.flatnonzero(off.label == 0), np.array(g.normal), np.array(g.point),
+                                neighbours=rb.ground_model.neighbours, radius=rb.ground_model.radius)
+    # samp31's y is quantised to 0.5 m: neighbours at equal distances abound, and which of them is
+    # the 8th depends on the order the surface's points are given in (the step gives them cluster by
+    # cluster, this rebuild in index order): a few medians differ by a few centimetres
+    h = surface.height(X[moved])
+    assert np.all(h > 0.6) and np.mean(h > 0.7 - 1e-4) > 0.98, np.sort(h)[:5]
+    assert (~truth[moved]).sum() > 0.9 * released  # measured: 228 of 232 are objects
+
+    def total_error(label):
+        return np.mean((label == 0) != truth)
+
+    assert total_error(seg.label) < total_error(off.label) - 0.005  # measured 3.72 % against 4.50 %
+    r = kbs("run", "--rules", "airborne", str(scan), "--out", str(tmp_path), "-j", "1")
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((tmp_path / "samp31-utm.json").read_text())
+    one = next(c for c in doc["explanation"]["clusters"] if c.get("released"))
+    r = kbs("explain", str(tmp_path / "samp31-utm.json"), "--cluster", one["id"])
+    assert re.search(r"stand more than 0\.7 m above the local ground surface and joined object cluster", r.stdout), r.stdout
+
 def _ground_of_run(tmp_path, X, rules: str, name: str):
     """``kbs run --rules RULES`` on the points ``X`` written as NAME.ply: (label 0 per point, the result JSON)."""
     path = tmp_path / f"{name}.ply"
