@@ -85,5 +85,6 @@ def main() -> None:
             print(f"| {s.name} | {bg.part_of(s)} | {n} | {e_kbs:.2f} | {int(ground[len(s.xyz):].sum())} | {e_csf} | {o_csf} |",
                   flush=True)
 
+
 if __name__ == "__main__":
     main()
