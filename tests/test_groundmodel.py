@@ -607,6 +607,27 @@ def test_ground_release_moves_raised_ground_points_to_the_nearest_obstacle(share
         assert c["n_points"] == (seg.cluster == c["index"]).sum()
 
 
+def _without_post_steps(rb, *keys: str):
+    """The rule base ``rb`` parsed again without its post steps ``keys`` (their lines cut)."""
+    lines = rb.text.splitlines()
+    for key in keys:
+        start = lines.index(next(line for line in lines if line.startswith(f"  - {key}:")))
+        end = next((i for i in range(start + 1, len(lines)) if not lines[i].startswith("      ")), len(lines))
+        lines = lines[:start] + lines[end:]
+    return parse_rule_base("\n".join(lines), Path(rb.path).name, PredicateRegistry.default(entry_points_too=False))
+
+
+def _isprs_centred(shared_data, name: str):
+    """An ISPRS sample of the PCL data (``samp31``, ...): its scan path, its points centred and its
+    reference bare-earth mask."""
+    from kbs.io import read_cloud
+
+    scan = shared_data / "isprs" / f"{name}-utm.pcd"
+    pc = read_cloud(scan)
+    truth = np.loadtxt(shared_data / "isprs" / f"{name}-utm.labels.txt")[pc.index] == 0
+    return scan, pc.xyz - pc.xyz.mean(axis=0), truth
+
+
 
 @pytest.mark.slow  # whole real scans: pytest --runslow (CI) runs it
 def test_airborne_rules_release_the_points_standing_on_a_ground_patch(shared_data, tmp_path):
@@ -615,19 +636,10 @@ def test_airborne_rules_release_the_points_standing_on_a_ground_patch(shared_dat
     changes, exactly the counted points, each more than 0.7 m above the final surface; most of them
     are objects by the reference, and the total error falls (4.50 -> 3.72 %). Through the command,
     the explanation says where they went."""
-    from kbs.io import read_cloud
-
-    scan = shared_data / "isprs" / "samp31-utm.pcd"
-    pc = read_cloud(scan)
-    X = pc.xyz - pc.xyz.mean(axis=0)
-    truth = np.loadtxt(shared_data / "isprs" / "samp31-utm.labels.txt")[pc.index] == 0
+    scan, X, truth = _isprs_centred(shared_data, "samp31")
     rb = load_rule_base("airborne")
     assert rb.release is not None and rb.release.tolerance == 0.7 and rb.release.target == "object"
-    lines = rb.text.splitlines()
-    start = lines.index(next(line for line in lines if line.startswith("  - ground_release:")))
-    end = next(i for i in range(start + 1, len(lines)) if not lines[i].startswith("      "))
-    rb_off = parse_rule_base("\n".join(lines[:start] + lines[end:]), "airborne.yaml",
-                             PredicateRegistry.default(entry_points_too=False))
+    rb_off = _without_post_steps(rb, "ground_release")
     assert rb_off.release is None
     seg, off = Interpreter(rb, jobs=1).run(X), Interpreter(rb_off, jobs=1).run(X)
     released = seg.explanation.ground.local_model.released
@@ -662,19 +674,10 @@ def test_airborne_rules_give_the_foot_of_rough_objects_to_the_ground(shared_data
     61 (the validation part), against the same rules without the step: only object -> ground
     changes, exactly the counted points, each near the surface, only from clusters that are not
     planar; most are bare earth by the reference and the total error falls (8.35 -> 7.46 %)."""
-    from kbs.io import read_cloud
-
-    scan = shared_data / "isprs" / "samp61-utm.pcd"
-    pc = read_cloud(scan)
-    X = pc.xyz - pc.xyz.mean(axis=0)
-    truth = np.loadtxt(shared_data / "isprs" / "samp61-utm.labels.txt")[pc.index] == 0
+    _, X, truth = _isprs_centred(shared_data, "samp61")
     rb = load_rule_base("airborne")
     assert rb.contact is not None and rb.contact.tolerance == 0.5
-    lines = rb.text.splitlines()
-    start = lines.index(next(line for line in lines if line.startswith("  - ground_contact:")))
-    end = next(i for i in range(start + 1, len(lines)) if not lines[i].startswith("      "))
-    rb_off = parse_rule_base("\n".join(lines[:start] + lines[end:]), "airborne.yaml",
-                             PredicateRegistry.default(entry_points_too=False))
+    rb_off = _without_post_steps(rb, "ground_contact")
     assert rb_off.contact is None
     seg, off = Interpreter(rb, jobs=1).run(X), Interpreter(rb_off, jobs=1).run(X)
     moved = seg.label != off.label
@@ -683,10 +686,7 @@ def test_airborne_rules_give_the_foot_of_rough_objects_to_the_ground(shared_data
     assert np.all(off.label[moved] == 1) and np.all(seg.label[moved] == 0)
     assert all(next(c for c in r.checks if c.check == "planar").value > 0.25 for r in contact)  # not planar
     # the surface both post steps measure against: the ground before ground_release moved a point
-    s0 = lines.index(next(line for line in lines if line.startswith("  - ground_release:")))
-    e0 = next(i for i in range(s0 + 1, len(lines)) if not lines[i].startswith("      "))
-    rb_none = parse_rule_base("\n".join(lines[:s0] + lines[e0:start] + lines[end:]), "airborne.yaml",
-                              PredicateRegistry.default(entry_points_too=False))
+    rb_none = _without_post_steps(rb, "ground_release", "ground_contact")
     assert rb_none.release is None and rb_none.contact is None
     g = off.explanation.ground
     surface = LocalGround.build(X, np.flatnonzero(Interpreter(rb_none, jobs=1).run(X).label == 0), np.array(g.normal),
