@@ -516,6 +516,9 @@ class Explanation:
         else:
             why = self._terms_text(rec, evaluate(info.condition, {c.check: c.passed for c in rec.checks})[1])
         text = f", relabelled {r['to']} by {r['rule']} [{r['source']}]"
+        if not r.get("undid") and r.get("pass", 1) > 1:  # a rule with passes, judged again
+            text += (f" in pass {r['pass']} (against the surface rebuilt without the clusters relabelled in the "
+                     "passes before)")
         if r.get("undid"):
             u = r["undid"]
             text = (f", relabelled {u['to']} by {u['rule']} [{u['source']}], given back {r['to']} by {r['rule']} "
@@ -690,10 +693,14 @@ class Explanation:
                 back = [r.relabel for r in leaves if r.relabel and (r.relabel.get("undid") or {}).get("rule") == rl.name]
                 undoes = {r.relabel["undid"]["rule"] for r in leaves
                           if r.relabel and r.relabel["rule"] == rl.name and r.relabel.get("undid")}
+                in_passes = sorted({r.relabel.get("pass", 1) for r in leaves if r.relabel and r.relabel["rule"] == rl.name})
                 what = (f"{n:,} given back (undoing {', '.join(sorted(undoes))}, in passes "
-                        f"{', '.join(str(p) for p in sorted({r.relabel['pass'] for r in leaves if r.relabel and r.relabel['rule'] == rl.name}))})"
-                        if undoes else f"{n:,} relabelled" + (f", {len(back):,} more given back by "
-                                                              f"{', '.join(sorted({b['rule'] for b in back}))}" if back else ""))
+                        f"{', '.join(map(str, in_passes))})"
+                        if undoes else f"{n:,} relabelled"
+                        + (f" (in pass{'es' if len(in_passes) > 1 else ''} {', '.join(map(str, in_passes))})"
+                           if any(p > 1 for p in in_passes) else "")
+                        + (f", {len(back):,} more given back by {', '.join(sorted({b['rule'] for b in back}))}"
+                           if back else ""))
                 out.append(f"  {rl.name} [{rl.source}] {rl.action} if {rl.condition_text()}: {what}")
                 if rl.doc:
                     out.append(f"      {rl.doc}")
@@ -856,14 +863,22 @@ class Explanation:
             out.append(f"  post.relabel, the rules for clusters labelled {given}:")
             for rl in relabel:
                 holds, terms = evaluate(rl.condition, outcome)
-                if rec.relabel and rec.relabel["rule"] == rl.name:
-                    holds = True
+                if (rec.relabel and rec.relabel["rule"] == rl.name
+                        and (rec.relabel.get("undid") or rec.relabel.get("pass", 1) == 1)):
+                    holds = True  # (a rule with passes that took it later says so below)
                 out.append(f"    {rl.name} [{rl.source}] {rl.action} if {rl.condition_text()}: "
                            + self._outcome_text(rec, holds, terms))
                 if rl.doc:
                     out.append(f"        {rl.doc}")
                 if holds:
                     break
+        r = rec.relabel
+        if r and not r.get("undid") and r.get("pass", 1) > 1:  # taken by a rule with passes, judged again
+            checks = tuple(CheckRecord(**_known(CheckRecord, c)) for c in r.get("measured") or [])
+            out.append(f"  post.relabel, judged again by {r['rule']} [{r['source']}] in pass {r['pass']} against the "
+                       f"surface rebuilt without the clusters relabelled in the passes before "
+                       f"({r.get('surface_points', 0):,} surface points): holds, relabelled {r['to']}: "
+                       + "; ".join(c.sentence() for c in checks))
         again = _judged_again(rec)
         if again:
             out.append(f"  post.relabel, judged again (relabelled by {again[0][0]}) against the surface rebuilt from the "

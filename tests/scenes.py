@@ -161,3 +161,19 @@ def airborne_step_and_building(seed: int = 9, step: float = 4.0) -> tuple[np.nda
     wall = np.column_stack([rng.uniform(-24, 0, 120), np.full(120, -8.0), rng.uniform(0.5, 6.5, 120)])
     X = np.vstack([np.column_stack([xy, z]), wall]) + [512000.0, 5400000.0, 250.0]
     return X, np.r_[inside.astype(int), np.ones(len(wall), int)]
+
+
+def airborne_large_roof(seed: int = 9) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An airborne scan (z up, 1 point per square metre) of level ground, 120 m x 120 m, with a
+    building 50 m x 50 m whose flat roof, 8 m up, has a raised core 26 m x 26 m (0.8 m higher) in
+    its middle: the core's neighbours are the roof's outer ring, 12 m wide, not the ground. Labels:
+    0 bare earth, 1 the building; and the mask of the core's points."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-60, 60, (14400, 2))
+    z = rng.normal(0, 0.05, len(xy))
+    building = (np.abs(xy[:, 0]) < 25) & (np.abs(xy[:, 1]) < 25)
+    core = (np.abs(xy[:, 0]) < 13) & (np.abs(xy[:, 1]) < 13)
+    z[building] += 8.0
+    z[core] += 0.8
+    X = np.column_stack([xy, z]) + [512000.0, 5400000.0, 250.0]
+    return X, building.astype(int), core

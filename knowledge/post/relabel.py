@@ -1,6 +1,7 @@
 """``relabel``: rules applied after labelling: a cluster with label ``from`` whose condition
-holds takes label ``to``; a rule that ``undoes`` an earlier one judges again, against the surface
-rebuilt without them, the clusters that rule relabelled."""
+holds takes label ``to``; a rule with ``passes`` judges again, against the surface rebuilt without
+the clusters it took, those it left; a rule that ``undoes`` an earlier one judges again, against
+the surface rebuilt without them, the clusters that rule relabelled."""
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
@@ -12,17 +13,19 @@ from kbs.knowledge.predicates import Scene
 from kbs.knowledge.rulebase import Condition, SourcePos
 from kbs.knowledge.state import Leaf, PostState, Surface
 
-#: the most passes an undoing rule may ask for (each rebuilds the surface)
+#: the most passes a rule may ask for (each rebuilds the surface)
 MAX_PASSES = 64
 
 
 @dataclass(frozen=True)
 class RelabelRule:
     """A relabel rule: a cluster labelled ``source`` whose condition holds takes label ``target``.
-    With ``undoes`` (the name of an earlier rule of the same step), it judges only the clusters
-    that rule relabelled, against the surface rebuilt from the labels left, and gives them their
-    label back (``source``/``target`` are that rule's ``target``/``source``), for up to ``passes``
-    passes."""
+    With ``passes`` > 1 and no ``undoes``, the clusters still labelled ``source`` that no rule
+    relabelled are judged again, against the surface rebuilt from the labels left, for up to
+    ``passes`` passes in all. With ``undoes`` (the name of an earlier rule of the same step), it
+    judges only the clusters that rule relabelled, against the surface rebuilt from the labels
+    left, and gives them their label back (``source``/``target`` are that rule's
+    ``target``/``source``), for up to ``passes`` passes."""
 
     name: str
     source: str
@@ -39,7 +42,14 @@ class Relabel(PostStep):
     """Rules applied after labelling, in order: a cluster with label 'from' whose condition holds
     takes label 'to' (the first such rule acts). Conditions may use the local ground surface.
 
-    A rule with 'undoes: NAME' (an earlier rule of the step) runs after the others: the surface
+    A rule with 'passes: N' that undoes none is judged, after the first rules, again: the surface
+    is built again from the labels they left, and each cluster still labelled its 'from' that no
+    rule relabelled is judged against it (its checks on the surface measured anew); each pass that
+    relabels some builds the surface again, without them, until a pass relabels none or after N
+    passes in all (e.g. the inner patches of a large roof, whose neighbours are roof patches, judged
+    against the ground left once the outer ones are out).
+
+    A rule with 'undoes: NAME' (an earlier rule of the step) runs after those: the surface
     is built again from the labels they left, and each cluster NAME relabelled is judged against
     it (its checks on the surface measured anew): where the condition holds it takes its label
     back. Each pass that gives some back builds the surface again, with them, and judges the
@@ -65,9 +75,12 @@ class Relabel(PostStep):
                                                            "them, and take their label back where the condition "
                                                            "holds ('from'/'to' are that rule's 'to'/'from')",
                                             "$ref": "#/$defs/name"},
-                                 "passes": {"description": "with 'undoes': at most this many passes, each after "
-                                                           "the surface was rebuilt with the labels given back "
-                                                           "(the passes stop when one gives none back)",
+                                 "passes": {"description": "at most this many passes in all, each after the surface "
+                                                           "was rebuilt from the labels the passes before left "
+                                                           "(they stop at the first that changes none); with "
+                                                           "'undoes', the clusters that rule relabelled are judged "
+                                                           "again, without it the clusters still labelled 'from' "
+                                                           "that no rule relabelled",
                                             "type": "integer", "minimum": 1, "maximum": MAX_PASSES}}},
     }
 
@@ -127,10 +140,6 @@ class Relabel(PostStep):
         """(False when a problem was reported, the rule ``spec`` undoes or None)."""
         name = spec["name"]
         if "undoes" not in spec:
-            if "passes" in spec:
-                ctx.add(path + ("passes",), f"relabel rule '{name}': 'passes' counts the passes of a rule that "
-                        "undoes another ('undoes'), and this one undoes none", key=True)
-                return False, None
             return True, None
         target = spec["undoes"]
         if not isinstance(target, str):
@@ -165,6 +174,12 @@ class Relabel(PostStep):
         del surface
         state = replace(state, ground_facts=state.ground_facts.with_local_model(relabelled=changed))
         built = False  # the surface in the state was built again from labels this step changed
+        for r in self.rules:
+            if r.undoes is None and r.passes > 1:
+                hand = [state]
+                del state
+                state, changed, passes = self._repeat(r, hand.pop(), ctx, changed)
+                built = built or passes > 0
         for r in self.rules:
             if r.undoes is not None:
                 hand = [state]
@@ -255,6 +270,45 @@ class Relabel(PostStep):
         state = replace(state, ground_facts=state.ground_facts.with_local_model(
             undone=(model.undone or 0) + given_back if model is not None else given_back,
             undo_passes=passes))
+        return state, changed, passes
+
+    def _repeat(self, rule: RelabelRule, state: PostState, ctx: PostContext,
+                changed: int) -> tuple[PostState, int, int]:
+        """``rule`` (it undoes none) judged again, pass after pass, on the clusters still labelled
+        its 'from' that no rule relabelled, each pass against the surface built from the labels the
+        passes before left (``changed``: labels changed since the state's surface was built; the
+        passes stop at the first that relabels none). Returns the state, the labels changed since
+        its surface was built, and the passes run after the first (each built the surface)."""
+        assert state.surface is not None
+        checks = ctx.rule_base.checks
+        fresh = {n for n in ctx.names(rule.condition) if checks[n].predicate.needs_ground_model}
+        spec = state.surface.spec
+        leaves = list(state.leaves)
+        passes = taken = 0
+        while changed and passes + 1 < rule.passes:
+            state = replace(state, leaves=tuple(leaves), surface=None)  # the old surface freed first
+            state = replace(state, surface=spec.build(state, ctx))
+            surface, changed = state.surface, 0
+            assert surface is not None
+            passes += 1
+            scene = state.scene
+            post_scene = Scene(scene.sensor, scene.ground, scene.unit, ground_model=surface.model)
+            for i, lf in enumerate(leaves):
+                if lf.label != rule.source or lf.record.relabel:
+                    continue
+                holds, measured = self._judge(rule, lf, post_scene, ctx, fresh)
+                if holds:
+                    leaves[i] = lf.with_record(label=rule.target, relabel={
+                        "rule": rule.name, "source": rule.pos.short, "from": rule.source, "to": rule.target,
+                        "checks": ctx.names(rule.condition), "pass": passes + 1, "measured": measured,
+                        "surface_points": surface.model.n_points})
+                    changed += 1
+            taken += changed
+        state = replace(state, leaves=tuple(leaves))
+        model = state.ground_facts.local_model
+        if taken and model is not None:
+            state = replace(state, ground_facts=state.ground_facts.with_local_model(
+                relabelled=(model.relabelled or 0) + taken))
         return state, changed, passes
 
     @staticmethod

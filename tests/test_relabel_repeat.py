@@ -1,0 +1,103 @@
+"""post.relabel's rules with 'passes' that undo none: judged again, pass after pass, on the
+clusters still labelled 'from' that no rule relabelled, against the surface rebuilt from the labels
+the passes before left (issue 12: the inner patches of a large roof, whose neighbours are roof
+patches, judged against the ground left once the outer ones are out)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from kbs.io import write_ply
+from kbs.knowledge import Interpreter, RuleFileError
+from scenes import airborne_large_roof
+from test_cli import kbs
+from test_relabel_undo import MODEL, RULES, _parse
+
+INNER = """\
+      - name: inner_roofs
+        from: ground
+        to: object
+        if: raised
+{passes}"""
+
+
+def _rules(passes: int | None) -> str:
+    return RULES.format(model=MODEL) + INNER.format(passes="" if passes is None else f"        passes: {passes}\n")
+
+
+def _run(passes: int | None):
+    X, labels, core = airborne_large_roof()
+    rb = _parse(_rules(passes))
+    seg = Interpreter(rb).run(X)
+    return seg, seg.label == rb.label_names.index("ground"), labels, core
+
+
+def test_a_rule_with_passes_takes_the_core_of_a_large_roof():
+    """Judged once, the roof's core (its neighbours the roof's outer ring, 0.8 m under it) stays
+    ground, while 'roofs' takes the ring (it meets the ground). With passes, 'inner_roofs' judges
+    the core again against the surface rebuilt without the ring: it stands 8.8 m above the ground
+    left, and is taken in pass 2; the bare earth stays ground."""
+    seg, ground, labels, core = _run(None)
+    ring = (labels == 1) & ~core
+    assert ground[core].all() and not ground[ring].any() and ground[labels == 0].all()
+    seg, ground, labels, core = _run(8)
+    assert not ground[labels == 1].any() and ground[labels == 0].all()
+    recs = [r for r in seg.explanation.records.values() if r.relabel]
+    inner = [r for r in recs if r.relabel["rule"] == "inner_roofs"]
+    assert inner and all(r.label == "object" and r.first_label == "ground" for r in inner)
+    assert sum(r.n_points for r in inner) == core.sum()
+    rel = inner[0].relabel
+    assert rel["pass"] == 2 and rel["from"] == "ground" and rel["to"] == "object" and rel["checks"] == ["raised"]
+    (m,) = rel["measured"]
+    assert m["check"] == "raised" and m["passed"] and m["value"] > 8.0  # against the ground left
+    first = next(c for c in inner[0].checks if c.check == "raised")
+    assert not first.passed and first.value < 1.0  # pass 1: against the ring around it
+    # the surface of pass 2: the ground clusters left after pass 1, the core among them
+    ground_left = sum(r.n_points for r in seg.explanation.leaves() if r.label == "ground") + inner[0].n_points
+    assert rel["surface_points"] == ground_left
+    assert seg.explanation.ground.local_model.relabelled == len(recs)
+    assert all("pass" not in r.relabel for r in recs if r.relabel["rule"] == "roofs")
+
+
+def test_one_pass_judges_once():
+    """'passes: 1' (the default) judges the rule once, with the others: the labels and records of
+    a rule without 'passes'."""
+    a, *_ = _run(None)
+    b, *_ = _run(1)
+    assert np.array_equal(a.label, b.label) and np.array_equal(a.cluster, b.cluster)
+    assert all("pass" not in r.relabel for r in b.explanation.records.values() if r.relabel)
+
+
+@pytest.mark.parametrize("passes, expected", [
+    (0, "t.yaml:33:17: post[1].relabel[1].passes: 0 is less than the minimum of 1"),
+    (65, "t.yaml:33:17: post[1].relabel[1].passes: 65 is greater than the maximum of 64"),
+])
+def test_bad_passes_are_positioned(passes, expected):
+    with pytest.raises(RuleFileError) as err:
+        _parse(_rules(passes))
+    assert expected in str(err.value), str(err.value)
+
+
+@pytest.mark.slow
+def test_kbs_run_and_explain_say_which_pass_took_it(tmp_path):
+    """Through the commands: the result JSON records the pass, and kbs explain says it, in the
+    summary, the tree and the cluster's own account."""
+    X, _, _ = airborne_large_roof()
+    write_ply(tmp_path / "roof.ply", X)
+    (tmp_path / "t.yaml").write_text(_rules(8))
+    r = kbs("run", "--rules", str(tmp_path / "t.yaml"), str(tmp_path / "roof.ply"), "--out", str(tmp_path / "o"))
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((tmp_path / "o" / "roof.json").read_text())
+    taken = next(c for c in doc["explanation"]["clusters"] if c["relabel"] and c["relabel"]["rule"] == "inner_roofs")
+    assert taken["relabel"]["pass"] == 2 and taken["label"] == "object"
+    r = kbs("explain", str(tmp_path / "o" / "roof.json"))
+    assert "inner_roofs [t.yaml:29] ground -> object if raised: 1 relabelled (in pass 2)" in r.stdout, r.stdout
+    assert (f"relabelled object by inner_roofs [t.yaml:29] in pass 2 (against the surface rebuilt without the "
+            "clusters relabelled in the passes before): raised (height_above_local_ground = ") in r.stdout
+    r = kbs("explain", str(tmp_path / "o" / "roof.json"), "--cluster", taken["id"])
+    assert r.returncode == 0, r.stderr
+    assert "inner_roofs [t.yaml:29] ground -> object if raised: does not hold" in r.stdout  # pass 1
+    assert "post.relabel, judged again by inner_roofs [t.yaml:29] in pass 2 against the surface rebuilt" in r.stdout
+    assert "holds, relabelled object: height_above_local_ground = " in r.stdout
