@@ -278,6 +278,12 @@ class Predicate:
     #: it measures the best approximating plane's orientation, which a degenerate cluster (all its
     #: points on a line or at one position) does not have: the value is then undefined
     needs_plane: bool = False
+    #: for a predicate on the local ground surface: ``reach(params, model) -> float | None``, how
+    #: far from the cluster's points (along the ground plane) the surface points it reads may lie,
+    #: given its parameters (every one, defaults filled in) and the surface (a
+    #: :class:`~kbs.geometry.groundmodel.LocalGround`); None: not known. A relabel rule judged again
+    #: (``passes``) asks only the clusters within reach of those whose label changed.
+    reach: Callable[[Mapping[str, Any], Any], float | None] | None = None
 
     @property
     def builtin(self) -> bool:
@@ -398,6 +404,7 @@ def predicate(
     needs_ground_model: bool = False,
     needs_plane: bool = False,
     applies_with: Mapping[str, tuple[str, str]] | None = None,
+    reach: Callable[[Mapping[str, Any], Any], float | None] | None = None,
 ) -> Callable[[Callable], Predicate]:
     """Declare a predicate. The function is checked now, not when it is first called.
 
@@ -427,6 +434,12 @@ def predicate(
         Parameters that only mean something when another (string) parameter has one value:
         ``{"opening_factor": ("method", "alpha_opening")}``. A rule file that gives such a
         parameter without that value is refused when it is loaded.
+    reach : callable, optional
+        With ``needs_ground_model``: ``reach(params, model)``, the largest distance along the ground
+        plane between a cluster's point and a surface point the measure reads (None when not
+        known). A ``post.relabel`` rule judged again with ``passes`` then asks only the clusters
+        within reach of those whose label changed: the others would measure the same. Without it
+        every cluster is asked again.
     """
 
     def wrap(func: Callable) -> Predicate:
@@ -434,14 +447,15 @@ def predicate(
                               needs_ground=needs_ground or needs_ground_model, bounds=bounds or {},
                               choices=choices or {}, origin=origin_of(func),
                               needs_ground_model=needs_ground_model, needs_plane=needs_plane,
-                              applies_with=applies_with or {})
+                              applies_with=applies_with or {}, reach=reach)
 
     return wrap
 
 
 def make_predicate(func: Callable, *, name: str, unit: str, value_range, needs_ground: bool, bounds, choices,
                    origin: str, needs_ground_model: bool = False, needs_plane: bool = False,
-                   applies_with: Mapping[str, tuple[str, str]] | None = None) -> Predicate:
+                   applies_with: Mapping[str, tuple[str, str]] | None = None,
+                   reach: Callable[[Mapping[str, Any], Any], float | None] | None = None) -> Predicate:
     """Check a function against the predicate contract and wrap it (raises PredicateError)."""
     file, line = _file_and_line(origin)
     where = f"{file}: predicate '{name}' (line {line})" if file else f"predicate '{name}' ({origin})"
@@ -493,7 +507,8 @@ def make_predicate(func: Callable, *, name: str, unit: str, value_range, needs_g
                                  f"the declared choices of a parameter '{other}'")
     return Predicate(name=name, func=func, unit=unit, doc=doc, params=params, value_range=(lo, hi),
                      needs_ground=needs_ground or needs_ground_model, origin=origin,
-                     needs_ground_model=needs_ground_model, needs_plane=bool(needs_plane))
+                     needs_ground_model=needs_ground_model, needs_plane=bool(needs_plane),
+                     reach=reach if needs_ground_model else None)
 
 
 # --- the registry ---------------------------------------------------------------------------
@@ -747,7 +762,13 @@ def distance_to_sensor(cluster: Cluster, scene: Scene, *, to: str = "center") ->
     return float(np.sqrt(((cluster.X - scene.sensor) ** 2).sum(axis=1).min()))
 
 
-@predicate(unit="length", needs_ground_model=True, choices={"stat": tuple(_STATS)}, bounds={"max_points": (0, None)})
+def _surface_reach(params: Mapping[str, Any], model: Any) -> float | None:
+    """The surface's own radius (its neighbours are looked for within it), when it is fixed."""
+    return None if model.per_range > 0.0 else float(model.radius)
+
+
+@predicate(unit="length", needs_ground_model=True, choices={"stat": tuple(_STATS)}, bounds={"max_points": (0, None)},
+           reach=_surface_reach)
 def height_above_local_ground(cluster: Cluster, scene: Scene, *, stat: str = "p90", exclude_self: bool = False,
                               max_points: int = 0) -> float:
     """Height of the cluster's points above the local ground surface (the median height of the
@@ -771,7 +792,8 @@ def height_above_local_ground(cluster: Cluster, scene: Scene, *, stat: str = "p9
 
 
 @predicate(unit="length", needs_ground_model=True, choices={"stat": tuple(_STATS)},
-           bounds={"slope": (0.0, 89.0), "radius": (0.0, None), "max_points": (1, None)})
+           bounds={"slope": (0.0, 89.0), "radius": (0.0, None), "max_points": (1, None)},
+           reach=lambda params, model: float(params["radius"]))
 def height_above_slope_surface(cluster: Cluster, scene: Scene, *, slope: float = 30.0, radius: float = 20.0,
                                stat: str = "median", max_points: int = 64) -> float | Measurement:
     """Height of the cluster above the lowest terrain the ground around it allows, the terrain

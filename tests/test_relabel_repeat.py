@@ -101,3 +101,73 @@ def test_kbs_run_and_explain_say_which_pass_took_it(tmp_path):
     assert "inner_roofs [t.yaml:29] ground -> object if raised: does not hold" in r.stdout  # pass 1
     assert "post.relabel, judged again by inner_roofs [t.yaml:29] in pass 2 against the surface rebuilt" in r.stdout
     assert "holds, relabelled object: height_above_local_ground = " in r.stdout
+
+
+def test_a_later_pass_asks_only_the_clusters_within_reach_of_those_that_moved(monkeypatch):
+    """Pass 2 asks again only the ground clusters with a point within the surface's radius (5 m,
+    the reach of 'raised') of a cluster whose label changed: the others read the same surface
+    points. Asking every cluster gives the same labels and records, with more questions."""
+    from kbs.knowledge.post.relabel import Relabel
+
+    asked: list[str] = []
+    judge = Relabel._judge
+
+    def counting(rule, lf, scene, ctx, fresh):
+        asked.append(lf.id)
+        return judge(rule, lf, scene, ctx, fresh)
+
+    monkeypatch.setattr(Relabel, "_judge", staticmethod(counting))
+    seg, *_ = _run(8)
+    near = list(asked)
+    asked.clear()
+    monkeypatch.setattr(Relabel, "_near", staticmethod(lambda todo, *a: todo))
+    every, *_ = _run(8)
+    assert np.array_equal(seg.label, every.label)
+    assert seg.explanation.to_dict() == every.explanation.to_dict()
+    assert 0 < len(near) < len(asked), (len(near), len(asked))
+    # the ones asked are those the ring's points come within 5 m of
+    X, labels, core = airborne_large_roof()
+    recs = seg.explanation.records
+    ring = np.vstack([X[seg.cluster == c["index"]] for c in seg.clusters
+                      if any(recs[i].relabel and recs[i].relabel["rule"] == "roofs" for i in c["ids"])])
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(ring[:, :2])
+    for c in seg.clusters:
+        if c["label"] != "ground" or c["ids"][0] in near:
+            continue
+        d, _ = tree.query(X[seg.cluster == c["index"], :2])
+        assert d.min() > 5.0, (c["ids"], d.min())  # not asked: out of reach
+
+
+def test_a_predicate_without_a_reach_has_every_cluster_asked_again():
+    """A plugin predicate on the surface that does not say its reach: every cluster still labelled
+    'from' is asked again (the rule cannot know which the surface's change could move)."""
+    from kbs.knowledge import PredicateRegistry, predicate
+    from kbs.knowledge.predicates import height_above_local_ground
+    from kbs.knowledge.post.relabel import Relabel
+
+    @predicate(unit="length", needs_ground_model=True)
+    def height_above_surface_p90(cluster, scene) -> float:
+        """What 'raised' measures (the built-in's p90 with exclude_self), without a reach."""
+        return height_above_local_ground.func(cluster, scene, stat="p90", exclude_self=True)
+
+    assert height_above_surface_p90.reach is None
+    reg = PredicateRegistry.default(entry_points_too=False)
+    reg.add(height_above_surface_p90)
+    from kbs.knowledge.rulebase import parse_rule_base
+
+    text = _rules(8).replace("raised: {predicate: height_above_local_ground, params: {stat: p90, exclude_self: true}",
+                             "raised: {predicate: height_above_surface_p90")
+    rb = parse_rule_base(text, "t.yaml", reg)
+    names = {"raised"}
+
+    class Ctx:
+        rule_base = rb
+
+    assert Relabel._reach(names, Ctx, None) is None
+    X, labels, core = airborne_large_roof()
+    seg = Interpreter(rb).run(X)
+    assert not (seg.label[core] == rb.label_names.index("ground")).any()  # taken in pass 2 all the same
+    ref, *_ = _run(8)
+    assert np.array_equal(seg.label, ref.label)

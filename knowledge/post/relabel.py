@@ -7,6 +7,8 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Any, ClassVar
 
+import numpy as np
+
 from kbs.knowledge.explain import ClusterRecord
 from kbs.knowledge.parts import PostContext, PostStep, SpecContext
 from kbs.knowledge.predicates import Scene
@@ -15,6 +17,9 @@ from kbs.knowledge.state import Leaf, PostState, Surface
 
 #: the most passes a rule may ask for (each rebuilds the surface)
 MAX_PASSES = 64
+
+#: the 3 x 3 block of cells around a cell
+_AROUND = np.array([(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1)], dtype=np.int64)
 
 
 @dataclass(frozen=True)
@@ -165,7 +170,9 @@ class Relabel(PostStep):
         surface = state.surface
         if surface is None and state.ground_facts.local_model is not None:  # a ground_model step was skipped (no ground plane)
             return state
+        before = [lf.label for lf in state.leaves]
         leaves, changed = self._first_rules(state, ctx)
+        moved = [i for i, lf in enumerate(leaves) if lf.label != before[i]]
         state = replace(state, leaves=tuple(leaves))
         if surface is None:
             return state
@@ -178,7 +185,7 @@ class Relabel(PostStep):
             if r.undoes is None and r.passes > 1:
                 hand = [state]
                 del state
-                state, changed, passes = self._repeat(r, hand.pop(), ctx, changed)
+                state, changed, passes, moved = self._repeat(r, hand.pop(), ctx, changed, moved)
                 built = built or passes > 0
         for r in self.rules:
             if r.undoes is not None:
@@ -272,16 +279,20 @@ class Relabel(PostStep):
             undo_passes=passes))
         return state, changed, passes
 
-    def _repeat(self, rule: RelabelRule, state: PostState, ctx: PostContext,
-                changed: int) -> tuple[PostState, int, int]:
+    def _repeat(self, rule: RelabelRule, state: PostState, ctx: PostContext, changed: int,
+                moved: list[int]) -> tuple[PostState, int, int, list[int]]:
         """``rule`` (it undoes none) judged again, pass after pass, on the clusters still labelled
         its 'from' that no rule relabelled, each pass against the surface built from the labels the
-        passes before left (``changed``: labels changed since the state's surface was built; the
-        passes stop at the first that relabels none). Returns the state, the labels changed since
-        its surface was built, and the passes run after the first (each built the surface)."""
+        passes before left (``changed``: labels changed since the state's surface was built,
+        ``moved``: the leaves whose label they changed; the passes stop at the first that relabels
+        none). Only the clusters within reach of the moved ones are asked (:meth:`_near`): the
+        surface the others' checks read is what it was. Returns the state, the labels changed
+        since its surface was built, the passes run after the first (each built the surface) and
+        the leaves the last pass relabelled."""
         assert state.surface is not None
         checks = ctx.rule_base.checks
         fresh = {n for n in ctx.names(rule.condition) if checks[n].predicate.needs_ground_model}
+        reach = self._reach(fresh, ctx, state.surface.model)
         spec = state.surface.spec
         leaves = list(state.leaves)
         passes = taken = 0
@@ -293,23 +304,72 @@ class Relabel(PostStep):
             passes += 1
             scene = state.scene
             post_scene = Scene(scene.sensor, scene.ground, scene.unit, ground_model=surface.model)
-            for i, lf in enumerate(leaves):
-                if lf.label != rule.source or lf.record.relabel:
-                    continue
+            todo = [i for i, lf in enumerate(leaves) if lf.label == rule.source and not lf.record.relabel]
+            if reach is not None:
+                todo = self._near(todo, moved, leaves, surface.model, reach)
+            moved = []
+            for i in todo:
+                lf = leaves[i]
                 holds, measured = self._judge(rule, lf, post_scene, ctx, fresh)
                 if holds:
                     leaves[i] = lf.with_record(label=rule.target, relabel={
                         "rule": rule.name, "source": rule.pos.short, "from": rule.source, "to": rule.target,
                         "checks": ctx.names(rule.condition), "pass": passes + 1, "measured": measured,
                         "surface_points": surface.model.n_points})
-                    changed += 1
+                    moved.append(i)
+            changed = len(moved)
             taken += changed
         state = replace(state, leaves=tuple(leaves))
         model = state.ground_facts.local_model
         if taken and model is not None:
             state = replace(state, ground_facts=state.ground_facts.with_local_model(
                 relabelled=(model.relabelled or 0) + taken))
-        return state, changed, passes
+        return state, changed, passes, moved
+
+    @staticmethod
+    def _reach(names: set[str], ctx: PostContext, model: Any) -> float | None:
+        """How far from a cluster's points the surface points its checks ``names`` read may lie
+        (the largest of their predicates' reach), or None when one does not say."""
+        checks = ctx.rule_base.checks
+        reach = 0.0
+        for n in names:
+            pred = checks[n].predicate
+            if pred.reach is None:
+                return None
+            params = {p.name: p.default for p in pred.params.values()} | dict(checks[n].params)
+            r = pred.reach(params, model)
+            if r is None or not np.isfinite(r) or r <= 0.0:
+                return None
+            reach = max(reach, float(r))
+        return reach if reach > 0.0 else None
+
+    @staticmethod
+    def _near(todo: list[int], moved: list[int], leaves: list[Leaf], model: Any, reach: float) -> list[int]:
+        """The leaves of ``todo`` with a point within ``reach`` (along the ground plane) of a point
+        of the ``moved`` leaves, and possibly a few more: cells of side ``reach`` in the plane, a
+        leaf kept when one of its points lies in a cell next to (or in) a cell of a moved point."""
+        if not moved or not todo:
+            return []
+
+        def cells(i: int) -> np.ndarray:
+            return np.floor(((leaves[i].cluster.X - model.point) @ model.basis.T) / reach).astype(np.int64)
+
+        near = np.unique(np.concatenate([cells(i) for i in moved]), axis=0)
+        near = np.unique((near[:, None, :] + _AROUND[None, :, :]).reshape(-1, 2), axis=0)
+        lo = near.min(axis=0) - 1
+        span = near.max(axis=0) - lo + 2
+        keys = np.sort((near[:, 0] - lo[0]) * span[1] + (near[:, 1] - lo[1]))
+        out = []
+        for i in todo:
+            c = cells(i) - lo
+            inside = (c >= 0).all(axis=1) & (c < span).all(axis=1)
+            if inside.any():
+                k = c[inside, 0] * span[1] + c[inside, 1]
+                pos = np.minimum(np.searchsorted(keys, k), keys.size - 1)
+                if (keys[pos] == k).any():
+                    out.append(i)
+        return out
+
 
     @staticmethod
     def _fresh(lf: Leaf, ctx: PostContext) -> Leaf:
