@@ -245,15 +245,15 @@ class Relabel(PostStep):
                     and lf.label == rule.source]
             if not todo:
                 break
-            if changed:  # built again from the labels the passes before left, the old surface freed first
+            if changed:  # built again from the labels the passes before left
                 surface = post_scene = None
-                state = replace(state, leaves=tuple(leaves), surface=None)
-                state = replace(state, surface=spec.build(state, ctx))
+                hand = [state]
+                del state
+                state = self._rebuilt(hand, leaves, spec, ctx)
             surface, changed = state.surface, 0
             assert surface is not None
             passes += 1
-            scene = state.scene
-            post_scene = Scene(scene.sensor, scene.ground, scene.unit, ground_model=surface.model)
+            post_scene = self._scene(state)
             for i in todo:
                 lf = leaves[i]
                 holds, measured = self._judge(rule, lf, post_scene, ctx, fresh)
@@ -297,13 +297,14 @@ class Relabel(PostStep):
         leaves = list(state.leaves)
         passes = taken = 0
         while changed and passes + 1 < rule.passes:
-            state = replace(state, leaves=tuple(leaves), surface=None)  # the old surface freed first
-            state = replace(state, surface=spec.build(state, ctx))
+            surface = post_scene = None
+            hand = [state]
+            del state
+            state = self._rebuilt(hand, leaves, spec, ctx)
             surface, changed = state.surface, 0
             assert surface is not None
             passes += 1
-            scene = state.scene
-            post_scene = Scene(scene.sensor, scene.ground, scene.unit, ground_model=surface.model)
+            post_scene = self._scene(state)
             todo = [i for i, lf in enumerate(leaves) if lf.label == rule.source and not lf.record.relabel]
             if reach is not None:
                 todo = self._near(todo, moved, leaves, surface.model, reach)
@@ -325,6 +326,20 @@ class Relabel(PostStep):
             state = replace(state, ground_facts=state.ground_facts.with_local_model(
                 relabelled=(model.relabelled or 0) + taken))
         return state, changed, passes, moved
+
+    @staticmethod
+    def _rebuilt(hand: list[PostState], leaves: list[Leaf], spec: Any, ctx: PostContext) -> PostState:
+        """The state in ``hand`` (taken out: the caller holds no reference to it, nor to its
+        surface) with ``leaves`` and the surface built again from their labels by ``spec`` (the
+        step that built it), the old surface freed first."""
+        state = replace(hand.pop(), leaves=tuple(leaves), surface=None)
+        return replace(state, surface=spec.build(state, ctx))
+
+    @staticmethod
+    def _scene(state: PostState) -> Scene:
+        """The scene of ``state`` with its surface, for checks on the surface."""
+        scene = state.scene
+        return Scene(scene.sensor, scene.ground, scene.unit, ground_model=state.surface.model)
 
     @staticmethod
     def _reach(names: set[str], ctx: PostContext, model: Any) -> float | None:
