@@ -338,8 +338,9 @@ class Relabel(PostStep):
     @staticmethod
     def _scene(state: PostState) -> Scene:
         """The scene of ``state`` with its surface, for checks on the surface."""
-        scene = state.scene
-        return Scene(scene.sensor, scene.ground, scene.unit, ground_model=state.surface.model)
+        scene, surface = state.scene, state.surface
+        assert surface is not None
+        return Scene(scene.sensor, scene.ground, scene.unit, ground_model=surface.model)
 
     @staticmethod
     def _reach(names: set[str], ctx: PostContext, model: Any) -> float | None:
