@@ -107,9 +107,10 @@ the frame time, so the shipped rule bases keep ``'graph'``.
 """
 from __future__ import annotations
 
+import functools
 import math
 import numbers
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -305,30 +306,51 @@ class _Distinct:
     ``tree_all`` one over all the input points (the same tree without duplicates), and
     ``spacing`` the median (over distinct positions) distance to the nearest other one (0 when
     m = 1). Visiting the points cell by cell makes the k-d tree queries ~30 % faster than a
-    random order.
+    random order. The trees are built when first asked (a vehicle frame's connexity measures,
+    answered by the compiled kernels, built 149 of them a frame and asked none).
     """
 
     points: np.ndarray
     mult: np.ndarray
     order: np.ndarray
     point_of: np.ndarray
-    tree: cKDTree
-    tree_all: cKDTree
     spacing: float
+    #: every input point's position, in a spatially coherent order (``points`` when none repeats)
+    all_points: np.ndarray
+    #: a k-d tree over ``points`` already built (by the search of the nearest distances), or None
+    built: cKDTree | None = field(default=None, repr=False, compare=False)
+
+    @functools.cached_property
+    def tree(self) -> cKDTree:
+        """The k-d tree over ``points``, built when first asked: the compiled components
+        (:func:`_compiled_opening_components`) answer without it."""
+        if self.built is not None:
+            return self.built
+        return _kdtree(self.points, balanced_tree=False, compact_nodes=False)
+
+    @functools.cached_property
+    def tree_all(self) -> cKDTree:
+        """The k-d tree over every input point (the same tree as :attr:`tree` when no position
+        repeats; only counts are asked of it, so its order is moot), built when first asked."""
+        if self.all_points is self.points:
+            return self.tree
+        return _kdtree(self.all_points, balanced_tree=False, compact_nodes=False)
 
 
-def _nearest_other(S: np.ndarray, side: float, tree: cKDTree) -> np.ndarray:
+def _nearest_other(S: np.ndarray, side: float) -> tuple[np.ndarray, cKDTree | None]:
     """The distance from each row of ``S`` (n, 2) to its nearest other row: ``tree.query(S,
-    k=2)[0][:, 1]``, the same values bit for bit from the compiled grid search
-    (:func:`~kbs.inference._compiled.nearest_other_distances`, cells of ``side``) when the kernels
-    are on and the grid fits (about 4x faster on a vehicle frame's connexity calls)."""
+    k=2)[0][:, 1]`` of a k-d tree over ``S``, the same values bit for bit from the compiled grid
+    search (:func:`~kbs.inference._compiled.nearest_other_distances`, cells of ``side``) when the
+    kernels are on and the grid fits (about 4x faster on a vehicle frame's connexity calls). Also
+    the tree, when one was built (None: the grid answered)."""
     if _flags.JIT and S.dtype == np.float64 and np.isfinite(S).all():
         from kbs.inference import _compiled
 
         d, ok = _compiled.nearest_other_distances(np.ascontiguousarray(S), float(side))
         if ok:
-            return d
-    return tree.query(S, k=2)[0][:, 1]
+            return d, None
+    tree = _kdtree(S, balanced_tree=False, compact_nodes=False)
+    return tree.query(S, k=2)[0][:, 1], tree
 
 
 def _distinct(P: np.ndarray) -> _Distinct:
@@ -344,24 +366,22 @@ def _distinct(P: np.ndarray) -> _Distinct:
     else:  # a single position
         order = np.arange(n)
     S = P[order]
-    tree = _kdtree(S, balanced_tree=False, compact_nodes=False)
     if n < 2:
-        return _Distinct(S, np.ones(n, dtype=np.int64), order, np.arange(n), tree, tree, 0.0)
-    d = _nearest_other(S, side, tree)
+        return _Distinct(S, np.ones(n, dtype=np.int64), order, np.arange(n), 0.0, S)
+    d, tree = _nearest_other(S, side)
     if d.min() > 0.0:  # no duplicate: the common case
-        return _Distinct(S, np.ones(n, dtype=np.int64), order, np.arange(n), tree, tree, float(np.median(d)))
+        return _Distinct(S, np.ones(n, dtype=np.int64), order, np.arange(n), float(np.median(d)), S, tree)
     # Exact duplicates: merge them (x, y sorted within each cell) and measure again.
     sub = np.lexsort((S[:, 1], S[:, 0], key[order])) if side > 0.0 else np.arange(n)
     order = order[sub]
     S = S[sub]
-    tree_all = tree  # over all the input points (only counts are asked of it: its order is moot)
     first = np.ones(n, dtype=bool)
     first[1:] = (S[1:] != S[:-1]).any(axis=1)
     point_of = np.cumsum(first) - 1
     U = S[first]
     tree = _kdtree(U, balanced_tree=False, compact_nodes=False)
     spacing = float(np.median(tree.query(U, k=2)[0][:, 1])) if U.shape[0] > 1 else 0.0
-    return _Distinct(U, np.bincount(point_of), order, point_of, tree, tree_all, spacing)
+    return _Distinct(U, np.bincount(point_of), order, point_of, spacing, S, tree)
 
 
 def _cc(n: int, i: np.ndarray, j: np.ndarray) -> tuple[int, np.ndarray]:

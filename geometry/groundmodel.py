@@ -119,7 +119,8 @@ class LocalGround:
     neighbours: int
     radius: float
     basis: np.ndarray
-    tree: object  # scipy.spatial.cKDTree over the ground points' plane coordinates
+    #: the ground points' plane coordinates (m, 2), float64, C-contiguous: what :attr:`tree` holds
+    plane: np.ndarray
     owners: np.ndarray | None = None
     owner_ids: tuple[str, ...] = ()
     #: threads of the k-d tree queries (scipy's ``workers``): the answers do not depend on it
@@ -151,8 +152,6 @@ class LocalGround:
         point); ``owners``/``owner_ids`` say which cluster each point came from; ``workers``
         threads answer large queries (the same answers); the radius of a query at distance ``r``
         from ``sensor`` is ``radius + per_range r``."""
-        from scipy.spatial import cKDTree
-
         normal = np.asarray(normal, dtype=np.float64)
         point = np.asarray(point, dtype=np.float64)
         basis = plane_basis(normal)
@@ -163,7 +162,7 @@ class LocalGround:
         G = X[index] - point
         return cls(normal=normal, point=point, index=np.asarray(index), heights=G @ normal,
                    neighbours=int(neighbours), radius=float(radius), basis=basis,
-                   tree=cKDTree(G @ basis.T, balanced_tree=False, compact_nodes=False),
+                   plane=np.ascontiguousarray(G @ basis.T, dtype=np.float64),
                    owners=None if owners is None else np.asarray(owners), owner_ids=tuple(owner_ids),
                    workers=max(1, int(workers)), per_range=float(per_range),
                    sensor=None if sensor is None else np.asarray(sensor, dtype=np.float64).reshape(3))
@@ -171,6 +170,21 @@ class LocalGround:
     @property
     def n_points(self) -> int:
         return int(self.index.size)
+
+    @functools.cached_property
+    def tree(self) -> Any:
+        """A ``scipy.spatial.cKDTree`` over :attr:`plane`, built at its first use: with the compiled
+        kernels most surfaces are asked only through their grids (the rows a grid leaves, and the
+        reference path without the kernels, ask the tree; the same answers either way)."""
+        from scipy.spatial import cKDTree
+
+        return cKDTree(self.plane, balanced_tree=False, compact_nodes=False)
+
+    @functools.cached_property
+    def _plane_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """The lowest and highest plane coordinates of the surface points (what a k-d tree over
+        them holds as its ``mins`` and ``maxes``)."""
+        return self.plane.min(axis=0), self.plane.max(axis=0)
 
     def radii(self, P: np.ndarray) -> np.ndarray | None:
         """The radius of each query point ``P`` (q, 3): ``radius + per_range`` x its distance to
@@ -239,7 +253,7 @@ class LocalGround:
                                    workers=self.workers if Q.shape[0] >= 4096 else 1)
             return d.reshape(Q.shape[0], k), i.reshape(Q.shape[0], k)
         Q = np.ascontiguousarray(Q)
-        T = self.tree.data  # type: ignore[attr-defined]
+        T = self.plane
         owners = np.ascontiguousarray(self.owners if self.owners is not None else np.zeros(0), dtype=np.int64)
         rest = (float(radius), self.heights, owners, int(own), int(self.neighbours), int(first))
         if self.workers > 1 and Q.shape[0] >= 4096:  # the kernel releases the GIL: rows in threads, the same answers
@@ -269,7 +283,7 @@ class LocalGround:
     def _grid(self) -> tuple | None:
         """The compiled search's grid over the surface's plane coordinates (built once, at the
         first query), or None when none fits."""
-        T = self.tree.data  # type: ignore[attr-defined]
+        T = self.plane
         if T.shape[0] < 2 or not np.isfinite(T).all():
             return None
         extent = T.max(axis=0) - T.min(axis=0)
@@ -313,7 +327,7 @@ class LocalGround:
         q = Q.shape[0]
         if q < 2048:
             return None
-        lo, hi = self.tree.mins, self.tree.maxes
+        lo, hi = self._plane_bounds
         extent = hi - lo
         area = float(np.prod(np.maximum(extent, extent.max() * 1e-3)))
         side = 4.0 * np.sqrt(area / self.n_points)
@@ -347,7 +361,7 @@ class LocalGround:
         if cells is not None:  # compiled, on finer cells, lowest bound first: the same minimum, fewer points
             owners = self.owners if own >= 0 else np.zeros(0, dtype=np.int64)
             ny, start, order, lo, side, hmin, box = cells
-            lowest = _compiled.slope_lowest_pruned(np.ascontiguousarray(Q), self.tree.data,  # type: ignore[attr-defined]
+            lowest = _compiled.slope_lowest_pruned(np.ascontiguousarray(Q), self.plane,
                                                    self.heights, np.asarray(owners, dtype=np.int64), own, ny, start,
                                                    order, lo, side, hmin, box, rise, float(radius), float(radius) ** 2)
             reached = np.isfinite(lowest)
@@ -356,7 +370,7 @@ class LocalGround:
         if grid is not None:  # compiled: the same minimum over the same points, without the lists
             owners = self.owners if own >= 0 else np.zeros(0, dtype=np.int64)
             ny, start, order, lo, side = grid
-            T = self.tree.data  # type: ignore[attr-defined]
+            T = self.plane
             lowest = _compiled.slope_lowest(np.ascontiguousarray(Q), T, self.heights, np.asarray(owners, dtype=np.int64),
                                             own, ny, start, order, lo, side, rise, float(radius) ** 2)
             reached = np.isfinite(lowest)
@@ -371,7 +385,7 @@ class LocalGround:
         if own >= 0:
             keep = self.owners[j] != own
             j, k = j[keep], k[keep]
-        d = np.sqrt(((self.tree.data[j] - Q[k]) ** 2).sum(axis=1))  # type: ignore[attr-defined]
+        d = np.sqrt(((self.plane[j] - Q[k]) ** 2).sum(axis=1))  # type: ignore[attr-defined]
         lowest = np.full(P.shape[0], np.inf)
         np.minimum.at(lowest, k, self.heights[j] + rise * d)
         reached = np.isfinite(lowest)
@@ -386,7 +400,7 @@ class LocalGround:
         grids = self._slope_grids
         if radius not in grids:
             side = float(radius) * 1.001  # the 3 x 3 block holds the disc of radius, rounding aside
-            T = self.tree.data  # type: ignore[attr-defined]
+            T = self.plane
             grids[radius] = None
             if side > 0.0 and np.isfinite(side):
                 ny, start, order, lo = _compiled.surface_grid(T, side, float(self.BOUND_CELLS_PER_POINT * T.shape[0] + 4096))
@@ -419,7 +433,7 @@ class LocalGround:
         key = ("cells", radius)
         if key not in grids:
             side = float(radius) / self.SLOPE_CELLS
-            T = self.tree.data  # type: ignore[attr-defined]
+            T = self.plane
             grids[key] = None
             if side > 0.0 and np.isfinite(side):
                 ny, start, order, lo, hmin, box = _compiled.slope_cells(
@@ -487,13 +501,13 @@ class LocalGround:
         """The surface on cells of ``side``: per cell, the lowest and highest height over the
         (2 reach + 1)^2 block around it and the number of surface points of the 3 x 3 block; None
         when there would be more than :attr:`BOUND_CELLS_PER_POINT` cells per surface point."""
-        T = self.tree.data  # the surface points' plane coordinates, as the tree holds them
+        T = self.plane  # the surface points' plane coordinates
         pad = reach + 1  # empty rings of cells around the surface
         if not side > 0.0:
             return None
-        # the tree's mins and maxes are T.min(axis=0) and T.max(axis=0), without two more passes
-        origin = self.tree.mins - pad * side  # type: ignore[attr-defined]
-        cells = np.floor((self.tree.maxes - origin) / side) + pad + 1  # type: ignore[attr-defined]  # floats: may be huge
+        lo, hi = self._plane_bounds
+        origin = lo - pad * side
+        cells = np.floor((hi - origin) / side) + pad + 1  # floats: may be huge
         if float(cells[0]) * float(cells[1]) > self.BOUND_CELLS_PER_POINT * T.shape[0] + 4096:
             return None
         shape = cells.astype(np.int64)

@@ -666,3 +666,32 @@ def test_bad_alpha_opening_parameters_are_parameter_errors(kwargs):
     X, _ = three_rocks()
     with pytest.raises(ParameterError, match="method|opening_radius|opening_factor"):
         connexity(X, X.mean(axis=0), UP, **kwargs)
+
+
+def test_the_compiled_measure_builds_no_k_d_tree_and_answers_as_the_trees_do(monkeypatch):
+    """With the compiled kernels, the graph measure answers from its grids: no k-d tree is built
+    (a vehicle frame's 100 measures built 149 and asked none); with them off, the trees answer,
+    and the components are the same. A cloud with repeated positions too (its tree over all the
+    points and its tree over the distinct ones, built when asked)."""
+    import kbs.geometry.connexity as module
+    from kbs.inference import _flags
+
+    rng = np.random.default_rng(12)
+    X, _ = on_ground([disk((0, 0), 1.0, rng), disk((3, 0), 0.7, rng)])
+    Xd = np.r_[X, X[:50]]  # 50 positions twice
+    built = []
+    real = module._kdtree
+    monkeypatch.setattr(module, "_kdtree", lambda *a, **k: built.append(len(a[0])) or real(*a, **k))
+    for cloud in (X, Xd):
+        built.clear()
+        monkeypatch.setattr(_flags, "JIT", True)
+        fast = connexity(cloud, cloud.mean(axis=0), UP)
+        trees_fast = len(built)
+        monkeypatch.setattr(_flags, "JIT", False)
+        slow = connexity(cloud, cloud.mean(axis=0), UP)
+        assert fast.n_components == slow.n_components == 2 and fast.n_significant == slow.n_significant == 2
+        np.testing.assert_array_equal(fast.labels, slow.labels)
+        assert fast.spacing == slow.spacing
+        assert len(built) > trees_fast  # the reference path asks its trees
+        # the tree over the distinct positions is the one the duplicates' spacing needs
+        assert trees_fast == (0 if cloud is X else 1)
