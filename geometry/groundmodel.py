@@ -385,7 +385,7 @@ class LocalGround:
         if own >= 0:
             keep = self.owners[j] != own
             j, k = j[keep], k[keep]
-        d = np.sqrt(((self.plane[j] - Q[k]) ** 2).sum(axis=1))  # type: ignore[attr-defined]
+        d = np.sqrt(((self.plane[j] - Q[k]) ** 2).sum(axis=1))
         lowest = np.full(P.shape[0], np.inf)
         np.minimum.at(lowest, k, self.heights[j] + rise * d)
         reached = np.isfinite(lowest)
