@@ -116,7 +116,8 @@ WRONG = [
 ]
 
 
-@pytest.mark.parametrize("path, value, problem, text", WRONG, ids=[f"{'.'.join(map(str, w[0][1:]))}={w[1]!r}"
+@pytest.mark.parametrize("path, value, problem, text", WRONG, ids=[f"{'.'.join(map(str, w[0][1:]))}="
+                                                                   + ("<deleted>" if w[1] is _DEL else repr(w[1]))
                                                                    for w in WRONG])
 def test_a_wrong_field_of_the_explanation_is_an_input_error_at_its_position(example, raw, tmp_path, capsys,
                                                                             path, value, problem, text):

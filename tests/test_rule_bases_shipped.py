@@ -116,11 +116,12 @@ def test_the_examples_are_installed_listed_and_runnable_without_the_source_tree(
 
 
 def test_the_readme_test_command_is_what_ci_runs_and_runs_the_slow_tests():
-    """The README's test command and .ci/run's are one command, and it runs the slow tests."""
+    """The README's test command and .ci/run's are one command, and it runs the slow tests on two
+    worker processes (pytest-xdist: one per core of CI's machine)."""
     import re
 
     readme = (ROOT / "README.md").read_text(encoding="utf-8")
     ci = (ROOT / ".ci" / "run").read_text(encoding="utf-8").strip().splitlines()[-1]
     documented = re.search(r'```sh\n(python3 -m venv \.venv && \.venv/bin/pip install "\.\[test\]" && [^\n]+)\n```',
                            readme).group(1)
-    assert documented == ci.replace(" --quiet", "") and documented.endswith("pytest --runslow")
+    assert documented == ci.replace(" --quiet", "") and documented.endswith("pytest --runslow -n 2")
