@@ -10,6 +10,7 @@ problem in one line.
 from __future__ import annotations
 
 import errno
+import io
 import logging
 import os
 import struct
@@ -139,9 +140,34 @@ def _from_structured(
     return PointCloud.from_arrays(xyz, fields, shape=shape, path=str(path), units=units, crs=crs)
 
 
+#: bytes at most of a PLY header (its lines up to end_header)
+_PLY_MAX_HEADER = 1 << 20
+
+
+def _check_ply_header(path: Path) -> None:
+    """Say what is wrong with a PLY header that plyfile would only call undecodable: a line that is
+    not ASCII (a comment written in another encoding), or no ``end_header`` line."""
+    with open(path, "rb") as fp:
+        head = fp.read(_PLY_MAX_HEADER)
+    end = -1
+    for marker in (b"\nend_header\n", b"\nend_header\r\n", b"\rend_header\r"):
+        at = head.find(marker)
+        if at >= 0 and (end < 0 or at < end):
+            end = at
+    if end < 0:
+        raise CloudFileError(str(path), "malformed PLY header: no end_header line"
+                             + (f" in its first {_PLY_MAX_HEADER:,} bytes" if len(head) == _PLY_MAX_HEADER else ""))
+    for number, line in enumerate(head[:end].split(b"\n"), 1):
+        bad = next((i for i, byte in enumerate(line) if byte > 127), None)
+        if bad is not None:
+            raise CloudFileError(str(path), f"malformed PLY header: line {number} holds byte 0x{line[bad]:02x} at "
+                                 f"column {bad + 1}: a PLY header is ASCII ({line[:60].decode('latin-1')!r})")
+
+
 def read_ply(path: Path) -> PointCloud:
     """Read the ``vertex`` element of an ascii or binary PLY file (plyfile); list properties are skipped."""
     _check_magic(path, (b"ply",), "PLY")
+    _check_ply_header(path)
     import plyfile  # each format's library is imported when a file of that format is read
 
     with _library_errors(path, "PLY"):
@@ -190,6 +216,31 @@ def _pcd_header(path: Path) -> tuple[list[str], list[str], int]:
     raise CloudFileError(str(path), "malformed PCD header: no DATA line")
 
 
+def _pcd_header_as_v07(path: Path, lines: list[str]) -> tuple[list[str], bool]:
+    """The keyword lines of a PCD header checked (FIELDS, SIZE, TYPE and COUNT of one length) and
+    written as version 0.7 where they are of 0.5 or 0.6, as PCL reads those (no VIEWPOINT: the
+    identity; no COUNT: one value a field); and whether they changed."""
+    keys = {line.split()[0].upper(): i for i, line in enumerate(lines) if line.split()}
+    fields = lines[keys["FIELDS"]].split()[1:] if "FIELDS" in keys else None
+    if fields is not None:
+        for key in ("SIZE", "TYPE", "COUNT"):
+            if key in keys and len(lines[keys[key]].split()) - 1 != len(fields):
+                raise CloudFileError(str(path), f"malformed PCD header: {key} has {len(lines[keys[key]].split()) - 1} "
+                                     f"values for the {len(fields)} FIELDS ({' '.join(fields)})")
+    version = lines[keys["VERSION"]].split()[1:2] if "VERSION" in keys else []
+    if version not in (["0.5"], [".5"], ["0.6"], [".6"]):
+        return lines, False
+    out = list(lines)
+    out[keys["VERSION"]] = "VERSION 0.7"
+    data = keys.get("DATA", len(out) - 1)
+    extra = []
+    if "COUNT" not in keys and fields is not None:
+        extra.append("COUNT " + " ".join("1" for _ in fields))
+    if "VIEWPOINT" not in keys:
+        extra.append("VIEWPOINT 0 0 0 1 0 0 0")
+    return out[:data] + extra + out[data:], True
+
+
 def read_pcd(path: Path) -> PointCloud:
     """Read an ascii, binary or binary_compressed PCD file (pypcd4); HEIGHT > 1 gives an organised cloud.
 
@@ -200,12 +251,19 @@ def read_pcd(path: Path) -> PointCloud:
     import pypcd4
 
     lines, comments, offset = _pcd_header(path)
+    lines, changed = _pcd_header_as_v07(path, lines)
     with _library_errors(path, "PCD"):
         if lines[-1].split()[1:2] == ["ascii"]:
             meta = pypcd4.MetaData.parse_header(lines)
             with open(path, "rb") as fp:
                 fp.seek(offset)
                 data = _pcd_ascii(path, fp, meta.build_dtype(), meta.points)
+        elif changed:  # an older header (PCD 0.5/0.6): pypcd4 reads 0.7 only, given the same body
+            with open(path, "rb") as fp:
+                fp.seek(offset)
+                pcd = pypcd4.PointCloud.from_fileobj(io.BufferedReader(io.BytesIO(
+                    ("\n".join(lines) + "\n").encode() + fp.read())))  # type: ignore[arg-type]
+            meta, data = pcd.metadata, np.atleast_1d(pcd.pc_data)
         else:
             pcd = pypcd4.PointCloud.from_path(path)
             meta, data = pcd.metadata, np.atleast_1d(pcd.pc_data)
@@ -265,6 +323,28 @@ def _check_las_layout(path: Path, kind: str) -> None:
             )
 
 
+def _check_las_bounds(path: Path, kind: str, header, xyz: np.ndarray) -> None:
+    """Refuse a file whose points lie far outside the bounds its header declares: farther than the
+    bounds' own largest side (and than 1,000 scale steps), beyond what a writer's rounding or a
+    stale header gives. Points decoded from a damaged LAZ land kilometres away. A header that
+    declares no bounds (all zeros, or minima above maxima) is not checked."""
+    lo = np.asarray(header.mins, dtype=np.float64)
+    hi = np.asarray(header.maxs, dtype=np.float64)
+    if not xyz.shape[0] or not (np.isfinite(lo).all() and np.isfinite(hi).all()) or (lo > hi).any() \
+            or not (lo.any() or hi.any()):
+        return
+    slack = max(float((hi - lo).max()), 1000.0 * float(np.max(header.scales)))
+    far = ((xyz < lo - slack) | (xyz > hi + slack)).any(axis=1)
+    n = int(far.sum())
+    if n:
+        i = int(np.flatnonzero(far)[0])
+        raise CloudFileError(
+            str(path),
+            f"{n:,} of its {xyz.shape[0]:,} points lie far outside its header's bounds (point {i:,} at "
+            f"{xyz[i, 0]:.9g}, {xyz[i, 1]:.9g}, {xyz[i, 2]:.9g}; z {lo[2]:.9g}..{hi[2]:.9g}): damaged, or a wrong header",
+        )
+
+
 def read_las(path: Path) -> PointCloud:
     """Read a LAS or LAZ file (laspy, lazrs backend): scaled float64 xyz, the LAS_FIELDS present and
     every extra-bytes dimension; the CRS and its units (:func:`las_crs`); the ``laspy.LasData`` kept
@@ -277,6 +357,10 @@ def read_las(path: Path) -> PointCloud:
     with _library_errors(path, kind):
         las = laspy.read(path)
         _check_count(path, kind, las.header.point_count, len(las.points))
+        scales = np.asarray(las.header.scales, dtype=np.float64)
+        if not (np.isfinite(scales).all() and (scales > 0).all()):
+            raise CloudFileError(str(path), f"malformed {kind} header: the x, y, z scale factors "
+                                 f"{', '.join(f'{v:g}' for v in scales)} must be positive numbers")
         xyz = np.column_stack(
             [
                 np.asarray(las.x, dtype=np.float64),
@@ -284,6 +368,7 @@ def read_las(path: Path) -> PointCloud:
                 np.asarray(las.z, dtype=np.float64),
             ]
         )
+        _check_las_bounds(path, kind, las.header, xyz)
         present = set(las.point_format.dimension_names)
         fields = {name: np.asarray(las[name]) for name in LAS_FIELDS if name in present}
         for name in las.point_format.extra_dimension_names:
@@ -388,6 +473,10 @@ def read_text(path: Path) -> PointCloud:
     return PointCloud.from_arrays(values[:, xyz_columns], fields, path=str(path))
 
 
+#: an .npy array with more columns than this and than rows is taken for a transposed cloud
+_NPY_MAX_COLUMNS = 64
+
+
 def read_npy(path: Path) -> PointCloud:
     """Read a ``.npy`` array: (N, 3+) numbers (x y z, then ``intensity``, ``col4`` ...) or a structured
     array with x, y, z fields (a 2-D structured array is an organised cloud)."""
@@ -408,6 +497,12 @@ def read_npy(path: Path) -> PointCloud:
         raise CloudFileError(
             str(path),
             f"expected an (N, 3+) array of numbers or x/y/z fields, got {array.dtype} {array.shape}",
+        )
+    if array.shape[1] > max(_NPY_MAX_COLUMNS, array.shape[0]):
+        raise CloudFileError(
+            str(path),
+            f"an array of {array.shape[0]} rows and {array.shape[1]} columns: a cloud is one point per row "
+            f"(x, y, z, then its attributes); saved transposed? (np.save(path, points.T))",
         )
     fields = {
         ("intensity" if column == 3 else f"col{column}"): array[:, column]

@@ -19,7 +19,7 @@ from kbs.knowledge.explain import NO_LABEL
 from kbs.knowledge.groundfacts import GroundFacts
 from kbs.knowledge.predicates import Ground
 from kbs.knowledge.rulebase import RuleBase
-from kbs.knowledge.segmentation import STOP_KINDS, Segmentation
+from kbs.knowledge.segmentation import FAR_OUTLIER_FACTOR, STOP_KINDS, Segmentation, far_outliers
 from kbs.knowledge.state import Judged, Node
 
 __all__ = ["Interpreter", "Segmentation", "STOP_KINDS", "NO_LABEL", "segment", "available_cores"]
@@ -114,10 +114,23 @@ class Interpreter:
     # -- a run ---------------------------------------------------------------------------------
 
     def run(self, X: np.ndarray) -> Segmentation:
-        """Segment points ``X`` (n, 3) (:func:`kbs.knowledge.run.run`)."""
+        """Segment points ``X`` (n, 3) (:func:`kbs.knowledge.run.run`). Far outliers
+        (:func:`~kbs.knowledge.segmentation.far_outliers`) are set aside as noise first, and the
+        explanation says so."""
         from kbs.knowledge import run
 
-        return run.run(self, X)
+        X = np.asarray(X)
+        far = far_outliers(X)
+        if far is None:
+            return run.run(self, X)
+        aside, side = far
+        n, unit = int(aside.sum()), self.rb.length_unit
+        first = X[np.flatnonzero(aside)[0]]
+        note = (f"{n:,} point{'s' if n > 1 else ''} set aside as noise before the partition: more than "
+                f"{FAR_OUTLIER_FACTOR:g} x {side:.4g} {unit} (the largest side of the box of the central 98 % of the "
+                f"cloud) beyond that box, e.g. at {first[0]:.6g}, {first[1]:.6g}, {first[2]:.6g} (far outliers: "
+                f"a glitch, a damaged record)")
+        return run.run(self, X[~aside]).with_set_aside(aside, note)
 
     def finish(self, judged: Judged, t0: float) -> Segmentation:
         """Label the strategy's leaves, run the post steps, make the result

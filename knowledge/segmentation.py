@@ -55,6 +55,20 @@ class Segmentation:
         return limits_by_kind((r.n_points, r.id, r.limit) for r in self.explanation.records.values()
                               if r.action == "limit")
 
+    def with_set_aside(self, aside: np.ndarray, note: str) -> Segmentation:
+        """This result, of the points ``~aside`` of a cloud, as the result of the whole cloud: the
+        points ``aside`` (a mask) are noise (no cluster, no label, membership 0), and ``note`` is
+        added to the explanation's notes."""
+        from dataclasses import replace
+
+        keep = ~np.asarray(aside, dtype=bool)
+        cluster = np.full(keep.size, -1, dtype=self.cluster.dtype)
+        label = np.full(keep.size, -1, dtype=self.label.dtype)
+        membership = np.zeros(keep.size, dtype=self.membership.dtype)
+        cluster[keep], label[keep], membership[keep] = self.cluster, self.label, self.membership
+        return replace(self, cluster=cluster, label=label, membership=membership,
+                       explanation=replace(self.explanation, notes=[*self.explanation.notes, note]))
+
     def summary(self) -> dict[str, Any]:
         """Counts; ``points_per_label``: each label's points, then ``noise`` (points in no output
         cluster: rejected; ``noise (rejected)`` when the rule base has a label named noise) and,
@@ -97,3 +111,31 @@ STOP_KINDS: dict[str, str | None] = {
     "single_cluster": None,                   # the split put all its points in one cluster
     "unpartitioned": None,                    # the scene could not be partitioned (further, for global)
 }
+
+
+#: far outliers: points farther than this many times the largest side of the box of the central 98 %
+#: of a cloud beyond that box (see :func:`far_outliers`)
+FAR_OUTLIER_FACTOR = 2.0
+#: clouds of fewer points are not searched for far outliers (the central 98 % is then most of them)
+FAR_OUTLIER_MIN_POINTS = 100
+
+
+def far_outliers(X: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """The points of ``X`` (n, 3) that lie so far from the rest of the cloud that they are glitches
+    (a lidar return kilometres away, a damaged record), and the size that decided it: the box of
+    the central 98 % of the points (1st to 99th percentile on each axis) and its largest side E; a
+    point more than :data:`FAR_OUTLIER_FACTOR` x E beyond the box, on any axis. None when there is
+    none (or the cloud has fewer than :data:`FAR_OUTLIER_MIN_POINTS` points, or E is 0).
+
+    One such point is enough to make UFP-ONC's first partition a single cluster (its new
+    prototype takes the outlier alone, which dies): the whole scene would be judged as one
+    cluster."""
+    if X.ndim != 2 or X.shape[0] < FAR_OUTLIER_MIN_POINTS or not np.isfinite(X).all():
+        return None
+    lo, hi = np.percentile(X, [1.0, 99.0], axis=0)
+    side = float((hi - lo).max())
+    if not side > 0.0:
+        return None
+    reach = FAR_OUTLIER_FACTOR * side
+    far = ((X < lo - reach) | (X > hi + reach)).any(axis=1)
+    return (far, side) if far.any() else None

@@ -436,6 +436,18 @@ def _truncated_las(tmp_path: Path, suffix: str = ".las") -> Path:
     return path
 
 
+def _patched_las(tmp_path: Path, offset: int, *values: float) -> Path:
+    """A LAS file whose header doubles from byte ``offset`` on are ``values`` (131: the x, y, z
+    scales; 179: max x, min x, max y, min y, max z, min z)."""
+    import struct
+
+    path = _write_las(tmp_path / "patched.las", _utm_xyz(100), np.ones(100, dtype=np.uint8))
+    data = bytearray(path.read_bytes())
+    struct.pack_into(f"<{len(values)}d", data, offset, *values)
+    path.write_bytes(bytes(data))
+    return path
+
+
 def _write(name: str, content: bytes):
     def make(tmp_path: Path) -> Path:
         path = tmp_path / name
@@ -570,6 +582,23 @@ BAD_FILES = {
         ),
         "holds no points",
     ),
+    "npy-transposed": (_npy("t.npy", np.zeros((3, 500))), "saved transposed?"),
+    "las-scale-zero": (lambda p: _patched_las(p, 131, 0.0, 0.0, 0.0),
+                       "the x, y, z scale factors 0, 0, 0 must be positive numbers"),
+    "las-far-outside-its-bounds": (lambda p: _patched_las(p, 179, 5e5 + 10, 5e5, 5e6 + 10, 5e6, 310.0, 300.0),
+                                   "lie far outside its header's bounds"),  # a 10 m box for 1 km of points
+    "pcd-size-short": (
+        _write("size.pcd", b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+               b"WIDTH 1\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 1\nDATA ascii\n1 2 3\n"),
+        "malformed PCD header: SIZE has 2 values for the 3 FIELDS (x y z)",
+    ),
+    "ply-header-not-ascii": (
+        _write("latin.ply", b"ply\nformat ascii 1.0\ncomment cr\xe9\xe9\n" + _PLY_XYZ_HEAD.split(b"\n", 2)[2] % (1, b"x")
+               + b"end_header\n1 2 3\n"),
+        "malformed PLY header: line 3 holds byte 0xe9 at column 11",
+    ),
+    "ply-no-end-header": (_write("noend.ply", _PLY_XYZ_HEAD % (1, b"x") + b"1 2 3\n"),
+                          "malformed PLY header: no end_header line"),
     "truncated-las": (_truncated_las, "truncated LAS file"),
     "truncated-laz": (lambda p: _truncated_las(p, ".laz"), "truncated LAZ file"),
 }
@@ -702,3 +731,26 @@ def test_real_las(shared_data: Path, name: str, n_points: int, n_ground: int) ->
 def test_real_unlabelled(shared_data: Path, name: str, n_valid: int, shape: tuple[int, int] | None) -> None:
     cloud = read_cloud(shared_data / "unlabelled" / name)
     assert len(cloud) == n_valid and cloud.shape == shape
+
+
+@pytest.mark.parametrize("encoding", PCD_ENCODINGS)
+def test_pcd_version_0_6_reads_as_0_7(tmp_path: Path, encoding: Encoding) -> None:
+    """A PCD 0.6 header (no VIEWPOINT line), which PCL still reads, gives the points of the same
+    file written as 0.7."""
+    xyz = _utm_xyz(50).astype(np.float32) - np.float32([5e5, 5e6, 0])
+    new = _write_pcd(tmp_path / "v07.pcd", {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]}, encoding)
+    data = new.read_bytes()
+    head, body = data.split(b"DATA", 1)
+    lines = [line for line in head.split(b"\n") if not line.startswith((b"VIEWPOINT", b"VERSION"))]
+    old = tmp_path / "v06.pcd"
+    old.write_bytes(b"VERSION .6\n" + b"\n".join(lines) + b"DATA" + body)
+    assert b"VIEWPOINT" not in old.read_bytes()[:400]
+    a, b = read_cloud(new), read_cloud(old)
+    assert np.array_equal(a.xyz, b.xyz) and len(a.xyz) == 50
+
+
+def test_las_header_bounds_a_little_off_are_accepted(tmp_path: Path) -> None:
+    """A header's bounds a little off (a writer's rounding) are accepted: only points far outside
+    them are refused."""
+    path = _patched_las(tmp_path, 211, 350.5, 299.5)  # z bounds 0.5 m wider than the points' 300-350
+    assert read_cloud(path).xyz.shape == (100, 3)

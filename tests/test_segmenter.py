@@ -377,3 +377,40 @@ def test_ctrl_c_inside_a_compiled_kernel_reaches_the_caller_as_ctrl_c(monkeypatc
         seg.segment(X)
     monkeypatch.setattr(u, "gg_fit", original)
     assert seg.segment(X).label.shape == (2000,)
+
+
+@pytest.mark.parametrize("where", [[1e4, 1e4, 1e4], [0.0, 0.0, -3e3]])
+def test_a_far_outlier_is_set_aside_as_noise_and_said(tmp_path, where):
+    """One glitch point kilometres away made the first partition a single cluster (its new
+    prototype took the outlier alone, which died): the whole scene one obstacle, no ground. It is
+    set aside as noise, the explanation and the command say so, and every other point gets the
+    result of the cloud without it."""
+    X = read_cloud(EXAMPLE).xyz
+    seg = kbs.Segmenter("outdoor", jobs=1)
+    clean = seg.segment(X)
+    dirty = np.vstack([X[:7], [where], X[7:]])
+    res = seg.segment(dirty)
+    keep = np.ones(len(dirty), bool)
+    keep[7] = False
+    for name in ("cluster", "label", "membership"):
+        assert np.array_equal(getattr(res, name)[keep], getattr(clean, name)), name
+    assert res.cluster[7] == -1 and res.label[7] == -1 and res.membership[7] == 0
+    assert any(n.startswith("1 point set aside as noise before the partition") for n in res.explanation.notes)
+    assert res.summary()["points_per_label"]["ground"] == clean.summary()["points_per_label"]["ground"] > 0
+    path = tmp_path / "glitch.npy"
+    np.save(path, dirty)
+    r = kbs_command("run", "--rules", "outdoor", str(path), "--out", str(tmp_path / "out"))
+    assert r.returncode == 0, r.stderr
+    assert "1 point set aside as noise before the partition" in r.stderr + r.stdout
+
+
+def test_points_within_reach_are_not_outliers():
+    """A point beyond the central 98 % of the cloud by less than twice its extent is a point of
+    the scene (a far building, a tree top): nothing is set aside, the result is the plain run's."""
+    from kbs.knowledge.segmentation import far_outliers
+
+    X = read_cloud(EXAMPLE).xyz
+    lo, hi = np.percentile(X, [1, 99], axis=0)
+    near = hi + 1.9 * (hi - lo).max()
+    assert far_outliers(np.vstack([X, near])) is None
+    assert far_outliers(np.vstack([X, hi + 2.1 * (hi - lo).max()]))[0].sum() == 1
