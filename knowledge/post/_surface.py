@@ -43,7 +43,8 @@ def receive(leaves: list[Leaf], moved_in: dict, note: str) -> None:
 
 
 def surface_batches(X: np.ndarray, todo: Sequence[Leaf], model, may_matter: Callable | None = None,
-                    nearest_of: str = "point") -> Iterator[tuple[np.ndarray, np.ndarray]]:
+                    nearest_of: str = "point", asked: np.ndarray | None = None,
+                    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """For each leaf of ``todo`` in order: (heights above the local surface, positions of the
     nearest surface points) of its points, asked for batches of leaves of about
     :data:`SURFACE_BATCH` points together (few small queries, bounded temporaries).
@@ -52,7 +53,9 @@ def surface_batches(X: np.ndarray, todo: Sequence[Leaf], model, may_matter: Call
     the ground plane and the bounds of the surface under them (:meth:`LocalGround.height_bounds`);
     the others are not asked for and come back as NaN (height) and -1 (nearest). The caller
     promises that their outcome is the same either way (the bounds decide it). ``nearest_of``:
-    what the caller uses of the nearest surface points (:meth:`LocalGround.query`)."""
+    what the caller uses of the nearest surface points (:meth:`LocalGround.query`). ``asked``
+    (bool, one per row of ``X``): only those points may be asked, the others come back as not
+    asked (the caller knows their outcome)."""
     batch: list[Leaf] = []
     size = 0
     for i, lf in enumerate(todo):
@@ -60,18 +63,22 @@ def surface_batches(X: np.ndarray, todo: Sequence[Leaf], model, may_matter: Call
         size += lf.size
         if size < SURFACE_BATCH and i + 1 < len(todo):
             continue
-        P = X[np.concatenate([b.node.idx for b in batch])]
+        idx = np.concatenate([b.node.idx for b in batch])
+        rows = None if asked is None else np.flatnonzero(asked[idx])  # the points that may be asked
+        P = X[idx] if rows is None else X[idx[rows]]
         hp = (P - model.point) @ model.normal
-        bounds = model.height_bounds(P) if may_matter is not None else None
-        if bounds is None or may_matter is None:
+        bounds = model.height_bounds(P) if may_matter is not None and P.shape[0] else None
+        ask = None if bounds is None or may_matter is None else np.flatnonzero(may_matter(hp, *bounds, P))
+        if rows is None and ask is None:
             ground, nearest = model.query(P, nearest_of=nearest_of)
             h = hp - ground
         else:
-            ask = np.flatnonzero(may_matter(hp, *bounds, P))
-            h = np.full(P.shape[0], np.nan)
-            nearest = np.full(P.shape[0], -1, dtype=np.int64)
-            ground, nearest[ask] = model.query(P[ask], nearest_of=nearest_of)
-            h[ask] = hp[ask] - ground
+            ask = np.arange(P.shape[0]) if ask is None else ask
+            at = ask if rows is None else rows[ask]  # their positions in the batch
+            h = np.full(idx.size, np.nan)
+            nearest = np.full(idx.size, -1, dtype=np.int64)
+            ground, nearest[at] = model.query(P[ask], nearest_of=nearest_of)
+            h[at] = hp[ask] - ground
         stop = 0
         for b in batch:
             start, stop = stop, stop + b.size
