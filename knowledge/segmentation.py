@@ -118,12 +118,15 @@ STOP_KINDS: dict[str, str | None] = {
 FAR_OUTLIER_FACTOR = 2.0
 #: clouds of fewer points are not searched for far outliers (the central 98 % is then most of them)
 FAR_OUTLIER_MIN_POINTS = 100
+#: the percentiles of a larger cloud are those of every k-th point, about this many
+FAR_OUTLIER_SAMPLE = 1_000_000
 
 
 def far_outliers(X: np.ndarray) -> tuple[np.ndarray, float] | None:
     """The points of ``X`` (n, 3) that lie so far from the rest of the cloud that they are glitches
     (a lidar return kilometres away, a damaged record), and the size that decided it: the box of
-    the central 98 % of the points (1st to 99th percentile on each axis) and its largest side E; a
+    the central 98 % of the points (1st to 99th percentile on each axis, of every k-th point of a
+    cloud of more than :data:`FAR_OUTLIER_SAMPLE`) and its largest side E; a
     point more than :data:`FAR_OUTLIER_FACTOR` x E beyond the box, on any axis. None when there is
     none (or the cloud has fewer than :data:`FAR_OUTLIER_MIN_POINTS` points, or E is 0).
 
@@ -132,7 +135,8 @@ def far_outliers(X: np.ndarray) -> tuple[np.ndarray, float] | None:
     cluster."""
     if X.ndim != 2 or X.shape[0] < FAR_OUTLIER_MIN_POINTS or not np.isfinite(X).all():
         return None
-    lo, hi = np.percentile(X, [1.0, 99.0], axis=0)
+    step = max(1, X.shape[0] // FAR_OUTLIER_SAMPLE)  # the percentiles of a regular sample of a large cloud
+    lo, hi = np.percentile(X[::step], [1.0, 99.0], axis=0)
     side = float((hi - lo).max())
     if not side > 0.0:
         return None
