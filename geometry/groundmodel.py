@@ -195,14 +195,18 @@ class LocalGround:
         return self.radius + self.per_range * np.sqrt(((np.asarray(P, dtype=np.float64) - self.sensor) ** 2).sum(axis=1))
 
     def query(self, P: np.ndarray, exclude: str | None = None, *,
-              nearest_of: str = "point") -> tuple[np.ndarray, np.ndarray]:
+              nearest_of: str = "point", found: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """For points ``P`` (q, 3): the local ground height under each (NaN where no ground point
         lies within ``radius``, see :meth:`radii`) and the position in :attr:`index` of its nearest ground point (-1
         where none). With ``exclude`` (a cluster id), that cluster's own points are left out: among
         the ``EXCLUDE_FACTOR x neighbours`` nearest, the nearest ``neighbours`` of other clusters
         count. ``nearest_of``: what the caller uses of the nearest surface point, its position
         (``'point'``), only its cluster (``'owner'``: of points at the same distance, any one of the
-        same cluster may be given) or nothing (``'none'``: any one of them)."""
+        same cluster may be given) or nothing (``'none'``: any one of them). ``found``: a (q,
+        k) int64 array (k the neighbours fetched: :attr:`neighbours`, times :attr:`EXCLUDE_FACTOR`
+        with ``exclude``) that receives the positions in :attr:`index` of the surface points each
+        height was taken among (:attr:`n_points` where fewer were found; with a radius growing with
+        range, some may lie beyond a point's own radius)."""
         first = {"point": 0, "owner": 1, "none": 2}[nearest_of]
         P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
         q = P.shape[0]
@@ -233,6 +237,8 @@ class LocalGround:
                 d, i = self._knn(Q[sel], k, own, first, float(r.max()))
                 d = np.where(d.reshape(sel.size, k) <= r[:, None], d.reshape(sel.size, k), np.inf)
             ground[sel], nearest[sel] = self._medians(d.reshape(sel.size, k), i.reshape(sel.size, k), own)
+            if found is not None:
+                found[sel] = i.reshape(sel.size, k)
         return ground, nearest
 
     def _knn(self, Q: np.ndarray, k: int, own: int, first: int = 0,

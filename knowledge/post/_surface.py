@@ -44,7 +44,7 @@ def receive(leaves: list[Leaf], moved_in: dict, note: str) -> None:
 
 def surface_batches(X: np.ndarray, todo: Sequence[Leaf], model, may_matter: Callable | None = None,
                     nearest_of: str = "point", asked: np.ndarray | None = None,
-                    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+                    found: Callable | None = None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """For each leaf of ``todo`` in order: (heights above the local surface, positions of the
     nearest surface points) of its points, asked for batches of leaves of about
     :data:`SURFACE_BATCH` points together (few small queries, bounded temporaries).
@@ -55,7 +55,9 @@ def surface_batches(X: np.ndarray, todo: Sequence[Leaf], model, may_matter: Call
     promises that their outcome is the same either way (the bounds decide it). ``nearest_of``:
     what the caller uses of the nearest surface points (:meth:`LocalGround.query`). ``asked``
     (bool, one per row of ``X``): only those points may be asked, the others come back as not
-    asked (the caller knows their outcome)."""
+    asked (the caller knows their outcome). ``found(rows, positions)``: called for each batch with
+    the rows of ``X`` queried and the surface positions their heights were taken among
+    (:meth:`LocalGround.query`'s ``found``)."""
     batch: list[Leaf] = []
     size = 0
     for i, lf in enumerate(todo):
@@ -69,7 +71,7 @@ def surface_batches(X: np.ndarray, todo: Sequence[Leaf], model, may_matter: Call
         hp = (P - model.point) @ model.normal
         bounds = model.height_bounds(P) if may_matter is not None and P.shape[0] else None
         ask = None if bounds is None or may_matter is None else np.flatnonzero(may_matter(hp, *bounds, P))
-        if rows is None and ask is None:
+        if rows is None and ask is None and found is None:
             ground, nearest = model.query(P, nearest_of=nearest_of)
             h = hp - ground
         else:
@@ -77,8 +79,12 @@ def surface_batches(X: np.ndarray, todo: Sequence[Leaf], model, may_matter: Call
             at = ask if rows is None else rows[ask]  # their positions in the batch
             h = np.full(idx.size, np.nan)
             nearest = np.full(idx.size, -1, dtype=np.int64)
-            ground, nearest[at] = model.query(P[ask], nearest_of=nearest_of)
+            among = None if found is None else np.empty((ask.size, min(model.neighbours, model.n_points)),
+                                                        dtype=np.int64)
+            ground, nearest[at] = model.query(P[ask], nearest_of=nearest_of, found=among)
             h[at] = hp[ask] - ground
+            if found is not None:
+                found(idx[at], among)
         stop = 0
         for b in batch:
             start, stop = stop, stop + b.size

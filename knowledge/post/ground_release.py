@@ -69,8 +69,8 @@ class GroundRelease(PostStep):
             note = f"no {self.target} cluster to take released points"
             return replace(state, ground_facts=state.ground_facts.with_local_model(release_note=note))
         del surface
+        passes = _Passes(ctx.X, state.leaves, self.target) if self.passes > 1 else None
         total = 0
-        asked = None
         for p in range(self.passes):
             if p:  # the surface again, from the ground points the passes before left
                 spec = state.surface.spec
@@ -78,21 +78,16 @@ class GroundRelease(PostStep):
                 state = replace(state, surface=spec.build(state, ctx))
                 if not state.surface.model.n_points:
                     break
-            state, released = self._release(state, ctx, gl, p, asked)
+            state, released = self._release(state, ctx, gl, p, passes)
             total += released.size
             if not released.size:
                 break
-            if p + 1 < self.passes:
-                asked = self._near(ctx.X, state.surface.model, released)
         return replace(state, ground_facts=state.ground_facts.with_local_model(released=total))
 
     @staticmethod
-    def _near(X: np.ndarray, model: Any, released: np.ndarray) -> np.ndarray:
-        """The points of ``X`` (a mask) whose surface height the release of the points ``released``
-        (rows of ``X``) can change: a point's height is the median of its nearest surface points
-        within its radius, so a point farther than its radius from every released point keeps its
-        nearest points, its height, and its outcome (it stayed). In the plane's coordinates, by
-        cells as wide as the largest radius: a released point's cell and the eight around it."""
+    def _cells(X: np.ndarray, model: Any) -> tuple[np.ndarray, int]:
+        """Each point's cell of side the largest radius of the surface ``model`` in the plane's
+        coordinates (a key), and the keys' row width (see :meth:`_near`)."""
         if model.per_range > 0.0:
             assert model.sensor is not None
             far = float(np.sqrt(((X - model.sensor) ** 2).sum(axis=1)).max())
@@ -102,32 +97,34 @@ class GroundRelease(PostStep):
         Q = (X - model.point) @ model.basis.T
         cells = np.floor((Q - Q.min(axis=0)) / side).astype(np.int64)
         width = int(cells[:, 1].max()) + 3
-        key = (cells[:, 0] + 1) * width + cells[:, 1] + 1
+        return (cells[:, 0] + 1) * width + cells[:, 1] + 1, width
+
+    @staticmethod
+    def _near(key: np.ndarray, width: int, released: np.ndarray) -> np.ndarray:
+        """The points (a mask over the keys of :meth:`_cells`) within the radius of one of the
+        points ``released``, and more: a released point's cell and the eight around it."""
         near = np.unique(key[released][:, None] + (np.arange(-1, 2)[:, None] * width + np.arange(-1, 2)).ravel())
         return np.isin(key, near)
 
     def _release(self, state: PostState, ctx: PostContext, gl: str, p: int,
-                 asked: np.ndarray | None) -> tuple[PostState, np.ndarray]:
-        """One pass against the state's surface (only the points ``asked``, when given): the state
-        with the points released, and those points (rows of ``ctx.X``)."""
-        from scipy.spatial import cKDTree
-
+                 passes: _Passes | None) -> tuple[PostState, np.ndarray]:
+        """One pass against the state's surface (with ``passes``, only the points the pass before
+        can have changed): the state with the points released, and those points (rows of
+        ``ctx.X``)."""
         surface = state.surface
         assert surface is not None
         unit = ctx.rule_base.length_unit
         leaves = list(state.leaves)
-        targets = [li for li, lf in enumerate(leaves) if lf.label == self.target and lf.size]
         X = ctx.X
-        t_idx = np.concatenate([leaves[li].node.idx for li in targets])
-        t_owner = np.concatenate([np.full(leaves[li].size, li) for li in targets])
-        tree = cKDTree(X[t_idx])
         moved_in: dict[int, list] = {}
         todo = [li for li, lf in enumerate(leaves) if lf.label == gl and lf.size]
         # queries for batches of clusters (points move only after the loop)
         tol = self.tolerance
         above = lambda hp, lo, hi, P: hp - lo > tol  # noqa: E731 (no surface height under it is low enough: stays)
         batches = surface_batches(X, [leaves[li] for li in todo], surface.model, above, nearest_of="none",
-                                  asked=asked)
+                                  asked=None if passes is None else passes.asked,
+                                  found=None if passes is None else passes.found)
+        nearest = _Nearest(X, leaves, self.target) if passes is None else passes.nearest
         gone = []
         which = f" (pass {p + 1}: the surface without the points released before)" if p else ""
         for li, (h, _) in zip(todo, batches):
@@ -136,8 +133,7 @@ class GroundRelease(PostStep):
             n_move, size = int(move.sum()), lf.size
             if not n_move:
                 continue
-            _, j = tree.query(X[lf.node.idx[move]], workers=ctx.jobs if n_move >= 4096 else 1)
-            taken, dest = take(lf, move, t_owner[j], moved_in)
+            taken, dest = take(lf, move, nearest.owners(lf.node.idx[move], ctx.jobs), moved_in)
             gone.append(lf.node.idx[move])
             ids = [leaves[t].id for t in dest]
             leaves[li] = taken.with_record(released=lf.record.released + n_move, notes=(
@@ -146,4 +142,101 @@ class GroundRelease(PostStep):
                 f"{', '.join(ids[:5])}{' ...' if len(ids) > 5 else ''} [{self.pos.short} ground_release]",))
         receive(leaves, moved_in, "{n} points released by ground clusters joined it (the nearest "
                 f"{self.target} cluster) [{self.pos.short} ground_release]")
-        return replace(state, leaves=tuple(leaves)), np.concatenate(gone) if gone else np.zeros(0, dtype=np.int64)
+        released = np.concatenate(gone) if gone else np.zeros(0, dtype=np.int64)
+        if passes is not None:
+            passes.after(surface.model, released, moved_in)
+        return replace(state, leaves=tuple(leaves)), released
+
+
+class _Nearest:
+    """The cluster of label ``target`` nearest to points: the leaves of that label (their
+    positions in ``leaves``) by a k-d tree over their points, and the points released into them
+    since (:meth:`add`), by a second one."""
+
+    def __init__(self, X: np.ndarray, leaves, target: str) -> None:
+        from scipy.spatial import cKDTree
+
+        targets = [li for li, lf in enumerate(leaves) if lf.label == target and lf.size]
+        self.X = X
+        self.tree = cKDTree(X[np.concatenate([leaves[li].node.idx for li in targets])])
+        self.owner = np.concatenate([np.full(leaves[li].size, li) for li in targets])
+        self.added: tuple[Any, np.ndarray] | None = None
+        self.parts: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def add(self, idx: np.ndarray, owner: np.ndarray) -> None:
+        from scipy.spatial import cKDTree
+
+        self.parts.append((idx, owner))
+        every = np.concatenate([p[0] for p in self.parts])
+        self.added = cKDTree(self.X[every]), np.concatenate([p[1] for p in self.parts])
+
+    def owners(self, idx: np.ndarray, jobs: int) -> np.ndarray:
+        """The position (in the leaves) of the cluster nearest to each point ``idx``."""
+        workers = jobs if idx.size >= 4096 else 1
+        d, j = self.tree.query(self.X[idx], workers=workers)
+        owner = self.owner[j]
+        if self.added is not None:
+            tree, added_owner = self.added
+            d2, j2 = tree.query(self.X[idx], workers=workers)
+            nearer = d2 < d
+            owner[nearer] = added_owner[j2[nearer]]
+        return owner
+
+
+class _Passes:
+    """What a release of several passes keeps from one pass to the next: which points the next
+    pass asks, and the nearest clusters of the target label.
+
+    A point's height is the median of its nearest surface points (within its radius). The surface
+    of a pass is that of the pass before without the points it released (R): a point whose nearest
+    surface points, when its height was last computed, held none of the points released since,
+    keeps them, its height and its outcome (it stayed); so does a point whose height was never
+    computed (the surface's bounds decided it) if no point of R is within its radius. The next pass
+    asks the others: the points whose last nearest held one of R, and the points never queried
+    within the radius of one of R (:meth:`GroundRelease._near`; the bounds decide most of them
+    again). The labels are those of asking every point every pass (tested)."""
+
+    def __init__(self, X: np.ndarray, leaves, target: str) -> None:
+        self.X = X
+        self.asked: np.ndarray | None = None  # the next pass asks these (None: all)
+        self.nearest = _Nearest(X, leaves, target)
+        #: per point, the row of :attr:`among` holding the surface points (rows of X) its height was
+        #: last taken among (-1: never queried)
+        self.slot = np.full(X.shape[0], -1, dtype=np.int64)
+        self.among = np.zeros((0, 0), dtype=np.int32 if X.shape[0] < 2**31 else np.int64)
+        self._cells: tuple[np.ndarray, int] | None = None
+        self._rows: list[np.ndarray] = []  # this pass: the points queried,
+        self._found: list[np.ndarray] = []  # and the surface points their heights were taken among
+
+    def found(self, rows: np.ndarray, positions: np.ndarray) -> None:
+        self._rows.append(rows)
+        self._found.append(positions)
+
+    def after(self, model: Any, released: np.ndarray, moved_in: dict) -> None:
+        """Record a pass against the surface ``model`` that released the points ``released``
+        (``moved_in``: where they went, as :func:`take` gathers it)."""
+        if moved_in:
+            self.nearest.add(np.concatenate([q[0] for parts in moved_in.values() for q in parts]),
+                             np.concatenate([np.full(q[0].size, t) for t, parts in moved_in.items() for q in parts]))
+        if self._rows:  # the new nearest sets, as rows of X (-1: none found)
+            index = np.append(model.index, -1).astype(self.among.dtype)
+            rows = np.concatenate(self._rows)
+            sets = index[np.minimum(np.concatenate(self._found), model.n_points)]
+            k = max(self.among.shape[1], sets.shape[1])
+            grow = np.full((self.among.shape[0] + rows.size, k), -1, dtype=self.among.dtype)
+            grow[:self.among.shape[0], :self.among.shape[1]] = self.among
+            grow[self.among.shape[0]:, :sets.shape[1]] = sets
+            self.slot[rows] = self.among.shape[0] + np.arange(rows.size)
+            self.among = grow
+        self._rows, self._found = [], []
+        gone = np.zeros(self.X.shape[0] + 1, dtype=bool)  # the last entry: "none found" (-1)
+        gone[released] = True
+        known = np.flatnonzero(self.slot >= 0)
+        asked = np.zeros(self.X.shape[0], dtype=bool)
+        asked[known[gone[self.among[self.slot[known]]].any(axis=1)]] = True
+        if released.size:
+            if self._cells is None:  # the same plane and radius for every surface of the step
+                self._cells = GroundRelease._cells(self.X, model)
+            asked |= (self.slot < 0) & GroundRelease._near(*self._cells, released)
+        asked[released] = False
+        self.asked = asked
