@@ -85,26 +85,24 @@ class GroundRelease(PostStep):
         return replace(state, ground_facts=state.ground_facts.with_local_model(released=total))
 
     @staticmethod
-    def _cells(X: np.ndarray, model: Any) -> tuple[np.ndarray, int]:
-        """Each point's cell of side the largest radius of the surface ``model`` in the plane's
-        coordinates (a key), and the keys' row width (see :meth:`_near`)."""
+    def _near(X: np.ndarray, model: Any, released: np.ndarray) -> np.ndarray:
+        """The points of the surface ``model`` (rows of ``X``) within the radius of one of the points
+        ``released`` (rows of ``X``, points of the surface), and more: in the plane's coordinates,
+        by cells as wide as the largest radius, a released point's cell and the eight around it."""
         if model.per_range > 0.0:
             assert model.sensor is not None
-            far = float(np.sqrt(((X - model.sensor) ** 2).sum(axis=1)).max())
+            far = float(np.sqrt(((X[model.index] - model.sensor) ** 2).sum(axis=1)).max())
             side = model.radius + model.per_range * far
         else:
             side = model.radius
-        Q = (X - model.point) @ model.basis.T
-        cells = np.floor((Q - Q.min(axis=0)) / side).astype(np.int64)
+        cells = np.floor((model.plane - model.plane.min(axis=0)) / side).astype(np.int64)
         width = int(cells[:, 1].max()) + 3
-        return (cells[:, 0] + 1) * width + cells[:, 1] + 1, width
-
-    @staticmethod
-    def _near(key: np.ndarray, width: int, released: np.ndarray) -> np.ndarray:
-        """The points (a mask over the keys of :meth:`_cells`) within the radius of one of the
-        points ``released``, and more: a released point's cell and the eight around it."""
-        near = np.unique(key[released][:, None] + (np.arange(-1, 2)[:, None] * width + np.arange(-1, 2)).ravel())
-        return np.isin(key, near)
+        key = (cells[:, 0] + 1) * width + cells[:, 1] + 1
+        at = np.zeros(X.shape[0], dtype=bool)
+        at[released] = True
+        mine = at[model.index]  # the released points among the surface's
+        near = np.unique(key[mine][:, None] + (np.arange(-1, 2)[:, None] * width + np.arange(-1, 2)).ravel())
+        return model.index[np.isin(key, near)]
 
     def _release(self, state: PostState, ctx: PostContext, gl: str, p: int,
                  passes: _Passes | None) -> tuple[PostState, np.ndarray]:
@@ -123,7 +121,7 @@ class GroundRelease(PostStep):
         above = lambda hp, lo, hi, P: hp - lo > tol  # noqa: E731 (no surface height under it is low enough: stays)
         batches = surface_batches(X, [leaves[li] for li in todo], surface.model, above, nearest_of="none",
                                   asked=None if passes is None else passes.asked,
-                                  found=None if passes is None else passes.found)
+                                  found=None if passes is None or p + 1 == self.passes else passes.found)
         nearest = _Nearest(X, leaves, self.target) if passes is None else passes.nearest
         gone = []
         which = f" (pass {p + 1}: the surface without the points released before)" if p else ""
@@ -143,7 +141,7 @@ class GroundRelease(PostStep):
         receive(leaves, moved_in, "{n} points released by ground clusters joined it (the nearest "
                 f"{self.target} cluster) [{self.pos.short} ground_release]")
         released = np.concatenate(gone) if gone else np.zeros(0, dtype=np.int64)
-        if passes is not None:
+        if passes is not None and p + 1 < self.passes and released.size:  # what the next pass asks
             passes.after(surface.model, released, moved_in)
         return replace(state, leaves=tuple(leaves)), released
 
@@ -202,9 +200,8 @@ class _Passes:
         self.nearest = _Nearest(X, leaves, target)
         #: per point, the row of :attr:`among` holding the surface points (rows of X) its height was
         #: last taken among (-1: never queried)
-        self.slot = np.full(X.shape[0], -1, dtype=np.int64)
+        self.slot = np.full(X.shape[0], -1, dtype=np.int32 if X.shape[0] < 2**31 else np.int64)
         self.among = np.zeros((0, 0), dtype=np.int32 if X.shape[0] < 2**31 else np.int64)
-        self._cells: tuple[np.ndarray, int] | None = None
         self._rows: list[np.ndarray] = []  # this pass: the points queried,
         self._found: list[np.ndarray] = []  # and the surface points their heights were taken among
 
@@ -234,9 +231,7 @@ class _Passes:
         known = np.flatnonzero(self.slot >= 0)
         asked = np.zeros(self.X.shape[0], dtype=bool)
         asked[known[gone[self.among[self.slot[known]]].any(axis=1)]] = True
-        if released.size:
-            if self._cells is None:  # the same plane and radius for every surface of the step
-                self._cells = GroundRelease._cells(self.X, model)
-            asked |= (self.slot < 0) & GroundRelease._near(*self._cells, released)
+        near = GroundRelease._near(self.X, model, released)
+        asked[near[self.slot[near] < 0]] = True
         asked[released] = False
         self.asked = asked
