@@ -2,6 +2,7 @@
 the nearest cluster of another label."""
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 from typing import Any, ClassVar
 
@@ -69,7 +70,7 @@ class GroundRelease(PostStep):
             note = f"no {self.target} cluster to take released points"
             return replace(state, ground_facts=state.ground_facts.with_local_model(release_note=note))
         del surface
-        passes = _Passes(ctx.X, state.leaves, self.target) if self.passes > 1 else None
+        passes = _Passes(ctx.X) if self.passes > 1 else None
         total = 0
         for p in range(self.passes):
             if p:  # the surface again, from the ground points the passes before left
@@ -121,8 +122,9 @@ class GroundRelease(PostStep):
         above = lambda hp, lo, hi, P: hp - lo > tol  # noqa: E731 (no surface height under it is low enough: stays)
         batches = surface_batches(X, [leaves[li] for li in todo], surface.model, above, nearest_of="none",
                                   asked=None if passes is None else passes.asked,
-                                  found=None if passes is None or p + 1 == self.passes else passes.found)
-        nearest = _Nearest(X, leaves, self.target) if passes is None else passes.nearest
+                                  found=None if passes is None or p + 1 == self.passes else
+                                  functools.partial(passes.found, surface.model))
+        nearest = _Nearest(X, leaves, self.target)  # of this pass's clusters (with the points received before)
         gone = []
         which = f" (pass {p + 1}: the surface without the points released before)" if p else ""
         for li, (h, _) in zip(todo, batches):
@@ -142,14 +144,13 @@ class GroundRelease(PostStep):
                 f"{self.target} cluster) [{self.pos.short} ground_release]")
         released = np.concatenate(gone) if gone else np.zeros(0, dtype=np.int64)
         if passes is not None and p + 1 < self.passes and released.size:  # what the next pass asks
-            passes.after(surface.model, released, moved_in)
+            passes.after(surface.model, released, keep=p + 2 < self.passes)
         return replace(state, leaves=tuple(leaves)), released
 
 
 class _Nearest:
-    """The cluster of label ``target`` nearest to points: the leaves of that label (their
-    positions in ``leaves``) by a k-d tree over their points, and the points released into them
-    since (:meth:`add`), by a second one."""
+    """The cluster of label ``target`` nearest to points: a k-d tree over the points of the leaves
+    of that label (their positions in ``leaves``)."""
 
     def __init__(self, X: np.ndarray, leaves, target: str) -> None:
         from scipy.spatial import cKDTree
@@ -158,80 +159,54 @@ class _Nearest:
         self.X = X
         self.tree = cKDTree(X[np.concatenate([leaves[li].node.idx for li in targets])])
         self.owner = np.concatenate([np.full(leaves[li].size, li) for li in targets])
-        self.added: tuple[Any, np.ndarray] | None = None
-        self.parts: list[tuple[np.ndarray, np.ndarray]] = []
-
-    def add(self, idx: np.ndarray, owner: np.ndarray) -> None:
-        from scipy.spatial import cKDTree
-
-        self.parts.append((idx, owner))
-        every = np.concatenate([p[0] for p in self.parts])
-        self.added = cKDTree(self.X[every]), np.concatenate([p[1] for p in self.parts])
 
     def owners(self, idx: np.ndarray, jobs: int) -> np.ndarray:
         """The position (in the leaves) of the cluster nearest to each point ``idx``."""
-        workers = jobs if idx.size >= 4096 else 1
-        d, j = self.tree.query(self.X[idx], workers=workers)
-        owner = self.owner[j]
-        if self.added is not None:
-            tree, added_owner = self.added
-            d2, j2 = tree.query(self.X[idx], workers=workers)
-            nearer = d2 < d
-            owner[nearer] = added_owner[j2[nearer]]
-        return owner
+        _, j = self.tree.query(self.X[idx], workers=jobs if idx.size >= 4096 else 1)
+        return self.owner[j]
 
 
 class _Passes:
     """What a release of several passes keeps from one pass to the next: which points the next
-    pass asks, and the nearest clusters of the target label.
+    pass asks.
 
     A point's height is the median of its nearest surface points (within its radius). The surface
     of a pass is that of the pass before without the points it released (R): a point whose nearest
-    surface points, when its height was last computed, held none of the points released since,
-    keeps them, its height and its outcome (it stayed); so does a point whose height was never
-    computed (the surface's bounds decided it) if no point of R is within its radius. The next pass
-    asks the others: the points whose last nearest held one of R, and the points never queried
-    within the radius of one of R (:meth:`GroundRelease._near`; the bounds decide most of them
-    again). The labels are those of asking every point every pass (tested)."""
+    surface points, when its height was computed, held none of the points released since, keeps
+    them, its height and its outcome (it stayed); so does a point whose height was never computed
+    (the surface's bounds decided it) if no point of R is within its radius. The next pass asks
+    the others: the points whose nearest held one of R (in any pass that computed their height: a
+    superset of the last), and the points never queried within the radius of one of R
+    (:meth:`GroundRelease._near`; the bounds decide most of them again). The labels are those of
+    asking every point every pass (tested). Kept: per point queried, the rows of its nearest
+    surface points (int32: 64 bytes a point for 16 neighbours)."""
 
-    def __init__(self, X: np.ndarray, leaves, target: str) -> None:
+    def __init__(self, X: np.ndarray) -> None:
         self.X = X
         self.asked: np.ndarray | None = None  # the next pass asks these (None: all)
-        self.nearest = _Nearest(X, leaves, target)
-        #: per point, the row of :attr:`among` holding the surface points (rows of X) its height was
-        #: last taken among (-1: never queried)
-        self.slot = np.full(X.shape[0], -1, dtype=np.int32 if X.shape[0] < 2**31 else np.int64)
-        self.among = np.zeros((0, 0), dtype=np.int32 if X.shape[0] < 2**31 else np.int64)
-        self._rows: list[np.ndarray] = []  # this pass: the points queried,
-        self._found: list[np.ndarray] = []  # and the surface points their heights were taken among
+        self.queried = np.zeros(X.shape[0], dtype=bool)
+        self.dtype = np.int32 if X.shape[0] < 2**31 - 1 else np.int64
+        #: (points queried, the rows of X their heights were taken among; -1: none found)
+        self.sets: list[tuple[np.ndarray, np.ndarray]] = []
 
-    def found(self, rows: np.ndarray, positions: np.ndarray) -> None:
-        self._rows.append(rows)
-        self._found.append(positions)
+    def found(self, model: Any, rows: np.ndarray, positions: np.ndarray) -> None:
+        """The points ``rows`` were queried on the surface ``model``, their heights taken among its
+        points at ``positions`` (:meth:`LocalGround.query`'s ``found``)."""
+        index = np.append(model.index, -1).astype(self.dtype)
+        self.sets.append((rows.astype(self.dtype), index[np.minimum(positions, model.n_points)]))
+        self.queried[rows] = True
 
-    def after(self, model: Any, released: np.ndarray, moved_in: dict) -> None:
+    def after(self, model: Any, released: np.ndarray, keep: bool = True) -> None:
         """Record a pass against the surface ``model`` that released the points ``released``
-        (``moved_in``: where they went, as :func:`take` gathers it)."""
-        if moved_in:
-            self.nearest.add(np.concatenate([q[0] for parts in moved_in.values() for q in parts]),
-                             np.concatenate([np.full(q[0].size, t) for t, parts in moved_in.items() for q in parts]))
-        if self._rows:  # the new nearest sets, as rows of X (-1: none found)
-            index = np.append(model.index, -1).astype(self.among.dtype)
-            rows = np.concatenate(self._rows)
-            sets = index[np.minimum(np.concatenate(self._found), model.n_points)]
-            k = max(self.among.shape[1], sets.shape[1])
-            grow = np.full((self.among.shape[0] + rows.size, k), -1, dtype=self.among.dtype)
-            grow[:self.among.shape[0], :self.among.shape[1]] = self.among
-            grow[self.among.shape[0]:, :sets.shape[1]] = sets
-            self.slot[rows] = self.among.shape[0] + np.arange(rows.size)
-            self.among = grow
-        self._rows, self._found = [], []
+        (``keep``: a pass after the next one will ask which points to query)."""
         gone = np.zeros(self.X.shape[0] + 1, dtype=bool)  # the last entry: "none found" (-1)
         gone[released] = True
-        known = np.flatnonzero(self.slot >= 0)
         asked = np.zeros(self.X.shape[0], dtype=bool)
-        asked[known[gone[self.among[self.slot[known]]].any(axis=1)]] = True
+        for rows, sets in self.sets:
+            asked[rows[gone[sets].any(axis=1)]] = True
+        if not keep:  # no later pass asks: the nearest sets are freed before the next surface is built
+            self.sets = []
         near = GroundRelease._near(self.X, model, released)
-        asked[near[self.slot[near] < 0]] = True
+        asked[near[~self.queried[near]]] = True
         asked[released] = False
         self.asked = asked
