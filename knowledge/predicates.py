@@ -253,12 +253,19 @@ class Param:
         if self.type is float and isinstance(value, int) and not isinstance(value, bool):
             ok_type = True
         if not ok_type:
-            return f"parameter '{self.name}' must be a {self.type.__name__}, got {value!r}"
+            return f"parameter '{self.name}' must be a {self.type.__name__}, got {_shown(value)}"
         if self.choices and value not in self.choices:
-            return f"parameter '{self.name}' must be one of {', '.join(self.choices)}, got {value!r}"
+            return f"parameter '{self.name}' must be one of {', '.join(self.choices)}, got {_shown(value)}"
         if self.low is not None and value < self.low or self.high is not None and value > self.high:
-            return f"parameter '{self.name}' must be in [{self.low}, {self.high}], got {value!r}"
+            return f"parameter '{self.name}' must be in [{self.low}, {self.high}], got {_shown(value)}"
         return None
+
+
+def _shown(value: Any, keep: int = 60) -> str:
+    """``repr(value)``, cut to about ``keep`` characters (a mapping pasted where a number belongs
+    would fill the message)."""
+    text = repr(value)
+    return text if len(text) <= keep else f"{text[:keep]}... ({type(value).__name__} of {len(text):,} characters)"
 
 
 @dataclass(frozen=True)

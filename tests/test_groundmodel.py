@@ -683,8 +683,8 @@ def test_ground_release_passes_release_what_the_surface_left_shows(shared_data, 
     seg8 = Interpreter(many).run(X)
     after = gr_mod._Passes.after
 
-    def ask_all(self, *args):
-        after(self, *args)
+    def ask_all(self, *args, **kwargs):
+        after(self, *args, **kwargs)
         self.asked = None
 
     monkeypatch.setattr(gr_mod._Passes, "after", ask_all)

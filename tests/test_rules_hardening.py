@@ -523,3 +523,21 @@ def test_a_setting_with_two_forms_says_what_it_takes_in_one_sentence(tmp_path, c
     assert code == 4
     assert (f"{path}:{at}: engine.initial_k is invalid: K of the first partition: 'first_apd_max' (APD's first "
             "local maximum, the seed paper) or a fixed K; got 0\n") in err, err
+
+
+def test_a_parameter_given_a_whole_mapping_is_named_briefly():
+    """A mapping pasted where a parameter's number belongs (found by the fuzz test: a rule base's
+    whole text under ``slope``) is refused at its position with the value cut short, not a
+    message of thousands of characters."""
+    from kbs.knowledge import PredicateRegistry, load_rule_base
+    from kbs.knowledge.rulebase import RuleFileError, parse_rule_base
+
+    big = "{" + ", ".join(f"k{i}: {i}" for i in range(500)) + "}"
+    text = load_rule_base("outdoor").text.replace("params: {stat: p90, max_points: 300}",
+                                                  f"params: {{stat: p90, max_points: {big}}}")
+    assert big in text
+    with pytest.raises(RuleFileError) as err:
+        parse_rule_base(text, "outdoor.yaml", PredicateRegistry.default(entry_points_too=False))
+    message = err.value.format()
+    assert "parameter 'max_points' must be a int, got {'k0': 0" in message and "characters)" in message
+    assert all(len(p.format()) < 2000 for p in err.value.problems), message[:300]

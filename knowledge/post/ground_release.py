@@ -74,10 +74,12 @@ class GroundRelease(PostStep):
         total = 0
         for p in range(self.passes):
             if p:  # the surface again, from the ground points the passes before left
+                assert state.surface is not None
                 spec = state.surface.spec
                 state = replace(state, surface=None)  # the old surface freed before the new one is built
-                state = replace(state, surface=spec.build(state, ctx))
-                if not state.surface.model.n_points:
+                built = spec.build(state, ctx)
+                state = replace(state, surface=built)
+                if not built.model.n_points:
                     break
             state, released = self._release(state, ctx, gl, p, passes)
             total += released.size
