@@ -30,6 +30,7 @@ import numpy as np
 from kbs.knowledge.interpreter import Interpreter, Segmentation
 from kbs.knowledge.predicates import PredicateRegistry
 from kbs.knowledge.rulebase import RuleBase, Tunable, parse_rule_base
+from kbs.knowledge.segmentation import far_outliers
 from kbs.knowledge.state import Judged
 
 # a plain YAML scalar (a number, as the validation made sure) from its first character: up to a
@@ -147,6 +148,9 @@ class SplitTree:
     seconds: float
     _state: Judged | None = dataclasses.field(repr=False, default=None)
     _sensor: np.ndarray | None = dataclasses.field(repr=False, default=None)
+    #: the far outliers the run set aside (:func:`~kbs.knowledge.segmentation.far_outliers`) and its
+    #: note, given back to every labelling
+    _aside: tuple[np.ndarray, str] | None = dataclasses.field(repr=False, default=None)
 
     @classmethod
     def grow(cls, rule_base: RuleBase, X: np.ndarray, *, sensor: Any = None, jobs: int = 1,
@@ -165,7 +169,9 @@ class SplitTree:
             if interpreter is None:
                 rec.close()
         assert rec.state is not None  # set by the run's finish
-        return cls(rule_base, seg, time.perf_counter() - t0, rec.state, rec.sensor.copy())
+        far = far_outliers(np.asarray(X))
+        aside = None if far is None else (far[0], seg.explanation.notes[-1])
+        return cls(rule_base, seg, time.perf_counter() - t0, rec.state, rec.sensor.copy(), aside)
 
     def label(self, rule_base: RuleBase) -> Segmentation:
         """The result of ``rule_base`` on the same points, by labelling this tree's leaves again.
@@ -175,7 +181,8 @@ class SplitTree:
             return self.segmentation
         assert self._state is not None
         it = Interpreter(rule_base, sensor=self._sensor, jobs=1)
-        return it.finish(self._state, time.perf_counter())
+        seg = it.finish(self._state, time.perf_counter())
+        return seg if self._aside is None else seg.with_set_aside(*self._aside)
 
 
 def recorder(rule_base: RuleBase, *, sensor: Any = None, jobs: int = 1) -> _Recorder:

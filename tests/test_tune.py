@@ -175,6 +175,23 @@ def test_labelling_the_split_tree_again_gives_a_full_runs_result(tmp_path, scene
     assert len(seen) > 3  # the settings do change the labels
 
 
+def test_labelling_again_keeps_the_far_outliers_aside(tmp_path, scenes):
+    """A cloud with a far outlier: the split tree labelled again gives a full run's result, the
+    outlier noise in both (the per-point arrays have the cloud's length)."""
+    rules = marked(tmp_path, a=(LOW, LOW + "    tune: [0.1, 0.5]\n"))
+    rb = load_rule_base(str(rules))
+    X = read_cloud(scenes[1]).xyz
+    X = np.vstack([X, X.max(axis=0) + 100 * (X.max(axis=0) - X.min(axis=0))])
+    tree = SplitTree.grow(rb, X)
+    for setting in grid(rb.tunables):
+        other = with_values(rb, setting)[1]
+        again, full = tree.label(other), Interpreter(other).run(X)
+        assert again.label.shape == (len(X),) and again.label[-1] == -1 and again.cluster[-1] == -1
+        np.testing.assert_array_equal(again.label, full.label)
+        np.testing.assert_array_equal(again.cluster, full.cluster)
+        assert again.explanation.notes[-1] == full.explanation.notes[-1]
+
+
 # --- kbs tune end to end --------------------------------------------------------------------------
 
 
