@@ -142,12 +142,15 @@ class Interpreter:
     def find_ground(self, X: np.ndarray) -> tuple[Ground | None, GroundFacts]:
         """The ground plane a run on ``X`` (n, 3) finds, and its explanation's ``ground``, without
         the rest of the run: the root's UFP-ONC partition and the ground among its clusters (as
-        :meth:`run` does). A tiled run finds it once on the whole cloud and gives it to every tile
-        (:attr:`given_ground`)."""
+        :meth:`run` does, its far outliers set aside). A tiled run finds it once on the whole cloud
+        and gives it to every tile (:attr:`given_ground`)."""
         from kbs.knowledge.ground import needs_candidates
         from kbs.knowledge.run import RunContext
 
         X = np.ascontiguousarray(X, dtype=np.float64)
+        far = far_outliers(X)
+        if far is not None:  # as a run sets them aside
+            X = np.ascontiguousarray(X[~far[0]])
         ctx = RunContext(self, X)
         if not needs_candidates(ctx):  # a fixed normal (airborne rules), or no ground: no partition to make
             return ctx.ground([])
