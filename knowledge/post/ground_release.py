@@ -57,9 +57,7 @@ class GroundRelease(PostStep):
         model = next((s for s in reversed(ctx.earlier) if s.key == "ground_model"), None)
         if model is not None and raw["to"] == getattr(model, "label", None):
             ctx.add(ctx.path + ("to",), f"ground_release to '{raw['to']}', the ground model's own label, changes nothing")
-        passes = raw.get("passes", 1)
-        return cls(float(tol), raw["to"], ctx.pos(ctx.path, key=True),
-                   passes if isinstance(passes, int) and not isinstance(passes, bool) else 1)
+        return cls(float(tol), raw["to"], ctx.pos(ctx.path, key=True), ctx.number(raw.get("passes"), 1, int))
 
     def apply(self, state: PostState, ctx: PostContext) -> PostState:
         surface = state.surface
