@@ -155,10 +155,21 @@ FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-
          "--enable-unsafe-swiftshader", "--hide-scrollbars", "--virtual-time-budget=5000"]
 
 
-def _chromium(page: Path, tmp: Path, *extra: str) -> subprocess.CompletedProcess:
-    profile = tmp / f"profile-{len(list(tmp.glob('profile-*')))}"
-    return subprocess.run([str(CHROMIUM), *FLAGS, f"--user-data-dir={profile}", *extra, page.resolve().as_uri()],
-                          capture_output=True, text=True, timeout=180)
+def _chromium(page: Path, tmp: Path, *extra: str, attempts: int = 3) -> subprocess.CompletedProcess:
+    """Run headless chromium on the page. A run takes ~5 s here; one CI run (session 27) saw a
+    --screenshot run hang for 180 s after the same page's --dump-dom had rendered it, a browser
+    hang rather than the page's. A run that hangs is killed after 90 s and tried again with a fresh
+    profile; three hangs in a row fail the test."""
+    hung = []
+    for _ in range(attempts):
+        profile = tmp / f"profile-{len(list(tmp.glob('profile-*')))}"
+        try:
+            return subprocess.run([str(CHROMIUM), *FLAGS, f"--user-data-dir={profile}", *extra, page.resolve().as_uri()],
+                                  capture_output=True, text=True, timeout=90)
+        except subprocess.TimeoutExpired as e:
+            err = e.stderr.decode(errors="replace") if isinstance(e.stderr, bytes) else (e.stderr or "")
+            hung.append(err[-500:])
+    pytest.fail(f"chromium hung {attempts} times (90 s each) on {page.name} {' '.join(extra)}; last stderr: {hung[-1]}")
 
 
 def _page_errors(page: Path, tmp: Path) -> tuple[bool, str]:
