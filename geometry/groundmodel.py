@@ -4,7 +4,9 @@ One global plane (the scene's ``Ground``) cannot say whether a patch of grass be
 road, or a strip of pavement at the foot of a wall, lies *on* the ground: the terrain bends and
 steps. The local model answers it the way a height map does, without gridding: the ground height
 under a point is the median height of its ``neighbours`` nearest ground points, found in the ground
-plane's own 2D coordinates within ``radius``. Heights are measured along the ground normal.
+plane's own 2D coordinates within ``radius`` (or a lower ``quantile`` of them: where low plants
+or the feet of obstacles stand among the ground points, the terrain is the lower part of them).
+Heights are measured along the ground normal.
 
 The radius may grow with the distance to the sensor (``per_range``): a spinning lidar's rings
 lie farther apart the farther they are (metres apart at 30 m for a 64-beam sensor), so a fixed
@@ -110,6 +112,9 @@ class LocalGround:
         radius).
     sensor : ndarray (3,) or None
         Where distances are measured from (needed when ``per_range`` > 0).
+    quantile : float
+        The statistic of the neighbours' heights that is the ground height: 0.5 the median, a
+        lower value a lower quantile (linear between the two heights around it).
     """
 
     normal: np.ndarray
@@ -127,6 +132,7 @@ class LocalGround:
     workers: int = 1
     per_range: float = 0.0
     sensor: np.ndarray | None = None
+    quantile: float = 0.5
     #: the heights :meth:`height` gave, by ``exclude`` and the points' bytes: the checks of a relabel
     #: measure the same cluster on the same surface with several statistics (airborne: `raised`,
     #: `stands_up`, `joins`), each asking for the same heights
@@ -147,11 +153,12 @@ class LocalGround:
     def build(cls, X: np.ndarray, index: np.ndarray, normal: np.ndarray, point: np.ndarray, *,
               neighbours: int = 8, radius: float = 3.0, owners: np.ndarray | None = None,
               owner_ids: tuple[str, ...] = (), workers: int = 1, per_range: float = 0.0,
-              sensor: np.ndarray | None = None) -> LocalGround:
+              sensor: np.ndarray | None = None, quantile: float = 0.5) -> LocalGround:
         """A model from the points ``X[index]`` (the scene ``X`` (n, 3)) over the plane (normal,
         point); ``owners``/``owner_ids`` say which cluster each point came from; ``workers``
         threads answer large queries (the same answers); the radius of a query at distance ``r``
-        from ``sensor`` is ``radius + per_range r``."""
+        from ``sensor`` is ``radius + per_range r``; ``quantile`` of the neighbours' heights is the
+        ground height (0.5: the median)."""
         normal = np.asarray(normal, dtype=np.float64)
         point = np.asarray(point, dtype=np.float64)
         basis = plane_basis(normal)
@@ -159,13 +166,16 @@ class LocalGround:
             raise ValueError(f"per_range must be a finite number >= 0, got {per_range}")
         if per_range > 0.0 and sensor is None:
             raise ValueError("a radius growing with range (per_range > 0) needs the sensor's position")
+        if not 0.0 <= quantile <= 1.0:
+            raise ValueError(f"quantile must be within [0, 1], got {quantile}")
         G = X[index] - point
         return cls(normal=normal, point=point, index=np.asarray(index), heights=G @ normal,
                    neighbours=int(neighbours), radius=float(radius), basis=basis,
                    plane=np.ascontiguousarray(G @ basis.T, dtype=np.float64),
                    owners=None if owners is None else np.asarray(owners), owner_ids=tuple(owner_ids),
                    workers=max(1, int(workers)), per_range=float(per_range),
-                   sensor=None if sensor is None else np.asarray(sensor, dtype=np.float64).reshape(3))
+                   sensor=None if sensor is None else np.asarray(sensor, dtype=np.float64).reshape(3),
+                   quantile=float(quantile))
 
     @property
     def n_points(self) -> int:
@@ -298,14 +308,14 @@ class LocalGround:
         return tuple(grid) if ok else None
 
     def _medians(self, d: np.ndarray, i: np.ndarray, own: int) -> tuple[np.ndarray, np.ndarray]:
-        """The median heights and nearest positions of a k-nearest query (``d``, ``i`` (q, k),
-        nearest first), ``own`` the owner left out (-1: none)."""
+        """The median heights (:attr:`quantile`) and nearest positions of a k-nearest query (``d``,
+        ``i`` (q, k), nearest first), ``own`` the owner left out (-1: none)."""
         q = d.shape[0]
         if _flags.JIT:  # the same medians, compiled: one pass over the rows, no (q, k) temporaries
             owners = self.owners if self.owners is not None else np.zeros(0, dtype=np.int64)
             return _compiled.local_medians_fast(np.ascontiguousarray(d), np.ascontiguousarray(i, dtype=np.int64),
                                            self.heights, np.ascontiguousarray(owners, dtype=np.int64), own,
-                                           self.neighbours)
+                                           self.neighbours, self.quantile)
         ground = np.full(q, np.nan)
         nearest = np.full(q, -1, dtype=np.int64)
         if own >= 0:  # leave the cluster's own points out, keep the nearest `neighbours` others
@@ -322,7 +332,13 @@ class LocalGround:
             hs.sort(axis=1)
             r = np.arange(hs.shape[0])
             m = nf[some]
-            ground[some] = 0.5 * (hs[r, (m - 1) // 2] + hs[r, m // 2])
+            if self.quantile == 0.5:
+                ground[some] = 0.5 * (hs[r, (m - 1) // 2] + hs[r, m // 2])
+            else:  # as _compiled.sorted_quantile: linear between the ranks around (m - 1) q, within them
+                pos = (m - 1) * self.quantile
+                lo = np.floor(pos).astype(np.int64)
+                a, b = hs[r, lo], hs[r, np.minimum(lo + 1, m - 1)]
+                ground[some] = np.minimum(np.maximum(a + (b - a) * (pos - lo), a), b)
         nearest[some] = i[some, 0]
         return ground, nearest
 

@@ -987,10 +987,11 @@ def geometry3(X, u, w, power):
 
 
 @njit(cache=True, nogil=True)
-def local_medians(d, idx, heights, owners, own, neighbours):
+def local_medians(d, idx, heights, owners, own, neighbours, quantile):
     """For each row of a k-nearest query (``d``, ``idx`` (q, k), nearest first, ``inf`` / ``m``
-    where fewer were found): the median height of the first ``neighbours`` found points whose
-    owner is not ``own`` (-1: any), NaN when none, and the position of the first of them (-1)."""
+    where fewer were found): the median height (``quantile`` 0.5; another: that quantile, see
+    :func:`sorted_quantile`) of the first ``neighbours`` found points whose owner is not ``own``
+    (-1: any), NaN when none, and the position of the first of them (-1)."""
     q, k = d.shape
     ground = np.full(q, np.nan)
     nearest = np.full(q, -1, dtype=np.int64)
@@ -1011,8 +1012,26 @@ def local_medians(d, idx, heights, owners, own, neighbours):
             m += 1
         if m:
             s = np.sort(buf[:m])
-            ground[r] = 0.5 * (s[(m - 1) // 2] + s[m // 2])
+            ground[r] = sorted_quantile(s, m, quantile)
     return ground, nearest
+
+
+@njit(cache=True, nogil=True)
+def sorted_quantile(s, m, quantile):
+    """The ``quantile`` of the first ``m`` (> 0) values of ``s``, sorted: at 0.5 the median
+    (``0.5 (a + b)`` of the middle two, as before quantiles were asked), otherwise the linear
+    interpolation between the values at ranks ``floor((m - 1) q)`` and the next, ``a + (b - a) t``,
+    kept within ``[a, b]`` (so that the value lies between the heights it came from in floating
+    point too, as :meth:`LocalGround.height_bounds` assumes)."""
+    if quantile == 0.5:
+        return 0.5 * (s[(m - 1) // 2] + s[m // 2])
+    pos = (m - 1) * quantile
+    lo = int(np.floor(pos))
+    hi = min(lo + 1, m - 1)
+    a = s[lo]
+    b = s[hi]
+    v = a + (b - a) * (pos - lo)
+    return min(max(v, a), b)
 
 
 # -- connexity (CAh) on the projected points -----------------------------------------------------
@@ -1435,7 +1454,7 @@ def quantile_linear(h, q, median):
 
 
 @njit(cache=True, nogil=True)
-def local_medians_fast(d, idx, heights, owners, own, neighbours):
+def local_medians_fast(d, idx, heights, owners, own, neighbours, quantile):
     """:func:`local_medians` with the same outputs, without an array allocated per row: the kept
     heights are insertion-sorted in one buffer as they are found. Sorted values are unique bit for
     bit except for +0.0 and -0.0 (equal, of another sign) and NaN (unordered): a row that keeps a
@@ -1468,8 +1487,6 @@ def local_medians_fast(d, idx, heights, owners, own, neighbours):
             buf[j] = v
             m += 1
         if m:
-            a = buf[(m - 1) // 2]
-            b = buf[m // 2]
             if odd:  # numpy's sort of the found order decides where each zero (or NaN) goes
                 n = 0
                 for c in range(k):
@@ -1478,10 +1495,9 @@ def local_medians_fast(d, idx, heights, owners, own, neighbours):
                     if np.isfinite(d[r, c]) and not (own >= 0 and owners[idx[r, c]] == own):
                         buf[n] = heights[idx[r, c]]
                         n += 1
-                s = np.sort(buf[:m])
-                a = s[(m - 1) // 2]
-                b = s[m // 2]
-            ground[r] = 0.5 * (a + b)
+                ground[r] = sorted_quantile(np.sort(buf[:m]), m, quantile)
+            else:
+                ground[r] = sorted_quantile(buf, m, quantile)
     return ground, nearest
 
 

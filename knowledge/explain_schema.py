@@ -87,7 +87,7 @@ _GROUND_CANDIDATE = {
 _LOCAL_MODEL = {
     "type": ["object", "null"],
     "properties": {"label": _STR_OR_NULL, "points": _COUNT_OR_NULL, "neighbours": _COUNT_OR_NULL,
-                   "radius": _NUM_OR_NULL, "per_range": _NUM_OR_NULL, "source": _STR_OR_NULL, "note": _STR_OR_NULL,
+                   "radius": _NUM_OR_NULL, "per_range": _NUM_OR_NULL, "quantile": _NUM_OR_NULL, "source": _STR_OR_NULL, "note": _STR_OR_NULL,
                    "relabelled": _COUNT_OR_NULL, "points_after_relabel": _COUNT_OR_NULL,
                    "released": _COUNT_OR_NULL, "release_note": _STR_OR_NULL, "undone": _COUNT_OR_NULL,
                    "undo_passes": _COUNT_OR_NULL},

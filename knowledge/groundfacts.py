@@ -57,7 +57,7 @@ class GroundCandidate:
 @dataclass(frozen=True)
 class LocalModel:
     """What the steps on the local ground surface did: ``post.ground_model`` built it (``label``,
-    ``points``, ``neighbours``, ``radius``, ``per_range``, ``source``) or was skipped (``note``); a relabel step
+    ``points``, ``neighbours``, ``radius``, ``per_range``, ``quantile`` (when not the median), ``source``) or was skipped (``note``); a relabel step
     after it counted the labels it changed (``relabelled``), the labels a rule that undoes another
     gave back (``undone``) in how many passes (``undo_passes``), and built it again
     (``points_after_relabel``); ``ground_release`` counted the points it released (``released``)
@@ -68,6 +68,7 @@ class LocalModel:
     neighbours: int | None = None
     radius: float | None = None
     per_range: float | None = None  #: the radius grows by this per unit of distance to the sensor
+    quantile: float | None = None  #: the quantile of the neighbours' heights, when not the median
     source: str | None = None
     note: str | None = None
     relabelled: int | None = None

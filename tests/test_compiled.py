@@ -495,8 +495,8 @@ def test_grid_knn_rows_give_the_kd_tree_s_medians():
         d, i, rows = C.grid_knn(np.ascontiguousarray(Q), np.ascontiguousarray(T), *grid, k, radius, heights, owners, own,
                                 16, first)
         rd, ri = cKDTree(T).query(Q, k=k, distance_upper_bound=radius)
-        a = C.local_medians_fast(d[rows], i[rows], heights, owners, own, 16)
-        b = C.local_medians_fast(rd.reshape(len(Q), k)[rows], ri.reshape(len(Q), k)[rows], heights, owners, own, 16)
+        a = C.local_medians_fast(d[rows], i[rows], heights, owners, own, 16, 0.5)
+        b = C.local_medians_fast(rd.reshape(len(Q), k)[rows], ri.reshape(len(Q), k)[rows], heights, owners, own, 16, 0.5)
         assert rows.mean() > (0.3 if t % 3 == 1 else 0.9)  # a lattice: ties at the k-th, zero heights
         assert a[0].tobytes() == b[0].tobytes()
         found = a[1] >= 0

@@ -244,12 +244,12 @@ def test_queries_in_chunks_give_the_answers_of_one_query(monkeypatch, jit, exclu
     np.testing.assert_array_equal(n1, n2)
 
 
-def _median_rows(d, idx, heights, owners, own, neighbours):
+def _median_rows(d, idx, heights, owners, own, neighbours, quantile=0.5):
     """Both compiled median kernels on one query; their outputs, bit for bit."""
     from kbs.inference import _compiled as C
 
     args = (np.ascontiguousarray(d), np.ascontiguousarray(idx, dtype=np.int64), heights,
-            np.ascontiguousarray(owners, dtype=np.int64), own, neighbours)
+            np.ascontiguousarray(owners, dtype=np.int64), own, neighbours, quantile)
     (g0, n0), (g1, n1) = C.local_medians(*args), C.local_medians_fast(*args)
     return g0.view(np.int64), g1.view(np.int64), n0, n1
 
@@ -398,9 +398,14 @@ def test_per_range_settings_parse_and_bad_values_are_positioned():
 def test_ground_contact_moves_only_points_on_the_surface_and_says_so():
     """The rocks stand on flat ground (z = -1.5, 5 mm noise): the lowest points of their clusters
     lie on the ground surface and join it. Against the same rules without ground_contact, exactly
-    the points the records count changed, all to the ground, all within the tolerance."""
+    the points the records count changed, all to the ground, all within the tolerance. The rules'
+    surface is the median here: the ground clusters hold the rocks' lowest 5 cm (647 points), and
+    above the shipped lower-quartile surface no rock point lies within the 5 cm tolerance."""
     X, _ = ground_and_rocks()
-    rb = load_rule_base("outdoor")
+    median = load_rule_base("outdoor").text.replace("\n      quantile: 0.25 ", "\n      # quantile: 0.25 ")
+    assert "# quantile: 0.25" in median
+    rb = parse_rule_base(median, "outdoor.yaml", PredicateRegistry.default(entry_points_too=False))
+    assert rb.ground_model.quantile == 0.5
     lines = rb.text.splitlines()
     start = lines.index(next(line for line in lines if line.startswith("  - ground_contact:")))
     end = next((i for i in range(start + 1, len(lines)) if not lines[i].startswith("      ")), len(lines))
@@ -584,7 +589,8 @@ def test_a_contact_tolerance_growing_with_range_takes_more_of_far_obstacles():
     before = Interpreter(no_contact, sensor=sensor).run(X)
     g = seg.explanation.ground
     surface = LocalGround.build(X, np.flatnonzero(before.label == 0), np.array(g.normal), np.array(g.point),
-                                neighbours=on.ground_model.neighbours, radius=on.ground_model.radius)
+                                neighbours=on.ground_model.neighbours, radius=on.ground_model.radius,
+                                quantile=on.ground_model.quantile)
     h = np.abs(surface.height(X[changed]))
     tol = 0.05 + 0.002 * np.linalg.norm(X[changed] - sensor, axis=1)
     assert np.all(h <= tol) and np.all(h > 0.05 - 1e-12)  # beyond the fixed 0.05 m, within the grown one
@@ -606,7 +612,7 @@ def test_ground_release_moves_raised_ground_points_to_the_nearest_obstacle(share
     end = next(i for i in range(start + 1, len(lines)) if not lines[i].startswith("      "))
     rb_off = parse_rule_base("\n".join(lines[:start] + lines[end:]), "outdoor.yaml",
                              PredicateRegistry.default(entry_points_too=False))
-    assert rb_off.release is None and rb.release.tolerance == 0.10 and rb.release.target == "obstacle"
+    assert rb_off.release is None and rb.release.tolerance == 0.18 and rb.release.target == "obstacle"
     seg, seg_off = Interpreter(rb, jobs=2).run(X), Interpreter(rb_off, jobs=2).run(X)
     released = sum(r.released for r in seg.explanation.records.values())
     assert released > 0 and seg.explanation.ground.local_model.released == released
@@ -626,7 +632,8 @@ def test_ground_release_moves_raised_ground_points_to_the_nearest_obstacle(share
     before = Interpreter(rb_none, jobs=2).run(X)
     g = seg.explanation.ground
     surface = LocalGround.build(X, np.flatnonzero(before.label == 0), np.array(g.normal), np.array(g.point),
-                                neighbours=rb.ground_model.neighbours, radius=rb.ground_model.radius)
+                                neighbours=rb.ground_model.neighbours, radius=rb.ground_model.radius,
+                                quantile=rb.ground_model.quantile)
     assert np.all(surface.height(X[to_obstacle]) > rb.release.tolerance)
     valid = gt != 0
     truth = np.isin(gt, [9, 10, 11, 12, 17])[valid]
@@ -671,7 +678,8 @@ def test_ground_release_passes_release_what_the_surface_left_shows(shared_data, 
     assert moved.any() and np.all(seg1.label[moved] == 0) and np.all(seg2.label[moved] == 1)
     g = seg1.explanation.ground
     left = LocalGround.build(X, np.flatnonzero(seg1.label == 0), np.array(g.normal), np.array(g.point),
-                             neighbours=rb.ground_model.neighbours, radius=rb.ground_model.radius)
+                             neighbours=rb.ground_model.neighbours, radius=rb.ground_model.radius,
+                             quantile=rb.ground_model.quantile)
     h = left.height(X[seg1.label == 0])
     assert np.array_equal(np.nan_to_num(h, nan=-np.inf) > rb.release.tolerance, moved[seg1.label == 0])
     released = [r.released for r in seg2.explanation.records.values()]
@@ -699,6 +707,94 @@ def test_ground_release_passes_release_what_the_surface_left_shows(shared_data, 
         return 2 * (p & truth).sum() / (p.sum() + truth.sum())
 
     assert f1(seg8.label) > f1(Interpreter(_with_release_passes(rb, 1)).run(X).label) + 0.003
+
+
+def test_a_quantile_surface_is_that_quantile_of_the_neighbours_heights(monkeypatch):
+    """ground_model.quantile: the ground height under a point is that quantile of its neighbours'
+    heights (linear between the two ranks around it, as numpy's default), the median at 0.5;
+    compiled and numpy paths give the same bits; height_bounds still bound every answer;
+    another cluster's own points are left out as with the median."""
+    from kbs.inference import _flags
+
+    rng = np.random.default_rng(12)
+    heights = rng.permutation(np.arange(16.0)) * 0.01  # 0 .. 0.15 m, one place
+    X = np.column_stack([rng.normal(0, 0.01, 16), rng.normal(0, 0.01, 16), heights])
+    for q, want in ((0.5, 0.075), (0.25, 0.0375), (0.0, 0.0), (1.0, 0.15), (0.3, 0.045)):
+        model = LocalGround.build(X, np.arange(16), np.array([0, 0, 1.0]), np.zeros(3), neighbours=16, radius=1.0,
+                                  quantile=q)
+        g, _ = model.query(np.zeros((1, 3)))
+        np.testing.assert_allclose(g, np.percentile(heights, 100 * q), atol=1e-15)
+        np.testing.assert_allclose(g, want, atol=1e-15)
+    with pytest.raises(ValueError, match="quantile"):
+        LocalGround.build(X, np.arange(16), np.array([0, 0, 1.0]), np.zeros(3), quantile=1.5)
+    # a random slope: both paths, the bounds, a cluster left out
+    R = np.column_stack([rng.uniform(0, 40, 6000), rng.uniform(0, 40, 6000), rng.normal(0, 0.2, 6000)])
+    R[:, 2] += 0.1 * R[:, 0]
+    owners = (R[:, 0] // 10).astype(np.int64)
+    P = R[1::2] + [0.0, 0.0, 0.3]
+    out = {}
+    for jit in (True, False):
+        monkeypatch.setattr(_flags, "JIT", jit)
+        model = LocalGround.build(R, np.arange(0, 6000, 2), np.array([0.0, 0.0, 1.0]), np.zeros(3), neighbours=16,
+                                  radius=3.0, owners=owners[::2], owner_ids=("a", "b", "c", "d"), quantile=0.25)
+        median = LocalGround.build(R, np.arange(0, 6000, 2), np.array([0.0, 0.0, 1.0]), np.zeros(3), neighbours=16,
+                                   radius=3.0, owners=owners[::2], owner_ids=("a", "b", "c", "d"))
+        g, near = model.query(P)
+        gx, _ = model.query(P, exclude="b")
+        lo, hi = model.height_bounds(P)
+        assert np.all(lo <= g) and np.all(g <= hi)
+        gm, near_m = median.query(P)
+        assert np.array_equal(near, near_m)  # the same neighbours, another statistic of them
+        assert np.mean(g < gm) > 0.95  # the lower quartile lies below the median almost everywhere
+        out[jit] = (g.tobytes(), gx.tobytes(), near.tobytes())
+    assert out[True] == out[False]
+
+
+def test_the_ground_model_quantile_is_checked_with_positions_and_said_in_the_explanation():
+    rb = load_rule_base("outdoor")
+    assert rb.ground_model.quantile == 0.25
+    for bad, why in (("1.5", "greater than the maximum of 1"), ("-0.1", "less than the minimum of 0"),
+                     ("half", "must be a number")):
+        text = rb.text.replace("      quantile: 0.25 ", f"      quantile: {bad} ")
+        assert text != rb.text
+        with pytest.raises(RuleFileError) as err:
+            parse_rule_base(text, "outdoor.yaml", PredicateRegistry.default(entry_points_too=False))
+        line = next(i for i, t in enumerate(text.splitlines(), 1) if t.startswith(f"      quantile: {bad}"))
+        assert re.search(rf"outdoor\.yaml:{line}:\d+: .*quantile.*{why}", err.value.format()), err.value.format()
+    X, _ = ground_and_rocks()
+    lm = Interpreter(rb).run(X).explanation.ground.local_model
+    assert lm.quantile == 0.25 and lm.to_dict()["quantile"] == 0.25
+    median = rb.text.replace("\n      quantile: 0.25 ", "\n      # quantile: 0.25 ")
+    rb_m = parse_rule_base(median, "outdoor.yaml", PredicateRegistry.default(entry_points_too=False))
+    lm = Interpreter(rb_m).run(X).explanation.ground.local_model
+    assert lm.quantile is None and "quantile" not in lm.to_dict()  # the median: as before
+
+
+@pytest.mark.slow
+def test_the_lower_quartile_surface_raises_f1_on_semantickitti(shared_data):
+    """SemanticKITTI 000001 (tuning part): vegetation 0.15-0.5 m above the labelled terrain inside
+    the ground clusters, under the median surface of the ground clusters' points. The shipped
+    lower-quartile surface and 18 cm release against the median and 10 cm (session 27's rules):
+    0.9561 -> 0.9583 measured; less of the vegetation is ground."""
+    data = shared_data / "semantickitti"
+    X = np.load(data / "000001.points.npy").astype(np.float64)
+    gt = np.load(data / "000001.labels.npy").ravel()
+    rb = load_rule_base("outdoor")
+    old = rb.text.replace("\n      quantile: 0.25 ", "\n      # quantile: 0.25 ").replace(
+        "      tolerance: 0.18            # m, above", "      tolerance: 0.10            # m, above")
+    assert old.count("# quantile") == 1 and "tolerance: 0.10 " in old
+    rb_old = parse_rule_base(old, "outdoor.yaml", PredicateRegistry.default(entry_points_too=False))
+    new, before = Interpreter(rb).run(X).label == 0, Interpreter(rb_old).run(X).label == 0
+    valid = gt != 0
+    truth = np.isin(gt, [9, 10, 11, 12, 17])
+
+    def f1(p):
+        p, t = p[valid], truth[valid]
+        return 2 * (p & t).sum() / (p.sum() + t.sum())
+
+    assert f1(new) > f1(before) + 0.0015, (f1(new), f1(before))
+    vegetation = (gt == 15) & valid
+    assert (new & vegetation).sum() < 0.9 * (before & vegetation).sum()  # 2,363 -> 2,004 measured
 
 
 def test_ground_release_passes_are_checked_with_positions():

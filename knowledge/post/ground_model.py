@@ -17,7 +17,9 @@ class GroundModel(PostStep):
     """A local ground surface from the points of the clusters of one label: the ground height under a
     point is the median height of its nearest such points (in the ground plane's coordinates, within
     radius, plus per_range x the point's distance to scene.sensor: a spinning lidar's rings lie
-    farther apart with range). Used by predicates such as height_above_local_ground and by ground_contact.
+    farther apart with range), or with 'quantile' a lower quantile of their heights (where low
+    plants and the feet of obstacles stand among the ground points, the terrain is their lower
+    part). Used by predicates such as height_above_local_ground and by ground_contact.
 
     Later steps measure against it (relabel conditions, ground_release, ground_contact); a relabel
     step that changes labels builds it again from the new labels. Without a ground plane (a rule
@@ -36,16 +38,20 @@ class GroundModel(PostStep):
             "per_range": {"description": "length units of radius per length unit of the point's distance to "
                                          "scene.sensor (default 0: a fixed radius)", "type": "number",
                           "minimum": 0, "maximum": 1},
+            "quantile": {"description": "the quantile of the neighbours' heights that is the ground height "
+                                        "(default 0.5: the median; lower: the terrain under low plants)",
+                         "type": "number", "minimum": 0, "maximum": 1},
             "tune": {"$ref": "#/$defs/tune"},
         },
     }
-    tunable: ClassVar[tuple[str, ...]] = ("neighbours", "radius", "per_range")
+    tunable: ClassVar[tuple[str, ...]] = ("neighbours", "radius", "per_range", "quantile")
 
     label: str
     neighbours: int
     radius: float
     pos: SourcePos
     per_range: float = 0.0  #: radius per unit of distance to the sensor
+    quantile: float = 0.5  #: the statistic of the neighbours' heights (0.5: the median)
 
     @classmethod
     def parse(cls, raw: Any, ctx: SpecContext) -> GroundModel | None:
@@ -54,7 +60,7 @@ class GroundModel(PostStep):
         ctx.label_ref(ctx.path + ("label",), raw["label"])
         return cls(label=raw["label"], neighbours=ctx.number(raw.get("neighbours"), 8, int),
                    radius=ctx.number(raw.get("radius"), 3.0), pos=ctx.pos(ctx.path, key=True),
-                   per_range=ctx.number(raw.get("per_range"), 0.0))
+                   per_range=ctx.number(raw.get("per_range"), 0.0), quantile=ctx.number(raw.get("quantile"), 0.5))
 
     def build(self, state: PostState, ctx: PostContext) -> Surface:
         """The surface from the leaves labelled :attr:`label` now."""
@@ -68,7 +74,7 @@ class GroundModel(PostStep):
         model = LocalGround.build(ctx.X, index, ground.normal, ground.point, neighbours=self.neighbours,
                                   radius=self.radius, owners=np.searchsorted(mine, owner) if mine else owner,
                                   owner_ids=tuple(leaves[i].id for i in mine), workers=ctx.jobs,
-                                  per_range=self.per_range, sensor=state.scene.sensor)
+                                  per_range=self.per_range, sensor=state.scene.sensor, quantile=self.quantile)
         return Surface(model=model, owner=owner, spec=self)
 
     def apply(self, state: PostState, ctx: PostContext) -> PostState:
@@ -78,5 +84,6 @@ class GroundModel(PostStep):
         state = replace(state, surface=None)  # a surface from an earlier step, freed before this one is built
         surface = self.build(state, ctx)
         built = LocalModel(label=self.label, points=surface.model.n_points, neighbours=self.neighbours,
-                           radius=self.radius, per_range=self.per_range or None, source=self.pos.short)
+                           radius=self.radius, per_range=self.per_range or None,
+                           quantile=None if self.quantile == 0.5 else self.quantile, source=self.pos.short)
         return replace(state, surface=surface, ground_facts=replace(state.ground_facts, local_model=built))
