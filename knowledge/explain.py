@@ -495,7 +495,7 @@ class Explanation:
         return f"as {given}"
 
     def _relabel_text(self, rec: ClusterRecord) -> str:
-        """', relabelled ground by low_level [outdoor.yaml:96]: level (...), low (...)'."""
+        """', relabelled ground by low_level [outdoor.yaml:95]: level (...), low (...)'."""
         if not rec.relabel:
             return ""
         r = rec.relabel

@@ -71,7 +71,7 @@ def test_why_of_an_obstacle_says_which_label_conditions_did_not_hold(example, ca
     assert ("    ground [outdoor.yaml:84] if planar and level: does not hold: planar does not hold "
             "(thickness = 0.06635 m > 0.05 m); navigable\n") in out
     assert "    obstacle [outdoor.yaml:87] no condition (the default label)\n" in out
-    assert "  post.relabel, the rules for clusters labelled obstacle:\n    low_level [outdoor.yaml:96] obstacle -> ground" in out
+    assert "  post.relabel, the rules for clusters labelled obstacle:\n    low_level [outdoor.yaml:95] obstacle -> ground" in out
 
 
 # -- 2. a cluster a limit stopped ---------------------------------------------------------------

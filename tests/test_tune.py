@@ -157,8 +157,7 @@ def test_labelling_the_split_tree_again_gives_a_full_runs_result(tmp_path, scene
     same rule base (the reference)."""
     rules = marked(tmp_path, a=(LOW, LOW + "    tune: [0.1, 0.25, 0.5]\n"),
                    b=(CONTACT, CONTACT + "      tune: [0.02, 0.05, 0.14]\n"),
-                   c=("      tolerance: 0.18            # m, above that lower surface\n",
-                      "      tolerance: 0.18            # m, above that lower surface\n      tune: [0.05, 0.3]\n"),
+                   c=("      tolerance: 0.10            # m\n", "      tolerance: 0.10            # m\n      tune: [0.05, 0.3]\n"),
                    d=("      max_offset: 0.15\n", "      max_offset: 0.15\n      tune: {field: max_angle, values: [2, 10]}\n"))
     rb = load_rule_base(str(rules))
     assert not any(split_relevant(rb, t) for t in rb.tunables)
