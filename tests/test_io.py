@@ -416,6 +416,25 @@ def test_point_cloud_is_frozen_and_validated() -> None:
 # bad files: always a one-line CloudFileError naming the file and the problem
 
 
+def _pcd_binary_longer(path: Path) -> Path:
+    """A binary PCD whose POINTS (3) understates its data (5 points): read as 3 points before."""
+    out = path / "longer.pcd"
+    out.write_bytes(b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 3\nHEIGHT 1\n"
+                    b"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS 3\nDATA binary\n" + np.arange(15, dtype="<f4").tobytes())
+    return out
+
+
+def test_a_binary_pcd_with_a_few_bytes_after_its_points_is_read(tmp_path):
+    """Fewer bytes than one point after the data (a writer's trailing newline) are not more points:
+    read, as PCL reads them."""
+    path = _pcd_binary_longer(tmp_path)
+    path.write_bytes(path.read_bytes()[:-24] + b"\n")
+    np.testing.assert_array_equal(read_cloud(path).xyz, np.arange(9, dtype="<f4").reshape(3, 3))
+    # zeros to the end of a page, as PCL's binary writer pads (the shared Bobkov room ends so)
+    path.write_bytes(path.read_bytes()[:-1] + bytes(4096 - 36))
+    np.testing.assert_array_equal(read_cloud(path).xyz, np.arange(9, dtype="<f4").reshape(3, 3))
+
+
 def _truncated_binary_ply(tmp_path: Path) -> Path:
     path = tmp_path / "cut.ply"
     write_ply(path, np.random.default_rng(0).random((100, 3)))
@@ -560,6 +579,11 @@ BAD_FILES = {
     "truncated-pcd-binary-whole-records": (
         lambda p: _truncated_pcd(p, Encoding.BINARY, 120),
         "truncated PCD file: the header announces 2000 points, the data holds 1990",
+    ),
+    "pcd-binary-longer-than-its-header": (
+        lambda p: _pcd_binary_longer(p),
+        "PCD file longer than its header says: the header announces 3 points (36 bytes of binary data), "
+        "and 24 bytes more follow them (room for 2 more points)",
     ),
     "truncated-pcd-compressed": (
         lambda p: _truncated_pcd(p, Encoding.BINARY_COMPRESSED, 10),
