@@ -21,7 +21,7 @@ about a leaf gives it a new frozen :class:`~kbs.knowledge.explain.ClusterRecord`
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any
 
@@ -105,7 +105,8 @@ class Leaf:
 
     def with_points(self, idx: np.ndarray, weight: np.ndarray, path: np.ndarray) -> Leaf:
         """This leaf holding other points (a post step moved some in or out)."""
-        return replace(self, node=replace(self.node, idx=idx, weight=weight, path=path))
+        n = self.node
+        return Leaf(Node(n.id, n.parent, n.depth, idx, weight, path), self.cluster, self.record)
 
     def with_record(self, record: ClusterRecord | None = None, *, notes: tuple[str, ...] = (),
                     **changes: Any) -> Leaf:
@@ -114,7 +115,7 @@ class Leaf:
         rec = record if record is not None else self.record
         if notes:
             changes["notes"] = rec.notes + tuple(notes)
-        return replace(self, record=replace(rec, **changes) if changes else rec)
+        return Leaf(self.node, self.cluster, rec.evolve(**changes) if changes else rec)
 
 
 class Draft:
@@ -139,7 +140,7 @@ class Draft:
             changes = self._changes
             if self._checks:
                 changes["checks"] = self._record.checks + tuple(self._checks)
-            self._record = replace(self._record, **changes)
+            self._record = self._record.evolve(**changes)
             self._changes, self._checks = {}, []
         return self._record
 

@@ -451,3 +451,22 @@ def test_the_result_record_holds_what_readers_use(example):
     col = int(at.rsplit(":", 1)[1])
     assert at.startswith(f"{example}:1:") and example.read_text()[col - 1:col + 2] == '"c"'
     assert doc.position("no such key") == str(example)
+
+
+def test_a_record_evolved_is_the_record_dataclasses_replace_gives():
+    """ClusterRecord.evolve, the run's cheap copy of a record with changes: equal to
+    dataclasses.replace field by field, lists kept as tuples, an unknown field refused."""
+    from dataclasses import replace
+
+    from kbs.knowledge.explain import ClusterRecord
+
+    r = ClusterRecord(id="c0.1", parent="c0", depth=2, n_points=100, descriptors={"a": 1}, notes=("x",))
+    for changes in ({"label": "ground"}, {"notes": ["a", "b"]}, {"checks": [], "decisive": ["planar"]},
+                    {"children": ("c0.1.0",), "action": "split"}, {}):
+        a, b = replace(r, **changes), r.evolve(**changes)
+        assert a == b and a.__dict__ == b.__dict__ and b is not r
+        assert all(isinstance(getattr(b, name), tuple) for name in ("checks", "children", "notes", "decisive"))
+    assert r.label is None and r.notes == ("x",)  # the original unchanged
+    assert r.noted("y").notes == ("x", "y")
+    with pytest.raises(TypeError, match="no field 'nope'"):
+        r.evolve(nope=1)
