@@ -232,6 +232,11 @@ class Condition:
         for c in self.items:
             yield from c.facts()
 
+    @functools.cached_property
+    def names(self) -> tuple[str, ...]:
+        """The checks it names, each once, in order (asked for every cluster a rule or label decides)."""
+        return tuple(dict.fromkeys(f.name for f in self.facts()))
+
     def __str__(self) -> str:
         if self.kind == "fact":
             return f"not {self.name}" if self.negated else self.name

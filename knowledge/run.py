@@ -277,7 +277,7 @@ class RunContext:
 
     @staticmethod
     def names(cond: Condition | None) -> list[str]:
-        return [] if cond is None else list(dict.fromkeys(f.name for f in cond.facts()))
+        return [] if cond is None else list(cond.names)
 
     def judge(self, cluster: Cluster, scene: Scene, draft: Draft) -> tuple[Action, Any]:
         """The first rule whose condition holds: its action and the rule (accept and None when no
