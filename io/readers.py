@@ -531,6 +531,11 @@ def read_npy(path: Path) -> PointCloud:
     return PointCloud.from_arrays(array[:, :3], fields, path=str(path))
 
 
+#: the share of a KITTI .bin's records whose 4th float (the remission, 0 to 1 in KITTI's scans) may
+#: be negative before the file is taken for another layout read 4 floats at a time
+_KITTI_MAX_NEGATIVE_REMISSION = 0.01
+
+
 def read_kitti_bin(path: Path) -> PointCloud:
     """Read a KITTI Velodyne ``.bin`` scan: little-endian float32 records x y z intensity."""
     record = _KITTI_COLUMNS * _KITTI_RECORD.itemsize
@@ -542,6 +547,15 @@ def read_kitti_bin(path: Path) -> PointCloud:
             "(KITTI .bin records are float32 x y z intensity)",
         )
     array = np.fromfile(path, dtype=_KITTI_RECORD).reshape(-1, _KITTI_COLUMNS)
+    negative = int(np.count_nonzero(array[:, 3] < 0))
+    if negative > _KITTI_MAX_NEGATIVE_REMISSION * array.shape[0]:
+        # a remission is never negative; coordinates are, about half the time in a sensor frame:
+        # records of 3 or 5 floats (nuScenes' x y z intensity ring) read 4 at a time put them there
+        raise CloudFileError(
+            str(path),
+            f"not KITTI's x y z remission layout: the 4th float32 of {negative:,} of {array.shape[0]:,} "
+            f"records is negative, as no remission is (records of 3 or 5 floats?); save them as .npy",
+        )
     return PointCloud.from_arrays(array[:, :3], {"intensity": array[:, 3]}, path=str(path))
 
 

@@ -416,6 +416,26 @@ def test_point_cloud_is_frozen_and_validated() -> None:
 # bad files: always a one-line CloudFileError naming the file and the problem
 
 
+def _bin_of(path: Path, floats: int) -> Path:
+    """A scan of 400 points in a sensor frame saved as ``floats`` float32 a record (3: x y z; 5:
+    nuScenes' x y z intensity ring), which a KITTI reader takes 4 at a time; the byte count is a
+    multiple of 16, so only the values can tell."""
+    rng = np.random.default_rng(5)
+    X = np.column_stack([rng.uniform(-30, 30, (400, 2)), rng.uniform(-2, 1, 400), rng.uniform(0, 1, 400),
+                         np.arange(400) % 32])[:, :floats]
+    out = path / f"of{floats}.bin"
+    X.astype("<f4").tofile(out)
+    return out
+
+
+def test_a_kitti_bin_with_remissions_is_read_as_its_records(tmp_path):
+    X = np.column_stack([np.random.default_rng(6).uniform(-30, 30, (400, 3)), np.linspace(0, 1, 400)])
+    X.astype("<f4").tofile(tmp_path / "k.bin")
+    cloud = read_cloud(tmp_path / "k.bin")
+    np.testing.assert_array_equal(cloud.xyz, X[:, :3].astype("<f4"))
+    np.testing.assert_array_equal(cloud.fields["intensity"], X[:, 3].astype("<f4"))
+
+
 def _pcd_binary_longer(path: Path) -> Path:
     """A binary PCD whose POINTS (3) understates its data (5 points): read as 3 points before."""
     out = path / "longer.pcd"
@@ -607,6 +627,8 @@ BAD_FILES = {
         "holds no points",
     ),
     "npy-transposed": (_npy("t.npy", np.zeros((3, 500))), "saved transposed?"),
+    "bin-of-three-floats": (lambda p: _bin_of(p, 3), "not KITTI's x y z remission layout: the 4th float32 of"),
+    "bin-of-five-floats": (lambda p: _bin_of(p, 5), "not KITTI's x y z remission layout"),
     "las-scale-zero": (lambda p: _patched_las(p, 131, 0.0, 0.0, 0.0),
                        "the x, y, z scale factors 0, 0, 0 must be positive numbers"),
     "las-far-outside-its-bounds": (lambda p: _patched_las(p, 179, 5e5 + 10, 5e5, 5e6 + 10, 5e6, 310.0, 300.0),
