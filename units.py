@@ -12,13 +12,14 @@ unit (:func:`scale_factors`); the output points are the input's, unchanged.
 >>> scale_factors(ScanUnits.uniform("mm", source="--units"), unit("m"))
 array([0.001, 0.001, 0.001])
 
-The module is pure (numpy, and scipy for :func:`median_spacing`), so that the readers
+The module is pure (numpy, and scipy for :func:`median_spacing` unless given a nearest-point function), so that the readers
 (:mod:`kbs.io`) and the knowledge layer can both use it.
 """
 from __future__ import annotations
 
 import math
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -297,7 +298,8 @@ SPACING_SAMPLE = 10_000
 DEFAULT_SPACING_METRES = (0.0005, 5.0)
 
 
-def median_spacing(X: np.ndarray, *, seed: int = 0) -> float | None:
+def median_spacing(X: np.ndarray, *, seed: int = 0,
+                   nearest_other: Callable[[np.ndarray], np.ndarray] | None = None) -> float | None:
     """An estimate of the median distance from a point to its nearest distinct neighbour (in X's
     units): exact up to :data:`SPACING_SAMPLE` points, from a seeded sample above (see there).
     Duplicated points count once. None when the cloud has fewer than 2 distinct points.
@@ -305,9 +307,12 @@ def median_spacing(X: np.ndarray, *, seed: int = 0) -> float | None:
     Parameters
     ----------
     X : ndarray (n, 3)
+    nearest_other : callable, optional
+        Gives the distance from each row of an (m, 3) array of distinct rows to its nearest other
+        row, as ``cKDTree(X).query(X, k=2)[0][:, 1]`` does (the default); the knowledge layer passes
+        its compiled twin, :func:`kbs.geometry.nearest.nearest_other_distances` (the same values,
+        without importing scipy's spatial package).
     """
-    from scipy.spatial import cKDTree
-
     X = np.asarray(X, dtype=np.float64)
     n = len(X)
     if n > SPACING_SAMPLE:
@@ -315,8 +320,13 @@ def median_spacing(X: np.ndarray, *, seed: int = 0) -> float | None:
     X = _distinct_rows(X)
     if len(X) < 2:
         return None
-    d, _ = cKDTree(X).query(X, k=2)
-    spacing = float(np.median(d[:, 1]))
+    if nearest_other is None:
+        from scipy.spatial import cKDTree
+
+        d = cKDTree(X).query(X, k=2)[0][:, 1]
+    else:
+        d = nearest_other(X)
+    spacing = float(np.median(d))
     if n > SPACING_SAMPLE:
         spacing *= math.sqrt(len(X) / n)
     return spacing
@@ -363,10 +373,11 @@ def expected_spacing(declared: tuple[float, float] | None, target: LengthUnit) -
 
 
 def check_spacing(X: np.ndarray, *, scan: ScanUnits | None, target: LengthUnit, declared: tuple[float, float] | None,
-                  rule_base: str) -> SpacingWarning | None:
+                  rule_base: str, nearest_other: Callable[[np.ndarray], np.ndarray] | None = None) -> SpacingWarning | None:
     """A :class:`SpacingWarning` when the median spacing of ``X`` (already in ``target`` units)
-    lies outside the range the rule base expects, else None."""
-    spacing = median_spacing(X)
+    lies outside the range the rule base expects, else None (``nearest_other``: see
+    :func:`median_spacing`)."""
+    spacing = median_spacing(X, nearest_other=nearest_other)
     if spacing is None or spacing == 0:
         return None
     lo, hi = expected_spacing(declared, target)

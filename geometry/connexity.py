@@ -116,6 +116,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from kbs.errors import FitError, ParameterError
+from kbs.geometry.nearest import nearest_label
 from kbs.inference import _flags
 
 if TYPE_CHECKING:
@@ -129,7 +130,7 @@ def _kdtree(*args, **kwargs) -> cKDTree:
 
     return cKDTree(*args, **kwargs)
 
-__all__ = ["METHODS", "Connexity", "alpha_complex", "alpha_opening", "alpha_shape", "assign_to_nearest", "connexity",
+__all__ = ["METHODS", "Connexity", "alpha_complex", "alpha_opening", "alpha_shape", "assign_to_nearest", "connexity", "edge_components",
            "graph_components", "project_on_plane"]
 
 _OWNER = "connexity"
@@ -379,12 +380,23 @@ def _distinct(P: np.ndarray) -> _Distinct:
     first[1:] = (S[1:] != S[:-1]).any(axis=1)
     point_of = np.cumsum(first) - 1
     U = S[first]
-    tree = _kdtree(U, balanced_tree=False, compact_nodes=False)
-    spacing = float(np.median(tree.query(U, k=2)[0][:, 1])) if U.shape[0] > 1 else 0.0
+    tree = None
+    spacing = 0.0
+    if U.shape[0] > 1:
+        d, tree = _nearest_other(U, side)
+        spacing = float(np.median(d))
     return _Distinct(U, np.bincount(point_of), order, point_of, spacing, S, tree)
 
 
-def _cc(n: int, i: np.ndarray, j: np.ndarray) -> tuple[int, np.ndarray]:
+def edge_components(n: int, i: np.ndarray, j: np.ndarray) -> tuple[int, np.ndarray]:
+    """Connected components of the graph on ``n`` nodes with the edges ``(i, j)``, numbered as
+    scipy's ``connected_components`` numbers them (compiled when the kernels are on)."""
+    if _flags.JIT:
+        from kbs.inference import _compiled
+
+        n_comp, comp = _compiled.graph_labels(int(n), np.ascontiguousarray(i, dtype=np.int64),
+                                              np.ascontiguousarray(j, dtype=np.int64))
+        return int(n_comp), comp
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -513,7 +525,7 @@ def graph_components(P: np.ndarray, r: float) -> tuple[int, np.ndarray]:
         n_pieces, piece, cell, idx = m, np.arange(m), np.arange(m), np.arange(m)
     else:
         a, b = grid.neighbours(_SURE_OFFSETS)
-        n_pieces, piece = _cc(grid.codes.size, a, b)
+        n_pieces, piece = edge_components(grid.codes.size, a, b)
         cell = grid.cell
         if n_pieces == 1:
             return 1, np.zeros(m, dtype=np.int64)
@@ -533,7 +545,7 @@ def graph_components(P: np.ndarray, r: float) -> tuple[int, np.ndarray]:
         keep = pa != pb
         src.append(pa[keep])
         dst.append(pb[keep])
-    n_comp, comp = _cc(n_pieces, np.concatenate(src), np.concatenate(dst))
+    n_comp, comp = edge_components(n_pieces, np.concatenate(src), np.concatenate(dst))
     return n_comp, comp[piece[cell]]
 
 
@@ -611,9 +623,10 @@ def _opening(D: _Distinct, r: float, erosion_fraction: float) -> np.ndarray:
 def _compiled_opening_components(D: _Distinct, r: float, erosion_fraction: float, opening: bool):
     """The opening (:func:`_opening`) and the components (:func:`graph_components`) in two
     compiled passes over a grid of cells of side ``r``: ``(idx, comp, n_comp)``, the kept
-    positions, their components and how many; None when the extent is absurd for ``r`` (the
-    grid would hold more than ``4 m + 4096`` cells), where the k-d tree version runs instead.
-    The same degrees, ``k_min``, dilation and components as the k-d tree version."""
+    positions, their components and how many. A grid of more than ``4 m + 4096`` cells (an
+    extent wide for ``r``: a sparse cluster of a dense scan) keeps its occupied cells only; None
+    when an axis would hold 1e9 cells or more, where the k-d tree version runs instead. The same
+    degrees, ``k_min``, dilation and components as the k-d tree version."""
     from kbs.inference import _compiled
 
     U, mult = D.points, D.mult
@@ -978,6 +991,5 @@ def assign_to_nearest(X2d, labels, significant) -> np.ndarray:
         raise FitError("no significant component to assign the points to")
     out = labels.copy()
     good = np.flatnonzero(ok)
-    _, nearest = _kdtree(P[good]).query(P[~ok], k=1)
-    out[~ok] = labels[good[nearest]]
+    out[~ok] = nearest_label(P[~ok], P[good], labels[good])
     return out

@@ -1086,38 +1086,162 @@ def _cell_grid(U, side, max_cells):
     return ny, start, order, ix, iy
 
 
+_NINE = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 0), (0, 1), (1, -1), (1, 0), (1, 1))
+#: the positions in :data:`_NINE` of the offsets of :data:`_HALF`
+_HALF_IN_NINE = (4, 6, 7, 8, 5)
+
+
+@njit(nogil=True)
+def _occupied_cells(U, side, max_cells):
+    """Points (m, 2) in square cells of ``side``, the occupied cells only: ``(ok, start, order,
+    cell, nbr)`` with the points of occupied cell ``c`` at ``order[start[c]:start[c + 1]]``, ``cell``
+    (m,) each point's cell and ``nbr`` (cells, 9) the cell at each offset of :data:`_NINE` (-1:
+    none occupied). The cells are those of :func:`_cell_grid` (cell ``(a, b)``: ``floor((u -
+    lo) / side)``); a grid of more than ``max_cells`` cells is not laid out but its occupied cells
+    found by sorting, so that an extent absurd for ``side`` costs no more than a compact one.
+    ``ok`` False only when a grid axis would have 1e9 cells or more."""
+    m = U.shape[0]
+    empty = np.zeros(0, dtype=np.int64)
+    ny, start, order, ix, iy = _cell_grid(U, side, max_cells)
+    if ny >= 0:  # the dense grid: its non-empty cells
+        nx = (start.shape[0] - 1) // ny
+        idof = np.full(nx * ny, -1, dtype=np.int64)
+        k = 0
+        for c in range(nx * ny):
+            if start[c + 1] > start[c]:
+                idof[c] = k
+                k += 1
+        cstart = np.empty(k + 1, dtype=np.int64)
+        nbr = np.full((k, 9), -1, dtype=np.int64)
+        cstart[k] = m
+        for c in range(nx * ny):
+            o = idof[c]
+            if o < 0:
+                continue
+            cstart[o] = start[c]
+            a = c // ny
+            b = c - a * ny
+            for t in range(9):
+                a2 = a + _NINE[t][0]
+                b2 = b + _NINE[t][1]
+                if 0 <= a2 < nx and 0 <= b2 < ny:
+                    nbr[o, t] = idof[a2 * ny + b2]
+        cell = np.empty(m, dtype=np.int64)
+        for i in range(m):
+            cell[i] = idof[ix[i] * ny + iy[i]]
+        return True, cstart, order, cell, nbr
+    lo0 = hi0 = U[0, 0]
+    lo1 = hi1 = U[0, 1]
+    for i in range(1, m):
+        lo0 = min(lo0, U[i, 0])
+        hi0 = max(hi0, U[i, 0])
+        lo1 = min(lo1, U[i, 1])
+        hi1 = max(hi1, U[i, 1])
+    fx = (hi0 - lo0) / side
+    fy = (hi1 - lo1) / side
+    if not (fx < 1e9 and fy < 1e9):
+        return False, empty, empty, empty, np.zeros((0, 9), dtype=np.int64)
+    nx = int(fx) + 1
+    ny = int(fy) + 1
+    key = np.empty(m, dtype=np.int64)
+    for i in range(m):
+        a = min(int(math.floor((U[i, 0] - lo0) / side)), nx - 1)
+        b = min(int(math.floor((U[i, 1] - lo1) / side)), ny - 1)
+        key[i] = a * ny + b
+    order = np.argsort(key, kind="mergesort")
+    cell = np.empty(m, dtype=np.int64)
+    keys = np.empty(m, dtype=np.int64)
+    cstart = np.empty(m + 1, dtype=np.int64)
+    k = -1
+    for p in range(m):
+        i = order[p]
+        if k < 0 or key[i] != keys[k]:
+            k += 1
+            keys[k] = key[i]
+            cstart[k] = p
+        cell[i] = k
+    k += 1
+    cstart[k] = m
+    keys = keys[:k]
+    nbr = np.full((k, 9), -1, dtype=np.int64)
+    for o in range(k):
+        a = keys[o] // ny
+        b = keys[o] - a * ny
+        for t in range(9):
+            a2 = a + _NINE[t][0]
+            b2 = b + _NINE[t][1]
+            if 0 <= a2 < nx and 0 <= b2 < ny:
+                want = a2 * ny + b2
+                j = np.searchsorted(keys, want)
+                if j < k and keys[j] == want:
+                    nbr[o, t] = j
+    return True, cstart[:k + 1].copy(), order, cell, nbr
+
+
 @njit(cache=True, nogil=True)
 def connexity_degrees(U, mult, r, max_cells):
     """Degree (m,) of each distinct position (``mult`` input points at each): the number of other
-    input points within ``r``; an empty array when the grid would be too large (see
-    :func:`_cell_grid`)."""
-    ny, start, order, ix, iy = _cell_grid(U, r, max_cells)
-    if ny < 0:
+    input points within ``r``; an empty array when a grid axis would have 1e9 cells or more (see
+    :func:`_occupied_cells`: beyond ``max_cells`` cells only the occupied ones are kept)."""
+    ok, start, order, cell, nbr = _occupied_cells(U, r, max_cells)
+    if not ok:
         return np.zeros(0, dtype=np.int64)
-    nx = (start.shape[0] - 1) // ny
     r2 = r * r
     deg = mult - 1
-    for a in range(nx):
-        for b in range(ny):
-            c = a * ny + b
-            for t in range(5):
-                da, db = _HALF[t]
-                a2 = a + da
-                b2 = b + db
-                if a2 >= nx or b2 < 0 or b2 >= ny:
-                    continue
-                c2 = a2 * ny + b2
-                for p in range(start[c], start[c + 1]):
-                    i = order[p]
-                    q0 = start[c2] if t else p + 1
-                    for q in range(q0, start[c2 + 1]):
-                        j = order[q]
-                        dx = U[i, 0] - U[j, 0]
-                        dy = U[i, 1] - U[j, 1]
-                        if dx * dx + dy * dy <= r2:
-                            deg[i] += mult[j]
-                            deg[j] += mult[i]
+    for c in range(start.shape[0] - 1):
+        for t in range(5):
+            c2 = nbr[c, _HALF_IN_NINE[t]]
+            if c2 < 0:
+                continue
+            for p in range(start[c], start[c + 1]):
+                i = order[p]
+                q0 = start[c2] if t else p + 1
+                for q in range(q0, start[c2 + 1]):
+                    j = order[q]
+                    dx = U[i, 0] - U[j, 0]
+                    dy = U[i, 1] - U[j, 1]
+                    if dx * dx + dy * dy <= r2:
+                        deg[i] += mult[j]
+                        deg[j] += mult[i]
     return deg
+
+
+@njit(nogil=True)
+def _root(parent, i):
+    while parent[i] != i:
+        parent[i] = parent[parent[i]]
+        i = parent[i]
+    return i
+
+
+@njit(nogil=True)
+def _union(parent, i, j):
+    """Join the sets of ``i`` and ``j``; the smaller root stays the root."""
+    ri = _root(parent, i)
+    rj = _root(parent, j)
+    if ri < rj:
+        parent[rj] = ri
+    elif rj < ri:
+        parent[ri] = rj
+
+
+@njit(nogil=True)
+def _first_appearance_labels(parent, keep):
+    """Each kept element's set, numbered in order of first appearance (-1 elsewhere), and how
+    many sets."""
+    m = parent.shape[0]
+    label = np.full(m, -1, dtype=np.int64)
+    comp = np.full(m, -1, dtype=np.int64)
+    n = 0
+    for i in range(m):
+        if not keep[i]:
+            continue
+        ri = _root(parent, i)
+        if label[ri] < 0:
+            label[ri] = n
+            n += 1
+        comp[i] = label[ri]
+    return comp, n
 
 
 @njit(cache=True, nogil=True)
@@ -1126,13 +1250,11 @@ def connexity_components(U, kept, r, dilate, max_cells):
     kept one lies within ``r``) and the connected components of the graph ``|p - q| <= r`` on the
     positions kept after it. Returns ``(kept, comp, n_comp)``, ``comp`` (m,) the component of
     each kept position (numbered in order of first appearance) and -1 elsewhere; ``n_comp`` -1
-    when the grid would be too large."""
+    when a grid axis would have 1e9 cells or more (see :func:`_occupied_cells`)."""
     m = U.shape[0]
-    ny, start, order, ix, iy = _cell_grid(U, r, max_cells)
-    comp = np.full(m, -1, dtype=np.int64)
-    if ny < 0:
-        return kept, comp, -1
-    nx = (start.shape[0] - 1) // ny
+    ok, start, order, cell, nbr = _occupied_cells(U, r, max_cells)
+    if not ok:
+        return kept, np.full(m, -1, dtype=np.int64), -1
     r2 = r * r
     out = kept.copy()
     if dilate:
@@ -1140,71 +1262,54 @@ def connexity_components(U, kept, r, dilate, max_cells):
             if kept[i]:
                 continue
             found = False
-            for a in range(max(ix[i] - 1, 0), min(ix[i] + 2, nx)):
-                for b in range(max(iy[i] - 1, 0), min(iy[i] + 2, ny)):
-                    c = a * ny + b
-                    for q in range(start[c], start[c + 1]):
-                        j = order[q]
-                        if kept[j]:
-                            dx = U[i, 0] - U[j, 0]
-                            dy = U[i, 1] - U[j, 1]
-                            if math.sqrt(dx * dx + dy * dy) <= r:
-                                found = True
-                                break
-                    if found:
-                        break
+            for t in range(9):
+                c = nbr[cell[i], t]
+                if c < 0:
+                    continue
+                for q in range(start[c], start[c + 1]):
+                    j = order[q]
+                    if kept[j]:
+                        dx = U[i, 0] - U[j, 0]
+                        dy = U[i, 1] - U[j, 1]
+                        if math.sqrt(dx * dx + dy * dy) <= r:
+                            found = True
+                            break
                 if found:
                     break
             out[i] = found
     parent = np.arange(m)
-    for a in range(nx):
-        for b in range(ny):
-            c = a * ny + b
-            for t in range(5):
-                da, db = _HALF[t]
-                a2 = a + da
-                b2 = b + db
-                if a2 >= nx or b2 < 0 or b2 >= ny:
+    for c in range(start.shape[0] - 1):
+        for t in range(5):
+            c2 = nbr[c, _HALF_IN_NINE[t]]
+            if c2 < 0:
+                continue
+            for p in range(start[c], start[c + 1]):
+                i = order[p]
+                if not out[i]:
                     continue
-                c2 = a2 * ny + b2
-                for p in range(start[c], start[c + 1]):
-                    i = order[p]
-                    if not out[i]:
+                q0 = start[c2] if t else p + 1
+                for q in range(q0, start[c2 + 1]):
+                    j = order[q]
+                    if not out[j]:
                         continue
-                    q0 = start[c2] if t else p + 1
-                    for q in range(q0, start[c2 + 1]):
-                        j = order[q]
-                        if not out[j]:
-                            continue
-                        dx = U[i, 0] - U[j, 0]
-                        dy = U[i, 1] - U[j, 1]
-                        if dx * dx + dy * dy <= r2:
-                            ri = i
-                            while parent[ri] != ri:
-                                parent[ri] = parent[parent[ri]]
-                                ri = parent[ri]
-                            rj = j
-                            while parent[rj] != rj:
-                                parent[rj] = parent[parent[rj]]
-                                rj = parent[rj]
-                            if ri != rj:
-                                if ri < rj:
-                                    parent[rj] = ri
-                                else:
-                                    parent[ri] = rj
-    n_comp = 0
-    label = np.full(m, -1, dtype=np.int64)
-    for i in range(m):
-        if not out[i]:
-            continue
-        ri = i
-        while parent[ri] != ri:
-            ri = parent[ri]
-        if label[ri] < 0:
-            label[ri] = n_comp
-            n_comp += 1
-        comp[i] = label[ri]
+                    dx = U[i, 0] - U[j, 0]
+                    dy = U[i, 1] - U[j, 1]
+                    if dx * dx + dy * dy <= r2:
+                        _union(parent, i, j)
+    comp, n_comp = _first_appearance_labels(parent, out)
     return out, comp, n_comp
+
+
+@njit(cache=True, nogil=True)
+def graph_labels(n, i, j):
+    """Connected components of the undirected graph on ``n`` nodes with the edges ``(i[e], j[e])``:
+    ``(n_components, labels)``, the components numbered in order of their lowest node, as scipy's
+    ``connected_components(..., directed=False)`` numbers them."""
+    parent = np.arange(n)
+    for e in range(i.shape[0]):
+        _union(parent, i[e], j[e])
+    comp, n_comp = _first_appearance_labels(parent, np.ones(n, dtype=np.bool_))
+    return n_comp, comp
 
 
 # -- robust planes ----------------------------------------------------------------------------
@@ -1586,8 +1691,18 @@ def surface_bounds(Q, lo, hi, origin, side, lo_b, hi_b, n3, need, narrow):
 
 
 @njit(nogil=True)
+def _sqdist(Q, j, T, i):
+    """scipy's squared Euclidean distance ``((0 + d0 d0) + d1 d1) + ...``, ``d = query - data``."""
+    s = 0.0
+    for a in range(Q.shape[1]):
+        d = Q[j, a] - T[i, a]
+        s += d * d
+    return s
+
+
+@njit(nogil=True)
 def _point_grid(S, lo0, lo1, side, nx, ny):
-    """Cells (nx, ny) of ``side`` from (lo0, lo1) over the rows of ``S`` (n, 2): each row's cell
+    """Cells (nx, ny) of ``side`` from (lo0, lo1) over the first two columns of ``S`` (n, D >= 2): each row's cell
     (cx, cy) and the rows cell by cell (``member[start[c]:start[c + 1]]``, cell c = cx ny + cy)."""
     n = S.shape[0]
     cx = np.empty(n, dtype=np.int64)
@@ -1612,11 +1727,12 @@ def _point_grid(S, lo0, lo1, side, nx, ny):
 
 @njit(cache=True, nogil=True)
 def nearest_other_distances(S, side):
-    """For each row of ``S`` (n, 2), the distance to its nearest other row: what
+    """For each row of ``S`` (n, D >= 2), the distance to its nearest other row: what
     ``cKDTree(S).query(S, k=2)[0][:, 1]`` gives, bit for bit (scipy's squared distance
-    ``(0 + d0 d0) + d1 d1`` with ``d = query - data``, then its square root), by a grid searched
-    ring by ring around each point until no cell beyond the searched block can hold a nearer
-    point (its border farther than the best distance, less a margin of 1e-6 cell).
+    ``((0 + d0 d0) + d1 d1) + ...`` with ``d = query - data``, then its square root), by a grid
+    over the first two columns searched ring by ring around each point until no cell beyond the
+    searched block can hold a nearer point (its border farther than the best distance, less a
+    margin of 1e-6 cell; the other columns only add to a distance).
 
     The cells: ``side`` shrunk to about one point per occupied cell of a first grid of ``side``
     (the points of a cluster fill a part of their bounding box). Returns ``(d, ok)``; ``ok`` False
@@ -1674,9 +1790,7 @@ def nearest_other_distances(S, side):
                         i = member[t]
                         if i == j:
                             continue
-                        d0 = q0 - S[i, 0]
-                        d1 = q1 - S[i, 1]
-                        s = (0.0 + d0 * d0) + d1 * d1
+                        s = _sqdist(S, j, S, i)
                         if s < best:
                             best = s
             # the nearest a cell outside the searched block can be (none beyond the grid's edge)
@@ -1697,6 +1811,147 @@ def nearest_other_distances(S, side):
             r += 1
         d[j] = math.sqrt(best)
     return d, True
+
+
+# -- the nearest point: a k-d tree (scipy's ``cKDTree.query(k=1)`` answers) -------------------
+
+_LEAF = 8
+
+
+@njit(cache=True, nogil=True)
+def kdtree_build(T):
+    """A k-d tree over the rows of ``T`` (m > 0, D): ``(perm, start, stop, left, right, lo, hi)``,
+    node ``v`` holding the rows ``perm[start[v]:stop[v]]`` within the box ``lo[v]``..``hi[v]``
+    (their bounds), its children ``left[v]``, ``right[v]`` (-1 for a leaf of at most 8 rows). A
+    node splits at the median along its widest side."""
+    m, D = T.shape
+    cap = 2 * (m // _LEAF + 1) * 2 + 1
+    perm = np.arange(m)
+    start = np.empty(cap, dtype=np.int64)
+    stop = np.empty(cap, dtype=np.int64)
+    left = np.full(cap, -1, dtype=np.int64)
+    right = np.full(cap, -1, dtype=np.int64)
+    lo = np.empty((cap, D))
+    hi = np.empty((cap, D))
+    stack = np.empty(cap, dtype=np.int64)
+    start[0] = 0
+    stop[0] = m
+    n = 1
+    top = 0
+    stack[top] = 0
+    top += 1
+    key = np.empty(m)
+    while top > 0:
+        top -= 1
+        v = stack[top]
+        s0 = start[v]
+        s1 = stop[v]
+        for a in range(D):
+            lo[v, a] = T[perm[s0], a]
+            hi[v, a] = T[perm[s0], a]
+        for p in range(s0 + 1, s1):
+            for a in range(D):
+                x = T[perm[p], a]
+                if x < lo[v, a]:
+                    lo[v, a] = x
+                if x > hi[v, a]:
+                    hi[v, a] = x
+        if s1 - s0 <= _LEAF:
+            continue
+        axis = 0
+        for a in range(1, D):
+            if hi[v, a] - lo[v, a] > hi[v, axis] - lo[v, axis]:
+                axis = a
+        if not hi[v, axis] > lo[v, axis]:
+            continue  # every row at one position: a leaf
+        for p in range(s0, s1):
+            key[p] = T[perm[p], axis]
+        o = np.argsort(key[s0:s1], kind="mergesort")
+        seg = perm[s0:s1].copy()
+        for p in range(s1 - s0):
+            perm[s0 + p] = seg[o[p]]
+        mid = s0 + (s1 - s0) // 2
+        left[v] = n
+        start[n] = s0
+        stop[n] = mid
+        right[v] = n + 1
+        start[n + 1] = mid
+        stop[n + 1] = s1
+        stack[top] = n
+        stack[top + 1] = n + 1
+        top += 2
+        n += 2
+    return perm, start[:n].copy(), stop[:n].copy(), left[:n].copy(), right[:n].copy(), lo[:n].copy(), hi[:n].copy()
+
+
+@njit(nogil=True)
+def _box_sqdist(Q, j, lo, hi, v):
+    """A lower bound of :func:`_sqdist` from ``Q[j]`` to any point of box ``v``: the same sum, in the
+    same order, of gaps no larger than the coordinates' differences (rounding keeps the order)."""
+    s = 0.0
+    for a in range(Q.shape[1]):
+        x = Q[j, a]
+        g = 0.0
+        if x < lo[v, a]:
+            g = lo[v, a] - x
+        elif x > hi[v, a]:
+            g = x - hi[v, a]
+        s += g * g
+    return s
+
+
+@njit(cache=True, nogil=True)
+def kdtree_nearest(Q, T, perm, start, stop, left, right, lo, hi, labels):
+    """For each row of ``Q`` (q, D), its nearest row of ``T`` by the tree of :func:`kdtree_build`:
+    ``(d, idx, ok)``, ``d`` the distance as ``cKDTree(T).query(Q, k=1)`` computes it
+    (:func:`_sqdist`, then its square root), bit for bit. Every point at the nearest distance is
+    seen (a box is left out only when it lies strictly farther); a row is ``ok`` when its answer is
+    the k-d tree's whatever the order of equal distances: with ``labels`` (m,) (empty: none), no
+    point of another label lies at the nearest distance; without, always."""
+    q = Q.shape[0]
+    m = T.shape[0]
+    d = np.full(q, np.inf)
+    idx = np.full(q, m, dtype=np.int64)
+    ok = np.ones(q, dtype=np.bool_)
+    use_labels = labels.shape[0] > 0
+    stack = np.empty(start.shape[0] + 1, dtype=np.int64)
+    for j in range(q):
+        best = np.inf
+        bi = -1
+        tie = False
+        top = 0
+        stack[top] = 0
+        top += 1
+        while top > 0:
+            top -= 1
+            v = stack[top]
+            if _box_sqdist(Q, j, lo, hi, v) > best:
+                continue
+            if left[v] < 0:
+                for p in range(start[v], stop[v]):
+                    i = perm[p]
+                    s = _sqdist(Q, j, T, i)
+                    if s < best:
+                        best = s
+                        bi = i
+                        tie = False
+                    elif s == best and use_labels and labels[i] != labels[bi]:
+                        tie = True
+                continue
+            a = left[v]
+            b = right[v]
+            # the nearer child last on the stack: searched first
+            if _box_sqdist(Q, j, lo, hi, a) <= _box_sqdist(Q, j, lo, hi, b):
+                stack[top] = b
+                stack[top + 1] = a
+            else:
+                stack[top] = a
+                stack[top + 1] = b
+            top += 2
+        d[j] = math.sqrt(best)
+        idx[j] = bi
+        ok[j] = not tie
+    return d, idx, ok
 
 
 # -- the k nearest surface points within a radius (the local ground surface's queries) ---------

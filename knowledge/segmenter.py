@@ -24,6 +24,7 @@ from kbs.errors import ParameterError, raise_if_interrupted
 from kbs.knowledge.interpreter import Interpreter, Segmentation
 from kbs.knowledge.predicates import PredicateRegistry
 from kbs.knowledge.rulebase import RuleBase, load_rule_base
+from kbs.geometry.nearest import nearest_other_distances
 from kbs.units import CoordinateWarning, LengthUnit, ScanUnits, check_spacing, scale_factors, unit
 
 
@@ -177,7 +178,7 @@ class Segmenter:
         target = self.length_unit
         if target is not None and self._judge_spacing:
             problem = check_spacing(X, scan=scan_units, target=target, declared=self.rule_base.spacing,
-                                    rule_base=self.rule_base.name)
+                                    rule_base=self.rule_base.name, nearest_other=nearest_other_distances)
             if problem is not None:
                 warnings.warn(problem, stacklevel=2)
         self._interpreter.progress = progress

@@ -240,10 +240,67 @@ def test_compiled_connexity_equals_the_kd_tree_version(monkeypatch, case, kw):
         assert a.n_significant == 1  # ... and without it the bridge links the blobs
 
 
-def test_connexity_grid_refuses_an_absurd_extent():
+def test_connexity_grid_refuses_only_an_absurd_extent():
+    """Past ``max_cells`` the grid keeps its occupied cells (three points 1e6 links apart: three
+    components); only an axis of 1e9 cells or more is refused (the k-d tree version answers)."""
     U = np.array([[0.0, 0.0], [1e6, 0.0], [0.0, 1e6]])
-    assert C.connexity_degrees(U, np.ones(3, dtype=np.int64), 1.0, 4096.0).size == 0
-    assert C.connexity_components(U, np.ones(3, dtype=bool), 1.0, False, 4096.0)[2] == -1
+    assert C.connexity_degrees(U, np.ones(3, dtype=np.int64), 1.0, 4096.0).tolist() == [0, 0, 0]
+    kept, comp, n = C.connexity_components(U, np.ones(3, dtype=bool), 1.0, False, 4096.0)
+    assert n == 3 and comp.tolist() == [0, 1, 2]
+    V = np.array([[0.0, 0.0], [1e10, 0.0]])
+    assert C.connexity_degrees(V, np.ones(2, dtype=np.int64), 1.0, 4096.0).size == 0
+    assert C.connexity_components(V, np.ones(2, dtype=bool), 1.0, False, 4096.0)[2] == -1
+
+
+def test_connexity_occupied_cells_answer_as_the_full_grid_and_the_pairs_do():
+    """The same degrees, dilation and components from the full grid (``max_cells`` large) and
+    from the occupied cells alone (``max_cells`` small), and as the pairs within ``r`` give them:
+    degrees summed over the pairs, components as scipy numbers them by their lowest point."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(5)
+    U = np.r_[rng.uniform(0, 30, (600, 2)), rng.uniform(200, 203, (300, 2)), [[400.0, 5.0], [400.5, 5.0]]]
+    U = np.round(U, 1)  # links exactly at r
+    U = np.unique(U, axis=0)[rng.permutation(len(np.unique(U, axis=0)))]
+    mult = rng.integers(1, 4, len(U))
+    r = 1.0
+    pairs = cKDTree(U).query_pairs(r, output_type="ndarray")
+    deg = mult - 1 + np.bincount(pairs[:, 0], weights=mult[pairs[:, 1]], minlength=len(U)) \
+        + np.bincount(pairs[:, 1], weights=mult[pairs[:, 0]], minlength=len(U))
+    kept = deg >= np.median(deg)
+    for cells in (1e9, 64.0):
+        assert np.array_equal(C.connexity_degrees(U, mult, r, cells), deg)
+    full = C.connexity_components(U, kept, r, True, 1e9)
+    sparse = C.connexity_components(U, kept, r, True, 64.0)
+    for a, b in zip(full, sparse):
+        assert np.array_equal(a, b)
+    out, comp, n = sparse
+    back = ~kept & out  # dilated: a kept position within r
+    near = cKDTree(U[kept]).query(U[~kept], k=1)[0] <= r
+    assert np.array_equal(back[~kept], near) and back.any()
+    idx = np.flatnonzero(out)
+    keep = out[pairs[:, 0]] & out[pairs[:, 1]]
+    _, ref = connected_components(coo_matrix((np.ones(keep.sum()), (pairs[keep, 0], pairs[keep, 1])),
+                                             shape=(len(U), len(U))), directed=False)
+    first = {c: i for i, c in reversed(list(enumerate(ref[idx])))}  # the kept positions' components, first seen first
+    order = sorted(first, key=first.get)
+    assert n == len(order) and np.array_equal(comp[idx], np.array([order.index(c) for c in ref[idx]]))
+
+
+def test_graph_labels_number_components_as_scipy_does():
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    rng = np.random.default_rng(8)
+    for _ in range(30):
+        n = int(rng.integers(1, 120))
+        e = int(rng.integers(0, 150))
+        i, j = rng.integers(0, n, e), rng.integers(0, n, e)
+        ref = connected_components(coo_matrix((np.ones(e), (i, j)), shape=(n, n)), directed=False)
+        got = C.graph_labels(n, i.astype(np.int64), j.astype(np.int64))
+        assert got[0] == ref[0] and np.array_equal(got[1], ref[1])
 
 
 def test_compiled_plane_inlier_counts_are_the_numpy_counts():

@@ -671,8 +671,8 @@ def test_bad_alpha_opening_parameters_are_parameter_errors(kwargs):
 def test_the_compiled_measure_builds_no_k_d_tree_and_answers_as_the_trees_do(monkeypatch):
     """With the compiled kernels, the graph measure answers from its grids: no k-d tree is built
     (a vehicle frame's 100 measures built 149 and asked none); with them off, the trees answer,
-    and the components are the same. A cloud with repeated positions too (its tree over all the
-    points and its tree over the distinct ones, built when asked)."""
+    and the components are the same. A cloud with repeated positions too (the spacing of its
+    distinct positions from the compiled grid as well)."""
     import kbs.geometry.connexity as module
     from kbs.inference import _flags
 
@@ -693,5 +693,5 @@ def test_the_compiled_measure_builds_no_k_d_tree_and_answers_as_the_trees_do(mon
         np.testing.assert_array_equal(fast.labels, slow.labels)
         assert fast.spacing == slow.spacing
         assert len(built) > trees_fast  # the reference path asks its trees
-        # the tree over the distinct positions is the one the duplicates' spacing needs
-        assert trees_fast == (0 if cloud is X else 1)
+        # the duplicates' spacing too comes from the compiled grid (the tree's distances)
+        assert trees_fast == 0

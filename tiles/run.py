@@ -239,13 +239,15 @@ def warn_spacing(segmenter: Segmenter, X: np.ndarray) -> None:
     :class:`kbs.units.SpacingWarning`, as :meth:`Segmenter.segment` warns of an untiled cloud). The
     tiles do not warn: a tile at the cloud's edge may be sparse where the cloud is not, and a cloud
     in the wrong unit would warn once per tile."""
+    from kbs.geometry.nearest import nearest_other_distances
     from kbs.units import check_spacing
 
     target = segmenter.length_unit
     if target is None or len(X) == 0:
         return
     rb = segmenter.rule_base
-    problem = check_spacing(X, scan=None, target=target, declared=rb.spacing, rule_base=rb.name)
+    problem = check_spacing(X, scan=None, target=target, declared=rb.spacing, rule_base=rb.name,
+                            nearest_other=nearest_other_distances)
     if problem is not None:
         warnings.warn(problem, stacklevel=3)
 

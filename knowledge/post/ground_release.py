@@ -8,6 +8,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from kbs.geometry.nearest import NearestIndex
 from kbs.knowledge.parts import PostContext, PostStep, SpecContext
 from kbs.knowledge.post._surface import needs_surface, receive, surface_batches, take
 from kbs.knowledge.post.relabel import MAX_PASSES
@@ -133,7 +134,7 @@ class GroundRelease(PostStep):
             n_move, size = int(move.sum()), lf.size
             if not n_move:
                 continue
-            taken, dest = take(lf, move, nearest.owners(lf.node.idx[move], ctx.jobs), moved_in)
+            taken, dest = take(lf, move, nearest.owners(lf.node.idx[move]), moved_in)
             gone.append(lf.node.idx[move])
             ids = [leaves[t].id for t in dest]
             leaves[li] = taken.with_record(released=lf.record.released + n_move, notes=(
@@ -149,21 +150,19 @@ class GroundRelease(PostStep):
 
 
 class _Nearest:
-    """The cluster of label ``target`` nearest to points: a k-d tree over the points of the leaves
+    """The cluster of label ``target`` nearest to points: an index over the points of the leaves
     of that label (their positions in ``leaves``)."""
 
     def __init__(self, X: np.ndarray, leaves, target: str) -> None:
-        from scipy.spatial import cKDTree
-
         targets = [li for li, lf in enumerate(leaves) if lf.label == target and lf.size]
         self.X = X
-        self.tree = cKDTree(X[np.concatenate([leaves[li].node.idx for li in targets])])
-        self.owner = np.concatenate([np.full(leaves[li].size, li) for li in targets])
+        self.index = NearestIndex(X[np.concatenate([leaves[li].node.idx for li in targets])],
+                                  np.concatenate([np.full(leaves[li].size, li) for li in targets]))
 
-    def owners(self, idx: np.ndarray, jobs: int) -> np.ndarray:
-        """The position (in the leaves) of the cluster nearest to each point ``idx``."""
-        _, j = self.tree.query(self.X[idx], workers=jobs if idx.size >= 4096 else 1)
-        return self.owner[j]
+    def owners(self, idx: np.ndarray) -> np.ndarray:
+        """The position (in the leaves) of the cluster nearest to each point ``idx`` (a k-d tree's
+        answer, :class:`~kbs.geometry.nearest.NearestIndex`)."""
+        return self.index.label(self.X[idx])
 
 
 class _Passes:

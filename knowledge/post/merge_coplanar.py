@@ -7,6 +7,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from kbs.geometry.connexity import edge_components
 from kbs.knowledge.parts import PostContext, PostStep, SpecContext
 from kbs.knowledge.rulebase import SourcePos
 from kbs.knowledge.state import PostState
@@ -66,9 +67,6 @@ class MergeCoplanar(PostStep):
                    absorb=tuple(str(a) for a in absorb) if isinstance(absorb, list) else ())
 
     def apply(self, state: PostState, ctx: PostContext) -> PostState:
-        from scipy.sparse import coo_matrix
-        from scipy.sparse.csgraph import connected_components
-
         leaves = state.leaves
         n = len(leaves)
         rows: list[np.ndarray] = []
@@ -94,7 +92,7 @@ class MergeCoplanar(PostStep):
             cols.append(np.asarray(g[1:], dtype=int))
         r = np.concatenate(rows) if rows else np.zeros(0, dtype=int)
         c = np.concatenate(cols) if cols else np.zeros(0, dtype=int)
-        _, comp = connected_components(coo_matrix((np.ones(r.size), (r, c)), shape=(n, n)), directed=False)
+        _, comp = edge_components(n, r, c)
         out: dict[int, list[int]] = {}
         for i, g in enumerate(comp):  # a group takes the place of its first member (leaf order)
             out.setdefault(int(g), []).append(i)
