@@ -1815,15 +1815,42 @@ def nearest_other_distances(S, side):
 
 # -- the nearest point: a k-d tree (scipy's ``cKDTree.query(k=1)`` answers) -------------------
 
-_LEAF = 8
+_LEAF = 12
+
+
+@njit(nogil=True)
+def _select(T, perm, lo, hi, k, axis):
+    """Reorder ``perm[lo:hi + 1]`` so that the row at ``k`` has the rank it would have sorted by
+    ``T[:, axis]``, rows at most it before, rows at least it after (Hoare's selection)."""
+    while hi > lo:
+        pivot = T[perm[(lo + hi) // 2], axis]
+        i = lo
+        j = hi
+        while i <= j:
+            while T[perm[i], axis] < pivot:
+                i += 1
+            while T[perm[j], axis] > pivot:
+                j -= 1
+            if i <= j:
+                t = perm[i]
+                perm[i] = perm[j]
+                perm[j] = t
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            return
 
 
 @njit(cache=True, nogil=True)
 def kdtree_build(T):
     """A k-d tree over the rows of ``T`` (m > 0, D): ``(perm, start, stop, left, right, lo, hi)``,
     node ``v`` holding the rows ``perm[start[v]:stop[v]]`` within the box ``lo[v]``..``hi[v]``
-    (their bounds), its children ``left[v]``, ``right[v]`` (-1 for a leaf of at most 8 rows). A
-    node splits at the median along its widest side."""
+    (the points' bounds at the root, a child's the parent's cut at the median row), its children ``left[v]``, ``right[v]`` (-1 for a leaf of at most 8 rows). A
+    node splits at the median along its widest side (a selection, no sort)."""
     m, D = T.shape
     cap = 2 * (m // _LEAF + 1) * 2 + 1
     perm = np.arange(m)
@@ -1840,22 +1867,18 @@ def kdtree_build(T):
     top = 0
     stack[top] = 0
     top += 1
-    key = np.empty(m)
+    for a in range(D):  # the root's box: the bounds of the points
+        lo[0, a] = T[0, a]
+        hi[0, a] = T[0, a]
+    for p in range(1, m):
+        for a in range(D):
+            lo[0, a] = min(lo[0, a], T[p, a])
+            hi[0, a] = max(hi[0, a], T[p, a])
     while top > 0:
         top -= 1
         v = stack[top]
         s0 = start[v]
         s1 = stop[v]
-        for a in range(D):
-            lo[v, a] = T[perm[s0], a]
-            hi[v, a] = T[perm[s0], a]
-        for p in range(s0 + 1, s1):
-            for a in range(D):
-                x = T[perm[p], a]
-                if x < lo[v, a]:
-                    lo[v, a] = x
-                if x > hi[v, a]:
-                    hi[v, a] = x
         if s1 - s0 <= _LEAF:
             continue
         axis = 0
@@ -1864,13 +1887,16 @@ def kdtree_build(T):
                 axis = a
         if not hi[v, axis] > lo[v, axis]:
             continue  # every row at one position: a leaf
-        for p in range(s0, s1):
-            key[p] = T[perm[p], axis]
-        o = np.argsort(key[s0:s1], kind="mergesort")
-        seg = perm[s0:s1].copy()
-        for p in range(s1 - s0):
-            perm[s0 + p] = seg[o[p]]
         mid = s0 + (s1 - s0) // 2
+        _select(T, perm, s0, s1 - 1, mid, axis)
+        cut = T[perm[mid], axis]
+        for a in range(D):  # the children's boxes: the node's, cut at the median row
+            lo[n, a] = lo[v, a]
+            hi[n, a] = hi[v, a]
+            lo[n + 1, a] = lo[v, a]
+            hi[n + 1, a] = hi[v, a]
+        hi[n, axis] = cut
+        lo[n + 1, axis] = cut
         left[v] = n
         start[n] = s0
         stop[n] = mid
@@ -1915,17 +1941,18 @@ def kdtree_nearest(Q, T, perm, start, stop, left, right, lo, hi, labels):
     ok = np.ones(q, dtype=np.bool_)
     use_labels = labels.shape[0] > 0
     stack = np.empty(start.shape[0] + 1, dtype=np.int64)
+    near = np.empty(start.shape[0] + 1)  # each stacked box's lower bound
     for j in range(q):
         best = np.inf
         bi = -1
         tie = False
-        top = 0
-        stack[top] = 0
-        top += 1
+        stack[0] = 0
+        near[0] = 0.0
+        top = 1
         while top > 0:
             top -= 1
             v = stack[top]
-            if _box_sqdist(Q, j, lo, hi, v) > best:
+            if near[top] > best:
                 continue
             if left[v] < 0:
                 for p in range(start[v], stop[v]):
@@ -1940,14 +1967,19 @@ def kdtree_nearest(Q, T, perm, start, stop, left, right, lo, hi, labels):
                 continue
             a = left[v]
             b = right[v]
-            # the nearer child last on the stack: searched first
-            if _box_sqdist(Q, j, lo, hi, a) <= _box_sqdist(Q, j, lo, hi, b):
+            da = _box_sqdist(Q, j, lo, hi, a)
+            db = _box_sqdist(Q, j, lo, hi, b)
+            if da > db:  # the nearer child last on the stack: searched first
+                a, b = b, a
+                da, db = db, da
+            if db <= best:
                 stack[top] = b
-                stack[top + 1] = a
-            else:
+                near[top] = db
+                top += 1
+            if da <= best:
                 stack[top] = a
-                stack[top + 1] = b
-            top += 2
+                near[top] = da
+                top += 1
         d[j] = math.sqrt(best)
         idx[j] = bi
         ok[j] = not tie
