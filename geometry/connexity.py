@@ -118,6 +118,7 @@ import numpy as np
 from kbs.errors import FitError, ParameterError
 from kbs.geometry.nearest import nearest_label
 from kbs.inference import _flags
+from kbs.inference.voxel import bounds
 
 if TYPE_CHECKING:
     from scipy.spatial import cKDTree
@@ -356,7 +357,7 @@ def _nearest_other(S: np.ndarray, side: float) -> tuple[np.ndarray, cKDTree | No
 
 def _distinct(P: np.ndarray) -> _Distinct:
     n = P.shape[0]
-    lo, hi = P.min(axis=0), P.max(axis=0)
+    lo, hi = bounds(P)
     extent = hi - lo
     area = float(np.prod(np.maximum(extent, extent.max() * 1e-3)))
     side = 4.0 * math.sqrt(area / n)

@@ -28,6 +28,7 @@ import numpy as np
 
 from kbs.geometry.pca import plane_basis
 from kbs.inference import _compiled, _flags
+from kbs.inference.voxel import bounds
 
 
 #: arrays up to this size take the compiled order statistics (a sort), larger ones numpy's (a partition)
@@ -194,7 +195,7 @@ class LocalGround:
     def _plane_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """The lowest and highest plane coordinates of the surface points (what a k-d tree over
         them holds as its ``mins`` and ``maxes``)."""
-        return self.plane.min(axis=0), self.plane.max(axis=0)
+        return bounds(self.plane)
 
     def radii(self, P: np.ndarray) -> np.ndarray | None:
         """The radius of each query point ``P`` (q, 3): ``radius + per_range`` x its distance to
@@ -302,7 +303,8 @@ class LocalGround:
         T = self.plane
         if T.shape[0] < 2 or not np.isfinite(T).all():
             return None
-        extent = T.max(axis=0) - T.min(axis=0)
+        lo, hi = self._plane_bounds
+        extent = hi - lo
         area = float(np.prod(np.maximum(extent, extent.max() * 1e-3)))
         *grid, ok = _compiled.plane_grid(np.ascontiguousarray(T), 2.0 * float(np.sqrt(area / T.shape[0])))
         return tuple(grid) if ok else None

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from kbs.geometry.groundplane import robust_plane, supported_points
+from kbs.inference.voxel import bounds
 from kbs.knowledge.groundfacts import GroundCandidate, GroundFacts
 from kbs.knowledge.predicates import Cluster, Ground, Scene
 from kbs.knowledge.state import Draft
@@ -127,7 +128,7 @@ def _sensor_note(run: Any, X: np.ndarray, fallback: np.ndarray, n: np.ndarray, p
     u = f" {unit}" if unit else ""
     vec = lambda v: "[" + ", ".join(f"{x:.6g}" for x in v) + "]"  # noqa: E731
     said = []
-    lo, hi = X.min(axis=0), X.max(axis=0)
+    lo, hi = bounds(X)
     diag = max(float(np.linalg.norm(hi - lo)), float(np.finfo(float).tiny))
     away = float(np.linalg.norm(run.sensor - np.clip(run.sensor, lo, hi)))
     if away > FAR_SENSOR * diag:

@@ -21,10 +21,11 @@ from typing import Any
 import numpy as np
 
 from kbs.errors import ParameterError, raise_if_interrupted
+from kbs.geometry.nearest import nearest_other_distances
+from kbs.inference.voxel import bounds
 from kbs.knowledge.interpreter import Interpreter, Segmentation
 from kbs.knowledge.predicates import PredicateRegistry
 from kbs.knowledge.rulebase import RuleBase, load_rule_base
-from kbs.geometry.nearest import nearest_other_distances
 from kbs.units import CoordinateWarning, LengthUnit, ScanUnits, check_spacing, scale_factors, unit
 
 
@@ -247,7 +248,7 @@ def offset_problem(X: np.ndarray, unit: str = "") -> str | None:
     A warning, not an error: the result is computed, with less precision than the file's."""
     if not X.shape[0]:
         return None
-    lo, hi = X.min(axis=0), X.max(axis=0)
+    lo, hi = bounds(X)
     extent = float((hi - lo).max())
     far = float(np.maximum(np.abs(lo), np.abs(hi)).max())
     if not extent > 0.0 or far <= MAX_OFFSET_RATIO * extent:
