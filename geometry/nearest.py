@@ -63,7 +63,7 @@ class NearestIndex:
         from kbs.inference import _compiled
 
         lab = np.zeros(0, dtype=np.int64) if self.labels is None else self.labels
-        d, i, ok = _compiled.kdtree_nearest(Q, self.T, *self._compiled, lab)
+        d, i, ok = _compiled.kdtree_nearest(Q, self.T, *self._compiled, lab)  # type: ignore[call-arg]
         redo = np.flatnonzero(~ok)
         if redo.size:
             d[redo], i[redo] = self.tree.query(Q[redo], k=1)
