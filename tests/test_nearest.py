@@ -78,6 +78,7 @@ def test_nearest_index_refuses_an_empty_set():
         NearestIndex(np.zeros((0, 3)))
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not SCAN.exists(), reason="../shared/data/semantickitti/000001.points.npy is absent")
 def test_a_vehicle_frame_is_segmented_without_importing_scipy_spatial():
     """On SemanticKITTI 000001 the outdoor rules need no scipy k-d tree, so a fresh process does not
