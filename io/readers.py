@@ -556,7 +556,61 @@ def read_kitti_bin(path: Path) -> PointCloud:
             f"not KITTI's x y z remission layout: the 4th float32 of {negative:,} of {array.shape[0]:,} "
             f"records is negative, as no remission is (records of 3 or 5 floats?); save them as .npy",
         )
+    smoother = _smoother_layout(path, array)
+    if smoother is not None:
+        raise CloudFileError(
+            str(path),
+            f"not KITTI's x y z remission layout: read {smoother} float32 a record, consecutive points lie "
+            f"next to each other as a scanner's do, and read 4 at a time they do not (records of {smoother} "
+            f"floats?); save them as .npy",
+        )
     return PointCloud.from_arrays(array[:, :3], {"intensity": array[:, 3]}, path=str(path))
+
+
+#: consecutive records per run on which the order of a scan is judged
+_STEP_WINDOW = 2048
+#: a scan whose consecutive points lie this much closer (relative to its size) when its floats are
+#: read 3 or 5 to a record than when read 4 to one is taken for records of 3 or 5 floats
+_KITTI_SMOOTHER_BY = 10.0
+
+
+def _step_ratio(xyz: np.ndarray) -> float:
+    """The median distance between consecutive points over the cloud's size (the median distance to
+    its median point): about 0.01 for a scanner's points in the order it took them, about 1 for
+    points in no order, or for floats read in the wrong layout."""
+    n = xyz.shape[0]
+    if n > 4 * _STEP_WINDOW:  # four runs of consecutive points, spread over the file
+        xyz = np.stack([xyz[s:s + _STEP_WINDOW] for s in np.linspace(0, n - _STEP_WINDOW, 4).astype(int)])
+    else:
+        xyz = xyz[None]
+    xyz = xyz.astype(np.float64)
+    steps = np.sqrt((np.diff(xyz, axis=1) ** 2).sum(axis=2)).ravel()
+    pts = xyz.reshape(-1, 3)
+    good = np.isfinite(pts).all(axis=1)
+    steps = steps[np.isfinite(steps)]
+    if good.sum() < 16 or steps.size < 16:
+        return float("nan")
+    pts = pts[good]
+    size = float(np.median(np.sqrt(((pts - np.median(pts, axis=0)) ** 2).sum(axis=1))))
+    return float(np.median(steps)) / size if size > 0.0 else float("nan")
+
+
+def _smoother_layout(path: Path, array: np.ndarray) -> int | None:
+    """3 or 5 when the file's floats read that many to a record make a scan in a scanner's order
+    (consecutive points close) and read 4 to one do not (:data:`_KITTI_SMOOTHER_BY`): the layout a
+    KITTI reader cannot tell by the byte count (a multiple of 16 and of 12 or 20) nor, with no
+    negative coordinate, by the remissions' sign. None otherwise (a KITTI scan in any order)."""
+    if array.shape[0] < 64:
+        return None
+    as4 = _step_ratio(array[:, :3])
+    flat = array.reshape(-1)
+    for floats in (3, 5):
+        if flat.size % floats:
+            continue
+        other = _step_ratio(flat.reshape(-1, floats)[:, :3])
+        if other * _KITTI_SMOOTHER_BY < as4:
+            return floats
+    return None
 
 
 #: Reader of each supported extension (lower case, with the dot).

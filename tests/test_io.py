@@ -428,6 +428,37 @@ def _bin_of(path: Path, floats: int) -> Path:
     return out
 
 
+def _ordered_scan(floats: int) -> np.ndarray:
+    """16 rings of 300 returns in a scanner's order, in map coordinates (every one positive), with
+    ``floats`` float32 a record: x y z, then a remission (0-1) and a ring number."""
+    ring, step = np.divmod(np.arange(16 * 300), 300)
+    angle = 2 * np.pi * step / 300
+    r = 8.0 + 1.5 * ring
+    return np.column_stack([5000 + r * np.cos(angle), 7000 + r * np.sin(angle), 40.0 - 1.7 + 0.02 * ring,
+                            (step % 97) / 97.0, ring % 32]).astype("<f4")[:, :floats]
+
+
+def _scan_bin_of(path: Path, floats: int) -> Path:
+    """An ordered scan of 3 or 5 floats a record with no negative value: the remission's sign cannot
+    tell, the order of the points can."""
+    out = path / f"scan{floats}.bin"
+    _ordered_scan(floats).tofile(out)
+    return out
+
+
+@pytest.mark.parametrize("order", ["scanner", "shuffled"])
+def test_a_kitti_bin_in_any_order_is_read_as_its_records(tmp_path, order):
+    """A KITTI scan in map coordinates (no negative value), in its scanner's order or shuffled, is
+    read 4 floats a record: its byte count (a multiple of 48) allows records of 3 floats too."""
+    X = _ordered_scan(4)
+    if order == "shuffled":
+        X = X[np.random.default_rng(1).permutation(len(X))]
+    X.tofile(tmp_path / "k.bin")
+    cloud = read_cloud(tmp_path / "k.bin")
+    np.testing.assert_array_equal(cloud.xyz, X[:, :3])
+    np.testing.assert_array_equal(cloud.fields["intensity"], X[:, 3])
+
+
 def test_a_kitti_bin_with_remissions_is_read_as_its_records(tmp_path):
     X = np.column_stack([np.random.default_rng(6).uniform(-30, 30, (400, 3)), np.linspace(0, 1, 400)])
     X.astype("<f4").tofile(tmp_path / "k.bin")
@@ -629,6 +660,9 @@ BAD_FILES = {
     "npy-transposed": (_npy("t.npy", np.zeros((3, 500))), "saved transposed?"),
     "bin-of-three-floats": (lambda p: _bin_of(p, 3), "not KITTI's x y z remission layout: the 4th float32 of"),
     "bin-of-five-floats": (lambda p: _bin_of(p, 5), "not KITTI's x y z remission layout"),
+    "bin-of-three-positive-floats": (lambda p: _scan_bin_of(p, 3), "not KITTI's x y z remission layout: read 3 "
+                                     "float32 a record, consecutive points lie next to each other"),
+    "bin-of-five-positive-floats": (lambda p: _scan_bin_of(p, 5), "(records of 5 floats?)"),
     "las-scale-zero": (lambda p: _patched_las(p, 131, 0.0, 0.0, 0.0),
                        "the x, y, z scale factors 0, 0, 0 must be positive numbers"),
     "las-far-outside-its-bounds": (lambda p: _patched_las(p, 179, 5e5 + 10, 5e5, 5e6 + 10, 5e6, 310.0, 300.0),
