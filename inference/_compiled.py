@@ -1047,20 +1047,26 @@ _HALF = ((0, 0), (1, -1), (1, 0), (1, 1), (0, 1))
 
 
 @njit(nogil=True)
+def _grid_extent(U, side):
+    """The lower corner ``(lo0, lo1)`` of points (m > 0, 2) and their extent in cells of ``side``
+    along each axis, ``(fx, fy)`` (not rounded)."""
+    lo0 = hi0 = U[0, 0]
+    lo1 = hi1 = U[0, 1]
+    for i in range(1, U.shape[0]):
+        lo0 = min(lo0, U[i, 0])
+        hi0 = max(hi0, U[i, 0])
+        lo1 = min(lo1, U[i, 1])
+        hi1 = max(hi1, U[i, 1])
+    return lo0, lo1, (hi0 - lo0) / side, (hi1 - lo1) / side
+
+
+@njit(nogil=True)
 def _cell_grid(U, side, max_cells):
     """Points (m, 2) in square cells of ``side``: ``(ny, start, order, ix, iy)`` with the points
     of cell ``c = ix * ny + iy`` at ``order[start[c]:start[c + 1]]``; ``ny = -1`` when the grid
     would have more than ``max_cells`` cells."""
     m = U.shape[0]
-    lo0 = hi0 = U[0, 0]
-    lo1 = hi1 = U[0, 1]
-    for i in range(1, m):
-        lo0 = min(lo0, U[i, 0])
-        hi0 = max(hi0, U[i, 0])
-        lo1 = min(lo1, U[i, 1])
-        hi1 = max(hi1, U[i, 1])
-    fx = (hi0 - lo0) / side
-    fy = (hi1 - lo1) / side
+    lo0, lo1, fx, fy = _grid_extent(U, side)
     empty = np.zeros(0, dtype=np.int64)
     if not (fx < 1e9 and fy < 1e9) or (fx + 1.0) * (fy + 1.0) > max_cells:
         return -1, empty, empty, empty, empty
@@ -1130,15 +1136,7 @@ def _occupied_cells(U, side, max_cells):
         for i in range(m):
             cell[i] = idof[ix[i] * ny + iy[i]]
         return True, cstart, order, cell, nbr
-    lo0 = hi0 = U[0, 0]
-    lo1 = hi1 = U[0, 1]
-    for i in range(1, m):
-        lo0 = min(lo0, U[i, 0])
-        hi0 = max(hi0, U[i, 0])
-        lo1 = min(lo1, U[i, 1])
-        hi1 = max(hi1, U[i, 1])
-    fx = (hi0 - lo0) / side
-    fy = (hi1 - lo1) / side
+    lo0, lo1, fx, fy = _grid_extent(U, side)
     if not (fx < 1e9 and fy < 1e9):
         return False, empty, empty, empty, np.zeros((0, 9), dtype=np.int64)
     nx = int(fx) + 1
