@@ -131,8 +131,8 @@ def _kdtree(*args, **kwargs) -> cKDTree:
 
     return cKDTree(*args, **kwargs)
 
-__all__ = ["METHODS", "Connexity", "alpha_complex", "alpha_opening", "alpha_shape", "assign_to_nearest", "connexity", "edge_components",
-           "graph_components", "project_on_plane"]
+__all__ = ["METHODS", "Connexity", "alpha_complex", "alpha_opening", "alpha_shape", "assign_to_nearest", "connexity",
+           "edge_components", "graph_components", "project_on_plane"]
 
 _OWNER = "connexity"
 #: How the components are found: the graph of links ``<= 2 alpha`` opened by neighbour counts
