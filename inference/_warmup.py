@@ -47,6 +47,24 @@ def warm() -> None:
     for narrow in (False, True):
         C.surface_bounds(U[:50].copy(), np.full(50, np.inf), np.full(50, -np.inf), lo - 2.0, 0.5, b_lo, b_hi, n3, 8,
                          narrow)
+    # the surface's k nearest (kbs.geometry.groundmodel.LocalGround), its own cluster left out or not
+    T = np.ascontiguousarray(X[:3000, :2])
+    *grid, ok = C.plane_grid(T, 2.0 * float(np.sqrt(np.prod(T.max(axis=0) - T.min(axis=0)) / len(T))))
+    heights = np.ascontiguousarray(X[:3000, 2])
+    owners = (np.arange(3000) % 7).astype(np.int64)
+    for k, own in ((8, -1), (64, 2)):
+        C.grid_knn(np.ascontiguousarray(T[:50] + 0.01), T, *grid, k, 3.0, heights, owners, own, 8, 0)
+    # the nearest point and the nearest other (kbs.geometry.nearest), components (connexity, merge)
+    tree = C.kdtree_build(np.ascontiguousarray(X[:2000]))
+    C.kdtree_nearest(np.ascontiguousarray(X[2000:2100]), np.ascontiguousarray(X[:2000]), *tree, owners[:2000].copy())
+    C.nearest_other_distances(np.ascontiguousarray(X[:2000]), 1.0)
+    C.graph_labels(10, np.arange(5, dtype=np.int64), np.arange(1, 6, dtype=np.int64))
+    # the ground plane's RANSAC scores (kbs.geometry.groundplane)
+    nrm = np.tile([[0.0, 0.0, 1.0]], (4, 1))
+    C.plane_inlier_counts(np.ascontiguousarray(X[:500]), np.ascontiguousarray(X[:4]), nrm, 0.1)
+    from kbs.inference import GathGeva  # the estimator's predict_proba (engine.gg_memberships)
+
+    GathGeva(n_clusters=2, random_state=0).fit(X[2700:3300]).predict_proba(X[:50])
     _flags.marker().write_text(_flags._stamp())
 
 

@@ -77,3 +77,29 @@ def test_kbs_warmup_compiles_in_the_foreground_then_says_it_is_done(state):
     assert (state / "kbs-jit-ready").read_text() == _flags._stamp()
     r = CliRunner().invoke(cli, ["warmup"])
     assert r.exit_code == 0 and "already cached" in r.output
+
+
+#: kernels that only other kernels call (compiled into their callers, never from Python)
+CALLED_BY_KERNELS_ONLY = {"sorted_quantile"}
+
+
+@pytest.mark.slow
+def test_the_warm_up_compiles_every_kernel_kbs_calls():
+    """The background warm-up calls every cached kernel the library calls from Python, so that no
+    run after it compiles one in the foreground (seconds each): grid_knn, plane_grid, gg_predict,
+    plane_inlier_counts and nearest_other_distances were missing until session 29. In a fresh
+    process, so that no other test's calls count."""
+    code = (
+        "import warnings, numba\n"
+        "from kbs.inference import _compiled, _flags, _warmup\n"
+        "_flags.marker = lambda: type('M', (), {'write_text': lambda self, text: None})()\n"
+        "warnings.simplefilter('error')\n"
+        "_warmup.warm()\n"
+        "k = {n: f for n, f in vars(_compiled).items() if isinstance(f, numba.core.registry.CPUDispatcher)}\n"
+        "cached = {n for n, f in k.items() if type(f._cache).__name__ != 'NullCache'}\n"
+        f"print(len(cached), sorted(n for n in cached - set({sorted(CALLED_BY_KERNELS_ONLY)!r}) if not k[n].signatures))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-3000:]
+    n, missing = out.stdout.strip().split(" ", 1)
+    assert missing == "[]" and int(n) >= 35, out.stdout
