@@ -19,7 +19,7 @@ from kbs.knowledge.explain import NO_LABEL
 from kbs.knowledge.groundfacts import GroundFacts
 from kbs.knowledge.predicates import Ground
 from kbs.knowledge.rulebase import RuleBase
-from kbs.knowledge.segmentation import FAR_OUTLIER_FACTOR, STOP_KINDS, Segmentation, far_outliers
+from kbs.knowledge.segmentation import STOP_KINDS, Segmentation, far_outliers
 from kbs.knowledge.state import Judged, Node
 
 __all__ = ["Interpreter", "Segmentation", "STOP_KINDS", "NO_LABEL", "segment", "available_cores"]
@@ -120,14 +120,14 @@ class Interpreter:
         from kbs.knowledge import run
 
         X = np.asarray(X)
-        far = far_outliers(X)
+        far = far_outliers(X, self.rb.far_outliers)
         if far is None:
             return run.run(self, X)
         aside, side = far
         n, unit = int(aside.sum()), self.rb.length_unit
         first = X[np.flatnonzero(aside)[0]]
         note = (f"{n:,} point{'s' if n > 1 else ''} set aside as noise before the partition: more than "
-                f"{FAR_OUTLIER_FACTOR:g} x {side:.4g} {unit} (the largest side of the box of the central 98 % of the "
+                f"{self.rb.far_outliers:g} x {side:.4g} {unit} (the largest side of the box of the central 98 % of the "
                 f"cloud) beyond that box, e.g. at {first[0]:.6g}, {first[1]:.6g}, {first[2]:.6g} (far outliers: "
                 f"a glitch, a damaged record)")
         return run.run(self, X[~aside]).with_set_aside(aside, note)
@@ -148,7 +148,7 @@ class Interpreter:
         from kbs.knowledge.run import RunContext
 
         X = np.ascontiguousarray(X, dtype=np.float64)
-        far = far_outliers(X)
+        far = far_outliers(X, self.rb.far_outliers)
         if far is not None:  # as a run sets them aside
             X = np.ascontiguousarray(X[~far[0]])
         ctx = RunContext(self, X)

@@ -35,6 +35,7 @@ from jsonschema import Draft202012Validator
 from kbs.errors import ExitCode, KbsError, raise_if_interrupted
 from kbs.knowledge.engine_settings import ENGINE_DEFAULTS as _ENGINE_DEFAULTS
 from kbs.knowledge.predicates import Predicate, PredicateRegistry, did_you_mean
+from kbs.knowledge.segmentation import FAR_OUTLIER_FACTOR
 
 SCHEMA_FILE = "rule-base.schema.json"
 ACTIONS = ("split", "split_components", "reject")
@@ -378,6 +379,9 @@ class RuleBase:
     asprs_classes: Mapping[str, int] | None = None
     #: spacing: the median point spacing [min, max] the rule base suits (its unit); None: not declared.
     spacing: tuple[float, float] | None = None
+    #: far outliers (``scene.far_outliers``): the factor of :func:`~kbs.knowledge.segmentation.far_outliers`
+    #: (points that far beyond the box of the cloud's central 98 % are set aside as noise first); None: off
+    far_outliers: float | None = FAR_OUTLIER_FACTOR
     #: what is valid but cannot be meant: conditions that can never hold (``kbs rules check``
     #: prints them; they do not make the file invalid)
     warnings: tuple[Problem, ...] = ()
@@ -1010,6 +1014,9 @@ class _Validator:
             self.add(("engine", "initial_k"), f"initial_k = {engine['initial_k']} contradicts k_max = {engine['k_max']}")
         scene = d.get("scene") if isinstance(d.get("scene"), dict) else {}
         sensor = scene.get("sensor", [0.0, 0.0, 0.0])
+        far = scene.get("far_outliers", {})
+        far_factor = None if far is False else float(far.get("factor", FAR_OUTLIER_FACTOR)) if isinstance(far, dict) \
+            else FAR_OUTLIER_FACTOR
         ground = self._ground(scene.get("ground") if isinstance(scene.get("ground"), dict) else {}, checks)
         post = self._post(d.get("post"), checks, labels)
         self._model_checks_placed(checks, rules, labels)
@@ -1027,7 +1034,7 @@ class _Validator:
             checks=checks, rules=tuple(rules), labels=tuple(labels), path=self.pos.file,
             text="\n".join(self.pos.lines), post=tuple(post), warnings=tuple(sorted(self.warnings, key=lambda p: (p.pos.line, p.pos.col))),
             asprs_classes=classes, spacing=None if spacing is None else (float(spacing[0]), float(spacing[1])),
-            tunables=tuple(tunables),
+            tunables=tuple(tunables), far_outliers=far_factor,
         )
 
     # -- tune marks ------------------------------------------------------------------------------

@@ -122,24 +122,26 @@ FAR_OUTLIER_MIN_POINTS = 100
 FAR_OUTLIER_SAMPLE = 1_000_000
 
 
-def far_outliers(X: np.ndarray) -> tuple[np.ndarray, float] | None:
+def far_outliers(X: np.ndarray, factor: float | None = FAR_OUTLIER_FACTOR) -> tuple[np.ndarray, float] | None:
     """The points of ``X`` (n, 3) that lie so far from the rest of the cloud that they are glitches
     (a lidar return kilometres away, a damaged record), and the size that decided it: the box of
     the central 98 % of the points (1st to 99th percentile on each axis, of every k-th point of a
     cloud of more than :data:`FAR_OUTLIER_SAMPLE`) and its largest side E; a
-    point more than :data:`FAR_OUTLIER_FACTOR` x E beyond the box, on any axis. None when there is
-    none (or the cloud has fewer than :data:`FAR_OUTLIER_MIN_POINTS` points, or E is 0).
+    point more than ``factor`` x E beyond the box, on any axis (the rule base's
+    ``scene.far_outliers.factor``, :data:`FAR_OUTLIER_FACTOR` by default). None when there is
+    none (or ``factor`` is None: the rule base asks for none to be set aside; or the cloud has
+    fewer than :data:`FAR_OUTLIER_MIN_POINTS` points, or E is 0).
 
     One such point is enough to make UFP-ONC's first partition a single cluster (its new
     prototype takes the outlier alone, which dies): the whole scene would be judged as one
     cluster."""
-    if X.ndim != 2 or X.shape[0] < FAR_OUTLIER_MIN_POINTS or not np.isfinite(X).all():
+    if factor is None or X.ndim != 2 or X.shape[0] < FAR_OUTLIER_MIN_POINTS or not np.isfinite(X).all():
         return None
     step = max(1, X.shape[0] // FAR_OUTLIER_SAMPLE)  # the percentiles of a regular sample of a large cloud
     lo, hi = np.percentile(X[::step], [1.0, 99.0], axis=0)
     side = float((hi - lo).max())
     if not side > 0.0:
         return None
-    reach = FAR_OUTLIER_FACTOR * side
+    reach = factor * side
     far = ((X < lo - reach) | (X > hi + reach)).any(axis=1)
     return (far, side) if far.any() else None

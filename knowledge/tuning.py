@@ -169,7 +169,7 @@ class SplitTree:
             if interpreter is None:
                 rec.close()
         assert rec.state is not None  # set by the run's finish
-        far = far_outliers(np.asarray(X))
+        far = far_outliers(np.asarray(X), rule_base.far_outliers)
         aside = None if far is None else (far[0], seg.explanation.notes[-1])
         return cls(rule_base, seg, time.perf_counter() - t0, rec.state, rec.sensor.copy(), aside)
 

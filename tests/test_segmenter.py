@@ -414,3 +414,44 @@ def test_points_within_reach_are_not_outliers():
     near = hi + 1.9 * (hi - lo).max()
     assert far_outliers(np.vstack([X, near])) is None
     assert far_outliers(np.vstack([X, hi + 2.1 * (hi - lo).max()]))[0].sum() == 1
+
+
+def _outdoor_with(tmp_path, far: str) -> Path:
+    """The shipped outdoor rules with ``scene.far_outliers`` set (a YAML value)."""
+    text = (ROOT / "rules" / "outdoor.yaml").read_text(encoding="utf-8")
+    assert "\nscene:\n" in text
+    path = tmp_path / "far.yaml"
+    path.write_text(text.replace("\nscene:\n", f"\nscene:\n  far_outliers: {far}\n", 1), encoding="utf-8")
+    return path
+
+
+def test_far_outliers_follow_the_rule_base_s_setting(tmp_path):
+    """``scene.far_outliers``: ``false`` sets nothing aside (the glitch stays in the cloud and is
+    labelled with the rest), a factor moves the reach (a point 3 x the central box's side beyond it
+    is a far outlier at factor 2, not at 4); the default is the factor 2 the shipped rules use."""
+    X = read_cloud(EXAMPLE).xyz
+    lo, hi = np.percentile(X, [1, 99], axis=0)
+    dirty = np.vstack([X, hi + 3.0 * (hi - lo).max()])
+    assert load_rule_base("outdoor").far_outliers == 2.0
+    off = load_rule_base(_outdoor_with(tmp_path, "false"))
+    assert off.far_outliers is None
+    res = kbs.Segmenter(off, jobs=1).segment(dirty)
+    assert res.label[-1] >= 0 and not any("set aside as noise" in n for n in res.explanation.notes)
+    wide = load_rule_base(_outdoor_with(tmp_path, "{factor: 4}"))
+    assert wide.far_outliers == 4.0
+    from kbs.knowledge.segmentation import far_outliers
+
+    assert far_outliers(dirty, 4.0) is None and far_outliers(dirty, 2.0)[0].sum() == 1
+    assert far_outliers(dirty, None) is None
+
+
+@pytest.mark.parametrize("value, problem", [("{factor: 0}", "factor"), ("{factor: -1}", "factor"),
+                                            ("{factor: .nan}", "not a finite number"), ("true", "far_outliers"),
+                                            ("{reach: 2}", "reach")])
+def test_a_bad_far_outliers_setting_is_a_positioned_rule_file_error(tmp_path, value, problem):
+    path = _outdoor_with(tmp_path, value)
+    with pytest.raises(RuleFileError) as info:
+        load_rule_base(path)
+    message = str(info.value)
+    line = path.read_text(encoding="utf-8").split("\n").index(f"  far_outliers: {value}") + 1
+    assert f"far.yaml:{line}:" in message and problem in message, message
