@@ -1,7 +1,8 @@
 """Pure geometry of point sets, below the knowledge layer: the principal components and plane
 basis of a point set (:mod:`~kbs.geometry.pca`), the alpha-complex connexity and alpha opening
 (:mod:`~kbs.geometry.connexity`), the robust plane of a ground candidate
-(:mod:`~kbs.geometry.groundplane`) and the local ground surface (:mod:`~kbs.geometry.groundmodel`).
+(:mod:`~kbs.geometry.groundplane`), the local ground surface (:mod:`~kbs.geometry.groundmodel`) and
+the nearest point (:mod:`~kbs.geometry.nearest`: scipy's k-d tree answers, compiled).
 
 Arrays in, arrays out: no rules, no files. It uses numpy, scipy and the compiled kernels of
 :mod:`kbs.inference._compiled` (one numba module, one warm-up; switched by ``KBS_JIT``), so it sits
