@@ -184,6 +184,20 @@ def _where(path: tuple) -> str:
     return out or "the rule base"
 
 
+def _meant_branch(err: Any) -> list:
+    """The errors of the one form of a ``oneOf``/``anyOf`` schema error ``err`` that the value's type
+    (or constant) fits, when exactly one fits and has errors of its own: what is wrong with the value
+    in the form it was written in (e.g. ``far_outliers: {factor: 0}``: the factor's bound, at the
+    factor). Empty otherwise (a value of no form's type: the caller names the forms)."""
+    branches: dict[Any, list] = {}
+    for sub in err.context or ():
+        branches.setdefault(sub.relative_schema_path[0] if sub.relative_schema_path else None, []).append(sub)
+    root = tuple(err.absolute_path)
+    fitting = [errs for errs in branches.values()
+               if not any(e.validator in ("type", "const") and tuple(e.absolute_path) == root for e in errs)]
+    return fitting[0] if len(fitting) == 1 and len(branches) > 1 else []
+
+
 # --- the model -------------------------------------------------------------------------------
 
 
@@ -981,8 +995,12 @@ class _Validator:
         elif kind == "type":
             self.add(path, f"{where} must be {_article(sch['type'])}; got {_brief(inst)}" + _as_number_hint(inst))
         elif kind in ("oneOf", "anyOf"):
+            meant = _meant_branch(err)
             if path and len(path) == 2 and path[0] == "checks":
                 self.add(path, f"check '{path[1]}' needs a threshold: 'max' and/or 'min'")
+            elif meant:  # the value has the type of one form only: what is wrong with it in that form, where
+                for sub in meant:
+                    self._schema_error(sub, prefix)
             else:
                 what = str(sch.get("description", "see the schema")).rstrip(". ")  # a sentence: its stop before '; got'
                 self.add(path, f"{where} is invalid: {what}; got {_brief(inst)}")

@@ -328,7 +328,8 @@ def test_a_tune_mark_of_a_billion_steps_is_a_rule_file_problem_not_a_grid_built(
     r = kbs("rules", "check", str(bad))
     assert r.returncode == 4, r.stderr
     line = next(k for k, t in enumerate(bad.read_text().splitlines(), 1) if "steps: 1000000000" in t)
-    assert f"steps.yaml:{line}:11: checks.planar.tune is invalid" in r.stderr, r.stderr
+    assert f"steps.yaml:{line}:40: checks.planar.tune.steps: 1000000000 is greater than the maximum of 101" in r.stderr, \
+        r.stderr
 
 
 def test_tune_marks_whose_settings_multiply_past_the_cap_are_refused_before_any_scan_is_read(tmp_path):

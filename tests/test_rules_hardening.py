@@ -516,13 +516,33 @@ def test_rules_check_summary_lists_the_post_steps_in_order(tmp_path, capsys):
 
 
 def test_a_setting_with_two_forms_says_what_it_takes_in_one_sentence(tmp_path, capsys):
-    text = MINIMAL.replace("strategy: divisive", "strategy: divisive\nengine: {initial_k: 0}")
+    """A value of neither form's type (a misspelt name for ``initial_k``) is told both forms in one
+    sentence, at the value."""
+    text = MINIMAL.replace("strategy: divisive", "strategy: divisive\nengine: {initial_k: firstmax}")
     path = write(tmp_path, text)
     code, _, err = check(capsys, path)
-    at = line_col(text, "0}")
+    at = line_col(text, "firstmax}")
     assert code == 4
     assert (f"{path}:{at}: engine.initial_k is invalid: K of the first partition: 'first_apd_max' (APD's first "
-            "local maximum, the seed paper) or a fixed K; got 0\n") in err, err
+            "local maximum, the seed paper) or a fixed K; got 'firstmax'\n") in err, err
+
+
+@pytest.mark.parametrize("setting, at, message", [
+    ("engine: {initial_k: 0}", "0}", "engine.initial_k: 0 is less than the minimum of 1"),
+    ("scene: {far_outliers: {factor: 0}}", "0}}", "scene.far_outliers.factor: 0 is less than or equal to the minimum of 0"),
+    ("scene: {far_outliers: {fator: 2}}", "fator", "unknown key 'fator' in scene.far_outliers (did you mean 'factor'?)"),
+    ("scene: {ground: {normal: [0, 1]}}", "[0, 1]", "scene.ground.normal: [0, 1] is too short"),
+])
+def test_a_value_of_one_form_s_type_is_told_what_is_wrong_in_that_form_where(tmp_path, capsys, setting, at, message):
+    """A value written in one of a setting's forms (a number for ``initial_k``, a mapping for
+    ``far_outliers``, a vector for ``normal``) is told what is wrong with it in that form, at the
+    part that is wrong, not the whole setting's description at the setting."""
+    text = MINIMAL.replace("strategy: divisive", f"strategy: divisive\n{setting}")
+    path = write(tmp_path, text)
+    code, _, err = check(capsys, path)
+    assert code == 4
+    assert f"{path}:{line_col(text, at)}: {message}\n" in err, err
+    assert "is invalid" not in err, err
 
 
 def test_a_parameter_given_a_whole_mapping_is_named_briefly():
