@@ -642,9 +642,10 @@ def _splits(n: int) -> str:
     return f"{n:,} split{'s' if n != 1 else ''}"
 
 
-def time_table(results: list[ScanResult | ScanFailure], t_load: float, t_total: float) -> str:
+def time_table(results: list[ScanResult | ScanFailure], t_load: float, t_total: float, at_once: int = 1) -> str:
     """The per-scan time table `kbs run` prints after several scans (aligned columns, then the
-    median segmentation time and the total, which includes loading the rule base)."""
+    median segmentation time and the total, which includes loading the rule base; ``at_once``: how
+    many scans were segmented side by side)."""
     name_w = max([len("scan")] + [len(r.cloud.name) for r in results])
     head = f"{'scan':<{name_w}}  {'points':>10}  {'clusters':>8}  {'read s':>6}  {'segment s':>9}  {'write s':>7}"
     lines = [head]
@@ -659,7 +660,8 @@ def time_table(results: list[ScanResult | ScanFailure], t_load: float, t_total: 
     failed = len(results) - len(done)
     head = f"{len(results)} scans" + (f" ({failed} failed)" if failed else "")
     median = f"segment median {float(np.median(done)):.2f} s, " if done else ""
-    lines.append(f"{head}: {median}total {t_total:.2f} s (rule base loaded once, {t_load:.2f} s)")
+    side = f", {at_once} scans at a time" if at_once > 1 else ""
+    lines.append(f"{head}: {median}total {t_total:.2f} s{side} (rule base loaded once, {t_load:.2f} s)")
     return "\n".join(lines)
 
 
@@ -697,8 +699,9 @@ def time_table(results: list[ScanResult | ScanFailure], t_load: float, t_total: 
 @click.option("--report", is_flag=True, help="Also write DIR/<stem>.html: a self-contained report (3D view by "
               "cluster or label, centres and eigen-boxes, APD curve, the explanation tree; opens offline).")
 @click.option("-j", "--jobs", type=click.IntRange(min=-1), default=-1, show_default=True, callback=_jobs,
-              help="Processes computing the UFP-ONC splits side by side; -1: one per available core. The result "
-              "does not depend on it.")
+              help="Processes computing the UFP-ONC splits side by side; -1: one per available core. With several "
+              "scans (not --tile, --scheduler), up to this many scans are segmented at once instead, each in a process "
+              "of its own. The result does not depend on it.")
 @click.option("--tile", "tile", type=FiniteFloatRange(min=0, min_open=True), metavar="SIZE",
               help="Segment in square tiles of SIZE (cloud units) in the ground plane, each with a buffer, and "
               "stitch them: clusters crossing a tile edge become one.")
@@ -735,8 +738,10 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
 
     A CLOUD that is a directory stands for every point-cloud file directly inside it, in name
     order; '-' is standard input (give --in-format). The rule base is loaded once for all the
-    scans; with several, a table of the time each took follows. A scan that fails is reported and
-    the others go on; the exit code is then the first failure's.
+    scans; with several, a table of the time each took follows. Several scans are segmented -j at
+    a time, each in a process of its own (what each prints comes in scan order); one scan uses the
+    -j processes for its splits. A scan that fails is reported and the others go on; the exit code
+    is then the first failure's.
 
     Units: a scan whose unit is known (its file's CRS or 'units' comment, --units) is scaled to
     the rule base's unit before segmenting; a warning says when its point spacing does not fit
@@ -857,19 +862,142 @@ def _run_scans(segmenter, scans, out_dir: Path, t0: float, scheduler: tuple[str,
         return
     t_load = time.perf_counter() - t0
     results: list[ScanResult | ScanFailure] = []
+    at_once = 1 if scheduler is not None else scans_at_once(segmenter, scans, out_dir, options)
     if scheduler is not None:
         results = _scans_on_dask(segmenter, scans, out_dir, *scheduler, options)
-    for scan in scans if scheduler is None else ():
-        try:
-            results.append(run_scan(segmenter, scan, out_dir, **options))
-        except KbsError as exc:  # as the command would report it alone; the other scans go on
-            click.echo(f"kbs: error: {exc}", err=True)
-            results.append(ScanFailure(scan, int(exc.exit_code)))
+    elif at_once > 1:
+        results = _scans_in_processes(segmenter, scans, out_dir, at_once, options)
+    else:
+        results = [_one_scan(segmenter, scan, out_dir, options) for scan in scans]
     if not options.get("quiet"):
-        click.echo(time_table(results, t_load, time.perf_counter() - t0))
+        click.echo(time_table(results, t_load, time.perf_counter() - t0, at_once=at_once))
     failures = [r.exit_code for r in results if isinstance(r, ScanFailure)]
     if failures:
         raise click.exceptions.Exit(failures[0])
+
+
+def _one_scan(segmenter: Segmenter, scan: Path, out_dir: Path, options: dict) -> ScanResult | ScanFailure:
+    """One scan of several, in this process: a failure is reported as the command would report it
+    alone, and the other scans go on."""
+    try:
+        return run_scan(segmenter, scan, out_dir, **options)
+    except KbsError as exc:
+        click.echo(f"kbs: error: {exc}", err=True)
+        return ScanFailure(scan, int(exc.exit_code))
+
+
+def scans_at_once(segmenter: Segmenter, scans: list[Path], out_dir: Path | None, options: dict) -> int:
+    """How many of several scans ``kbs run`` segments side by side, each in a process of its own:
+    as many as the segmenter's ``jobs`` (the split processes it would start otherwise), at most one
+    per scan; 1 (one after the other, the splits in ``jobs`` processes) for ``--tile`` (whose tiles
+    the split processes share), standard input or output, and where processes cannot be forked."""
+    import multiprocessing
+
+    jobs = segmenter._interpreter.jobs  # -1 already resolved to the available cores
+    if (len(scans) < 2 or jobs < 2 or out_dir is None or options.get("tiling") is not None
+            or any(str(scan) == "-" for scan in scans) or "fork" not in multiprocessing.get_all_start_methods()):
+        return 1
+    return min(jobs, len(scans))
+
+
+#: the segmenter of a process that segments whole scans (set by :func:`_scan_worker_start`)
+_SCAN_WORKER: dict = {}
+
+
+def _scan_worker_start(segmenter: Segmenter, jobs: int) -> None:
+    """A scan process's start (forked: the rule base is the parent's, not read again): its own
+    segmenter with ``jobs`` split processes; Ctrl-C is for the parent, which stops the scan
+    processes with SIGTERM; a SIGTERM during a scan ends it as a SIGTERM ends ``kbs run`` (the
+    outputs being written are removed), between scans the process just ends."""
+    import signal
+
+    _SCAN_WORKER["segmenter"] = segmenter.with_jobs(jobs)
+    _SCAN_WORKER["busy"] = False
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _scan_worker_sigterm)
+
+
+def _scan_worker_sigterm(signum: int, frame: object) -> None:
+    import os
+
+    from kbs.errors import Terminated
+
+    if _SCAN_WORKER.get("busy"):  # the scan unwinds (its outputs' temporary files removed), then the process ends
+        _SCAN_WORKER["stop"] = 128 + signum
+        raise Terminated
+    os._exit(128 + signum)
+
+
+def _scan_in_worker(scan: Path, out_dir: Path, options: dict) -> tuple[ScanResult | None, int | None, str, str, str]:
+    """One scan in a scan process: what :func:`run_scan` returns (or the exit code and message of
+    its KbsError) and what it printed on stdout and stderr, for the parent to print in scan order."""
+    import contextlib
+    import io
+    import os
+
+    out, err = io.StringIO(), io.StringIO()
+    result, code, message = None, None, ""
+    _SCAN_WORKER["busy"] = True
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                result = run_scan(_SCAN_WORKER["segmenter"], scan, out_dir, **options)
+            except KbsError as exc:
+                code, message = int(exc.exit_code), str(exc)
+    finally:
+        _SCAN_WORKER["busy"] = False
+        if _SCAN_WORKER.get("stop"):  # stopped by the parent: no next scan
+            os._exit(_SCAN_WORKER["stop"])
+    return result, code, message, out.getvalue(), err.getvalue()
+
+
+def _scans_in_processes(segmenter: Segmenter, scans: list[Path], out_dir: Path, at_once: int,
+                        options: dict) -> list[ScanResult | ScanFailure]:
+    """Several scans ``at_once`` at a time, each read, segmented and written whole in a forked
+    process with its own segmenter (the split processes shared out among them); what each printed
+    is printed here in scan order, as one run after the other would print it. The results are those
+    of one process (a scan's segmentation does not depend on the others). A scan process that dies
+    (killed, out of memory) leaves its scan to this process. Ctrl-C or SIGTERM here stops the scan
+    processes (SIGTERM: the outputs they were writing are removed) after printing what the scans
+    already finished printed."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
+
+    jobs = max(1, segmenter._interpreter.jobs // at_once)
+    pool = ProcessPoolExecutor(max_workers=at_once, mp_context=multiprocessing.get_context("fork"),
+                               initializer=_scan_worker_start, initargs=(segmenter, jobs))
+    futures = [pool.submit(_scan_in_worker, scan, out_dir, options) for scan in scans]
+    results: list[ScanResult | ScanFailure] = []
+
+    def report(scan: Path, outcome: tuple) -> ScanResult | ScanFailure:
+        result, code, message, out, err = outcome
+        click.echo(out, nl=False)
+        click.echo(err, nl=False, err=True)
+        if result is None:
+            click.echo(f"kbs: error: {message}", err=True)
+            return ScanFailure(scan, code if code is not None else int(ExitCode.INTERNAL))
+        return result
+
+    try:
+        for scan, future in zip(scans, futures):
+            try:
+                outcome = future.result()
+            except BrokenProcessPool:  # its process died: the scan again, here
+                results.append(_one_scan(segmenter, scan, out_dir, options))
+                continue
+            results.append(report(scan, outcome))
+    except BaseException:  # Ctrl-C, SIGTERM: what finished is said, the rest stopped
+        for scan, future in zip(scans[len(results):], futures[len(results):]):
+            if not future.done() or future.cancelled() or future.exception() is not None:
+                break
+            report(scan, future.result())
+        for process in list(getattr(pool, "_processes", {}).values()):
+            process.terminate()
+        raise
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+    return results
 
 
 def _scan_task(rules: str, sensor: tuple[float, float, float], plugins: tuple[str, ...], scan: Path,

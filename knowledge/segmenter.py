@@ -194,6 +194,17 @@ class Segmenter:
             self._interpreter.progress = None
             self._interpreter.sensor = np.asarray(self.sensor, dtype=np.float64)
 
+    def with_jobs(self, jobs: int) -> Segmenter:
+        """A segmenter of the same rule base, sensor and plugins (nothing read again) with ``jobs``
+        split processes of its own; this one is unchanged. ``kbs run`` gives one to each process
+        that segments whole scans side by side."""
+        other = object.__new__(Segmenter)
+        other.jobs = _check_jobs(jobs)
+        other.plugins, other.rule_base, other.sensor = self.plugins, self.rule_base, self.sensor
+        other._interpreter = Interpreter(self.rule_base, sensor=self.sensor, jobs=other.jobs)
+        other._judge_spacing = self._judge_spacing
+        return other
+
     def close(self) -> None:
         """Stop the split worker processes (``jobs`` > 1); they are started once, at the first
         split, and kept frame after frame until then. Using the segmenter again restarts them."""

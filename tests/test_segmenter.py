@@ -230,8 +230,8 @@ def test_run_two_files_writes_both_pairs_then_the_time_table(two_bundled):
     for m, scan in zip(rows, (EXAMPLE, POLYHEDRAL)):
         doc = json.loads((out / f"{scan.stem}.json").read_text())
         assert int(m["points"].replace(",", "")) == doc["n_points"] and int(m["clusters"]) == len(doc["clusters"])
-    assert re.fullmatch(r"2 scans: segment median \d+\.\d\d s, total \d+\.\d\d s \(rule base loaded once, "
-                        r"\d+\.\d\d s\)", table[3])
+    assert re.fullmatch(r"2 scans: segment median \d+\.\d\d s, total \d+\.\d\d s(, 2 scans at a time)? \(rule base "
+                        r"loaded once, \d+\.\d\d s\)", table[3])
 
 
 @pytest.mark.slow
@@ -271,11 +271,13 @@ def test_duplicate_stems_exit_2_before_any_work(tmp_path, capsys, case):
 
 
 @pytest.mark.slow
-def test_one_unreadable_scan_among_good_ones_the_others_are_written_exit_3(tmp_path):
+@pytest.mark.parametrize("jobs", ["1", "2"])
+def test_one_unreadable_scan_among_good_ones_the_others_are_written_exit_3(tmp_path, jobs):
+    """The same with the scans one after the other (-j 1) and side by side (-j 2)."""
     broken = tmp_path / "broken.ply"
     broken.write_bytes(EXAMPLE.read_bytes()[:2000])
     out = tmp_path / "out"
-    r = kbs_command("run", "--rules", "outdoor", "-j", "1", str(broken), str(tmp_path / "missing.xyz"), str(EXAMPLE),
+    r = kbs_command("run", "--rules", "outdoor", "-j", jobs, str(broken), str(tmp_path / "missing.xyz"), str(EXAMPLE),
                     "--out", str(out))
     assert r.returncode == 3, r.stderr
     assert sorted(p.name for p in out.iterdir()) == ["outdoor.json", "outdoor.ply"]
@@ -286,6 +288,113 @@ def test_one_unreadable_scan_among_good_ones_the_others_are_written_exit_3(tmp_p
     assert table[1].startswith("broken.ply ") and table[1].endswith("failed: exit code 3")
     assert table[2].startswith("missing.xyz ") and TIME_ROW.match(table[3])["name"] == "outdoor.ply"
     assert table[4].startswith("3 scans (2 failed): segment median ")
+
+
+def _three_scans(tmp_path: Path) -> Path:
+    """A folder of three scans: the two bundled scenes and the first turned and moved (an .npy)."""
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    shutil.copy(EXAMPLE, scans / "a.ply")
+    shutil.copy(POLYHEDRAL, scans / "b.ply")
+    X = read_cloud(EXAMPLE).xyz
+    np.save(scans / "c.npy", X[:, [1, 0, 2]] * [1.0, -1.0, 1.0] + [100.0, -50.0, 2.0])
+    return scans
+
+
+def _written(out: Path, stem: str) -> tuple:
+    """What a result pair holds apart from its run id and times: the points' arrays and the JSON's
+    clusters and explanation."""
+    from plyfile import PlyData
+
+    v = PlyData.read(str(out / f"{stem}.ply"))["vertex"].data
+    doc = json.loads((out / f"{stem}.json").read_text())
+    return ({k: v[k].tolist() for k in v.dtype.names}, doc["clusters"], doc["explanation"], doc["label_names"])
+
+
+@pytest.mark.slow
+def test_several_scans_side_by_side_write_what_one_after_the_other_writes(tmp_path):
+    """-j 2 on a folder of three scans segments two at a time, each in a process of its own: the
+    same outputs as -j 1, what each scan prints in scan order, the table saying how many ran at once."""
+    scans = _three_scans(tmp_path)
+    runs = {j: kbs_command("run", "--rules", "outdoor", "-j", j, str(scans), "--out", str(tmp_path / f"o{j}"))
+            for j in ("1", "2")}
+    for j, r in runs.items():
+        assert r.returncode == 0, r.stderr
+        assert [m["path"] for m in map(SCAN_LINE.match, r.stdout.splitlines()) if m] == [
+            str(scans / n) for n in ("a.ply", "b.ply", "c.npy")], r.stdout
+        assert [TIME_ROW.match(line)["name"] for line in _table(r.stdout)[1:4]] == ["a.ply", "b.ply", "c.npy"]
+        assert r.stdout.count("  time: ") == 3 and "Traceback" not in r.stderr
+    assert ", 2 scans at a time (rule base loaded once" in _table(runs["2"].stdout)[4]
+    assert "at a time" not in runs["1"].stdout
+    for stem in ("a", "b", "c"):
+        assert _written(tmp_path / "o1", stem) == _written(tmp_path / "o2", stem), stem
+
+
+@pytest.mark.slow
+def test_a_scan_process_that_dies_leaves_its_scan_to_the_command(tmp_path):
+    """A scan process killed (out of memory, kill -9) breaks the pool: the scans it left are
+    segmented by the command itself, with the same outputs, exit code 0."""
+    scans = _three_scans(tmp_path)
+    code = ("import os, sys, kbs.cli.run as r\n"
+            "real = r._scan_in_worker\n"
+            "def dying(scan, *a):\n"
+            "    if scan.name == 'b.ply':\n        os._exit(9)\n"
+            "    return real(scan, *a)\n"
+            "r._scan_in_worker = dying\n"
+            "from kbs.cli.main import entry; sys.argv = ['kbs', *sys.argv[1:]]; entry()")
+    r = subprocess.run([sys.executable, "-c", code, "run", "--rules", "outdoor", "-j", "2", str(scans), "--out",
+                        str(tmp_path / "o2")], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert "Traceback" not in r.stderr
+    ref = kbs_command("run", "--rules", "outdoor", "-j", "1", str(scans / "b.ply"), "--out", str(tmp_path / "o1"))
+    assert ref.returncode == 0, ref.stderr
+    assert _written(tmp_path / "o1", "b") == _written(tmp_path / "o2", "b")
+    assert sorted(p.name for p in (tmp_path / "o2").iterdir()) == ["a.json", "a.ply", "b.json", "b.ply",
+                                                                    "c.json", "c.ply"]
+
+
+@pytest.mark.slow
+def test_sigterm_stops_the_scan_processes_and_leaves_nothing_half_written(tmp_path):
+    """SIGTERM to `kbs run -j 2` while two scans are segmented side by side: exit code 143, the scan
+    processes end too (none left running), no output and no temporary file in the folder."""
+    import os
+    import signal
+    import time
+
+    scans = _three_scans(tmp_path)
+    marks = tmp_path / "marks"
+    marks.mkdir()
+    code = ("import os, sys, time, pathlib, kbs.knowledge.segmenter as s\n"
+            "def slow(self, *a, **k):\n"
+            f"    pathlib.Path({str(marks)!r}, str(os.getpid())).write_text('')\n"
+            "    time.sleep(120)\n"
+            "s.Segmenter.segment = slow\n"
+            "from kbs.cli.main import entry; sys.argv = ['kbs', *sys.argv[1:]]; entry()")
+    out = tmp_path / "o"
+    p = subprocess.Popen([sys.executable, "-c", code, "run", "--rules", "outdoor", "-j", "2", str(scans), "--out",
+                          str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.monotonic()
+    while len(list(marks.iterdir())) < 2 and p.poll() is None and time.monotonic() - t0 < 120:
+        time.sleep(0.02)
+    assert p.poll() is None, p.communicate()[1]
+    workers = [int(m.name) for m in marks.iterdir()]
+    assert len(workers) == 2 and p.pid not in workers
+    p.send_signal(signal.SIGTERM)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 143, (p.returncode, err)
+    assert err.strip().splitlines()[-1] == "kbs: terminated (SIGTERM)", err
+    assert "Traceback" not in err
+    for pid in workers:
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            try:
+                os.kill(pid, 0)
+            except ProcessLookupError:
+                break
+            time.sleep(0.05)
+        else:
+            raise AssertionError(f"scan process {pid} still running")
+    assert list(out.iterdir()) == []
 
 
 @pytest.mark.slow
@@ -301,6 +410,26 @@ def test_one_scan_prints_as_before_without_a_table(tmp_path):
                         "1.3 deg from the fallback normal")
     assert re.fullmatch(r"  time: \d+\.\d\d s \(read \d+\.\d\d, segment \d+\.\d\d, write \d+\.\d\d\)", lines[3])
     assert lines[4] == f"wrote {tmp_path}/outdoor.ply and {tmp_path}/outdoor.json"
+
+
+@pytest.mark.slow
+def test_the_readme_several_scans_table_is_what_kbs_run_prints(tmp_path):
+    """The README's `kbs run --rules outdoor examples/data` block: the same rows (scan, points,
+    clusters; the times are this machine's) and the same last line but for its times (two scans
+    at a time on a machine of two cores or more, as the README's)."""
+    readme = (ROOT / "README.md").read_text()
+    section = readme[readme.index("### Several scans, one rule base"):]
+    shown = re.search(r"```\n\$ kbs run --rules outdoor examples/data --out kbs-out\n(.*?)```", section, re.S)[1]
+    r = kbs_command("run", "--rules", "outdoor", "examples/data", "--out", str(tmp_path), cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    got, want = _table(r.stdout), _table(shown)
+    assert len(got) == len(want) == 4
+    for line_got, line_want in zip(got[1:3], want[1:3]):
+        assert line_got.split()[:3] == line_want.split()[:3], (line_got, line_want)
+    times = re.compile(r"\d+\.\d\d s")
+    cores = kbs.knowledge.interpreter.available_cores()
+    last = times.sub("T s", got[3]) if cores >= 2 else times.sub("T s", got[3]).replace(" (", ", 2 scans at a time (")
+    assert last == times.sub("T s", want[3]), (got[3], want[3])
 
 
 @pytest.mark.slow
