@@ -2,13 +2,14 @@
 built once, then ``segment(points)`` frame after frame) on the real vehicle scans, with one
 process (``jobs=1``) and with ``jobs=2``, against Patchwork++'s segmentation of the same points in
 the same run; then the whole ``kbs run`` process (start-up, imports, reading, segmentation,
-writing) against a whole Patchwork++ process that reads the same file.
+writing) against a whole Patchwork++ process that reads the same file; then one ``kbs run`` on a
+folder of all the scans, per ``-j`` (several scans run ``-j`` at a time).
 
 Prints markdown tables: medians over ``--repeats`` frames (after one warm-up frame that is not
 counted), min and max, and the ratio to Patchwork++ measured in the same run. The machine is
 shared: compare ratios, not absolute times across runs.
 
-Usage: python benchmarks/bench_run.py [--repeats 5] [--jobs 1 2] [--process-repeats 5]
+Usage: python benchmarks/bench_run.py [--repeats 5] [--jobs 1 2] [--process-repeats 5] [--batch-repeats 3]
 Patchwork++ comes with ``pip install .[bench]``; without it the ratios are left out, saying why.
 """
 from __future__ import annotations
@@ -154,10 +155,45 @@ def process(repeats: int, jobs_list: list[int]) -> None:
         print(f"| {k} | {med:.2f} | {min(ts):.2f} | {max(ts):.2f} |{ratio}")
 
 
+def batch(repeats: int, jobs_list: list[int]) -> None:
+    """`kbs run` on a folder of the six vehicle scans, with each -j: the scans one after the other
+    (-j 1) or -j at a time, each in a process of its own (the same outputs)."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    with tempfile.TemporaryDirectory() as tmp:
+        scans = Path(tmp) / "scans"
+        scans.mkdir()
+        for name, path, _, _ in frames():  # links with distinct stems (000001 is in two data sets)
+            stem = name.split(" (")[0].replace(" ", "_")
+            (scans / f"{stem}{path.suffix}").symlink_to(path)
+        cmds = {f"kbs run -j {j} FOLDER": kbs_command() + ["-q", "run", "--rules", "outdoor", str(scans), "--out",
+                                                           str(Path(tmp) / f"out{j}"), "-j", str(j)]
+                for j in jobs_list}
+        times: dict[str, list[float]] = {k: [] for k in cmds}
+        for r in range(repeats + 1):  # the first round untimed (bytecode, kernel caches)
+            for k, cmd in (cmds.items() if r % 2 == 0 else reversed(cmds.items())):
+                t0 = time.perf_counter()
+                out = subprocess.run(cmd, capture_output=True, text=True, env=env)
+                dt = time.perf_counter() - t0
+                if out.returncode != 0:
+                    sys.exit(f"{k} failed ({out.returncode}): {out.stderr}")
+                if r:
+                    times[k].append(dt)
+    print(f"\nSeveral scans in one `kbs run`: a folder of the {len(list(frames()))} vehicle scans above ({repeats} runs "
+          "each after an untimed one, alternating; with -j > 1 that many scans at a time, each in a process of its own)\n")
+    first = next(iter(times))
+    print("| command | median s | min s | max s | against the first row |")
+    print("|---|---:|---:|---:|---:|")
+    for k, ts in times.items():
+        med = statistics.median(ts)
+        print(f"| {k} | {med:.2f} | {min(ts):.2f} | {max(ts):.2f} | {statistics.median(times[first]) / med:.2f}x |")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5, help="frames timed per scan and setting")
     ap.add_argument("--process-repeats", type=int, default=5, help="whole-process runs per command (0: skip)")
+    ap.add_argument("--batch-repeats", type=int, default=3, help="runs of kbs run on a folder of all the scans, "
+                    "per -j (0: skip)")
     ap.add_argument("--jobs", type=int, nargs="+", default=[1, 2])
     args = ap.parse_args()
     if not DATA.is_dir():
@@ -165,6 +201,8 @@ def main() -> None:
     latency(args.repeats, args.jobs)
     if args.process_repeats:
         process(args.process_repeats, args.jobs)
+    if args.batch_repeats:
+        batch(args.batch_repeats, args.jobs)
 
 
 if __name__ == "__main__":
