@@ -929,26 +929,16 @@ def _scan_worker_sigterm(signum: int, frame: object) -> None:
 
 
 def _scan_in_worker(scan: Path, out_dir: Path, options: dict) -> tuple[ScanResult | None, int | None, str, str, str]:
-    """One scan in a scan process: what :func:`run_scan` returns (or the exit code and message of
-    its KbsError) and what it printed on stdout and stderr, for the parent to print in scan order."""
-    import contextlib
-    import io
+    """One scan in a scan process (:func:`_captured`)."""
     import os
 
-    out, err = io.StringIO(), io.StringIO()
-    result, code, message = None, None, ""
     _SCAN_WORKER["busy"] = True
     try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            try:
-                result = run_scan(_SCAN_WORKER["segmenter"], scan, out_dir, **options)
-            except KbsError as exc:
-                code, message = int(exc.exit_code), str(exc)
+        return _captured(_SCAN_WORKER["segmenter"], scan, out_dir, options)
     finally:
         _SCAN_WORKER["busy"] = False
         if _SCAN_WORKER.get("stop"):  # stopped by the parent: no next scan
             os._exit(_SCAN_WORKER["stop"])
-    return result, code, message, out.getvalue(), err.getvalue()
 
 
 def _scans_in_processes(segmenter: Segmenter, scans: list[Path], out_dir: Path, at_once: int,
@@ -969,16 +959,6 @@ def _scans_in_processes(segmenter: Segmenter, scans: list[Path], out_dir: Path, 
                                initializer=_scan_worker_start, initargs=(segmenter, jobs))
     futures = [pool.submit(_scan_in_worker, scan, out_dir, options) for scan in scans]
     results: list[ScanResult | ScanFailure] = []
-
-    def report(scan: Path, outcome: tuple) -> ScanResult | ScanFailure:
-        result, code, message, out, err = outcome
-        click.echo(out, nl=False)
-        click.echo(err, nl=False, err=True)
-        if result is None:
-            click.echo(f"kbs: error: {message}", err=True)
-            return ScanFailure(scan, code if code is not None else int(ExitCode.INTERNAL))
-        return result
-
     try:
         for scan, future in zip(scans, futures):
             try:
@@ -986,12 +966,12 @@ def _scans_in_processes(segmenter: Segmenter, scans: list[Path], out_dir: Path, 
             except BrokenProcessPool:  # its process died: the scan again, here
                 results.append(_one_scan(segmenter, scan, out_dir, options))
                 continue
-            results.append(report(scan, outcome))
+            results.append(_reported(scan, outcome))
     except BaseException:  # Ctrl-C, SIGTERM: what finished is said, the rest stopped
         for scan, future in zip(scans[len(results):], futures[len(results):]):
             if not future.done() or future.cancelled() or future.exception() is not None:
                 break
-            report(scan, future.result())
+            _reported(scan, future.result())
         for process in list(getattr(pool, "_processes", {}).values()):
             process.terminate()
         raise
@@ -1000,23 +980,41 @@ def _scans_in_processes(segmenter: Segmenter, scans: list[Path], out_dir: Path, 
     return results
 
 
-def _scan_task(rules: str, sensor: tuple[float, float, float], plugins: tuple[str, ...], scan: Path,
-               out_dir: Path, options: dict) -> tuple[ScanResult | None, int | None, str, str, str]:
-    """One scan of ``kbs run DIR/ --scheduler`` on a Dask worker: what :func:`run_scan` returns (or
-    the exit code and message of its KbsError) and what it printed on stdout and stderr."""
+def _captured(segmenter: Segmenter, scan: Path, out_dir: Path,
+              options: dict) -> tuple[ScanResult | None, int | None, str, str, str]:
+    """One scan in a process other than the command's: what :func:`run_scan` returns (or the exit
+    code and message of its KbsError) and what it printed on stdout and stderr, for the command to
+    print in scan order (:func:`_reported`)."""
     import contextlib
     import io
-
-    from kbs.tiles.run import worker_segmenter
 
     out, err = io.StringIO(), io.StringIO()
     result, code, message = None, None, ""
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         try:
-            result = run_scan(worker_segmenter(rules, sensor, plugins), scan, out_dir, **options)
+            result = run_scan(segmenter, scan, out_dir, **options)
         except KbsError as exc:
             code, message = int(exc.exit_code), str(exc)
     return result, code, message, out.getvalue(), err.getvalue()
+
+
+def _reported(scan: Path, outcome: tuple) -> ScanResult | ScanFailure:
+    """Print what a scan run elsewhere printed (:func:`_captured`), and its error if it failed."""
+    result, code, message, out, err = outcome
+    click.echo(out, nl=False)
+    click.echo(err, nl=False, err=True)
+    if result is None:
+        click.echo(f"kbs: error: {message}", err=True)
+        return ScanFailure(scan, code if code is not None else int(ExitCode.INTERNAL))
+    return result
+
+
+def _scan_task(rules: str, sensor: tuple[float, float, float], plugins: tuple[str, ...], scan: Path,
+               out_dir: Path, options: dict) -> tuple[ScanResult | None, int | None, str, str, str]:
+    """One scan of ``kbs run DIR/ --scheduler`` on a Dask worker (:func:`_captured`)."""
+    from kbs.tiles.run import worker_segmenter
+
+    return _captured(worker_segmenter(rules, sensor, plugins), scan, out_dir, options)
 
 
 def _scans_on_dask(segmenter: Segmenter, scans: list[Path], out_dir: Path, scheduler: str, workers: int | None,
@@ -1042,17 +1040,11 @@ def _scans_on_dask(segmenter: Segmenter, scans: list[Path], out_dir: Path, sched
                                  key=f"kbs-scan-{scan.stem}-{os.urandom(6).hex()}") for scan in scans]
         for scan, future in zip(scans, futures):
             try:
-                result, code, message, out, err = future.result()
+                outcome = future.result()
             except Exception as exc:  # noqa: BLE001 - the task died twice (a worker lost), or a bug in it
                 raise_if_interrupted(exc)  # Ctrl-C inside a compiled kernel: not this part's failure
-                result, code, message, out, err = None, int(ExitCode.INTERNAL), f"{type(exc).__name__}: {exc}", "", ""
-            click.echo(out, nl=False)
-            click.echo(err, nl=False, err=True)
-            if result is None:
-                click.echo(f"kbs: error: {message}", err=True)
-                results.append(ScanFailure(scan, code if code is not None else int(ExitCode.INTERNAL)))
-            else:
-                results.append(result)
+                outcome = (None, int(ExitCode.INTERNAL), f"{type(exc).__name__}: {exc}", "", "")
+            results.append(_reported(scan, outcome))
     finally:
         cluster = client.cluster if scheduler == "local" else None
         client.close()
