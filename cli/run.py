@@ -893,7 +893,7 @@ def scans_at_once(segmenter: Segmenter, scans: list[Path], out_dir: Path | None,
     the split processes share), standard input or output, and where processes cannot be forked."""
     import multiprocessing
 
-    jobs = segmenter._interpreter.jobs  # -1 already resolved to the available cores
+    jobs = segmenter.processes  # -1 already resolved to the available cores
     if (len(scans) < 2 or jobs < 2 or out_dir is None or options.get("tiling") is not None
             or any(str(scan) == "-" for scan in scans) or "fork" not in multiprocessing.get_all_start_methods()):
         return 1
@@ -954,7 +954,7 @@ def _scans_in_processes(segmenter: Segmenter, scans: list[Path], out_dir: Path, 
     from concurrent.futures import ProcessPoolExecutor
     from concurrent.futures.process import BrokenProcessPool
 
-    jobs = max(1, segmenter._interpreter.jobs // at_once)
+    jobs = max(1, segmenter.processes // at_once)
     pool = ProcessPoolExecutor(max_workers=at_once, mp_context=multiprocessing.get_context("fork"),
                                initializer=_scan_worker_start, initargs=(segmenter, jobs))
     futures = [pool.submit(_scan_in_worker, scan, out_dir, options) for scan in scans]

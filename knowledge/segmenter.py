@@ -55,6 +55,8 @@ class Segmenter:
         The validated rule base every cloud is segmented with.
     jobs : int
         As given (-1 stays -1).
+    processes : int
+        The number of processes ``jobs`` stands for (-1 resolved to the cores available).
     sensor : tuple of 3 float
         The sensor position used: ``sensor`` if given, else the rule base's.
     plugins : tuple of str
@@ -104,6 +106,11 @@ class Segmenter:
         #: False while the tiles of a tiled run are segmented: the whole cloud's spacing was judged
         #: once, and a tile's is not (:func:`kbs.tiles.run.warn_spacing`), so it is not measured.
         self._judge_spacing = True
+
+    @property
+    def processes(self) -> int:
+        """The number of processes ``jobs`` stands for (-1 resolved to the cores available)."""
+        return self._interpreter.jobs
 
     @property
     def label_names(self) -> list[str]:

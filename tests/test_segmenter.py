@@ -94,6 +94,13 @@ def test_one_segmenter_frame_after_frame_equals_a_fresh_one_per_frame():
     assert len({len(s.clusters) for s in in_a_row[:3]}) > 1  # the frames differ, and so do their results
 
 
+def test_processes_is_jobs_with_minus_one_resolved_to_the_cores():
+    cores = kbs.knowledge.interpreter.available_cores()
+    assert kbs.Segmenter("outdoor", jobs=-1).processes == cores
+    seg = kbs.Segmenter("outdoor", jobs=3)
+    assert (seg.jobs, seg.processes, seg.with_jobs(-1).processes) == (3, 3, cores)
+
+
 def test_jobs_2_equals_jobs_1():
     X = read_cloud(EXAMPLE).xyz
     _same(kbs.Segmenter("outdoor", jobs=2).segment(X), kbs.Segmenter("outdoor", jobs=1).segment(X))
