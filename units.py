@@ -77,8 +77,26 @@ def unit(name: str | LengthUnit) -> LengthUnit:
     return UNITS[key]
 
 
+#: The sizes a unit of length may have, in metres: a nanometre to a million kilometres, far beyond
+#: any survey's unit, and small enough that squares of coordinates scaled by them stay finite.
+UNIT_METRES = (1e-9, 1e9)
+
+
 def unit_from_metres(metres: float, name: str = "") -> LengthUnit:
-    """The known unit of this size (within 1e-9 relative), else a unit named ``name`` of that size."""
+    """The known unit of this size (within 1e-9 relative), else a unit named ``name`` of that size.
+
+    Raises
+    ------
+    ParameterError
+        ``metres`` is not a number between :data:`UNIT_METRES` (a CRS declaring a unit of 0, -1 or
+        NaN metres: scaling by it would mirror, flatten or blank the cloud; 1e-300 m: its square,
+        which scales variances, is 0).
+    """
+    lo, hi = UNIT_METRES
+    if not (isinstance(metres, (int, float)) and lo <= metres <= hi):  # NaN fails both comparisons
+        shown = f"'{name}' " if name else ""
+        raise ParameterError(f"the unit of length {shown}is {metres!r} m: a unit must be a number of metres "
+                             f"between {lo:g} and {hi:g}")
     for u in UNITS.values():
         if math.isclose(u.metres, metres, rel_tol=1e-9):
             return u
@@ -163,6 +181,9 @@ def units_from_comments(comments: list[str], kind: str) -> tuple[ScanUnits | Non
         key, value = parsed
         if key == "units" and units_text is None:
             units_text = value
+        elif key == "units" and value.strip().lower() != units_text.strip().lower():
+            raise ParameterError(f"the {kind} header's comments declare two units, 'units {units_text}' and "
+                                 f"'units {value}': keep one")
         elif key == "crs" and crs is None:
             crs = value
     if units_text is not None:
@@ -198,7 +219,7 @@ def pyproj_units(crs: Any, source: str) -> ScanUnits | None:
         if not axes or len(axes) < 3:
             axes.extend(a for a in sub.axis_info if a not in axes)
     linear = [a for a in axes if (a.unit_name or "").lower() not in ("degree", "radian", "grad", "arc-second")
-              and a.unit_conversion_factor and a.direction.lower() not in ("geocentricx",)]
+              and a.unit_conversion_factor is not None and a.direction.lower() not in ("geocentricx",)]
     if len(linear) < 2 or any((a.unit_name or "").lower().startswith(("degree", "radian")) for a in axes[:2]):
         return None
     h = unit_from_metres(linear[0].unit_conversion_factor, linear[0].unit_name)
@@ -236,17 +257,15 @@ def _children(node: list[Any], *names: str) -> list[list[Any]]:
 
 def _unit_of(node: list[Any]) -> LengthUnit | None:
     """The linear unit directly in ``node`` (UNIT / LENGTHUNIT), or in its CS axes (WKT 2)."""
-    for u in _children(node, "UNIT", "LENGTHUNIT"):
-        try:
-            return unit_from_metres(float(u[2]), str(u[1]))
-        except (IndexError, ValueError):
-            continue
+    units = _children(node, "UNIT", "LENGTHUNIT")
     for axis in _children(node, "AXIS"):
-        for u in _children(axis, "UNIT", "LENGTHUNIT"):
-            try:
-                return unit_from_metres(float(u[2]), str(u[1]))
-            except (IndexError, ValueError):
-                continue
+        units.extend(_children(axis, "UNIT", "LENGTHUNIT"))
+    for u in units:
+        try:
+            metres = float(u[2])
+        except (IndexError, ValueError):  # no factor, or not a number: not a unit node we can read
+            continue
+        return unit_from_metres(metres, str(u[1]))  # a factor of 0, -1 or NaN raises
     return None
 
 

@@ -254,6 +254,8 @@ def eval_(result: Path, ground_truth: str, tolerance: float, ground_values: tupl
     if do_hoover is None:  # a ground evaluation asks for the ground table; the regions on request
         do_hoover = ground_values is None
     cloud = read_result_cloud(result, require=("cluster",))
+    if ground_values is None:  # the label names are not needed; a JSON beside the points must still be theirs
+        _label_names(result)
     try:
         gt = load_ground_truth(ground_truth, cloud)
     except UnknownFieldError as exc:
@@ -280,6 +282,10 @@ def eval_(result: Path, ground_truth: str, tolerance: float, ground_values: tupl
             raise click.BadParameter(f"no label {ground_label!r} in {js} (labels: {', '.join(names) or 'none'})"
                                      + (f"; did you mean {close[0]!r}?" if close else ""), param_hint="--ground-label")
         require_fields(cloud, result, ("label",))
+        top = int(np.max(cloud.fields["label"])) if len(cloud) else -1
+        if top >= len(names):
+            raise CloudFileError(str(result), f"its per-vertex 'label' holds {top}, but {js} names "
+                                              f"{len(names)} labels (0 to {len(names) - 1}): not this result's JSON")
         index = names.index(ground_label)
         ground = ground_metrics(np.asarray(cloud.fields["label"]) == index, gt, ground_values=ground_values,
                                 unlabelled_values=unlabelled)

@@ -357,6 +357,9 @@ def read_result_json(path: str | os.PathLike[str], *, require: Iterable[str] = (
         raise CloudFileError(json_position(path, _version_key(doc)), str(exc)) from exc
     except FormatVersionError as exc:
         raise CloudFileError(json_position(path, _version_key(doc)), f"not a kbs result file ({exc})") from exc
+    except RecursionError as exc:  # arrays or objects nested deeper than the parser's stack
+        raise CloudFileError(str(path), "not a kbs result file (its JSON nests deeper than Python's parser "
+                                        "can follow)") from exc
     except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as exc:
         raise CloudFileError(str(path), f"not a kbs result file ({type(exc).__name__}: {exc})") from exc
     return doc
@@ -624,6 +627,17 @@ def read_result_cloud(path: str | os.PathLike[str], *, require: Iterable[str] = 
         fields = {renamed.get(name, name): values for name, values in cloud.fields.items()}
         cloud = dataclasses.replace(cloud, fields=fields)
     require_fields(cloud, path, require)
+    for name in ("cluster", "label"):  # kbs writes integers from -1 (noise, no label) up
+        values = cloud.fields.get(name)
+        if values is None or not len(values):
+            continue
+        v = np.asarray(values)
+        bad = ~np.isfinite(v) | (v < -1) | (v != np.round(v)) if v.dtype.kind == "f" else v < -1
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise CloudFileError(os.fspath(path), f"not a kbs result: its per-vertex {name!r} holds {v[i].item()!r} at "
+                                                  f"vertex {i:,} ({int(bad.sum()):,} such): kbs writes integers "
+                                                  "from -1 up")
     return cloud
 
 
@@ -745,7 +759,7 @@ def listed_by_index(target: str | os.PathLike[str], index: str | os.PathLike[str
         digests = json.loads(index.read_bytes()).get("sha256")
         name = os.path.relpath(target, index.parent).replace(os.sep, "/")
         return isinstance(digests, dict) and digests.get(name) == file_digest(target)
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):
         return False
 
 
@@ -779,7 +793,7 @@ def is_kbs_output(path: str | os.PathLike[str]) -> bool:
         with open(path, "rb") as stream:
             stream.seek(max(0, path.stat().st_size - 256))
             return RUN_ID_COMMENT.encode("ascii") in stream.read()
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):  # RecursionError: a JSON nested too deep to be kbs's
         return False
 
 

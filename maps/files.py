@@ -402,6 +402,6 @@ def read_map_index(path: str | os.PathLike[str]) -> dict[str, Any]:
             raise KeyError("kbs_map")
     except FileNotFoundError as exc:
         raise CloudFileError(str(p), "no such file") from exc
-    except (OSError, ValueError, KeyError, AttributeError) as exc:
+    except (OSError, ValueError, KeyError, AttributeError, RecursionError) as exc:
         raise CloudFileError(str(p), f"not a kbs map index ({type(exc).__name__}: {exc})") from exc
     return doc

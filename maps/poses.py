@@ -235,6 +235,8 @@ def read_json_poses(path: str | os.PathLike[str]) -> Poses:
         doc = json.loads(text)
     except json.JSONDecodeError as exc:
         raise PoseFileError(path, f"not JSON: {exc.msg}", exc.lineno, exc.colno) from exc
+    except RecursionError as exc:
+        raise PoseFileError(path, "its JSON nests deeper than Python's parser can follow") from exc
     items = doc.get("poses") if isinstance(doc, dict) else doc
     if not isinstance(items, list):
         raise PoseFileError(path, "expected a list of 4x4 matrices, or an object with a 'poses' list")

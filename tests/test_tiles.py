@@ -71,6 +71,7 @@ def test_the_ground_plane_axes_are_orthonormal_and_across_the_normal():
     (1.0, 4.6, "tiles of 1 with a buffer of 4.6: each tile would be segmented over 104 times its own area, every "
                "point as many times; the buffer may be at most 4.5 tiles wide: give tiles of at least 1.02, or a "
                "smaller buffer"),
+    (5.0, 1e300, "tiles of 5 with a buffer of 1e+300: each tile would be segmented over inf times its own area"),
 ])
 def test_bad_tile_size_or_buffer_is_a_parameter_error(size, buffer, message):
     with pytest.raises(ParameterError, match=re.escape(message)):

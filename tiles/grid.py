@@ -137,7 +137,7 @@ class TileGrid:
                 or not math.isfinite(buffer) or buffer < 0:
             raise ParameterError(f"The 'buffer' parameter must be a length >= 0. Got {buffer!r} instead.")
         if buffer > MAX_BUFFER_TILES * size:
-            reach = ((size + 2.0 * buffer) / size) ** 2
+            reach = (1.0 + 2.0 * (buffer / size)) ** 2 if buffer / size < 1e150 else math.inf  # no overflow
             raise ParameterError(f"tiles of {size:g} with a buffer of {buffer:g}: each tile would be segmented over "
                                  f"{reach:.3g} times its own area, every point as many times; the buffer may be at "
                                  f"most {MAX_BUFFER_TILES:g} tiles wide: give tiles of at least "

@@ -1,0 +1,141 @@
+"""Bad inputs found by a fuzzing pass (session 31) that reached a traceback (exit 1) or gave a
+silently wrong result: units declared as 0, -1, NaN or 1e-300 metres, two contradicting units
+comments, JSON nested deeper than Python's parser follows, result files whose cluster or label
+values kbs cannot have written, a result PLY beside another run's JSON in a Hoover-only
+evaluation. Each goes through the real command (or the reader it calls) and asserts the exit code
+and the message."""
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from plyfile import PlyData, PlyElement
+
+from kbs.errors import ParameterError
+from kbs.io import write_ply
+from kbs.maps.poses import PoseFileError, read_json_poses
+from kbs.units import unit_from_metres, wkt_units
+from scenes import ground_and_rocks
+from test_cli import kbs
+
+PROJ = ('PROJCS["local",GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563]],'
+        'PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]],PROJECTION["Transverse_Mercator"],'
+        'PARAMETER["central_meridian",15],PARAMETER["scale_factor",0.9996],PARAMETER["false_easting",500000],'
+        'PARAMETER["false_northing",0],UNIT["{name}",{factor}]]')
+
+
+@pytest.mark.parametrize("factor", [0.0, -1.0, math.nan, 1e-300, 1e300])
+def test_a_unit_that_is_not_a_plausible_length_is_refused(factor):
+    with pytest.raises(ParameterError, match=r"a unit must be a number of metres between 1e-09 and 1e\+09"):
+        unit_from_metres(factor, "odd")
+    with pytest.raises(ParameterError, match="the unit of length 'odd' is"):
+        wkt_units(PROJ.format(name="odd", factor=factor), "a test")
+
+
+def test_usual_units_are_still_read():
+    assert unit_from_metres(0.3048).name == "ft" and unit_from_metres(1.0).name == "m"
+    assert wkt_units(PROJ.format(name="foot", factor=0.3048), "a test").horizontal.name == "ft"
+    assert unit_from_metres(201.168, "furlong").metres == 201.168
+
+
+def _ply(path: Path, comments: list[str]) -> Path:
+    X, _ = ground_and_rocks(seed=3)
+    write_ply(path, X[::4], comments=comments)
+    return path
+
+
+@pytest.mark.parametrize("factor", ["0", "-1", "nan"])
+def test_kbs_run_refuses_a_ply_whose_crs_comment_declares_a_unit_of_no_length(tmp_path, factor):
+    scan = _ply(tmp_path / "odd.ply", [f"crs {PROJ.format(name='u', factor=factor)}"])
+    r = kbs("run", "--rules", "outdoor", str(scan), "--out", str(tmp_path / "o"))
+    assert r.returncode == 3, r.stderr
+    assert f"{scan}: the unit of length 'u' is" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
+
+
+def test_two_units_comments_that_disagree_are_refused(tmp_path):
+    scan = _ply(tmp_path / "two.ply", ["units mm", "units m"])
+    r = kbs("run", "--rules", "outdoor", str(scan), "--out", str(tmp_path / "o"))
+    assert r.returncode == 3
+    assert f"{scan}: the PLY header's comments declare two units, 'units mm' and 'units m': keep one" in r.stderr
+    same = _ply(tmp_path / "same.ply", ["units m", "units M"])  # the same unit twice is one declaration
+    assert kbs("run", "--rules", "outdoor", str(same), "--out", str(tmp_path / "o2")).returncode == 0
+
+
+@pytest.fixture(scope="module")
+def result(tmp_path_factory) -> Path:
+    """A kbs result pair (result.ply, result.json) and its ground truth (gt.npy)."""
+    folder = tmp_path_factory.mktemp("result")
+    X, truth = ground_and_rocks(seed=3)
+    (folder / "scan").mkdir()
+    write_ply(folder / "scan" / "result_in.ply", X[::4])
+    np.save(folder / "gt.npy", truth[::4].astype(np.int64))
+    r = kbs("run", "--rules", "outdoor", str(folder / "scan" / "result_in.ply"), "--out", str(folder))
+    assert r.returncode == 0, r.stderr
+    return folder
+
+
+def _copy(result: Path, tmp_path: Path, name: str = "res") -> Path:
+    shutil.copy(result / "result_in.ply", tmp_path / f"{name}.ply")
+    shutil.copy(result / "result_in.json", tmp_path / f"{name}.json")
+    return tmp_path / f"{name}.ply"
+
+
+def _set_field(ply: Path, field: str, values: np.ndarray) -> None:
+    data = PlyData.read(str(ply))
+    vertex = data["vertex"].data.copy()
+    vertex[field][: len(values)] = values
+    PlyData([PlyElement.describe(vertex, "vertex")], text=data.text, byte_order=data.byte_order,
+            comments=data.comments).write(str(ply))
+
+
+def test_a_result_json_nested_too_deep_is_an_unreadable_file_not_a_crash(result, tmp_path):
+    res = _copy(result, tmp_path)
+    js = res.with_suffix(".json")
+    doc = js.read_text()
+    js.write_text(doc[:-1].rstrip() + ', "zz": ' + "[" * 100_000 + "]" * 100_000 + "}")
+    for args in (("explain", str(js)), ("eval", str(res), str(result / "gt.npy"), "--ground-values", "0")):
+        r = kbs(*args)
+        assert r.returncode == 3, (args, r.stderr)
+        assert f"{js}: not a kbs result file (its JSON nests deeper than Python's parser can follow)" in r.stderr
+
+
+def test_poses_nested_too_deep_are_a_pose_file_error(tmp_path):
+    poses = tmp_path / "poses.json"
+    poses.write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(PoseFileError, match="nests deeper than Python's parser can follow"):
+        read_json_poses(poses)
+
+
+def test_eval_refuses_cluster_values_kbs_cannot_have_written(result, tmp_path):
+    res = _copy(result, tmp_path)
+    _set_field(res, "scalar_cluster", np.array([5, -7, -7]))
+    r = kbs("eval", str(res), str(result / "gt.npy"))
+    assert r.returncode == 3
+    assert (f"{res}: not a kbs result: its per-vertex 'cluster' holds -7 at vertex 1 (2 such): kbs writes "
+            "integers from -1 up") in r.stderr
+
+
+def test_eval_refuses_a_label_beyond_the_json_label_names(result, tmp_path):
+    res = _copy(result, tmp_path)
+    names = json.loads(res.with_suffix(".json").read_text())["label_names"]
+    _set_field(res, "scalar_label", np.array([len(names) + 5]))
+    r = kbs("eval", str(res), str(result / "gt.npy"), "--ground-values", "0")
+    assert r.returncode == 3
+    assert (f"{res}: its per-vertex 'label' holds {len(names) + 5}, but {res.with_suffix('.json')} names "
+            f"{len(names)} labels") in r.stderr
+
+
+def test_a_hoover_only_eval_refuses_the_json_of_another_run_too(result, tmp_path):
+    res = _copy(result, tmp_path)
+    js = res.with_suffix(".json")
+    doc = json.loads(js.read_text())
+    doc["run_id"] = "deadbeef"
+    js.write_text(json.dumps(doc))
+    r = kbs("eval", str(res), str(result / "gt.npy"))
+    assert r.returncode == 3 and f"{js}: does not belong with {res.name}: run id deadbeef in the JSON" in r.stderr
+    assert kbs("eval", str(_copy(result, tmp_path, "good")), str(result / "gt.npy")).returncode == 0
