@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from kbs.cli.types import PathArg
 from kbs.cli.common import (
     ProgressLines,
     check_writable_folder,
@@ -39,7 +40,7 @@ def format_k_table(result) -> str:
 @setting_option("--m", "m")
 @setting_option("--stop", "stop")
 @setting_option("--max-fit-points", "max_fit_points")
-@click.option("--out", type=click.Path(dir_okay=False, path_type=Path),
+@click.option("--out", type=PathArg(dir_okay=False, path_type=Path),
               help="Write the cloud with per-vertex 'cluster' and 'membership' to this PLY file (never over "
                    "CLOUD; over a file kbs did not write only with --force).")
 @force_option

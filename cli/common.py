@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 import click
 
-from kbs.cli.types import FiniteFloatRange
+from kbs.cli.types import FiniteFloatRange, PathArg
 import numpy as np
 
 from kbs.errors import CloudFileError
@@ -27,7 +27,7 @@ if TYPE_CHECKING:
 #: The CLOUD argument: existence and readability are checked by the reader, which says what is
 #: wrong in one line with the file's name and exit code 3 (click's own checks, ``readable`` among
 #: them, would exit with 2 and call a symbolic link loop a missing file).
-cloud_argument = click.argument("cloud", type=click.Path(path_type=Path, readable=False))
+cloud_argument = click.argument("cloud", type=PathArg(path_type=Path, readable=False))
 
 #: Seconds between two progress lines on a stderr that is not a terminal (KBS_PROGRESS_SECONDS).
 PROGRESS_SECONDS = 10.0

@@ -11,6 +11,7 @@ import click
 import numpy as np
 
 from kbs import __version__
+from kbs.cli.types import PathArg
 from kbs.errors import CloudFileError, ParameterError
 from kbs.evaluation import (
     SEMANTICKITTI_GROUND,
@@ -175,7 +176,7 @@ def format_ground(g: GroundMetrics) -> str:
 
 
 @click.command("eval")
-@click.argument("result", type=click.Path(path_type=Path, readable=False))
+@click.argument("result", type=PathArg(path_type=Path, readable=False))
 @click.argument("ground_truth", metavar="GROUND_TRUTH")
 @click.option("--tolerance", type=float, default=0.8, show_default=True, callback=_tolerance,
               help="Hoover tolerance T, in (0.5, 1].")
@@ -187,7 +188,7 @@ def format_ground(g: GroundMetrics) -> str:
                    + ",".join(map(str, SEMANTICKITTI_IGNORED)) + " for a .label GT).")
 @click.option("--ground-label", default="ground", show_default=True, metavar="NAME",
               help="The result's label that means ground (from its <stem>.json label_names).")
-@click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), metavar="OUT.json",
+@click.option("--json", "json_out", type=PathArg(dir_okay=False, path_type=Path), metavar="OUT.json",
               help="Also write every number to this JSON file (never over an input; over an existing file kbs "
                    "did not write only with --force; an earlier kbs eval JSON is replaced).")
 @click.option("--hoover/--no-hoover", "do_hoover", default=None,
@@ -197,7 +198,7 @@ def format_ground(g: GroundMetrics) -> str:
 @click.option("--tolerances", callback=_tolerances, metavar="T,T,...",
               help="Also print the paper's Table 1: one row of Hoover counts and angle error per T "
                    "[default for X.ms-seg: 0.51,0.6,0.7,0.8,0.9].")
-@click.option("--image", "image_path", type=click.Path(dir_okay=False, path_type=Path), metavar="X.range",
+@click.option("--image", "image_path", type=PathArg(dir_okay=False, path_type=Path), metavar="X.range",
               help="SegComp only: the range image, for the angle error [default: GROUND_TRUTH's X.range beside it].")
 @force_option
 def eval_(result: Path, ground_truth: str, tolerance: float, ground_values: tuple[int, ...] | None,

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from kbs.cli.types import FiniteFloatRange
+from kbs.cli.types import FiniteFloatRange, PathArg
 import numpy as np
 
 from kbs.cli.common import check_writable_folder, force_option
@@ -32,8 +32,8 @@ def _crs(ctx, param, value):
 @click.option("--rules", "rules", required=True, metavar="NAME|FILE",
               help=f"A shipped rule base ({', '.join(shipped_rule_bases())}) or a rule file; its label 'ground' is "
               "the navigable ground, every other label an obstacle.")
-@click.argument("scans", nargs=-1, required=True, type=click.Path(path_type=Path), metavar="SCANS...")
-@click.option("--poses", type=click.Path(path_type=Path), metavar="FILE",
+@click.argument("scans", nargs=-1, required=True, type=PathArg(path_type=Path), metavar="SCANS...")
+@click.option("--poses", type=PathArg(path_type=Path), metavar="FILE",
               help="One pose per frame (sensor to world): KITTI poses.txt (12 numbers a line; a calib.txt beside it "
               "turns camera poses into LiDAR poses), .json (a list of 4x4) or .csv (16 numbers a row). Default: a "
               "KITTI folder's poses.txt, else identity (scans already in one world frame).")
@@ -43,9 +43,9 @@ def _crs(ctx, param, value):
               help="Estimate the poses from the scans with KISS-ICP (the map extra) instead of reading them, frame "
               "by frame on the points the segmentation did not call ground; the motion and residual of each frame "
               "against the previous one are printed and kept in map.json.")
-@click.option("--calib", type=click.Path(path_type=Path), metavar="FILE",
+@click.option("--calib", type=PathArg(path_type=Path), metavar="FILE",
               help="The KITTI calib.txt of a KITTI poses file (default: the one beside it, if any).")
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=Path("kbs-map"),
+@click.option("--out", "out_dir", type=PathArg(file_okay=False, path_type=Path), default=Path("kbs-map"),
               show_default=True, help="Directory for map.tif, map.npy, map.png, cloud.ply, objects/ and map.json "
               "(checked before any frame is segmented: a file there kbs did not write is replaced only with --force).")
 @force_option

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from kbs.cli.types import PathArg
 from kbs.cli.common import force_option
 from kbs.errors import CloudFileError, require
 from kbs.io.atomic import replacing
@@ -31,8 +32,8 @@ def _outputs(result: Path, out: Path | None, kind: str, cluster: str | None = No
 
 
 @click.command()
-@click.argument("result", type=click.Path(path_type=Path, readable=False))
-@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
+@click.argument("result", type=PathArg(path_type=Path, readable=False))
+@click.option("--out", type=PathArg(dir_okay=False, path_type=Path), default=None,
               help="PNG to write (default: <stem>-<kind>.png next to RESULT; the only format: .png, or no suffix). "
                    "With --kind all, three files: <out stem>-series.png, -map.png, -clusters.png. Never over the "
                    "result; over an existing file kbs did not write only with --force (kbs marks its PNGs with a "

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 import click
 
-from kbs.cli.types import FiniteFloatRange
+from kbs.cli.types import FiniteFloatRange, PathArg
 import numpy as np
 
 from kbs import __version__
@@ -66,7 +66,7 @@ def _registry(plugins: tuple[Path, ...]) -> PredicateRegistry:
     return reg
 
 
-plugin_option = click.option("--plugin", "plugins", multiple=True, type=click.Path(path_type=Path),
+plugin_option = click.option("--plugin", "plugins", multiple=True, type=PathArg(path_type=Path),
                              help="A Python file declaring extra predicates (repeatable).")
 
 
@@ -668,11 +668,11 @@ def time_table(results: list[ScanResult | ScanFailure], t_load: float, t_total: 
 @click.command()
 @click.option("--rules", "rules", required=True, metavar="NAME|FILE",
               help=f"A shipped rule base ({', '.join(shipped_rule_bases())}) or a rule file.")
-@click.argument("clouds", nargs=-1, required=True, type=click.Path(path_type=Path, readable=False),
+@click.argument("clouds", nargs=-1, required=True, type=PathArg(path_type=Path, readable=False),
                 metavar="CLOUD...")
 @click.option("--sensor", callback=_vector3, metavar="X,Y,Z",
               help="Sensor position (overrides the rule base's), in the scan's coordinates and units.")
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path, allow_dash=True),
+@click.option("--out", "out_dir", type=PathArg(file_okay=False, path_type=Path, allow_dash=True),
               default=Path("kbs-out"), show_default=True,
               help="Directory for <stem>.ply (or .las/.laz) and <stem>.json (created if needed; checked for writing "
               "before any segmentation). '-': the points to standard output (one scan; no JSON, no meshes, no report; "
@@ -1066,7 +1066,7 @@ def _depth(ctx, param, value):
 
 
 @click.command()
-@click.argument("result", type=click.Path(path_type=Path, readable=False))
+@click.argument("result", type=PathArg(path_type=Path, readable=False))
 @click.option("--cluster", "cluster_id", metavar="ID", help="Say why this cluster ended as it did (e.g. c0.2): the "
               "rules and labels evaluated on it, every check, then the tree below it.")
 @click.option("--depth", callback=_depth, metavar="N|all",

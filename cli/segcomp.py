@@ -6,6 +6,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from kbs.cli.types import PathArg
 from kbs.cli.common import check_writable_folder
 from kbs.errors import CloudFileError
 from kbs.evaluation.segcomp import image_region_normals, segmentation_to_image
@@ -73,12 +74,12 @@ def _check_outputs(result: Path, image_path: Path, out: Path, normals: Path | No
 
 
 @click.command()
-@click.argument("result", type=click.Path(path_type=Path))
-@click.option("--image", "image_path", required=True, type=click.Path(path_type=Path), metavar="IMAGE.range",
+@click.argument("result", type=PathArg(path_type=Path))
+@click.option("--image", "image_path", required=True, type=PathArg(path_type=Path), metavar="IMAGE.range",
               help="The range image the result was computed from (gives the grid).")
-@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), metavar="X.ms-seg",
+@click.option("--out", type=PathArg(dir_okay=False, path_type=Path), metavar="X.ms-seg",
               help="Machine-segmentation image to write [default: RESULT with the suffix .ms-seg].")
-@click.option("--normals", type=click.Path(dir_okay=False, path_type=Path), metavar="X.ms-nor",
+@click.option("--normals", type=PathArg(dir_okay=False, path_type=Path), metavar="X.ms-nor",
               help="Region normals file to write [default: the --out path with the suffix .ms-nor].")
 @click.option("--no-normals", is_flag=True, help="Do not write the normals file (for compare -noNormals).")
 @click.option("--force", is_flag=True,

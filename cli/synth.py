@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from kbs.cli.common import check_writable_folder
-from kbs.cli.types import FiniteFloatRange
+from kbs.cli.types import FiniteFloatRange, PathArg
 from kbs.io.result import check_output, listed_by_index
 
 from kbs.synth import Scene, outdoor_scene, polyhedral_scene
@@ -28,7 +28,7 @@ def _resolution(ctx, param, value):
 
 seed_option = click.option("--seed", type=click.IntRange(0, None), default=0, show_default=True,
                            help="Seed of the random generator (same seed and options, same scene).")
-out_option = click.option("--out", type=click.Path(dir_okay=False, path_type=Path),
+out_option = click.option("--out", type=PathArg(dir_okay=False, path_type=Path),
                           help="Write the scene to this PLY file (per-vertex label, object, ground, pixel; a kbs run "
                                "id in its header).")
 force_option = click.option("--force", is_flag=True,
@@ -83,7 +83,7 @@ def synth_polyhedral(seed: int, out: Path | None, resolution, force: bool = Fals
 
 @synth.command("outdoor")
 @seed_option
-@click.option("--out", type=click.Path(path_type=Path),
+@click.option("--out", type=PathArg(path_type=Path),
               help="Write the scene to this PLY file (per-vertex label, object, ground, pixel); with --frames, the "
               "drive to this folder (scans/NNNNNN.ply, poses.txt, truth.json: each marked as kbs's by a run id, "
               "poses.txt by its digest in truth.json).")
@@ -151,7 +151,7 @@ def synth_outdoor(seed: int, out: Path | None, resolution, n_frames: int | None,
 
 @synth.command("abw")
 @seed_option
-@click.option("--out", "prefix", type=click.Path(dir_okay=False, path_type=Path), metavar="PREFIX",
+@click.option("--out", "prefix", type=PathArg(dir_okay=False, path_type=Path), metavar="PREFIX",
               help="Write PREFIX.range (the range image) and PREFIX.gt-seg (its ground truth), as SegComp. These "
                    "8-bit rasterfiles have no room for a kbs run id: existing ones are replaced only with --force.")
 @click.option("--force", is_flag=True, help="Replace an existing PREFIX.range / PREFIX.gt-seg (checked before the "

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from kbs.cli.types import FiniteFloatRange
+from kbs.cli.types import FiniteFloatRange, PathArg
 import numpy as np
 
 from kbs import __version__
@@ -35,7 +35,7 @@ from kbs.units import UNITS as LENGTH_UNITS, ScanUnits, scale_factors, unit
 @click.option("--rules", "rules", required=True, metavar="NAME|FILE",
               help="The rule file whose thresholds marked 'tune:' are fitted (a shipped name or a file).")
 @click.argument("pairs", nargs=-1, required=True, metavar="SCAN GT [SCAN GT]...")
-@click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path), metavar="NEW.yaml",
+@click.option("--out", "out", required=True, type=PathArg(dir_okay=False, path_type=Path), metavar="NEW.yaml",
               help="The tuned rule file to write (never the rule file itself, nor a scan).")
 @click.option("--folds", type=click.IntRange(min=2), default=None,
               help="k of the k-fold cross-validation over scans  [default: min(5, number of scans)]")
@@ -61,7 +61,7 @@ from kbs.units import UNITS as LENGTH_UNITS, ScanUnits, scale_factors, unit
               help="Sensor position for every scan (overrides the rule base's), in the scans' coordinates.")
 @click.option("--units", type=click.Choice(list(LENGTH_UNITS)), default=None,
               help="Unit of the scans' coordinates, for files that do not declare one (as kbs run).")
-@click.option("--report", "report", type=click.Path(dir_okay=False, path_type=Path), metavar="FILE.json",
+@click.option("--report", "report", type=PathArg(dir_okay=False, path_type=Path), metavar="FILE.json",
               help="Also write the report as JSON (another file than --out).")
 @click.option("-j", "--jobs", type=click.IntRange(min=-1), default=-1, show_default=True, callback=_jobs,
               help="Processes computing the UFP-ONC splits (as kbs run).")

@@ -20,3 +20,15 @@ class FiniteFloatRange(click.FloatRange):
         if not math.isfinite(rv):
             self.fail(f"{value!r} is not a finite number.", param, ctx)
         return rv
+
+
+class PathArg(click.Path):
+    """``click.Path`` that refuses an empty value: ``''`` is no file name (``pathlib.Path('')`` is
+    the current folder, so ``kbs run ''`` would segment every scan there, and ``--out ''`` write
+    into it)."""
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        if isinstance(value, str) and not value.strip():
+            self.fail(f"{value!r} is an empty path: give a file or folder name ('.' for the current folder).",
+                      param, ctx)
+        return super().convert(value, param, ctx)

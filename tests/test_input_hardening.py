@@ -139,3 +139,11 @@ def test_a_hoover_only_eval_refuses_the_json_of_another_run_too(result, tmp_path
     r = kbs("eval", str(res), str(result / "gt.npy"))
     assert r.returncode == 3 and f"{js}: does not belong with {res.name}: run id deadbeef in the JSON" in r.stderr
     assert kbs("eval", str(_copy(result, tmp_path, "good")), str(result / "gt.npy")).returncode == 0
+
+
+@pytest.mark.parametrize("args", [("run", "--rules", "outdoor", ""), ("run", "--rules", "outdoor", "x.ply", "--out", ""),
+                                  ("eval", "", "gt.npy"), ("map", "--rules", "outdoor", "", "--poses", "p.txt")])
+def test_an_empty_path_is_a_usage_error_not_the_current_folder(tmp_path, args):
+    r = kbs(*args, cwd=tmp_path)
+    assert r.returncode == 2 and "'' is an empty path: give a file or folder name" in r.stderr, r.stderr
+    assert not any(tmp_path.iterdir())
