@@ -402,7 +402,7 @@ def _header_tiling(segmenter: Segmenter, cloud: Path, in_format: str | None, fmt
         return None, None  # the reader says what is wrong with the file
     from kbs.io.readers import las_crs
 
-    scan_units = ScanUnits.uniform(units, source="--units") if units is not None else las_crs(header)[0]
+    scan_units = ScanUnits.uniform(units, source="--units") if units is not None else las_crs(header, cloud)[0]
     if not np.array_equal(segmenter.scale(scan_units), np.ones(3)) or not int(header.point_count):
         return None, None
     lo, hi = np.asarray(header.mins, dtype=float)[:2], np.asarray(header.maxs, dtype=float)[:2]

@@ -13,7 +13,9 @@ import errno
 import io
 import logging
 import os
+import stat
 import struct
+import warnings
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
@@ -22,7 +24,7 @@ import numpy as np
 
 from kbs.errors import CloudFileError, KbsError, ParameterError
 from kbs.io.cloud import PointCloud
-from kbs.io.segcomp import read_range
+from kbs.io.segcomp import RAS_MAGIC, RT_BYTE_ENCODED, RT_OLD, RT_STANDARD, read_range
 from kbs.io.text import TableError, parse_table
 from kbs.units import ScanUnits, geokey_units, pyproj_units, units_from_comments, wkt_units
 
@@ -47,6 +49,9 @@ _KITTI_COLUMNS = 4
 _LAS_MIN_HEADER = 227
 _LAS_VLR_HEADER = 54
 _LAS_EVLR_HEADER = 60
+#: The LAS versions read (1.0 to 1.4, the published specifications) and point data formats.
+_LAS_MAX_MINOR = 4
+_LAS_POINT_FORMATS = range(11)
 
 
 def _one_line(exc: BaseException) -> str:
@@ -110,10 +115,16 @@ def _require_xyz(path: Path, names: tuple[str, ...], where: str) -> None:
 
 
 def _check_count(path: Path, kind: str, expected: int, found: int) -> None:
-    if found != expected:
+    if found < expected:
         raise CloudFileError(
             str(path),
             f"truncated {kind} file: the header announces {expected} points, the data holds {found}",
+        )
+    if found > expected:
+        raise CloudFileError(
+            str(path),
+            f"{kind} file longer than its header says: the header announces {expected} points, the data "
+            f"holds {found}",
         )
 
 
@@ -128,6 +139,14 @@ def _from_structured(
 ) -> PointCloud:
     """A cloud from a structured array with x, y, z fields; every other 1-D field is kept."""
     names = tuple(name for name in data.dtype.names if not skip(name))
+    for axis in ("x", "y", "z"):
+        kind = data.dtype[axis]
+        if kind.shape:
+            raise CloudFileError(str(path), f"field {axis!r} holds {int(np.prod(kind.shape))} values a point "
+                                 f"({kind.base} of shape {kind.shape}): x, y and z must be one number each")
+        if kind.kind not in "fiu":
+            raise CloudFileError(str(path), f"field {axis!r} is of type {kind}, not numbers: x, y and z must be "
+                                 "integer or floating-point fields")
     fields: dict[str, np.ndarray] = {}
     for name in names:
         if name in ("x", "y", "z"):
@@ -144,16 +163,17 @@ def _from_structured(
 _PLY_MAX_HEADER = 1 << 20
 
 
-def _check_ply_header(path: Path) -> None:
+def _check_ply_header(path: Path) -> tuple[bool, int]:
     """Say what is wrong with a PLY header that plyfile would only call undecodable: a line that is
-    not ASCII (a comment written in another encoding), or no ``end_header`` line."""
+    not ASCII (a comment written in another encoding), or no ``end_header`` line. Return whether
+    its ``format`` line says ascii, and its number of lines (``end_header`` included)."""
     with open(path, "rb") as fp:
         head = fp.read(_PLY_MAX_HEADER)
-    end = -1
+    end, end_marker = -1, b""
     for marker in (b"\nend_header\n", b"\nend_header\r\n", b"\rend_header\r"):
         at = head.find(marker)
         if at >= 0 and (end < 0 or at < end):
-            end = at
+            end, end_marker = at, marker
     if end < 0:
         raise CloudFileError(str(path), "malformed PLY header: no end_header line"
                              + (f" in its first {_PLY_MAX_HEADER:,} bytes" if len(head) == _PLY_MAX_HEADER else ""))
@@ -162,16 +182,78 @@ def _check_ply_header(path: Path) -> None:
         if bad is not None:
             raise CloudFileError(str(path), f"malformed PLY header: line {number} holds byte 0x{line[bad]:02x} at "
                                  f"column {bad + 1}: a PLY header is ASCII ({line[:60].decode('latin-1')!r})")
+    lines = head[:end + len(end_marker)].splitlines()
+    text = any(line.split()[:2] == [b"format", b"ascii"] for line in lines)
+    return text, len(lines)
+
+
+#: bytes at most of blank space after a PLY file's last element that are read to check they are
+#: blank (more than this, blank or not, is data the header does not declare)
+_PLY_MAX_TRAILER = 1 << 16
+
+
+def _ply_elements(ply) -> str:
+    return ", ".join(f"{element.count:,} {element.name}" for element in ply.elements)
+
+
+def _check_ply_end_binary(path: Path, ply, end: int) -> None:
+    """Refuse a binary PLY with data after its last element: an element count (the vertex count,
+    most often) that understates the data would drop points silently. Blank space is allowed."""
+    extra = path.stat().st_size - end
+    if extra <= 0:
+        return
+    with open(path, "rb") as fp:
+        fp.seek(end)
+        if extra <= _PLY_MAX_TRAILER and not fp.read(extra).strip():
+            return
+    import plyfile
+
+    last = ply.elements[-1] if ply.elements else None
+    record = (last.data.dtype.itemsize if last is not None
+              and not any(isinstance(p, plyfile.PlyListProperty) for p in last.properties) else 0)
+    room = f" (room for {extra // record:,} more {last.name} records)" if record and extra >= record else ""
+    raise CloudFileError(
+        str(path),
+        f"PLY file longer than its header says: its elements ({_ply_elements(ply)}) end at byte {end:,}, and "
+        f"{extra:,} bytes more follow them{room}: an element count understates the data",
+    )
+
+
+def _check_ply_end_ascii(path: Path, ply, stream, header_lines: int) -> None:
+    """Refuse an ascii PLY with lines after its last element (blank lines allowed): ``stream`` is
+    where plyfile stopped, one line an element after the ``header_lines`` of the header."""
+    consumed = header_lines + sum(element.count for element in ply.elements)
+    first, more = 0, 0
+    for number, line in enumerate(stream, consumed + 1):
+        if line.strip():
+            first = first or number
+            more += 1
+    if more:
+        raise CloudFileError(
+            str(path),
+            f"PLY file longer than its header says: its elements ({_ply_elements(ply)}) end on line "
+            f"{consumed:,}, and {more:,} more lines follow them (from line {first:,}): an element count "
+            "understates the data",
+        )
 
 
 def read_ply(path: Path) -> PointCloud:
-    """Read the ``vertex`` element of an ascii or binary PLY file (plyfile); list properties are skipped."""
+    """Read the ``vertex`` element of an ascii or binary PLY file (plyfile); list properties are skipped.
+
+    Data after the last element the header declares (but blank space) is an error, as it is in a
+    PCD file: an element count that understates the data would otherwise drop points silently."""
     _check_magic(path, (b"ply",), "PLY")
-    _check_ply_header(path)
+    text, header_lines = _check_ply_header(path)
     import plyfile  # each format's library is imported when a file of that format is read
 
-    with _library_errors(path, "PLY"):
-        ply = plyfile.PlyData.read(str(path))  # memory-mapped when binary; from_arrays copies
+    with _library_errors(path, "PLY"), open(path, "rb") as raw:
+        if text:  # read as plyfile reads it, through a text layer, and see where it stopped
+            stream = io.TextIOWrapper(raw, "ascii")
+            ply = plyfile.PlyData.read(stream)
+            _check_ply_end_ascii(path, ply, stream, header_lines)
+        else:
+            ply = plyfile.PlyData.read(raw)  # memory-mapped when it can be; from_arrays copies
+            _check_ply_end_binary(path, ply, raw.tell())
     elements = {element.name: element for element in ply.elements}
     if "vertex" not in elements:
         raise CloudFileError(str(path), f"no vertex element (it has: {', '.join(elements) or 'nothing'})")
@@ -253,8 +335,10 @@ def read_pcd(path: Path) -> PointCloud:
     lines, comments, offset = _pcd_header(path)
     lines, changed = _pcd_header_as_v07(path, lines)
     with _library_errors(path, "PCD"):
+        meta = pypcd4.MetaData.parse_header(lines)
+    _check_pcd_header(path, meta, offset)
+    with _library_errors(path, "PCD"):
         if lines[-1].split()[1:2] == ["ascii"]:
-            meta = pypcd4.MetaData.parse_header(lines)
             with open(path, "rb") as fp:
                 fp.seek(offset)
                 data = _pcd_ascii(path, fp, meta.build_dtype(), meta.points)
@@ -280,17 +364,40 @@ def read_pcd(path: Path) -> PointCloud:
             )
     names = tuple(name for name in data.dtype.names if not name.startswith(_PCD_PADDING_PREFIX))
     _require_xyz(path, names, "the PCD header")
-    shape = None
-    if meta.height > 1:
-        if meta.height * meta.width != meta.points:
-            raise CloudFileError(
-                str(path),
-                f"malformed PCD header: WIDTH {meta.width} x HEIGHT {meta.height} != POINTS {meta.points}",
-            )
-        shape = (meta.height, meta.width)
+    shape = (meta.height, meta.width) if meta.height > 1 else None
     units, crs = _declared_units(path, comments, "PCD")
     return _from_structured(path, data, skip=lambda name: name.startswith(_PCD_PADDING_PREFIX), shape=shape,
                             units=units, crs=crs)
+
+
+#: The SIZE of each PCD TYPE that PCL and pypcd4 read (bytes a value).
+_PCD_SIZES = {"F": (4, 8), "I": (1, 2, 4, 8), "U": (1, 2, 4, 8)}
+_PCD_SIZES_TEXT = "TYPE F has SIZE 4 or 8; I and U have 1, 2, 4 or 8"
+
+
+def _check_pcd_header(path: Path, meta, offset: int) -> None:
+    """Refuse what pypcd4 would only name cryptically or try to allocate: a field of a SIZE its TYPE
+    does not have, WIDTH x HEIGHT other than POINTS (HEIGHT is 1 for an unorganised cloud, as the
+    PCD specification and PCL require), or a binary body shorter than POINTS records."""
+    for column, (name, kind, size) in enumerate(zip(meta.fields, meta.type, meta.size), 1):
+        if size not in _PCD_SIZES.get(kind, ()):
+            raise CloudFileError(str(path), f"malformed PCD header: field {name!r} (column {column} of FIELDS) has "
+                                 f"TYPE {kind} and SIZE {size}, a pair that is not supported ({_PCD_SIZES_TEXT})")
+    if meta.width * meta.height != meta.points:
+        raise CloudFileError(
+            str(path),
+            f"malformed PCD header: WIDTH {meta.width} x HEIGHT {meta.height} != POINTS {meta.points} "
+            "(an unorganised cloud has HEIGHT 1 and WIDTH = POINTS)",
+        )
+    if meta.data.value == "binary":
+        record = sum(size * count for size, count in zip(meta.size, meta.count))
+        held = path.stat().st_size - offset
+        if meta.points * record > held:
+            raise CloudFileError(
+                str(path),
+                f"truncated PCD file: the header announces {meta.points} points, the data holds {held // record} "
+                f"({meta.points * record:,} bytes of binary data announced, {held:,} bytes after the header)",
+            )
 
 
 def _zero_padding(path: Path, extra: int) -> bool:
@@ -324,7 +431,7 @@ def _check_las_layout(path: Path, kind: str) -> None:
         head = fp.read(_LAS_MIN_HEADER + 24)
     if len(head) < _LAS_MIN_HEADER:
         raise CloudFileError(str(path), f"truncated {kind} file: {size} bytes, shorter than a LAS header")
-    minor = head[25]
+    major, minor = head[24], head[25]
     header_size, offset_to_points, n_vlrs = struct.unpack_from("<HII", head, 94)
     if (
         not header_size <= offset_to_points <= size
@@ -335,12 +442,56 @@ def _check_las_layout(path: Path, kind: str) -> None:
             f"malformed {kind} header: {n_vlrs} VLRs and point data at byte {offset_to_points} "
             f"do not fit a {size}-byte file",
         )
+    if major != 1 or minor > _LAS_MAX_MINOR:  # laspy would read its fields at the wrong places
+        raise CloudFileError(str(path), f"unsupported {kind} version {major}.{minor} (header bytes 24-25): "
+                             f"LAS 1.0 to 1.{_LAS_MAX_MINOR} are read")
+    point_format = head[104]
+    if point_format & 0x3F not in _LAS_POINT_FORMATS:  # bits 7 and 6 mark compressed (LAZ) points
+        raise CloudFileError(str(path), f"malformed {kind} header: unknown point data format {point_format} "
+                             f"(header byte 104; LAS defines formats 0 to {max(_LAS_POINT_FORMATS)}, "
+                             "plus 128 when compressed)")
     if minor >= 4 and len(head) >= 247:
         start_of_evlrs, n_evlrs = struct.unpack_from("<QI", head, 235)
         if n_evlrs and start_of_evlrs + n_evlrs * _LAS_EVLR_HEADER > size:
             raise CloudFileError(
                 str(path), f"malformed {kind} header: {n_evlrs} extended VLRs do not fit a {size}-byte file"
             )
+
+
+def _check_las_length(path: Path, kind: str, point_count: int) -> None:
+    """Refuse an uncompressed LAS file whose point data region holds more whole records than its
+    header's point count: laspy reads the count it is told, and the points after it would be dropped
+    silently. The region runs from the offset to point data to the end of the file, or to the start
+    of the extended VLRs (LAS 1.4) or of internal waveform data (LAS 1.3+) when these follow it."""
+    size = path.stat().st_size
+    with open(path, "rb") as fp:
+        head = fp.read(_LAS_MIN_HEADER + 28)
+    if head[104] & 0x80:  # compressed (LAZ): the records' size says nothing of their number
+        return
+    minor = head[25]
+    offset_to_points, = struct.unpack_from("<I", head, 96)
+    record, = struct.unpack_from("<H", head, 105)
+    end = size
+    if minor >= 3 and len(head) >= 235:
+        waveform, = struct.unpack_from("<Q", head, 227)
+        if offset_to_points < waveform < end:
+            end = waveform
+    if minor >= 4 and len(head) >= 247:
+        start_of_evlrs, n_evlrs = struct.unpack_from("<QI", head, 235)
+        if n_evlrs and offset_to_points < start_of_evlrs < end:
+            end = start_of_evlrs
+    if not record:
+        return
+    room = (end - offset_to_points) // record
+    if room > point_count:
+        extra = end - offset_to_points - point_count * record
+        raise CloudFileError(
+            str(path),
+            f"{kind} file longer than its header says: the header announces {point_count:,} points "
+            f"({point_count * record:,} bytes of point records from byte {offset_to_points:,}), and {extra:,} "
+            f"bytes more follow them (room for {room - point_count:,} more points): its point count understates "
+            "the data",
+        )
 
 
 def _check_las_bounds(path: Path, kind: str, header, xyz: np.ndarray) -> None:
@@ -377,6 +528,7 @@ def read_las(path: Path) -> PointCloud:
     with _library_errors(path, kind):
         las = laspy.read(path)
         _check_count(path, kind, las.header.point_count, len(las.points))
+        _check_las_length(path, kind, las.header.point_count)
         scales = np.asarray(las.header.scales, dtype=np.float64)
         if not (np.isfinite(scales).all() and (scales > 0).all()):
             raise CloudFileError(str(path), f"malformed {kind} header: the x, y, z scale factors "
@@ -395,17 +547,27 @@ def read_las(path: Path) -> PointCloud:
             values = np.asarray(las[name])
             if values.ndim == 1 and name not in fields:
                 fields[name] = values
-    units, crs = las_crs(las.header)
+    units, crs = las_crs(las.header, path)
     return PointCloud.from_arrays(xyz, fields, path=str(path), units=units, crs=crs, source=las)
 
 
-def las_crs(header) -> tuple[ScanUnits | None, str | None]:
-    """The units and the CRS text of a LAS header.
+def las_crs(header, path: str | os.PathLike[str] | None = None) -> tuple[ScanUnits | None, str | None]:
+    """The units and the CRS text of a LAS header (of the file ``path``: a CRS whose unit is no
+    length, 0 or NaN metres, is then a CloudFileError naming it; without ``path`` a ParameterError).
 
     With pyproj (``pip install 'kbs[crs]'``), laspy's ``parse_crs`` reads the WKT or GeoTIFF
     records and the text is the CRS's WKT. Without it, the WKT record's text is kept as it is and
     its UNIT nodes give the units; GeoTIFF keys give them through ProjLinearUnitsGeoKey /
     VerticalUnitsGeoKey (the CRS text is then ``EPSG:<ProjectedCSTypeGeoKey>``)."""
+    try:
+        return _las_crs(header)
+    except ParameterError as exc:
+        if path is None:
+            raise
+        raise CloudFileError(os.fspath(path), f"its CRS: {exc}") from exc
+
+
+def _las_crs(header) -> tuple[ScanUnits | None, str | None]:
     from laspy.vlrs.known import GeoKeyDirectoryVlr, WktCoordinateSystemVlr
 
     source = "the LAS file's CRS"
@@ -468,7 +630,10 @@ def read_text(path: Path) -> PointCloud:
     """Read a whitespace- or comma-separated table: x y z, then extra columns kept as float64 fields.
 
     Extra columns are named from the header line if there is one, else ``col3``, ``col4`` ... by
-    their 0-based position. A header naming ``x``, ``y`` and ``z`` (any case) picks those columns.
+    their 0-based position. A header naming ``x``, ``y`` and ``z`` (any case) picks those columns;
+    one naming none of them leaves x, y, z the first three; one naming some but not all, or a
+    column twice, is an error. A point count line (a ``.pts`` file's first line) must match the
+    number of data lines.
     """
     text = path.read_bytes().decode("utf-8-sig", errors="replace")
     try:
@@ -477,7 +642,14 @@ def read_text(path: Path) -> PointCloud:
         raise CloudFileError(str(path), str(exc)) from exc
     values, names = table.values, table.names
     n_columns = values.shape[1]
+    kind = "PTS" if path.suffix.lower() == ".pts" else "text"
+    if table.count is not None and table.count != values.shape[0]:
+        state = f"truncated {kind} file" if table.count > values.shape[0] else f"{kind} file longer than its point count says"
+        raise CloudFileError(str(path), f"{state}: the point count on line {table.count_line} announces "
+                             f"{table.count:,} points, the data holds {values.shape[0]:,} lines")
     lowered = [name.lower() for name in names] if names else []
+    if names:
+        _check_text_header(path, names, table.header_line)
     if all(axis in lowered for axis in ("x", "y", "z")):
         xyz_columns = [lowered.index(axis) for axis in ("x", "y", "z")]
     else:
@@ -491,6 +663,24 @@ def read_text(path: Path) -> PointCloud:
             raise CloudFileError(str(path), f"the header names two columns {name!r}")
         fields[name] = values[:, column]
     return PointCloud.from_arrays(values[:, xyz_columns], fields, path=str(path))
+
+
+def _check_text_header(path: Path, names: tuple[str, ...], line: int | None) -> None:
+    """Refuse a text header that names a column twice (x, y and z in any case, as they are picked),
+    or some of x, y, z but not all: its columns would be taken silently for others."""
+    where = f"the header on line {line}"
+    seen: dict[str, int] = {}
+    for column, name in enumerate(names, 1):
+        key = name.lower() if name.lower() in ("x", "y", "z") else name
+        if key in seen:
+            raise CloudFileError(str(path), f"{where} names {key!r} twice (columns {seen[key]} and {column}: "
+                                 f"{' '.join(names)[:80]})")
+        seen[key] = column
+    named = [axis for axis in ("x", "y", "z") if axis in seen]
+    if named and len(named) < 3:
+        missing = [axis for axis in ("x", "y", "z") if axis not in seen]
+        raise CloudFileError(str(path), f"{where} names {', '.join(named)} but no {'/'.join(missing)} column "
+                             f"({' '.join(names)[:80]})")
 
 
 #: an .npy array with more columns than this and than rows is taken for a transposed cloud
@@ -536,9 +726,35 @@ def read_npy(path: Path) -> PointCloud:
 _KITTI_MAX_NEGATIVE_REMISSION = 0.01
 
 
+#: bytes at the start of a .bin that are looked at to tell a text file from float32 records
+_TEXT_SAMPLE = 4096
+#: the bytes of text (:func:`_looks_like_text`): printable ASCII, space, tab, CR, LF
+_TEXT_BYTES = frozenset(range(0x20, 0x7F)) | frozenset(b"\t\r\n")
+
+
+def _looks_like_text(path: Path) -> bool:
+    """Whether the file's first :data:`_TEXT_SAMPLE` bytes (all of it, if shorter) are printable
+    ASCII characters, spaces, tabs and line breaks, with at least one line break: a text table.
+    Float32 records do not pass: 98 of the 256 byte values are text; a negative value's last byte
+    is 0x80 or more, the low bytes of a round value are 0x00 and those of any other are close to
+    random (the chance that 4 KiB of them pass is far below 0.4**1000)."""
+    with open(path, "rb") as fp:
+        head = fp.read(_TEXT_SAMPLE)
+    return bool(head) and (b"\n" in head or b"\r" in head) and set(head) <= _TEXT_BYTES
+
+
 def read_kitti_bin(path: Path) -> PointCloud:
-    """Read a KITTI Velodyne ``.bin`` scan: little-endian float32 records x y z intensity."""
+    """Read a KITTI Velodyne ``.bin`` scan: little-endian float32 records x y z intensity.
+
+    A file whose start is text (:func:`_looks_like_text`) is refused: read 4 bytes at a time its
+    characters would make points far from anything."""
     record = _KITTI_COLUMNS * _KITTI_RECORD.itemsize
+    if _looks_like_text(path):
+        raise CloudFileError(
+            str(path),
+            f"looks like text, not float32 records (its first {min(path.stat().st_size, _TEXT_SAMPLE):,} bytes "
+            "are printable ASCII and line breaks): give --in-format xyz (or csv)",
+        )
     size = path.stat().st_size
     if size % record:
         raise CloudFileError(
@@ -613,6 +829,45 @@ def _smoother_layout(path: Path, array: np.ndarray) -> int | None:
     return None
 
 
+def read_abw_range(path: Path) -> PointCloud:
+    """Read an ABW range image (:func:`kbs.io.segcomp.read_range`), refusing a file longer than
+    its header says (:func:`_check_raster_length`)."""
+    _check_raster_length(path)
+    return read_range(path)
+
+
+def _check_raster_length(path: Path) -> None:
+    """Refuse a Sun rasterfile with a row or more of bytes after the image its header describes:
+    a wrong width or height would read the pixels on a wrong grid, and the rest be dropped silently.
+    Fewer bytes than a row (a writer's trailing padding) are allowed. Other problems are left to
+    the rasterfile reader, which names them."""
+    with open(path, "rb") as fp:
+        head = fp.read(32)
+    orders = {RAS_MAGIC.to_bytes(4, "big"): ">", RAS_MAGIC.to_bytes(4, "little"): "<"}
+    if len(head) < 32 or head[:4] not in orders:
+        return
+    _, width, height, depth, length, ras_type, _, maplength = struct.unpack(f"{orders[head[:4]]}8I", head)
+    if depth != 8 or not 0 < width <= 1 << 20 or not 0 < height <= 1 << 20:
+        return
+    body = path.stat().st_size - 32 - maplength
+    row = width + (width & 1)  # rows are padded to 16 bits
+    if ras_type in (RT_OLD, RT_STANDARD):
+        need = height * row
+        if body < need and width % 2 and length == width * height:
+            need, row = length, width  # a writer that left the rows of odd width unpadded
+    elif ras_type == RT_BYTE_ENCODED and length:
+        need = length
+    else:
+        return
+    extra = body - need
+    if extra >= row:
+        raise CloudFileError(
+            str(path),
+            f"Sun rasterfile longer than its header says: {width} x {height} 8-bit pixels take {need:,} bytes, "
+            f"and {extra:,} bytes more follow them (room for {extra // row:,} more rows): a wrong width or height?",
+        )
+
+
 #: Reader of each supported extension (lower case, with the dot).
 READERS: Mapping[str, Callable[[Path], PointCloud]] = {
     ".ply": read_ply,
@@ -626,7 +881,7 @@ READERS: Mapping[str, Callable[[Path], PointCloud]] = {
     ".pts": read_text,
     ".npy": read_npy,
     ".bin": read_kitti_bin,
-    ".range": read_range,  # ABW range images of the SegComp contest (kbs.io.segcomp)
+    ".range": read_abw_range,  # ABW range images of the SegComp contest (kbs.io.segcomp)
 }
 
 #: The file extensions :func:`read_cloud` understands.
@@ -642,7 +897,8 @@ def cloud_files_in(folder: Path) -> list[Path]:
         When the folder cannot be listed.
     """
     try:
-        return sorted((p for p in folder.iterdir() if p.suffix.lower() in SUPPORTED_EXTENSIONS and p.is_file()),
+        # every entry but folders: a broken link or a FIFO is a scan the reader refuses, and says so
+        return sorted((p for p in folder.iterdir() if p.suffix.lower() in SUPPORTED_EXTENSIONS and not p.is_dir()),
                       key=lambda p: p.name)
     except OSError as exc:
         raise CloudFileError(str(folder), f"cannot list the directory: {exc.strerror or exc}") from exc
@@ -689,6 +945,8 @@ def why_not_a_scan(path: Path) -> str | None:
     if path.name.lower() in NOT_SCANS:
         return NOT_SCANS[path.name.lower()]
     try:
+        if not stat.S_ISREG(path.stat().st_mode):  # a FIFO or device is not opened (it could block): the reader says
+            return None
         if extension == ".npy":
             with open(path, "rb") as stream:
                 version = np.lib.format.read_magic(stream)
@@ -758,8 +1016,64 @@ def read_cloud(path: str | os.PathLike[str], *, format: str | None = None) -> Po
         what = f"unknown extension {file.suffix!r}" if file.suffix else "no file extension"
         raise CloudFileError(str(file), f"{what} (supported: {supported})")
     try:
-        if file.stat().st_size == 0:
+        status = file.stat()
+        if not stat.S_ISREG(status.st_mode):  # not opened: reading a FIFO would block
+            raise CloudFileError(str(file), f"not a regular file but {_file_type(status.st_mode)}: a cloud is "
+                                 "read from a file (`kbs run - --in-format FORMAT` reads one from standard input)")
+        if status.st_size == 0:
             raise CloudFileError(str(file), "empty file (0 bytes)")
-        return READERS[extension](file)
+        with _library_noise():
+            return READERS[extension](file)
     except OSError as exc:
         raise CloudFileError(str(file), f"cannot read: {exc.strerror or exc}") from exc
+
+
+def _file_type(mode: int) -> str:
+    """What a file that is not a regular file is, from its ``st_mode``."""
+    kinds = ((stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISSOCK, "a socket"),
+             (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"))
+    return next((what for test, what in kinds if test(mode)), "a special file")
+
+
+#: loggers of the reading libraries whose records a failed read discards (laspy logs each LAZ
+#: backend's failure at ERROR level, then raises the last one)
+_LIBRARY_LOGGERS = ("laspy",)
+
+
+class _Held(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__(logging.NOTSET)
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+
+@contextmanager
+def _library_noise() -> Iterator[None]:
+    """Hold back the warnings and the log records of the reading libraries while a reader runs:
+    when the reader fails, its own one-line error says what is wrong and they are dropped (plyfile's
+    ``UserWarning: loadtxt: input contained no data``, laspy's ``IoError: failed to fill whole
+    buffer``); when it succeeds they are given out as they would have been. (As
+    :class:`warnings.catch_warnings`, not meant for readers run in several threads at once.)"""
+    held = _Held()
+    loggers = [logging.getLogger(name) for name in _LIBRARY_LOGGERS]
+    propagate = [logger_.propagate for logger_ in loggers]
+    for logger_ in loggers:
+        logger_.addHandler(held)
+        logger_.propagate = False
+    failed = True
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            yield
+        failed = False
+    finally:
+        for logger_, was in zip(loggers, propagate):
+            logger_.removeHandler(held)
+            logger_.propagate = was
+        if not failed:
+            for warning in caught:
+                warnings.warn_explicit(warning.message, warning.category, warning.filename, warning.lineno,
+                                       source=warning.source)
+            for record in held.records:
+                logging.getLogger(record.name).handle(record)

@@ -16,6 +16,11 @@ import numpy as np
 #: Prefixes of comment lines; a comment made only of names (``//X Y Z``) can be the header.
 COMMENT_PREFIXES = ("#", "//")
 _QUOTE_CHARS = 40
+#: Columns at most of a point table. A point's attributes (intensity, colour, normal, labels,
+#: returns, time ...) number a dozen or two; a line of hundreds of numbers is a cloud written
+#: transposed or without line breaks, which would be read as one point with as many fields.
+#: (The same bound as a ``.npy`` array's, :data:`kbs.io.readers._NPY_MAX_COLUMNS`.)
+MAX_COLUMNS = 64
 
 
 class TableError(ValueError):
@@ -32,10 +37,18 @@ class Table:
         One row per data line.
     names : tuple[str, ...] or None
         The C column names of the header line, or None when the file has no header.
+    count, count_line : int or None
+        The point count a line holding one whole number before the data announces (a ``.pts``
+        file's first line), and that line's number (1-based); None when there is none.
+    header_line : int or None
+        The line number of the header (1-based), None when there is none.
     """
 
     values: np.ndarray
     names: tuple[str, ...] | None
+    count: int | None = None
+    count_line: int | None = None
+    header_line: int | None = None
 
 
 def _quote(line: str) -> str:
@@ -79,6 +92,13 @@ def _header_names(line: str) -> tuple[str, ...] | None:
     return names
 
 
+def _separator_hint(line: str) -> str:
+    """A hint for a line whose columns are separated by semicolons, or ``""``."""
+    if ";" not in line:
+        return ""
+    return " (columns separated by ';'? they are read separated by blanks or by commas)"
+
+
 def _find_bad_line(body: str, first_lineno: int, n_columns: int, delimiter: str | None) -> str | None:
     """Describe the first line of ``body`` that is not a row of ``n_columns`` numbers."""
     for lineno, line in enumerate(body.split("\n"), start=first_lineno):
@@ -108,19 +128,25 @@ def parse_table(text: str) -> Table:
     Returns
     -------
     Table
-        The (N, C) values, C >= 3, and the header names if there is a header.
+        The (N, C) values, 3 <= C <= :data:`MAX_COLUMNS`, the header names if there is a header,
+        and the point count if a line announces one.
 
     Raises
     ------
     TableError
-        No data line, fewer than three columns, a header whose length differs from the data's,
-        or a line that is not a row of C numbers (its 1-based number and a quote are given).
+        No data line (the first line that is not a row of numbers is quoted), fewer than three
+        or more than :data:`MAX_COLUMNS` columns, a header whose length differs from the data's,
+        a lone number before the data that is not a whole number, or a line that is not a row of
+        C numbers (its 1-based number and a quote are given).
     """
     if "\x00" in text[:4096]:
         raise TableError("binary data, not a text table")
     header: tuple[str, ...] | None = None
     header_lineno = 0
     header_commented = False
+    count: int | None = None
+    count_line: int | None = None
+    texts: list[tuple[int, str]] = []  # the first lines made of words, not numbers
     lineno = 0
     pos = 0
     while pos < len(text):
@@ -140,19 +166,39 @@ def parse_table(text: str) -> Table:
                 break  # the first data line
             if not all(numeric) and any(numeric):
                 bad = tokens[numeric.index(False)]
-                raise TableError(f"line {lineno}: {bad!r} is not a number: {_quote(line)}")
+                raise TableError(f"line {lineno}: {bad!r} is not a number: {_quote(line)}{_separator_hint(line)}")
             if not all(numeric):
                 header, header_lineno, header_commented = _header_names(stripped), lineno, False
-            # else: a single number before the data, the point count of a .pts file
+                if len(texts) < 2:
+                    texts.append((lineno, line))
+            else:  # a single number before the data: the point count of a .pts file
+                value = float(tokens[0])
+                if not value.is_integer():
+                    raise TableError(f"line {lineno}: a lone number before the data is a point count, and "
+                                     f"{tokens[0]!r} is not a whole number: {_quote(line)}")
+                count, count_line = int(value), lineno
         pos = end + 1
     else:
-        raise TableError("no data line (expected rows of at least 3 numbers: x y z ...)")
+        problem = "no data line (expected rows of at least 3 numbers: x y z ...)"
+        hinted = next(((n, words) for n, words in texts if _separator_hint(words)), None)
+        if hinted is not None:
+            problem += f": line {hinted[0]} holds {_quote(hinted[1])}{_separator_hint(hinted[1])}"
+        elif len(texts) > 1:
+            problem += f": line {texts[1][0]} is not a row of numbers: {_quote(texts[1][1])}"
+        elif texts:
+            problem += f": line {texts[0][0]} holds names, not numbers: {_quote(texts[0][1])}"
+        raise TableError(problem)
 
     delimiter = _delimiter(stripped)
     n_columns = len(tokens)
     if n_columns < 3:
         raise TableError(
             f"line {lineno} has {n_columns} columns; at least 3 (x y z) are needed: {_quote(line)}"
+        )
+    if n_columns > MAX_COLUMNS:
+        raise TableError(
+            f"line {lineno} has {n_columns:,} columns, more than the {MAX_COLUMNS} of a point table (one point "
+            f"a line: x y z, then its attributes); a cloud written transposed or without line breaks?"
         )
     if header is not None and len(header) != n_columns:
         if not header_commented:
@@ -176,4 +222,5 @@ def parse_table(text: str) -> Table:
         raise TableError(problem or f"cannot parse the numbers: {str(exc).splitlines()[0]}") from exc
     if values.shape[1] != n_columns:  # pragma: no cover - loadtxt enforces a constant count
         raise TableError(f"expected {n_columns} columns, parsed {values.shape[1]}")
-    return Table(values=values, names=header)
+    return Table(values=values, names=header, count=count, count_line=count_line,
+                 header_line=header_lineno if header is not None else None)

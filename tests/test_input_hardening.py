@@ -147,3 +147,38 @@ def test_an_empty_path_is_a_usage_error_not_the_current_folder(tmp_path, args):
     r = kbs(*args, cwd=tmp_path)
     assert r.returncode == 2 and "'' is an empty path: give a file or folder name" in r.stderr, r.stderr
     assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("factor", ["0", "nan", "-0.3048"])
+def test_kbs_run_refuses_a_las_whose_crs_declares_a_unit_of_no_length(tmp_path, factor):
+    import laspy
+    from laspy.vlrs.known import WktCoordinateSystemVlr
+
+    X, _ = ground_and_rocks(seed=3)
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.scales, header.offsets = np.array([1e-3, 1e-3, 1e-3]), np.zeros(3)
+    header.vlrs.append(WktCoordinateSystemVlr(PROJ.format(name="odd", factor=factor)))
+    header.global_encoding.wkt = True
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = X[::4, 0], X[::4, 1], X[::4, 2]
+    scan = tmp_path / "odd.las"
+    las.write(scan)
+    r = kbs("run", "--rules", "outdoor", str(scan), "--out", str(tmp_path / "o"))
+    assert r.returncode == 3, r.stderr
+    assert f"{scan}: its CRS: the unit of length 'odd' is" in r.stderr and "Traceback" not in r.stderr
+    assert r.stderr.count("\n") == 1, r.stderr  # one line: no numpy warning before it
+
+
+def test_a_folder_reports_its_broken_links_and_fifos_instead_of_skipping_them(tmp_path):
+    import os
+
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    _ply(folder / "a.ply", [])
+    (folder / "b.ply").symlink_to(tmp_path / "gone.ply")
+    os.mkfifo(folder / "c.ply")  # never opened: reading it would wait for a writer
+    r = kbs("run", "--rules", "outdoor", str(folder), "--out", str(tmp_path / "o"))
+    assert r.returncode == 3, r.stderr
+    assert f"{folder / 'b.ply'}: no such file: a broken symbolic link" in r.stderr
+    assert f"{folder / 'c.ply'}: not a regular file but a FIFO (named pipe)" in r.stderr
+    assert (tmp_path / "o" / "a.ply").is_file()  # the good scan is segmented all the same

@@ -471,7 +471,7 @@ def streamed_cloud(spilled: SpilledCloud, path: Path) -> Any:
     from kbs.io import PointCloud
     from kbs.io.readers import las_crs
 
-    units, crs = las_crs(spilled.header)
+    units, crs = las_crs(spilled.header, path)
     return PointCloud(xyz=spilled.xyz, fields={}, shape=None, index=spilled.index, n_read=len(spilled.xyz),
                       n_dropped=0, path=str(path), units=units, crs=crs,
                       source=types.SimpleNamespace(header=spilled.header))
