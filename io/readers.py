@@ -24,7 +24,7 @@ import numpy as np
 
 from kbs.errors import CloudFileError, KbsError, ParameterError
 from kbs.io.cloud import PointCloud
-from kbs.io.segcomp import RAS_MAGIC, RT_BYTE_ENCODED, RT_OLD, RT_STANDARD, read_range
+from kbs.io.segcomp import read_range
 from kbs.io.text import TableError, parse_table
 from kbs.units import ScanUnits, geokey_units, pyproj_units, units_from_comments, wkt_units
 
@@ -829,45 +829,6 @@ def _smoother_layout(path: Path, array: np.ndarray) -> int | None:
     return None
 
 
-def read_abw_range(path: Path) -> PointCloud:
-    """Read an ABW range image (:func:`kbs.io.segcomp.read_range`), refusing a file longer than
-    its header says (:func:`_check_raster_length`)."""
-    _check_raster_length(path)
-    return read_range(path)
-
-
-def _check_raster_length(path: Path) -> None:
-    """Refuse a Sun rasterfile with a row or more of bytes after the image its header describes:
-    a wrong width or height would read the pixels on a wrong grid, and the rest be dropped silently.
-    Fewer bytes than a row (a writer's trailing padding) are allowed. Other problems are left to
-    the rasterfile reader, which names them."""
-    with open(path, "rb") as fp:
-        head = fp.read(32)
-    orders = {RAS_MAGIC.to_bytes(4, "big"): ">", RAS_MAGIC.to_bytes(4, "little"): "<"}
-    if len(head) < 32 or head[:4] not in orders:
-        return
-    _, width, height, depth, length, ras_type, _, maplength = struct.unpack(f"{orders[head[:4]]}8I", head)
-    if depth != 8 or not 0 < width <= 1 << 20 or not 0 < height <= 1 << 20:
-        return
-    body = path.stat().st_size - 32 - maplength
-    row = width + (width & 1)  # rows are padded to 16 bits
-    if ras_type in (RT_OLD, RT_STANDARD):
-        need = height * row
-        if body < need and width % 2 and length == width * height:
-            need, row = length, width  # a writer that left the rows of odd width unpadded
-    elif ras_type == RT_BYTE_ENCODED and length:
-        need = length
-    else:
-        return
-    extra = body - need
-    if extra >= row:
-        raise CloudFileError(
-            str(path),
-            f"Sun rasterfile longer than its header says: {width} x {height} 8-bit pixels take {need:,} bytes, "
-            f"and {extra:,} bytes more follow them (room for {extra // row:,} more rows): a wrong width or height?",
-        )
-
-
 #: Reader of each supported extension (lower case, with the dot).
 READERS: Mapping[str, Callable[[Path], PointCloud]] = {
     ".ply": read_ply,
@@ -881,7 +842,7 @@ READERS: Mapping[str, Callable[[Path], PointCloud]] = {
     ".pts": read_text,
     ".npy": read_npy,
     ".bin": read_kitti_bin,
-    ".range": read_abw_range,  # ABW range images of the SegComp contest (kbs.io.segcomp)
+    ".range": read_range,  # ABW range images of the SegComp contest (kbs.io.segcomp)
 }
 
 #: The file extensions :func:`read_cloud` understands.

@@ -412,6 +412,7 @@ def read_range(
         Not a readable 8-bit rasterfile, not 512 x 512, or no pixel with data.
     """
     file = os.fspath(path)
+    _check_raster_length(file)
     image = read_sunraster(file)
     if image.shape != ABW_SHAPE:
         raise CloudFileError(
@@ -434,6 +435,42 @@ def read_range(
         n_dropped=image.size - pixel.size,
         path=file,
     )
+
+
+def _check_raster_length(path: str) -> None:
+    """Refuse a Sun rasterfile with a row or more of bytes after the image its header describes:
+    a wrong width or height would read the pixels on a wrong grid, and the rest be dropped silently.
+    Fewer bytes than a row (a writer's trailing padding) are allowed. Other problems are left to
+    the rasterfile reader, which names them."""
+    try:
+        with open(path, "rb") as fp:
+            head = fp.read(32)
+        size = os.path.getsize(path)
+    except OSError:  # missing, unreadable: read_sunraster says so
+        return
+    orders = {RAS_MAGIC.to_bytes(4, "big"): ">", RAS_MAGIC.to_bytes(4, "little"): "<"}
+    if len(head) < 32 or head[:4] not in orders:
+        return
+    _, width, height, depth, length, ras_type, _, maplength = struct.unpack(f"{orders[head[:4]]}8I", head)
+    if depth != 8 or not 0 < width <= 1 << 20 or not 0 < height <= 1 << 20:
+        return
+    body = size - 32 - maplength
+    row = width + (width & 1)  # rows are padded to 16 bits
+    if ras_type in (RT_OLD, RT_STANDARD):
+        need = height * row
+        if body < need and width % 2 and length == width * height:
+            need, row = length, width  # a writer that left the rows of odd width unpadded
+    elif ras_type == RT_BYTE_ENCODED and length:
+        need = length
+    else:
+        return
+    extra = body - need
+    if extra >= row:
+        raise CloudFileError(
+            path,
+            f"Sun rasterfile longer than its header says: {width} x {height} 8-bit pixels take {need:,} bytes, "
+            f"and {extra:,} bytes more follow them (room for {extra // row:,} more rows): a wrong width or height?",
+        )
 
 
 # --- segmentations ------------------------------------------------------------------------------

@@ -15,7 +15,7 @@ from laspy.vlrs.vlrlist import VLRList
 
 from kbs.errors import CloudFileError
 from kbs.io import read_cloud
-from kbs.io.segcomp import write_sunraster
+from kbs.io.segcomp import read_range, write_sunraster
 from test_cli import kbs
 
 RNG = np.random.default_rng(31)
@@ -147,6 +147,8 @@ def test_range_image_with_bytes_after_its_pixels(tmp_path):
     problem = _problem(path)
     assert problem.startswith("Sun rasterfile longer than its header says: 512 x 512 8-bit pixels take 262,144 bytes, "
                               "and 5,000 bytes more follow them (room for 9 more rows)"), problem
+    with pytest.raises(CloudFileError, match="Sun rasterfile longer than its header says"):
+        read_range(path)  # what kbs eval --image reads: the same check
 
 
 # -- 2. garbage accepted -------------------------------------------------------------------------
