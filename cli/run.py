@@ -56,6 +56,12 @@ def _vector3(ctx, param, value):
 def _jobs(ctx, param, value):
     if value == 0:
         raise click.BadParameter("0 processes: give a positive number, or -1 for one per core")
+    from kbs.knowledge.interpreter import available_cores
+
+    cores = available_cores()
+    if value > cores and not (ctx.find_root().obj or {}).get("quiet"):  # the processes kbs starts are capped there
+        click.echo(f"note: -j {value}: {cores} core{'s' if cores > 1 else ''} available, so at most {cores} "
+                   f"process{'es' if cores > 1 else ''} on this machine (more would run no faster)", err=True)
     return value
 
 
@@ -699,7 +705,8 @@ def time_table(results: list[ScanResult | ScanFailure], t_load: float, t_total: 
 @click.option("--report", is_flag=True, help="Also write DIR/<stem>.html: a self-contained report (3D view by "
               "cluster or label, centres and eigen-boxes, APD curve, the explanation tree; opens offline).")
 @click.option("-j", "--jobs", type=click.IntRange(min=-1), default=-1, show_default=True, callback=_jobs,
-              help="Processes computing the UFP-ONC splits side by side; -1: one per available core. With several "
+              help="Processes computing the UFP-ONC splits side by side; -1: one per available core (and at most "
+              "that many). With several "
               "scans (not --tile, --scheduler), up to this many scans are segmented at once instead, each in a process "
               "of its own. The result does not depend on it.")
 @click.option("--tile", "tile", type=FiniteFloatRange(min=0, min_open=True), metavar="SIZE",

@@ -36,9 +36,11 @@ class Interpreter:
     progress : callable, optional
         Called with a short message after each decision.
     jobs : int
-        Processes computing UFP-ONC splits (1: all in this process; -1: one per available core).
-        The splits of one level of the tree are independent, so they run side by side while this
-        process judges the clusters; the result is identical whatever ``jobs`` is.
+        Processes computing UFP-ONC splits (1: all in this process; -1: one per available core; at
+        most one per available core: more would run no faster, and ``jobs=100000`` forked a
+        hundred thousand processes). The splits of one level of the tree are independent, so they
+        run side by side while this process judges the clusters; the result is identical whatever
+        ``jobs`` is.
     """
 
     #: A ground plane found beforehand, with its explanation (:meth:`find_ground`): when set, every
@@ -52,7 +54,7 @@ class Interpreter:
         self.progress = progress
         if not isinstance(jobs, (int, np.integer)) or jobs == 0 or jobs < -1:
             raise ValueError(f"jobs must be a positive number of processes or -1 (one per core), got {jobs!r}")
-        self.jobs = available_cores() if jobs == -1 else int(jobs)
+        self.jobs = available_cores() if jobs == -1 else min(int(jobs), available_cores())
         self._pool: Any = None  # the ProcessPoolExecutor of the split workers, once started
         self._pool_finalizer: Any = None
 

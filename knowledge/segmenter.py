@@ -56,7 +56,8 @@ class Segmenter:
     jobs : int
         As given (-1 stays -1).
     processes : int
-        The number of processes ``jobs`` stands for (-1 resolved to the cores available).
+        The number of processes ``jobs`` stands for: -1 resolved to the cores available, and at most
+        that many.
     sensor : tuple of 3 float
         The sensor position used: ``sensor`` if given, else the rule base's.
     plugins : tuple of str
@@ -109,7 +110,8 @@ class Segmenter:
 
     @property
     def processes(self) -> int:
-        """The number of processes ``jobs`` stands for (-1 resolved to the cores available)."""
+        """The number of processes ``jobs`` stands for: -1 resolved to the cores available, and at
+        most that many."""
         return self._interpreter.jobs
 
     @property

@@ -182,3 +182,17 @@ def test_a_folder_reports_its_broken_links_and_fifos_instead_of_skipping_them(tm
     assert f"{folder / 'b.ply'}: no such file: a broken symbolic link" in r.stderr
     assert f"{folder / 'c.ply'}: not a regular file but a FIFO (named pipe)" in r.stderr
     assert (tmp_path / "o" / "a.ply").is_file()  # the good scan is segmented all the same
+
+
+def test_jobs_beyond_the_cores_start_no_more_processes_than_cores(tmp_path):
+    """`kbs run -j 100000` forked a hundred thousand split processes (the machine ground to a halt);
+    the processes are capped at the available cores, with a note, and the result is the same."""
+    from kbs.knowledge.interpreter import available_cores
+
+    cores = available_cores()
+    scan = _ply(tmp_path / "a.ply", [])
+    r = kbs("run", "--rules", "outdoor", "-j", "100000", str(scan), "--out", str(tmp_path / "o"))
+    assert r.returncode == 0, r.stderr
+    assert f"note: -j 100000: {cores} core{'s' if cores > 1 else ''} available, so at most {cores}" in r.stderr
+    assert "note: -j" not in kbs("-q", "run", "--rules", "outdoor", "-j", "100000", str(scan), "--out",
+                                 str(tmp_path / "q")).stderr

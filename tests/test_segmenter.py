@@ -94,11 +94,12 @@ def test_one_segmenter_frame_after_frame_equals_a_fresh_one_per_frame():
     assert len({len(s.clusters) for s in in_a_row[:3]}) > 1  # the frames differ, and so do their results
 
 
-def test_processes_is_jobs_with_minus_one_resolved_to_the_cores():
+def test_processes_is_jobs_with_minus_one_resolved_to_the_cores_and_at_most_the_cores():
     cores = kbs.knowledge.interpreter.available_cores()
     assert kbs.Segmenter("outdoor", jobs=-1).processes == cores
-    seg = kbs.Segmenter("outdoor", jobs=3)
-    assert (seg.jobs, seg.processes, seg.with_jobs(-1).processes) == (3, 3, cores)
+    seg = kbs.Segmenter("outdoor", jobs=100_000)  # it forked a hundred thousand split processes
+    assert (seg.jobs, seg.processes, seg.with_jobs(-1).processes, seg.with_jobs(1).processes) == (100_000, cores,
+                                                                                                    cores, 1)
 
 
 def test_jobs_2_equals_jobs_1():

@@ -27,7 +27,7 @@ import numpy as np
 
 from kbs.errors import ExitCode, KbsError, ParameterError, raise_if_interrupted
 from kbs.knowledge.groundfacts import GroundFacts
-from kbs.knowledge.interpreter import Segmentation
+from kbs.knowledge.interpreter import Segmentation, available_cores
 from kbs.knowledge.segmenter import Segmenter, as_points
 from kbs.tiles.grid import Tile, TileGrid
 from kbs.tiles.stitch import TiledSegmentation, stitch
@@ -298,6 +298,7 @@ def dask_client(scheduler: str, workers: int | None = None):
         n = workers if workers is not None else (os.cpu_count() or 1)
         if isinstance(n, bool) or not isinstance(n, int) or n < 1:
             raise ParameterError(f"The 'workers' parameter must be a positive number of processes. Got {n!r} instead.")
+        n = min(n, available_cores())  # a local cluster of more workers than cores runs no faster
         # silence_logs: the workers' own log lines (a heartbeat missed while the cluster shuts down,
         # with its traceback) are not the user's news; a failed tile comes back as its error
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
