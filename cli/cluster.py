@@ -52,6 +52,8 @@ def cluster(ctx: click.Context, cloud: Path, k_max: int, m: float, stop: str, ma
     quiet = ctx.obj.get("quiet", False)
     t0 = time.perf_counter()
     if out is not None:  # before any work
+        if out.suffix.lower() != ".ply":  # PLY bytes written over a result's .json made it unreadable
+            raise click.BadParameter(f"{out}: the clusters are written as PLY: give a .ply file name", param_hint="--out")
         check_output(out, inputs=(cloud,), force=force)
         check_writable_folder(out.parent, create=False, name=out)
     pc = read_cloud(cloud)

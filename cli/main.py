@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import errno
 import importlib
 import logging
 import os
@@ -174,6 +175,14 @@ def main(argv: list[str] | None = None) -> int:
         click.echo("kbs: error: out of memory: segment the cloud in tiles (kbs run --tile SIZE, or the rule "
                    "base's limits.tile), with fewer jobs (-j), or on a machine with more memory", err=True)
         return int(ExitCode.MEMORY)
+    except OSError as exc:
+        if exc.errno in _PATH_ERRNOS:  # a path the system refuses, wherever a command met it: the input's fault
+            name = exc.filename if exc.filename is not None else "a path"
+            click.echo(f"kbs: error: {name}: {exc.strerror}", err=True)
+            return int(ExitCode.CLOUD)
+        if interrupted(exc):
+            return _aborted(exc)
+        return _internal_error(exc, argv)
     except Exception as exc:  # noqa: BLE001 - a bug in kbs, not the user's input: said as such, not a traceback
         if interrupted(exc):  # Ctrl-C inside a compiled kernel comes out as a SystemError caused by it
             return _aborted(exc)
@@ -194,6 +203,10 @@ def _aborted(exc: BaseException) -> int:
 
 def _on_sigterm(signum: int, frame: object) -> None:
     raise Terminated
+
+
+#: errno values of a path the system refuses whatever kbs does: a name too long for the file system
+_PATH_ERRNOS = frozenset({errno.ENAMETOOLONG})
 
 
 def _internal_error(exc: BaseException, argv: list[str] | None) -> int:

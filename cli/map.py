@@ -105,6 +105,18 @@ def map_(ctx: click.Context, rules: str, scans: tuple[Path, ...], poses: Path | 
         raise click.BadParameter(str(exc), param_hint="--topic") from exc
     inputs = [*scans, *(p for p in (poses, calib, drive.poses.path) if p is not None),
               *(f.path for f in drive.frames if f.path is not None)]
+    seen: dict[Path, Path] = {}
+    for f in drive.frames:  # a frame given twice (a folder twice, a scan and its folder) is fused twice
+        if f.path is not None:
+            key = Path(f.path).resolve()
+            if key in seen:
+                same = "is given twice" if Path(f.path) == seen[key] else f"and {seen[key]} are one file"
+                raise click.BadParameter(f"{f.path} {same}: give each frame once", param_hint="SCANS")
+            seen[key] = Path(f.path)
+    scan_folders = {Path(s).resolve() for s in scans if Path(s).is_dir()}
+    if out_dir.resolve() in scan_folders:  # its cloud.ply would be a frame of the next run over the folder
+        raise click.BadParameter(f"{out_dir} is a folder of the drive's scans: write the map elsewhere",
+                                 param_hint="--out")
     check_map_outputs(out_dir, inputs=inputs, force=force, report=report)  # before any frame is segmented
     if out_dir.is_dir():  # a folder that does not exist yet is made with the map, not before a frame can fail
         check_writable_folder(out_dir, create=False)

@@ -23,7 +23,16 @@ def _resolution(ctx, param, value):
         rows = cols = 0
     if rows <= 0 or cols <= 0:
         raise click.BadParameter(f"expected ROWSxCOLS (two positive integers), got {value!r}")
+    if rows * cols > MAX_RAYS:  # 20000x20000 rays took all 24 GiB of a machine before the kernel killed it
+        raise click.BadParameter(f"{rows:,} x {cols:,} = {rows * cols:,} rays, more than the {MAX_RAYS:,} a scene "
+                                 "may cast (4,000,000 take about 0.7 GB)")
     return rows, cols
+
+
+#: Rays a synthetic scan may cast (rows x columns; a 128-beam lidar's frame is about 260,000).
+MAX_RAYS = 4_000_000
+#: Objects a synthetic scene may hold, of each kind.
+MAX_OBJECTS = 1000
 
 
 seed_option = click.option("--seed", type=click.IntRange(0, None), default=0, show_default=True,
@@ -36,11 +45,16 @@ force_option = click.option("--force", is_flag=True,
                                  "made).")
 
 
-def _check_out(out: Path | None, force: bool) -> None:
-    """Before the work: a file kbs did not write only with ``force``; the folder must accept files."""
+def _check_out(out: Path | None, force: bool, *, ply: bool = True) -> None:
+    """Before the work: a PLY file name when ``ply`` (PLY bytes written over a result's .json made
+    both unreadable), a file kbs did not write only with ``force``; the folder must accept files."""
     if out is not None:
+        if ply and out.suffix.lower() != ".ply":
+            raise click.BadParameter(f"{out}: the scene is written as PLY: give a .ply file name", param_hint="--out")
         check_output(out, force=force)
         check_writable_folder(out.parent, create=False, name=out)
+
+
 resolution_option = click.option("--resolution", callback=_resolution, metavar="ROWSxCOLS",
                                   help="Image size of the simulated sensor.")
 
@@ -62,12 +76,12 @@ def synth() -> None:
 @seed_option
 @out_option
 @force_option
-@click.option("--boxes", "n_boxes", type=click.IntRange(0, None), default=3, show_default=True)
-@click.option("--wedges", "n_wedges", type=click.IntRange(0, None), default=1, show_default=True)
+@click.option("--boxes", "n_boxes", type=click.IntRange(0, MAX_OBJECTS), default=3, show_default=True)
+@click.option("--wedges", "n_wedges", type=click.IntRange(0, MAX_OBJECTS), default=1, show_default=True)
 @resolution_option
-@click.option("--noise", type=FiniteFloatRange(0, None), default=0.002, show_default=True,
+@click.option("--noise", type=FiniteFloatRange(0, 10), default=0.002, show_default=True,
               help="Range noise (standard deviation), metres.")
-@click.option("--sensor-height", type=FiniteFloatRange(0, None, min_open=True), default=1.2, show_default=True,
+@click.option("--sensor-height", type=FiniteFloatRange(0, 1000, min_open=True), default=1.2, show_default=True,
               help="Metres above the ground.")
 @click.option("--tilt", "tilt_deg", type=FiniteFloatRange(0, 90, min_open=True), default=50.0, show_default=True,
               help="Depression of the optical axis, degrees.")
@@ -88,25 +102,25 @@ def synth_polyhedral(seed: int, out: Path | None, resolution, force: bool = Fals
               "drive to this folder (scans/NNNNNN.ply, poses.txt, truth.json: each marked as kbs's by a run id, "
               "poses.txt by its digest in truth.json).")
 @force_option
-@click.option("--frames", "n_frames", type=click.IntRange(1, None), default=None,
+@click.option("--frames", "n_frames", type=click.IntRange(1, 10_000), default=None,
               help="Ray-cast a drive of this many frames through one scene instead of one view: the sensor moves "
               "--step metres and turns --yaw-rate degrees between frames; objects stand beside the path.")
-@click.option("--step", type=FiniteFloatRange(0, None, min_open=True), default=1.0, show_default=True,
+@click.option("--step", type=FiniteFloatRange(0, 100, min_open=True), default=1.0, show_default=True,
               help="With --frames: metres between consecutive poses.")
 @click.option("--yaw-rate", type=FiniteFloatRange(-45, 45), default=2.0, show_default=True,
               help="With --frames: heading change between consecutive poses, degrees (positive: left).")
 @click.option("--street", is_flag=True,
               help="With --frames: line the path as a street (buildings, trees and poles on both sides), which "
               "also gives `kbs map --estimate-poses` surfaces to register on.")
-@click.option("--extent", type=FiniteFloatRange(5, None), default=25.0, show_default=True,
+@click.option("--extent", type=FiniteFloatRange(5, 10_000), default=25.0, show_default=True,
               help="Farthest range measured, metres.")
-@click.option("--rocks", "n_rocks", type=click.IntRange(0, None), default=None,
+@click.option("--rocks", "n_rocks", type=click.IntRange(0, MAX_OBJECTS), default=None,
               help="Rocks in the scene  [default: 3; 6 with --frames]")
 @click.option("--bin/--no-bin", "with_bin", default=True, show_default=True, help="Put a bin (open box) in the scene.")
 @resolution_option
-@click.option("--noise", type=FiniteFloatRange(0, None), default=5e-4, show_default=True,
+@click.option("--noise", type=FiniteFloatRange(0, 10), default=5e-4, show_default=True,
               help="Range noise coefficient: standard deviation noise * range^2.")
-@click.option("--sensor-height", type=FiniteFloatRange(0, None, min_open=True), default=1.5, show_default=True,
+@click.option("--sensor-height", type=FiniteFloatRange(0, 1000, min_open=True), default=1.5, show_default=True,
               help="Metres above the ground's mean level.")
 def synth_outdoor(seed: int, out: Path | None, resolution, n_frames: int | None, step: float, yaw_rate: float,
                   street: bool, n_rocks: int | None, force: bool = False, **options) -> None:
@@ -156,11 +170,11 @@ def synth_outdoor(seed: int, out: Path | None, resolution, n_frames: int | None,
                    "8-bit rasterfiles have no room for a kbs run id: existing ones are replaced only with --force.")
 @click.option("--force", is_flag=True, help="Replace an existing PREFIX.range / PREFIX.gt-seg (checked before the "
                                             "scene is made).")
-@click.option("--boxes", "n_boxes", type=click.IntRange(0, None), default=3, show_default=True)
-@click.option("--wedges", "n_wedges", type=click.IntRange(0, None), default=1, show_default=True)
+@click.option("--boxes", "n_boxes", type=click.IntRange(0, MAX_OBJECTS), default=3, show_default=True)
+@click.option("--wedges", "n_wedges", type=click.IntRange(0, MAX_OBJECTS), default=1, show_default=True)
 @click.option("--tilt", "tilt_deg", type=FiniteFloatRange(0, 60, max_open=True), default=30.0, show_default=True,
               help="Tilt of the table from fronto-parallel, degrees.")
-@click.option("--noise", type=FiniteFloatRange(0, None), default=0.0, show_default=True,
+@click.option("--noise", type=FiniteFloatRange(0, 255), default=0.0, show_default=True,
               help="Range noise (standard deviation) in range levels, before the rounding to 8 bits.")
 def synth_abw(seed: int, prefix: Path | None, force: bool = False, **options) -> None:
     """Boxes and wedges on a tilted table seen through the ABW camera: a 512 x 512 8-bit SegComp
@@ -174,7 +188,7 @@ def synth_abw(seed: int, prefix: Path | None, force: bool = False, **options) ->
         if prefix.suffix.lower() in (".range", ".gt-seg"):
             prefix = prefix.with_suffix("")
         for target in (Path(f"{prefix}.range"), Path(f"{prefix}.gt-seg")):
-            _check_out(target, force)
+            _check_out(target, force, ply=False)
     scene = abw_scene(seed, **options)
     line = f"{scene.summary()}; {time.perf_counter() - t0:.2f} s"
     if prefix is not None:

@@ -115,9 +115,13 @@ def tune_(ctx: click.Context, rules: str, pairs: tuple[str, ...], out: Path, fol
     for target, what in ((out, "--out"), (report, "--report")):
         if target is not None and target.resolve() in inputs:
             raise click.BadParameter(f"{target} is an input: write the tuned rule file elsewhere", param_hint=what)
-    if not out.parent.is_dir():
-        raise click.BadParameter(f"no such folder: {out.parent}", param_hint="--out")
+    for target, what in ((out, "--out"), (report, "--report")):
+        if target is not None and not target.parent.is_dir():  # before the work, not after it
+            raise click.BadParameter(f"no such folder: {target.parent}", param_hint=what)
     distinct_outputs(("--out", out), ("--report", report))  # one would replace the other
+    for target, what, suffixes in ((out, "--out", (".yaml", ".yml")), (report, "--report", (".json",))):
+        if target is not None and target.suffix.lower() not in suffixes:  # YAML over a result's .json ...
+            raise click.BadParameter(f"{target}: give a {' or '.join(suffixes)} file name", param_hint=what)
     sources = InputFiles([rules if Path(rules).is_file() else Path(rb.path), *scans_in,
                           *(g for g in pairs[1::2] if not g.startswith("field:"))])
     for target, what in ((out, "--out"), (report, "--report")):  # before the work, as kbs run: a file kbs did
@@ -129,6 +133,10 @@ def tune_(ctx: click.Context, rules: str, pairs: tuple[str, ...], out: Path, fol
         pc_units = ScanUnits.uniform(units, source="--units") if units else None
         scans.append(_read_pair(cloud, truth, ground_values=ground_values, unlabelled_values=unlabelled_values,
                                 units=pc_units, target_unit=target_unit, sensor=sensor))
+    if not any(s.truth[s.valid].any() for s in scans):
+        raise click.UsageError(f"no scan has a ground point in its ground truth (--ground-values "
+                               f"{','.join(map(str, ground_values or ()))}): there is no ground to fit the thresholds "
+                               "to; check the values that mean ground")
     if not quiet:
         click.echo(f"kbs: tune: {rb.path}: {len(rb.tunables)} marked threshold(s), "
                    f"{int(np.prod([len(t.values) for t in rb.tunables])):,} settings, {n} scans", err=True)
@@ -142,12 +150,12 @@ def tune_(ctx: click.Context, rules: str, pairs: tuple[str, ...], out: Path, fol
         raise click.UsageError(str(exc)) from None
     run_id = new_run_id()
     text = tuned_text(rb, result, resolve(rules)[1])  # its first line '# kbs tune: ...' marks it as kbs's
-    with replacing(out) as (tmp,):
-        tmp.write_text(text, encoding="utf-8")
-    if report is not None:
-        doc = {"kbs_version": __version__, "run_id": run_id, "rules": rb.path, "out": str(out), **result.to_dict()}
-        with replacing(report) as (tmp,):
-            tmp.write_text(json.dumps(doc, indent=1), encoding="utf-8")
+    targets = (out,) if report is None else (out, report)
+    with replacing(*targets) as tmps:  # the rule file and its report together, or neither
+        tmps[0].write_text(text, encoding="utf-8")
+        if report is not None:
+            doc = {"kbs_version": __version__, "run_id": run_id, "rules": rb.path, "out": str(out), **result.to_dict()}
+            tmps[1].write_text(json.dumps(doc, indent=1), encoding="utf-8")
     click.echo(format_report(result, rb.path, str(out)))
     if report is not None:
         click.echo(f"wrote {report}")

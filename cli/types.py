@@ -16,10 +16,10 @@ class FiniteFloatRange(click.FloatRange):
     name = "float range"
 
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
-        rv = super().convert(value, param, ctx)
-        if not math.isfinite(rv):
+        number = click.FLOAT.convert(value, param, ctx)
+        if not math.isfinite(number):  # said before the range: 'inf is not in the range 0<=x<=10' hides why
             self.fail(f"{value!r} is not a finite number.", param, ctx)
-        return rv
+        return super().convert(value, param, ctx)
 
 
 class PathArg(click.Path):

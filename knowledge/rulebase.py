@@ -1133,9 +1133,9 @@ class _Validator:
             return None
         if "values" in mark:
             values = mark["values"]
-            if not isinstance(values, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
-                                                       for v in values):
-                return None  # the schema reported it
+            if not isinstance(values, list) or len(values) < 2 or not all(
+                    isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
+                return None  # the schema reported it (numbers, at least two)
             vpath = at if isinstance(spec["tune"], list) else at + ("values",)
             lo, hi = min(values), max(values)
             if integer and any(float(v) != int(v) for v in values):

@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kbs.errors import ParameterError
+
 #: Values of the ``class`` band.
 UNKNOWN, GROUND, OBSTACLE = 0, 1, 2
 CLASS_NAMES = ("unknown", "ground", "obstacle")
@@ -47,6 +49,11 @@ class FusionParams:
     l_ground: float = -0.4
     l_clamp: float = 3.5
     min_obstacle_points: int = 1
+
+
+#: The most memory the layers of a map may take (bytes): about 8 km x 8 km at 0.2 m, far beyond a
+#: drive's extent at its usual cell size; a cell size of a millimetre would ask for tens of GiB.
+MAX_MAP_BYTES = 4 * 2**30
 
 
 class GridAccumulator:
@@ -84,6 +91,13 @@ class GridAccumulator:
         else:
             nlo, nhi = lo - margin, hi + margin
         shape = (int(nhi[0] - nlo[0] + 1), int(nhi[1] - nlo[1] + 1))
+        cell_bytes = sum(np.dtype(t).itemsize for t in self._LAYERS.values())
+        if shape[0] * shape[1] * cell_bytes > MAX_MAP_BYTES:  # refused before it is allocated (or swapped)
+            s = self.params.cell_size
+            raise ParameterError(
+                f"the map would be {shape[0]:,} x {shape[1]:,} cells of {s:g} m ({shape[0] * s:,.0f} m x "
+                f"{shape[1] * s:,.0f} m), {shape[0] * shape[1] * cell_bytes / 2**30:,.1f} GiB of layers, more than "
+                f"the {MAX_MAP_BYTES / 2**30:g} GiB a map may take: give a larger --cell-size")
         ox, oy = int(self.ix0 - nlo[0]), int(self.iy0 - nlo[1])
         for k, old in self.layers.items():
             new = np.full(shape, -np.inf if k == "obstacle_zmax" else 0, dtype=old.dtype)

@@ -22,6 +22,7 @@ from kbs.units import unit_from_metres, wkt_units
 from scenes import ground_and_rocks
 from test_cli import kbs
 
+EXAMPLE_PLY = Path(__file__).parent.parent / "examples" / "data" / "outdoor.ply"
 PROJ = ('PROJCS["local",GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563]],'
         'PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]],PROJECTION["Transverse_Mercator"],'
         'PARAMETER["central_meridian",15],PARAMETER["scale_factor",0.9996],PARAMETER["false_easting",500000],'
@@ -196,3 +197,83 @@ def test_jobs_beyond_the_cores_start_no_more_processes_than_cores(tmp_path):
     assert f"note: -j 100000: {cores} core{'s' if cores > 1 else ''} available, so at most {cores}" in r.stderr
     assert "note: -j" not in kbs("-q", "run", "--rules", "outdoor", "-j", "100000", str(scan), "--out",
                                  str(tmp_path / "q")).stderr
+
+
+# -- the other commands (a second fuzzing pass) ----------------------------------------------------
+
+def test_a_name_too_long_for_the_file_system_is_exit_3_naming_it(tmp_path):
+    long = tmp_path / ("x" * 300 + ".yaml")
+    r = kbs("run", "--rules", str(long), str(EXAMPLE_PLY), "--out", str(tmp_path / "o"))
+    assert r.returncode == 3 and r.stderr.startswith(f"kbs: error: {long}: File name too long"), r.stderr
+
+
+@pytest.mark.parametrize("args, message", [
+    (("synth", "outdoor", "--resolution", "20000x20000"), "20,000 x 20,000 = 400,000,000 rays, more than the 4,000,000"),
+    (("synth", "abw", "--boxes", "99999999999999999999"), "'--boxes': 99999999999999999999 is not in the range 0<=x<=1000"),
+    (("synth", "outdoor", "--frames", "3", "--step", "1e300"), "'--step': 1e+300 is not in the range 0<x<=100"),
+    (("synth", "outdoor", "--noise", "inf"), "'--noise': 'inf' is not a finite number"),
+    (("synth", "outdoor", "--out", "scene.json"), "scene.json: the scene is written as PLY: give a .ply file name"),
+    (("cluster", "EXAMPLE", "--out", "clusters.json"), "clusters.json: the clusters are written as PLY"),
+])
+def test_sizes_that_would_exhaust_the_machine_or_crash_are_usage_errors(tmp_path, args, message):
+    args = tuple(str(EXAMPLE_PLY) if a == "EXAMPLE" else a for a in args)
+    if "--out" not in args:
+        args += ("--out", str(tmp_path / ("d" if "--frames" in args else "s.ply")))
+    r = kbs(*args, cwd=tmp_path)
+    assert r.returncode == 2 and message in r.stderr, r.stderr
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("drive") / "d"
+    r = kbs("-q", "synth", "outdoor", "--frames", "2", "--resolution", "60x120", "--out", str(d))
+    assert r.returncode == 0, r.stderr
+    return d
+
+
+def test_a_map_of_more_cells_than_memory_holds_is_refused_before_it_is_allocated(drive, tmp_path):
+    r = kbs("-q", "map", "--rules", "outdoor", str(drive / "scans"), "--poses", str(drive / "poses.txt"),
+            "--out", str(tmp_path / "m"), "--cell-size", "0.001")
+    assert r.returncode == 6 and "GiB of layers, more than the 4 GiB a map may take: give a larger --cell-size" in r.stderr
+
+
+def test_map_refuses_its_scans_folder_as_output_and_a_frame_given_twice(drive, tmp_path):
+    scans = drive / "scans"
+    before = sorted(p.name for p in scans.iterdir())
+    r = kbs("-q", "map", "--rules", "outdoor", str(scans), "--poses", str(drive / "poses.txt"), "--out", str(scans))
+    assert r.returncode == 2 and "is a folder of the drive's scans: write the map elsewhere" in r.stderr
+    assert sorted(p.name for p in scans.iterdir()) == before
+    r = kbs("-q", "map", "--rules", "outdoor", str(scans), str(scans / "000000.ply"), "--out", str(tmp_path / "m"))
+    assert r.returncode == 2 and f"{scans / '000000.ply'} is given twice: give each frame once" in r.stderr
+
+
+def _tune_inputs(tmp_path: Path) -> list[str]:
+    X, truth = ground_and_rocks(seed=3)
+    args = []
+    for i in range(2):
+        write_ply(tmp_path / f"s{i}.ply", X[i::8])
+        np.save(tmp_path / f"g{i}.npy", truth[i::8].astype(np.int64))
+        args += [str(tmp_path / f"s{i}.ply"), str(tmp_path / f"g{i}.npy")]
+    return args
+
+
+def test_tune_refuses_wrong_output_kinds_missing_folders_and_a_truth_without_ground(tmp_path):
+    rules = str(Path(__file__).parent.parent / "examples" / "rules" / "outdoor-tune.yaml")
+    pairs = _tune_inputs(tmp_path)
+    base = ("tune", "--rules", rules, *pairs, "--max-evals", "2")
+    r = kbs(*base, "--ground-values", "0", "--out", str(tmp_path / "new.json"))
+    assert r.returncode == 2 and "new.json: give a .yaml or .yml file name" in r.stderr
+    r = kbs(*base, "--ground-values", "0", "--out", str(tmp_path / "new.yaml"), "--report", str(tmp_path / "no" / "r.json"))
+    assert r.returncode == 2 and f"no such folder: {tmp_path / 'no'}" in r.stderr
+    r = kbs(*base, "--ground-values", "7", "--out", str(tmp_path / "new.yaml"))
+    assert r.returncode == 2 and "no scan has a ground point in its ground truth (--ground-values 7)" in r.stderr
+    assert not (tmp_path / "new.yaml").exists() and not (tmp_path / "new.json").exists()
+
+
+def test_a_tune_mark_of_fewer_than_two_values_is_a_rule_file_error_not_a_crash(tmp_path):
+    text = (Path(__file__).parent.parent / "examples" / "rules" / "outdoor-tune.yaml").read_text()
+    rules = tmp_path / "r.yaml"
+    rules.write_text(text.replace("tune: [0.04, 0.05, 0.07]", "tune: []", 1))
+    r = kbs("rules", "check", str(rules))
+    assert r.returncode == 4 and "checks.planar.tune: [] is too short" in r.stderr, r.stderr
