@@ -749,6 +749,10 @@ def read_kitti_bin(path: Path) -> PointCloud:
     A file whose start is text (:func:`_looks_like_text`) is refused: read 4 bytes at a time its
     characters would make points far from anything."""
     record = _KITTI_COLUMNS * _KITTI_RECORD.itemsize
+    with open(path, "rb") as fp:
+        magic = fp.read(6)
+    if magic == b"\x93NUMPY":  # its header would be read as points, and the rows shifted
+        raise CloudFileError(str(path), "an .npy array, not float32 records: give --in-format npy")
     if _looks_like_text(path):
         raise CloudFileError(
             str(path),
@@ -763,6 +767,14 @@ def read_kitti_bin(path: Path) -> PointCloud:
             "(KITTI .bin records are float32 x y z intensity)",
         )
     array = np.fromfile(path, dtype=_KITTI_RECORD).reshape(-1, _KITTI_COLUMNS)
+    xyz = array[:, :3]
+    tiny = int(np.count_nonzero((xyz != 0) & (np.abs(xyz) < np.finfo(np.float32).tiny)))
+    if tiny > 0.5 * xyz.size:  # integers (labels, counts) read as float32 are subnormal: no scanner measures 1e-40 m
+        raise CloudFileError(
+            str(path),
+            f"not float32 coordinates: {tiny:,} of its {xyz.size:,} x, y, z values are subnormal (below "
+            f"{np.finfo(np.float32).tiny:.3g}), as integers read as float32 are (a .label file?)",
+        )
     negative = int(np.count_nonzero(array[:, 3] < 0))
     if negative > _KITTI_MAX_NEGATIVE_REMISSION * array.shape[0]:
         # a remission is never negative; coordinates are, about half the time in a sensor frame:

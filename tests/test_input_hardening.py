@@ -277,3 +277,15 @@ def test_a_tune_mark_of_fewer_than_two_values_is_a_rule_file_error_not_a_crash(t
     rules.write_text(text.replace("tune: [0.04, 0.05, 0.07]", "tune: []", 1))
     r = kbs("rules", "check", str(rules))
     assert r.returncode == 4 and "checks.planar.tune: [] is too short" in r.stderr, r.stderr
+
+
+def test_a_bin_that_is_an_npy_array_or_integer_labels_is_refused(tmp_path):
+    X, _ = ground_and_rocks(seed=3)
+    npy = tmp_path / "points.npy"
+    np.save(npy, X[:4000].astype(np.float32))
+    r = kbs("run", "--rules", "outdoor", "--in-format", "bin", str(npy), "--out", str(tmp_path / "o"))
+    assert r.returncode == 3 and f"{npy}: an .npy array, not float32 records: give --in-format npy" in r.stderr
+    labels = tmp_path / "scan.label"
+    np.arange(4000, dtype=np.uint32).tofile(labels)  # SemanticKITTI's labels: one uint32 a point
+    r = kbs("run", "--rules", "outdoor", "--in-format", "bin", str(labels), "--out", str(tmp_path / "o"))
+    assert r.returncode == 3 and "x, y, z values are subnormal" in r.stderr and "(a .label file?)" in r.stderr
