@@ -49,6 +49,24 @@ def _check_against_image(result: Path, image_path: Path, image: np.ndarray, pixe
         )
     if np.unique(pixel).size != pixel.size:
         raise CloudFileError(str(result), "two points share a pixel: not a `kbs run` result on a range image")
+    with_data = int(np.count_nonzero(image))
+    if pixel.size != with_data:  # kbs run keeps every point of a range image (noise included)
+        raise CloudFileError(
+            str(result), f"{pixel.size:,} points, but {image_path} has {with_data:,} pixels with data: the result "
+                         "was not computed from this image")
+
+
+def _check_ranges(result: Path, image_path: Path, image: np.ndarray, cloud: PointCloud, pixel: np.ndarray) -> None:
+    """A result of a range image keeps each point's 'range' value (kbs.io.segcomp.read_range): it must
+    be the image's at the point's pixel (another image of the same size and coverage has other values)."""
+    ranges = cloud.fields.get("range")
+    if ranges is None:
+        return
+    differ = np.asarray(ranges).astype(np.int64) != image.ravel()[pixel].astype(np.int64)
+    if differ.any():
+        raise CloudFileError(
+            str(result), f"the 'range' of {int(differ.sum()):,} of its {pixel.size:,} points differs from "
+                         f"{image_path}'s at their pixels: the result was not computed from this image")
 
 
 def _prefix(path: Path, suffix: str) -> Path:
@@ -106,6 +124,7 @@ def segcomp(ctx: click.Context, result: Path, image_path: Path, out: Path | None
     cluster, pixel = _result_arrays(result, cloud)
     image = read_sunraster(image_path)
     _check_against_image(result, image_path, image, pixel)
+    _check_ranges(result, image_path, image, cloud, pixel)
     labels = segmentation_to_image(cluster, pixel, image.shape)
     n_regions = int(np.unique(labels[labels >= FIRST_REGION_LABEL]).size)
     if n_regions == 0:

@@ -378,6 +378,21 @@ def test_segcomp_end_to_end_through_kbs_run(tmp_path):
     for (normal, *_), label in zip(FACETS, facet_label):
         angle = np.degrees(np.arccos(min(1.0, abs(float(np.dot(normals[label], normal))))))
         assert angle < 1.0, (label, normals[label], normal)
+    # the same result against another image of the same size and coverage: refused, not a wrong .ms-seg
+    other = tmp_path / "abw.train.4.range"
+    write_sunraster(other, np.where(image > 0, np.clip(image.astype(int) + 3, 1, 255), 0).astype(np.uint8))
+    r = kbs("segcomp", str(result), "--image", str(other), "--out", str(tmp_path / "other.ms-seg"))
+    assert r.returncode == 3 and f"differs from {other}'s at their pixels: the result was not computed from this " \
+                                  "image" in r.stderr, r.stderr
+    wider = tmp_path / "abw.train.5.range"  # more pixels with data than the result has points
+    more = image.copy()
+    assert (more[:4, :4] == 0).all()
+    more[:4, :4] = 100
+    write_sunraster(wider, more)
+    r = kbs("segcomp", str(result), "--image", str(wider), "--out", str(tmp_path / "wider.ms-seg"))
+    assert r.returncode == 3 and f"has {int(np.count_nonzero(more)):,} pixels with data: the result was not " \
+                                  "computed from this image" in r.stderr, r.stderr
+    assert not (tmp_path / "other.ms-seg").exists() and not (tmp_path / "wider.ms-seg").exists()
 
 
 def test_segcomp_errors_are_one_line_with_exit_codes(tmp_path, capsys):
