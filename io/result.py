@@ -536,6 +536,8 @@ class ResultDoc:
         names = doc.get("label_names")
         if names is not None and (not isinstance(names, list) or not all(isinstance(n, str) for n in names)):
             raise bad("label_names", "a list of names")
+        if names is not None and len(set(names)) != len(names):
+            raise bad("label_names", "a list of distinct names")
         clusters = doc.get("clusters")
         if clusters is not None and (not isinstance(clusters, list) or not all(isinstance(c, dict) for c in clusters)):
             raise bad("clusters", "a list of objects")
@@ -547,10 +549,11 @@ class ResultDoc:
                                      f"not a kbs result file ({dotted(('clusters', *at))}: {what})")
         sensor = doc.get("sensor")
         if sensor is not None and (not isinstance(sensor, list) or len(sensor) != 3
-                                   or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in sensor)):
-            raise bad("sensor", "3 numbers")
+                                   or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                              and math.isfinite(v) for v in sensor)):
+            raise bad("sensor", "3 finite numbers")
         n = doc.get("n_points")
-        if n is not None and (not isinstance(n, int) or isinstance(n, bool)):
+        if n is not None and (not isinstance(n, int) or isinstance(n, bool) or n < 0):
             raise bad("n_points", "a number of points")
         return cls(path=path, version=version, raw=doc, run_id=text("run_id"), kbs_version=text("kbs_version"),
                    input=text("input"), points=text("points"), rule_base=text("rule_base"),
@@ -673,7 +676,11 @@ def read_result_pair(path: str | os.PathLike[str], *, require: Iterable[str] = (
     if not points.is_file():
         raise CloudFileError(str(points), "no such file (the points of the result, written next to its .json)")
     check_pair(points, js, doc)
-    return doc, read_result_cloud(points, require=fields)
+    cloud = read_result_cloud(points, require=fields)
+    if doc.n_points is not None and doc.n_points != len(cloud):
+        raise CloudFileError(doc.position("n_points"), f"not a kbs result file: 'n_points' is {doc.n_points:,} and "
+                                                       f"{points.name} holds {len(cloud):,} points")
+    return doc, cloud
 
 
 # -- telling kbs's own files from others -----------------------------------------------------------

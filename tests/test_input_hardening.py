@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 from pathlib import Path
 
@@ -289,3 +290,22 @@ def test_a_bin_that_is_an_npy_array_or_integer_labels_is_refused(tmp_path):
     np.arange(4000, dtype=np.uint32).tofile(labels)  # SemanticKITTI's labels: one uint32 a point
     r = kbs("run", "--rules", "outdoor", "--in-format", "bin", str(labels), "--out", str(tmp_path / "o"))
     assert r.returncode == 3 and "x, y, z values are subnormal" in r.stderr and "(a .label file?)" in r.stderr
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("n_points", 5, "'n_points' is 5 and res.ply holds"),
+    ("n_points", -5, "('n_points' is not a number of points)"),
+    ("sensor", [0.0, float("nan"), 1.0], "('sensor' is not 3 finite numbers)"),
+    ("label_names", ["ground", "ground"], "('label_names' is not a list of distinct names)"),
+])
+def test_a_result_json_that_contradicts_its_points_or_itself_is_refused(result, tmp_path, key, value, message):
+    from kbs.errors import CloudFileError
+    from kbs.io.result import read_result_pair
+
+    res = _copy(result, tmp_path)
+    js = res.with_suffix(".json")
+    doc = json.loads(js.read_text())
+    doc[key] = value
+    js.write_text(json.dumps(doc))
+    with pytest.raises(CloudFileError, match=re.escape(message)):
+        read_result_pair(js)
