@@ -113,7 +113,7 @@ def map_(ctx: click.Context, rules: str, scans: tuple[Path, ...], poses: Path | 
                 same = "is given twice" if Path(f.path) == seen[key] else f"and {seen[key]} are one file"
                 raise click.BadParameter(f"{f.path} {same}: give each frame once", param_hint="SCANS")
             seen[key] = Path(f.path)
-    scan_folders = {Path(s).resolve() for s in scans if Path(s).is_dir()}
+    scan_folders = {key.parent for key in seen}  # the folders that hold frames (not a KITTI sequence's root)
     if out_dir.resolve() in scan_folders:  # its cloud.ply would be a frame of the next run over the folder
         raise click.BadParameter(f"{out_dir} is a folder of the drive's scans: write the map elsewhere",
                                  param_hint="--out")
