@@ -3,6 +3,7 @@ are imported when they run, and this one with them)."""
 from __future__ import annotations
 
 import math
+import os
 from typing import Any
 
 import click
@@ -25,10 +26,13 @@ class FiniteFloatRange(click.FloatRange):
 class PathArg(click.Path):
     """``click.Path`` that refuses an empty value: ``''`` is no file name (``pathlib.Path('')`` is
     the current folder, so ``kbs run ''`` would segment every scan there, and ``--out ''`` write
-    into it)."""
+    into it); and, where a file is asked, a value ending with '/' (``pathlib`` drops the slash:
+    ``synth abw --out sy/`` wrote ./sy.range)."""
 
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
         if isinstance(value, str) and not value.strip():
             self.fail(f"{value!r} is an empty path: give a file or folder name ('.' for the current folder).",
                       param, ctx)
+        if isinstance(value, str) and not self.dir_okay and value.endswith(("/", os.sep)):  # 'out/' is no file name
+            self.fail(f"{value!r} names a folder (it ends with '/'): give a file name.", param, ctx)
         return super().convert(value, param, ctx)

@@ -309,3 +309,9 @@ def test_a_result_json_that_contradicts_its_points_or_itself_is_refused(result, 
     js.write_text(json.dumps(doc))
     with pytest.raises(CloudFileError, match=re.escape(message)):
         read_result_pair(js)
+
+
+def test_a_file_option_given_a_folder_name_ending_with_a_slash_is_a_usage_error(tmp_path):
+    r = kbs("synth", "abw", "--out", "sy/", cwd=tmp_path)  # it wrote ./sy.range and ./sy.gt-seg
+    assert r.returncode == 2 and "'sy/' names a folder (it ends with '/'): give a file name." in r.stderr
+    assert not any(tmp_path.iterdir())
