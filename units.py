@@ -173,7 +173,8 @@ def units_from_comments(comments: list[str], kind: str) -> tuple[ScanUnits | Non
     ParameterError
         A ``units`` comment names an unknown unit (the caller adds the file's name).
     """
-    units_text = crs = None
+    units_text: str | None = None
+    crs: str | None = None
     for comment in comments:
         parsed = parse_comment(comment)
         if parsed is None:
@@ -181,7 +182,7 @@ def units_from_comments(comments: list[str], kind: str) -> tuple[ScanUnits | Non
         key, value = parsed
         if key == "units" and units_text is None:
             units_text = value
-        elif key == "units" and value.strip().lower() != units_text.strip().lower():
+        elif key == "units" and units_text is not None and value.strip().lower() != units_text.strip().lower():
             raise ParameterError(f"the {kind} header's comments declare two units, 'units {units_text}' and "
                                  f"'units {value}': keep one")
         elif key == "crs" and crs is None:

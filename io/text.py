@@ -179,15 +179,15 @@ def parse_table(text: str) -> Table:
                 count, count_line = int(value), lineno
         pos = end + 1
     else:
-        problem = "no data line (expected rows of at least 3 numbers: x y z ...)"
+        message = "no data line (expected rows of at least 3 numbers: x y z ...)"
         hinted = next(((n, words) for n, words in texts if _separator_hint(words)), None)
         if hinted is not None:
-            problem += f": line {hinted[0]} holds {_quote(hinted[1])}{_separator_hint(hinted[1])}"
+            message += f": line {hinted[0]} holds {_quote(hinted[1])}{_separator_hint(hinted[1])}"
         elif len(texts) > 1:
-            problem += f": line {texts[1][0]} is not a row of numbers: {_quote(texts[1][1])}"
+            message += f": line {texts[1][0]} is not a row of numbers: {_quote(texts[1][1])}"
         elif texts:
-            problem += f": line {texts[0][0]} holds names, not numbers: {_quote(texts[0][1])}"
-        raise TableError(problem)
+            message += f": line {texts[0][0]} holds names, not numbers: {_quote(texts[0][1])}"
+        raise TableError(message)
 
     delimiter = _delimiter(stripped)
     n_columns = len(tokens)

@@ -315,3 +315,17 @@ def test_a_file_option_given_a_folder_name_ending_with_a_slash_is_a_usage_error(
     r = kbs("synth", "abw", "--out", "sy/", cwd=tmp_path)  # it wrote ./sy.range and ./sy.gt-seg
     assert r.returncode == 2 and "'sy/' names a folder (it ends with '/'): give a file name." in r.stderr
     assert not any(tmp_path.iterdir())
+
+
+def test_a_wide_cloud_too_sparse_for_its_tiles_runs_whole_with_a_note(tmp_path):
+    """simple.las (1,065 points over 4.6 km) was cut into 764 tiles of about one point by the
+    airborne rules' limits.tile, and every point came out noise."""
+    rng = np.random.default_rng(0)
+    X = np.c_[rng.uniform(0, 5000, 2000), rng.uniform(0, 5000, 2000), rng.normal(100, 0.5, 2000)]
+    scan = tmp_path / "sparse.ply"
+    write_ply(scan, X, comments=["units m"])
+    r = kbs("run", "--rules", "airborne", str(scan), "--out", str(tmp_path / "o"))
+    assert r.returncode == 0, r.stderr
+    assert ("but its 2,000 points would average 1.5 in each tile of 100 m that holds any, fewer than "
+            "limits.min_points (30): it runs whole") in r.stderr
+    assert "tiles:" not in r.stdout
