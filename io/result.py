@@ -547,6 +547,13 @@ class ResultDoc:
                 at, what = problem
                 raise CloudFileError(json_position(path, "clusters", *at),
                                      f"not a kbs result file ({dotted(('clusters', *at))}: {what})")
+        if clusters is not None and names is not None:  # a cluster's label is one of the result's label names
+            for i, c in enumerate(clusters):
+                label = c.get("label")
+                if label is not None and label not in names:
+                    raise CloudFileError(json_position(path, "clusters", i, "label"),
+                                         f"not a kbs result file ({dotted(('clusters', i, 'label'))}: "
+                                         f"{str(label)[:40]!r} is not one of its label_names)")
         sensor = doc.get("sensor")
         if sensor is not None and (not isinstance(sensor, list) or len(sensor) != 3
                                    or not all(isinstance(v, (int, float)) and not isinstance(v, bool)

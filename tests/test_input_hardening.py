@@ -272,12 +272,16 @@ def test_tune_refuses_wrong_output_kinds_missing_folders_and_a_truth_without_gro
     assert not (tmp_path / "new.yaml").exists() and not (tmp_path / "new.json").exists()
 
 
-def test_a_tune_mark_of_fewer_than_two_values_is_a_rule_file_error_not_a_crash(tmp_path):
+@pytest.mark.parametrize("mark, message", [
+    ("[]", "checks.planar.tune: [] is too short"),  # it crashed: min() of an empty list
+    ("[0.05, 0.05, 0.05]", "checks.planar.tune: [0.05, 0.05, 0.05] has non-unique elements"),  # 3 "settings"
+])
+def test_a_tune_mark_of_fewer_than_two_values_or_repeated_ones_is_a_rule_file_error(tmp_path, mark, message):
     text = (Path(__file__).parent.parent / "examples" / "rules" / "outdoor-tune.yaml").read_text()
     rules = tmp_path / "r.yaml"
-    rules.write_text(text.replace("tune: [0.04, 0.05, 0.07]", "tune: []", 1))
+    rules.write_text(text.replace("tune: [0.04, 0.05, 0.07]", f"tune: {mark}", 1))
     r = kbs("rules", "check", str(rules))
-    assert r.returncode == 4 and "checks.planar.tune: [] is too short" in r.stderr, r.stderr
+    assert r.returncode == 4 and f"{rules}:46:11: {message}" in r.stderr, r.stderr
 
 
 def test_a_bin_that_is_an_npy_array_or_integer_labels_is_refused(tmp_path):
@@ -297,6 +301,7 @@ def test_a_bin_that_is_an_npy_array_or_integer_labels_is_refused(tmp_path):
     ("n_points", -5, "('n_points' is not a number of points)"),
     ("sensor", [0.0, float("nan"), 1.0], "('sensor' is not 3 finite numbers)"),
     ("label_names", ["ground", "ground"], "('label_names' is not a list of distinct names)"),
+    ("label_names", ["sky", "sea"], ": 'ground' is not one of its label_names)"),
 ])
 def test_a_result_json_that_contradicts_its_points_or_itself_is_refused(result, tmp_path, key, value, message):
     from kbs.errors import CloudFileError
