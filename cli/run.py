@@ -367,7 +367,11 @@ def _auto_tiling(segmenter: Segmenter, xyz: np.ndarray, scan_units: ScanUnits | 
         return None, (None if not names else
                       f"the cloud is {width:.6g}{u} wide, not more than {src}.wider_than ({spec.wider_than:g}{u}): "
                       f"it runs whole{', in this process' if scheduler is not None else ''}{unused}")
-    sparse = _sparse_tiles(segmenter, uv)
+    from kbs.tiles import TileGrid
+
+    grid = TileGrid.fit(xyz * f, spec.size, 0.0, segmenter.rule_base.ground.normal)  # the tiles it would get
+    sample = uv[::max(1, len(uv) // SPARSE_SAMPLE)]  # fewer occupied tiles counted: a mean only higher
+    sparse = _sparse(segmenter, len(uv) / max(1, grid.n_occupied(sample)))
     if sparse is not None:
         return None, (f"the cloud is {width:.6g}{u} wide, more than {src}.wider_than ({spec.wider_than:g}{u}), but "
                       f"its {len(xyz):,} points would average {sparse:.2g} in each tile of {spec.size:g}{u} that holds "
@@ -386,30 +390,15 @@ def _auto_tiling(segmenter: Segmenter, xyz: np.ndarray, scan_units: ScanUnits | 
             f"--no-tile runs it whole")
 
 
-def _sparse_tiles(segmenter: Segmenter, uv: np.ndarray | None = None, *, n: int = 0,
-                  lo: np.ndarray | None = None, hi: np.ndarray | None = None) -> float | None:
-    """The points a tile of ``limits.tile`` would hold on average, when fewer than
-    ``limits.min_points`` (tiles of a point or two, as 1,065 points over 4.6 km gave in 764 tiles,
-    make every point noise); None otherwise. From the points ``uv`` (n, 2) in the ground plane: the
-    mean over the tiles that hold any (counted on at most :data:`SPARSE_SAMPLE` of them, which can
-    only raise the mean: a stray point far away leaves the scan's tiles as full as they were); or,
-    with ``n`` points over the box ``lo``..``hi`` only (a LAS header), the mean over the box."""
-    spec = segmenter.rule_base.tile
-    assert spec is not None, "asked only of a rule base with limits.tile"
-    if uv is not None:
-        n = len(uv)
-        step = max(1, n // SPARSE_SAMPLE)
-        cells = np.floor((uv[::step] - uv.min(axis=0)) / spec.size).astype(np.int64)
-        occupied = len(np.unique(cells[:, 0] * (int(cells[:, 1].max()) + 1) + cells[:, 1]))
-        per_tile = n / occupied if occupied else float(n)
-    else:
-        assert lo is not None and hi is not None
-        area = float(np.prod(np.maximum(np.asarray(hi, dtype=float) - np.asarray(lo, dtype=float), spec.size)))
-        per_tile = n * spec.size ** 2 / area
+def _sparse(segmenter: Segmenter, per_tile: float) -> float | None:
+    """``per_tile``, the points a tile of ``limits.tile`` would hold on average, when fewer than
+    ``limits.min_points``: tiles of a point or two (1,065 points over 4.6 km gave 764 tiles) make
+    every point noise; None otherwise."""
     return per_tile if per_tile < segmenter.rule_base.limits["min_points"] else None
 
 
-#: points at most on which :func:`_sparse_tiles` counts the tiles that hold points
+#: points at most on which :func:`_auto_tiling` counts the tiles that hold points (a sample: a
+#: stray point far away still leaves the scan's tiles as full as they were)
 SPARSE_SAMPLE = 1_000_000
 #: a LAS file of at most this many points whose header's box gives sparse tiles is read whole, and
 #: its points decide (:func:`_auto_tiling`); a larger one is tiled in chunks as its header says
@@ -451,8 +440,9 @@ def _header_tiling(segmenter: Segmenter, cloud: Path, in_format: str | None, fmt
     width = float((hi - lo).max())
     if not np.isfinite(width) or not width > spec.wider_than:
         return None, None
-    if int(header.point_count) <= SPARSE_HEADER_POINTS and \
-            _sparse_tiles(segmenter, n=int(header.point_count), lo=lo, hi=hi) is not None:
+    n = int(header.point_count)
+    area = float(np.prod(np.maximum(hi - lo, spec.size)))  # the header's box: its points decide when sparse
+    if n <= SPARSE_HEADER_POINTS and _sparse(segmenter, n * spec.size ** 2 / area) is not None:
         return None, None  # read whole: its points decide (_auto_tiling)
     unit = segmenter.rule_base.length_unit
     u = f" {unit}" if unit else ""

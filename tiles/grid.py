@@ -153,6 +153,15 @@ class TileGrid:
         ij = np.floor((uv - np.asarray(self.origin)) / self.size).astype(np.int64)
         return np.clip(ij, 0, np.asarray(self.shape) - 1)
 
+    def _occupied(self, ij: np.ndarray) -> np.ndarray:
+        """The keys ``i * shape[1] + j`` of the cores holding a point, from their cells ``ij``, sorted
+        (row by row)."""
+        return np.unique(ij[:, 0] * self.shape[1] + ij[:, 1])
+
+    def n_occupied(self, uv: np.ndarray) -> int:
+        """How many tiles' cores hold at least one of the points ``uv`` (ground coordinates)."""
+        return int(self._occupied(self.cells(uv)).size)
+
     def tiles(self, X: np.ndarray) -> list[Tile]:
         """The tiles whose core holds at least one point of ``X``, row by row. Only the cells that
         hold points are visited: a few far points (a grid of millions of empty cells) cost nothing."""
@@ -161,7 +170,7 @@ class TileGrid:
         out = []
         order = np.argsort(uv[:, 0], kind="stable")
         u_sorted = uv[order, 0]
-        occupied = np.unique(ij[:, 0] * self.shape[1] + ij[:, 1])  # row by row
+        occupied = self._occupied(ij)  # row by row
         occ_i, occ_j = occupied // self.shape[1], occupied % self.shape[1]
         cut = np.flatnonzero(np.diff(occ_i)) + 1
         for cols in np.split(np.arange(occupied.size), cut):
