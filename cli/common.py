@@ -107,9 +107,10 @@ def progress_bar(total: int, desc: str, quiet: bool) -> Iterator[tqdm]:
         bar.close()
 
 
-def check_writable_folder(folder: Path, *, create: bool, name: Path | None = None) -> None:
+def check_writable_folder(folder: Path, *, create: bool, name: Path | None = None) -> list[Path]:
     """Make sure files can be created in ``folder`` before any work: create it if asked, then
-    create and remove a probe file in it.
+    create and remove a probe file in it. Returns the folders it created, deepest first (for
+    :func:`remove_if_empty` when the work fails).
 
     Raises
     ------
@@ -118,7 +119,12 @@ def check_writable_folder(folder: Path, *, create: bool, name: Path | None = Non
         not accept new files (permission, read-only file system ...). Exit code 3.
     """
     what = folder if name is None else name
+    created: list[Path] = []
     if create:
+        missing = folder
+        while not missing.exists() and not missing.is_symlink() and missing != missing.parent:
+            created.append(missing)
+            missing = missing.parent
         try:
             folder.mkdir(parents=True, exist_ok=True)
         except FileExistsError as exc:
@@ -135,6 +141,18 @@ def check_writable_folder(folder: Path, *, create: bool, name: Path | None = Non
     finally:
         with contextlib.suppress(OSError):
             os.unlink(probe)
+    return created
+
+
+def remove_if_empty(folders: list[Path]) -> None:
+    """Remove the folders a failed command created (:func:`check_writable_folder`), deepest
+    first, as long as they are empty: a run that wrote nothing leaves nothing behind, and one that
+    wrote some results keeps them."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:  # not empty (a result, another process's file), or gone
+            return
 
 
 def result_fields(cloud: PointCloud, results: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:

@@ -20,7 +20,8 @@ from kbs.cli.types import FiniteFloatRange, PathArg
 import numpy as np
 
 from kbs import __version__
-from kbs.cli.common import ProgressLines, check_writable_folder, force_option, progress_interval, result_fields
+from kbs.cli.common import (ProgressLines, check_writable_folder, force_option, progress_interval, remove_if_empty,
+                            result_fields)
 from kbs.errors import CloudFileError, ExitCode, KbsError, raise_if_interrupted, require
 from kbs.io import SUPPORTED_EXTENSIONS, PointCloud, read_cloud, read_result
 from kbs.io.atomic import replacing
@@ -853,12 +854,16 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
         if not quiet:
             for w in segmenter.rule_base.warnings:  # `kbs rules check` quotes the line
                 click.echo(f"kbs: warning: {w.pos}: {w.message}", err=True)
-        if not to_stdout:
-            check_writable_folder(out_dir, create=True)  # before any segmentation
-        _run_scans(segmenter, scans, None if to_stdout else out_dir, t0, color_by=color_by, meshes=meshes,
-                   report=report, quiet=quiet, inputs=InputFiles(scans), force=force, out_format=out_format,
-                   in_format=in_format, units=units, sensor=sensor, tiling=tiling, scheduler=scan_scheduler,
-                   auto_tile=not no_tile, auto_scheduler=auto_scheduler, tile_options=tile_options)
+        created = [] if to_stdout else check_writable_folder(out_dir, create=True)  # before any segmentation
+        try:
+            _run_scans(segmenter, scans, None if to_stdout else out_dir, t0, color_by=color_by, meshes=meshes,
+                       report=report, quiet=quiet, inputs=InputFiles(scans), force=force, out_format=out_format,
+                       in_format=in_format, units=units, sensor=sensor, tiling=tiling, scheduler=scan_scheduler,
+                       auto_tile=not no_tile, auto_scheduler=auto_scheduler, tile_options=tile_options)
+        except BaseException as exc:
+            if not (isinstance(exc, click.exceptions.Exit) and exc.exit_code == 0):
+                remove_if_empty(created)  # a failed run leaves no new, empty --out folder
+            raise
 
 
 def _tiling(tile: float | None, buffer: float | None, scheduler: str | None, jobs: int,
@@ -1205,11 +1210,13 @@ _SCHEMA_LINE = re.compile(r"^(#\s*yaml-language-server:\s*\$schema=)(\S+)(.*)$")
 def rules_show(name: str, engine: bool, plugins: tuple[Path, ...]) -> None:
     """Print a shipped rule base (or a rule file). Its editor schema line points at the installed
     schema (a file URI), so that `kbs rules show outdoor > my.yaml` keeps completion and checks in
-    editors that read it (yaml-language-server)."""
+    editors that read it (yaml-language-server). The rule base is validated first (with the
+    predicates of --plugin): a file that is not a valid rule file is reported as by `kbs rules
+    check` (exit 4) and not printed."""
+    rb = load_rule_base(name, _registry(plugins))
     if engine:
         from kbs.knowledge.engine_settings import settings_lines
 
-        rb = load_rule_base(name, _registry(plugins))
         click.echo(f"engine settings of '{rb.name}' ({rb.path}):")
         for line in settings_lines(rb.engine):
             click.echo(f"  {line}")

@@ -239,7 +239,9 @@ def las_run_id(path: str | os.PathLike[str]) -> str | None:
                 return None
         import laspy
 
-        with laspy.open(os.fspath(path)) as reader:
+        from kbs.io.readers import library_noise
+
+        with library_noise(Path(path)), laspy.open(os.fspath(path)) as reader:
             for vlr in reader.header.vlrs:
                 if vlr.user_id == RUN_ID_USER_ID and vlr.record_id == RUN_ID_RECORD_ID:
                     data = getattr(vlr, "record_data", b"")

@@ -995,7 +995,7 @@ def read_cloud(path: str | os.PathLike[str], *, format: str | None = None) -> Po
                                  "read from a file (`kbs run - --in-format FORMAT` reads one from standard input)")
         if status.st_size == 0:
             raise CloudFileError(str(file), "empty file (0 bytes)")
-        with _library_noise():
+        with library_noise(file):
             return READERS[extension](file)
     except OSError as exc:
         raise CloudFileError(str(file), f"cannot read: {exc.strerror or exc}") from exc
@@ -1013,6 +1013,11 @@ def _file_type(mode: int) -> str:
 _LIBRARY_LOGGERS = ("laspy",)
 
 
+#: the library log lines already given out by :func:`library_noise` (each once a process, as
+#: Python's warnings are)
+_GIVEN: set[tuple[str, str]] = set()
+
+
 class _Held(logging.Handler):
     def __init__(self) -> None:
         super().__init__(logging.NOTSET)
@@ -1023,11 +1028,12 @@ class _Held(logging.Handler):
 
 
 @contextmanager
-def _library_noise() -> Iterator[None]:
+def library_noise(file: Path) -> Iterator[None]:
     """Hold back the warnings and the log records of the reading libraries while a reader runs:
     when the reader fails, its own one-line error says what is wrong and they are dropped (plyfile's
     ``UserWarning: loadtxt: input contained no data``, laspy's ``IoError: failed to fill whole
-    buffer``); when it succeeds they are given out as they would have been. (As
+    buffer``); when it succeeds they are given out as they would have been, their message prefixed
+    with ``file`` (laspy's "There is an ExtraByteVlr but ..." does not say which file). (As
     :class:`warnings.catch_warnings`, not meant for readers run in several threads at once.)"""
     held = _Held()
     loggers = [logging.getLogger(name) for name in _LIBRARY_LOGGERS]
@@ -1046,7 +1052,10 @@ def _library_noise() -> Iterator[None]:
             logger_.propagate = was
         if not failed:
             for warning in caught:
-                warnings.warn_explicit(warning.message, warning.category, warning.filename, warning.lineno,
-                                       source=warning.source)
+                warnings.warn_explicit(f"{file}: {warning.message}", warning.category, warning.filename,
+                                       warning.lineno, source=warning.source)
             for record in held.records:
-                logging.getLogger(record.name).handle(record)
+                record.msg, record.args = f"{file}: {record.getMessage()}", None
+                if (record.name, record.msg) not in _GIVEN:  # a file's header read again says it again
+                    _GIVEN.add((record.name, record.msg))
+                    logging.getLogger(record.name).handle(record)

@@ -1224,7 +1224,8 @@ class _Validator:
             if pname not in self.registry:
                 hint = self.hint(pname, self.registry.names())
                 self.add(base + ("predicate",), f"unknown predicate '{_clip(pname, 30)}'"
-                         + (f" (did you mean '{hint}'?)" if hint else f"; known: {_listing(self.registry.names())}"))
+                         + (f" (did you mean '{hint}'?)" if hint else f"; known: {_listing(self.registry.names())} (a "
+                                                               "plugin's predicate needs its file: --plugin FILE)"))
                 continue
             pred = self.registry.get(pname)
             params = dict(spec.get("params") or {}) if isinstance(spec.get("params", {}), dict) else {}

@@ -334,3 +334,66 @@ def test_a_wide_cloud_too_sparse_for_its_tiles_runs_whole_with_a_note(tmp_path):
     assert ("but its 2,000 points would average 1.5 in each tile of 100 m that holds any, fewer than "
             "limits.min_points (30): it runs whole") in r.stderr
     assert "tiles:" not in r.stdout
+
+
+# --- session 32: what the fuzzing passes found and session 31 left -------------------------------
+
+ROOT = Path(__file__).parent.parent
+
+
+def test_rules_show_validates_what_it_prints_and_loads_the_plugins(tmp_path):
+    """`kbs rules show FILE` printed any file (/etc/passwd, a half-written rule file) as if it were
+    a rule base, and ignored --plugin; it now validates first: exit 4 with the positioned problems,
+    nothing on standard output; a plugin's predicates are known with --plugin."""
+    notes = tmp_path / "notes.txt"
+    notes.write_text("root:x:0:0:root:/root:/bin/bash\n")
+    r = kbs("rules", "show", str(notes))
+    assert r.returncode == 4 and r.stdout == "", r.stdout
+    assert f"{notes}:1:1: a rule base is a mapping" in r.stderr and "Traceback" not in r.stderr
+    poles, plugin = ROOT / "examples" / "rules" / "poles.yaml", ROOT / "examples" / "plugins" / "elongation.py"
+    r = kbs("rules", "show", str(poles))
+    assert r.returncode == 4 and r.stdout == ""
+    assert "unknown predicate 'elongation'" in r.stderr and "--plugin FILE" in r.stderr
+    r = kbs("rules", "show", str(poles), "--plugin", str(plugin))
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.rstrip("\n").splitlines()[1:] == poles.read_text(encoding="utf-8").rstrip("\n").splitlines()[1:]
+    r = kbs("rules", "show", str(poles), "--engine", "--plugin", str(plugin))
+    assert r.returncode == 0 and r.stdout.startswith("engine settings of 'poles'"), r.stderr
+
+
+def test_a_failed_run_leaves_no_new_output_folder_and_keeps_what_it_wrote(tmp_path):
+    """A `kbs run` that failed used to leave the --out folder it had created, empty. The folders it
+    created are removed when nothing was written in them; a folder that was there stays, and so
+    do the results of the scans that succeeded beside a failed one."""
+    bad = tmp_path / "bad.xyz"
+    bad.write_text("garbage\n")
+    r = kbs("run", "--rules", "outdoor", str(bad), "--out", str(tmp_path / "a" / "b" / "c"))
+    assert r.returncode == 3 and "bad.xyz" in r.stderr
+    assert not (tmp_path / "a").exists()
+    (tmp_path / "there").mkdir()
+    r = kbs("run", "--rules", "outdoor", str(bad), "--out", str(tmp_path / "there"))
+    assert r.returncode == 3 and (tmp_path / "there").is_dir() and not any((tmp_path / "there").iterdir())
+    r = kbs("-q", "run", "--rules", "outdoor", str(bad), str(EXAMPLE_PLY), "--out", str(tmp_path / "d"))
+    assert r.returncode == 3
+    assert sorted(p.name for p in (tmp_path / "d").iterdir()) == ["outdoor.json", "outdoor.ply"]
+
+
+def test_a_library_warning_on_a_file_that_reads_names_the_file_once(tmp_path):
+    """laspy's "There is an ExtraByteVlr but ..." (a LAS file whose extra-bytes VLR describes no
+    bytes), from a read that succeeds, printed without the file's name, once for each time the
+    header was read. It now names the file, once."""
+    laspy = pytest.importorskip("laspy")
+    X, _ = ground_and_rocks(seed=3)
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.scales, header.offsets = np.array([0.001] * 3), X.min(axis=0)
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = X[:, 0], X[:, 1], X[:, 2]
+    las.vlrs.append(laspy.VLR(user_id="LASF_Spec", record_id=4, record_data=bytes(range(192))))
+    scan = tmp_path / "extra.las"
+    las.write(str(scan))
+    for rules in ("outdoor", "airborne"):  # airborne reads the header first, for its tiles
+        r = kbs("-q", "run", "--rules", rules, str(scan), "--out", str(tmp_path / rules))
+        assert r.returncode == 0, r.stderr
+        lines = [x for x in r.stderr.splitlines() if "ExtraByteVlr" in x]
+        assert lines == [f"kbs: {scan}: There is an ExtraByteVlr but the header.point_size matches the point size "
+                         "without extra bytes. The extra bytes vlr info will be ignored"], r.stderr

@@ -318,4 +318,4 @@ def test_warnings_of_a_successful_read_are_still_given(tmp_path, recwarn, monkey
     path.write_bytes(_ascii_rows(POINTS))
     monkeypatch.setitem(readers.READERS, ".xyz", warn_then_read)
     assert len(read_cloud(path)) == 40
-    assert [str(w.message) for w in recwarn.list] == ["a library's own warning"]
+    assert [str(w.message) for w in recwarn.list] == [f"{path}: a library's own warning"]  # naming the file

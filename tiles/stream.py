@@ -87,8 +87,12 @@ class SpilledCloud:
 def _chunks(path: Path, chunk_points: int):
     import laspy
 
+    from kbs.io.readers import library_noise
+
     try:
-        with laspy.open(os.fspath(path)) as reader:
+        with library_noise(path):  # the header's warnings, naming the file
+            reader = laspy.open(os.fspath(path))
+        with reader:
             for chunk in reader.chunk_iterator(chunk_points):
                 yield np.column_stack([np.asarray(chunk.x, dtype=np.float64), np.asarray(chunk.y, dtype=np.float64),
                                        np.asarray(chunk.z, dtype=np.float64)])
@@ -100,8 +104,10 @@ def las_header(path: Path) -> Any:
     """The header of a LAS/LAZ file (nothing else read)."""
     import laspy
 
+    from kbs.io.readers import library_noise
+
     try:
-        with laspy.open(os.fspath(path)) as reader:
+        with library_noise(path), laspy.open(os.fspath(path)) as reader:
             return copy.deepcopy(reader.header)
     except (OSError, ValueError, laspy.errors.LaspyException) as exc:
         raise CloudFileError(str(path), f"cannot read the header: {exc}") from exc
