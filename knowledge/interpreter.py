@@ -7,6 +7,7 @@ the parts it is made of are tables of modules: :mod:`kbs.knowledge.strategies`,
 """
 from __future__ import annotations
 
+import weakref
 from collections.abc import Callable
 from typing import Any, Self
 
@@ -17,10 +18,11 @@ from kbs.inference import UFPONCResult, ufp_onc
 from kbs.knowledge.engine_settings import UFP_ONC_RULE_SETTINGS
 from kbs.knowledge.explain import NO_LABEL
 from kbs.knowledge.groundfacts import GroundFacts
-from kbs.knowledge.predicates import Ground
+from kbs.knowledge.explain import ClusterRecord
+from kbs.knowledge.predicates import Cluster, Ground, Scene
 from kbs.knowledge.rulebase import RuleBase
 from kbs.knowledge.segmentation import STOP_KINDS, Segmentation, far_outliers
-from kbs.knowledge.state import Judged, Node
+from kbs.knowledge.state import Draft, Judged, Node
 
 __all__ = ["Interpreter", "Segmentation", "STOP_KINDS", "NO_LABEL", "segment", "available_cores"]
 
@@ -38,9 +40,10 @@ class Interpreter:
     jobs : int
         Processes computing UFP-ONC splits (1: all in this process; -1: one per available core; at
         most one per available core: more would run no faster, and ``jobs=100000`` forked a
-        hundred thousand processes). The splits of one level of the tree are independent, so they
-        run side by side while this process judges the clusters; the result is identical whatever
-        ``jobs`` is.
+        hundred thousand processes). The splits of the first partition's clusters run side by
+        side in them, then the whole subtree below each of those clusters' children (judged and
+        divided) in one of them: a subtree depends on its points and the scene alone, so the
+        result is identical whatever ``jobs`` is.
     """
 
     #: A ground plane found beforehand, with its explanation (:meth:`find_ground`): when set, every
@@ -74,12 +77,22 @@ class Interpreter:
             ctx = multiprocessing.get_context("fork" if "fork" in methods else None)
             # the workers leave Ctrl-C to this process, which stops them (a worker interrupted
             # inside a compiled kernel or numba's finalizers printed its own traceback)
+            _OWNERS[id(self)] = self  # what a forked worker finds this interpreter by (Subtrees)
             pool = self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx, initializer=_ignore_sigint)
             # stopped when this interpreter is collected or the process exits, before
             # multiprocessing joins its children (in a process that is itself a multiprocessing
             # child, that join comes first and would wait for ever on idle workers)
             self._pool_finalizer = Finalize(self, _shutdown_pool, args=(pool,), exitpriority=10)
         return pool
+
+    @property
+    def forks(self) -> bool:
+        """Whether the worker processes are forked (they then hold this interpreter and can be
+        given whole subtrees: :class:`Subtrees`); where they cannot be, they are given the splits
+        alone."""
+        import multiprocessing
+
+        return "fork" in multiprocessing.get_all_start_methods()
 
     def start_workers(self) -> None:
         """Fork the split workers now (``jobs`` > 1), if they are not running: a run on a large
@@ -271,14 +284,114 @@ class _Job:
         return value
 
 
+#: the interpreters that started a pool of workers, by id: a forked worker holds a copy of this
+#: table, so a task names its interpreter (rule base, engine settings) by the id alone
+_OWNERS: weakref.WeakValueDictionary[int, Interpreter] = weakref.WeakValueDictionary()
+
+
+class Subtrees:
+    """The whole split trees below clusters (each judged, divided, its children judged ..., as
+    :meth:`Divisive.waves <kbs.knowledge.strategies.divisive.Divisive.waves>` does), each in one
+    of the interpreter's worker processes (:meth:`start`), then (:meth:`results`), per cluster in
+    the order started, ``(node, records, kept)``: the records of its subtree by id (its own
+    first), and the leaves it keeps, their nodes' ``idx`` into ``node``'s points. A subtree
+    depends on the cluster's points and the scene alone (no max_clusters), so it is the same in
+    any process. A worker that dies, or a subtree that fails in one, leaves it to this process.
+    Leaving the block on an error cancels the subtrees not started, and on an interruption stops
+    the workers."""
+
+    def __init__(self, owner: Interpreter, scene: Scene) -> None:
+        self.owner, self.scene = owner, scene
+        self.started: list[tuple[Node, tuple, Any]] = []
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, exc_type, *exc) -> None:
+        if exc_type is not None:
+            for _, _, future in self.started:
+                if future is not None:
+                    future.cancel()
+            if exc_type is not FitError and not issubclass(exc_type, KbsError):  # do not leave them running
+                self.owner.close()
+
+    def start(self, wave: list[tuple[Node, Cluster, Draft]]) -> None:
+        from concurrent.futures.process import BrokenProcessPool
+
+        for node, cl, draft in wave:
+            task = (Node(node.id, node.parent, node.depth, np.arange(node.size), node.weight, node.path), cl, draft,
+                    self.scene)
+            try:
+                future = self.owner._worker_pool().submit(_worker_subtree, id(self.owner), *task)
+            except BrokenProcessPool:  # a worker died in an earlier wave or run: this process, fresh pool next
+                self.owner.close()
+                future = None
+            self.started.append((node, task, future))
+
+    def results(self) -> list[tuple[Node, list[tuple[str, ClusterRecord]], list[tuple[Node, Cluster, ClusterRecord]]]]:
+        from concurrent.futures.process import BrokenProcessPool
+
+        out = []
+        self.started.reverse()
+        while self.started:  # each task let go once its subtree is in (its cluster's points: 240 MB in all at 10^7)
+            node, task, future = self.started[-1]
+            try:
+                tree = future.result() if future is not None else None
+            except BrokenProcessPool:  # a worker died (killed, out of memory)
+                tree = None
+            if tree is None:  # not started, failed in the worker, or the worker died: this process does it
+                tree = _subtree(self.owner, *task)
+            records, kept, said = tree
+            if self.owner.progress:
+                for message in said:
+                    self.owner.progress(message)
+            out.append((node, records, kept))
+            self.started.pop()
+            del task, future, tree
+        return out
+
+
+def _worker_subtree(owner_id: int, node: Node, cl: Cluster, draft: Draft, scene: Scene):
+    """:func:`_subtree` in a worker process (forked: the interpreter is its copy of the one that
+    started the pool); None when it raised (a plugin's predicate failing, say): the subtree is
+    then done again in the process that asked, which raises the same error itself (an exception
+    does not always survive the trip back: one whose constructor takes other arguments than its
+    message does not)."""
+    try:
+        return _subtree(_OWNERS[owner_id], node, cl, draft, scene)
+    except Exception:  # noqa: BLE001 - raised again where it is done again
+        return None
+
+
+def _subtree(owner: Interpreter, node: Node, cl: Cluster, draft: Draft, scene: Scene):
+    """The split tree below one cluster, in this process: (records, kept leaves, progress messages)."""
+    from kbs.knowledge.run import RunContext
+    from kbs.knowledge.strategies.divisive import Divisive
+
+    said: list[str] = []
+
+    class Subtree(RunContext):
+        @property
+        def progress(self) -> Callable[[str], None] | None:
+            return said.append
+
+    run = Subtree(owner, cl.X)
+    records: dict[str, Draft] = {}
+    kept: list[tuple[Node, Cluster, Draft]] = []
+    with _Splitter(owner, owner._ufp_kwargs("first_max", owner.rb.engine["split_min_k"]), jobs=1) as splitter:
+        run.splitter = splitter
+        Divisive.waves(run, [(node, cl, draft)], scene, records, kept, n_clusters=0)
+    return [(rid, d.record) for rid, d in records.items()], [(n, c, d.record) for n, c, d in kept], said
+
+
 class _Splitter:
     """Starts the UFP-ONC splits of a wave: in the interpreter's pool of ``jobs`` worker
     processes (forked, so nothing is imported again; started at the first split and kept for
     the next runs, so a loaded segmenter does not fork again frame after frame), or lazily in
     this process when ``jobs`` is 1."""
 
-    def __init__(self, owner: Interpreter, kwargs: dict[str, Any]) -> None:
-        self.owner, self.jobs, self.kwargs = owner, owner.jobs, kwargs
+    def __init__(self, owner: Interpreter, kwargs: dict[str, Any], jobs: int | None = None) -> None:
+        self.owner, self.jobs, self.kwargs = owner, owner.jobs if jobs is None else jobs, kwargs
         self.jobs_started: list[_Job] = []
 
     def __enter__(self) -> Self:

@@ -137,6 +137,89 @@ def test_a_broken_pool_is_replaced_at_the_next_frame():
         _same(seg.segment(X), ref)
 
 
+def _subtree_calls(monkeypatch) -> list[int]:
+    """Count the subtrees :class:`kbs.knowledge.interpreter.Subtrees` hands to the workers."""
+    from kbs.knowledge.interpreter import Subtrees
+
+    calls: list[int] = []
+    real = Subtrees.start
+    monkeypatch.setattr(Subtrees, "start", lambda self, wave: calls.append(len(wave)) or real(self, wave))
+    return calls
+
+
+@pytest.mark.parametrize("share", [0, 4, 1000])
+def test_jobs_2_divides_the_subtrees_in_the_workers_as_jobs_1_does(monkeypatch, share):
+    """With jobs > 1, the subtree below each child of the scene's clusters is judged and divided
+    whole in a worker (those holding more than 1 / (SUBTREE_SHARE x jobs) of the cloud split here
+    first, a level at a time); the records and leaves come back in the order one process gives
+    them."""
+    import kbs.knowledge.strategies.divisive as divisive
+
+    X = read_cloud(EXAMPLE).xyz
+    ref = kbs.Segmenter("outdoor", jobs=1).segment(X)
+    monkeypatch.setattr(divisive, "SUBTREE_SHARE", share)
+    calls = _subtree_calls(monkeypatch)
+    with kbs.Segmenter("outdoor", jobs=2) as seg:
+        _same(seg.segment(X), ref)
+    assert sum(calls) >= 2, calls  # subtrees were given to the workers
+    assert list(ref.explanation.records) == list(seg.segment(X).explanation.records)  # the queue's order
+
+
+def _dies_at_a_subtree(owner_id, node, cl, draft, scene):  # a split worker killed (out of memory, kill -9)
+    import os
+
+    os._exit(9)
+
+
+def test_a_worker_killed_in_a_subtree_leaves_it_to_the_process(monkeypatch):
+    import kbs.knowledge.interpreter as interpreter
+
+    X = read_cloud(EXAMPLE).xyz
+    ref = kbs.Segmenter("outdoor", jobs=1).segment(X)
+    monkeypatch.setattr(interpreter, "_worker_subtree", _dies_at_a_subtree)  # before the workers are forked
+    calls = _subtree_calls(monkeypatch)
+    with kbs.Segmenter("outdoor", jobs=2) as seg:
+        _same(seg.segment(X), ref)
+        _same(seg.segment(X), ref)  # the broken pool replaced
+    assert sum(calls) >= 2, calls
+
+
+@pytest.mark.parametrize("error", [PredicateError("predicate 'x' failed on a deep cluster"),
+                                   kbs.errors.CloudFileError("a.ply", "a problem")])  # its __init__ takes two arguments
+def test_an_error_in_a_workers_subtree_is_raised_as_with_one_process(monkeypatch, error):
+    """An error raised in a subtree a worker judges is the error of jobs=1, whether or not the
+    exception can travel between processes."""
+    from kbs.knowledge.run import RunContext
+
+    real = RunContext.judge
+
+    def judge(self, cluster, scene, draft):
+        if cluster.id.count(".") >= 2:
+            raise error
+        return real(self, cluster, scene, draft)
+
+    X = read_cloud(EXAMPLE).xyz
+    monkeypatch.setattr(RunContext, "judge", judge)
+    calls = _subtree_calls(monkeypatch)
+    for jobs in (1, 2):
+        with kbs.Segmenter("outdoor", jobs=jobs) as seg, pytest.raises(type(error)) as info:
+            seg.segment(X)
+        assert str(info.value) == str(error)
+    assert sum(calls) >= 1, calls
+
+
+@pytest.mark.slow
+def test_jobs_2_equals_jobs_1_on_a_vehicle_scan():
+    """SemanticKITTI 000001 (250 clusters, 11 levels): the same per-point arrays, clusters and
+    explanation with the subtrees in two worker processes."""
+    path = ROOT.parent / "shared" / "data" / "semantickitti" / "000001.points.npy"
+    if not path.is_file():
+        pytest.skip(f"{path} not found (../shared is absent)")
+    X = np.load(path)[:, :3].astype(np.float64)
+    with kbs.Segmenter("outdoor", jobs=2) as seg:
+        _same(seg.segment(X), kbs.Segmenter("outdoor", jobs=1).segment(X))
+
+
 def test_float32_points_are_read_as_float64_and_the_input_is_left_alone():
     X = ground_and_rocks()[0].astype(np.float32)
     before = X.copy()

@@ -2,6 +2,7 @@
 on its own, and its children judged in turn."""
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 import numpy as np
@@ -52,7 +53,15 @@ class Divisive(Strategy):
         is judged, the divisions it asks for are started (the UFP-ONC splits side by side when
         jobs > 1), then the decisions are applied in order — exactly the order of a first-in
         first-out queue, so the optional max_clusters, when a rule file sets it, stops the same
-        clusters whatever the number of jobs."""
+        clusters whatever the number of jobs.
+
+        With jobs > 1 (and no max_clusters, and worker processes that can be forked), once the
+        scene's clusters are judged and divided here, the whole subtree of each of their children
+        is judged and divided in a worker process (:class:`kbs.knowledge.interpreter.Subtrees`):
+        the tree below a cluster depends on its points and the scene alone, so the records and
+        leaves it gives are those of one process, put back in the queue's order (giving the
+        workers smaller subtrees, the large clusters split level by level here, measured no
+        faster: docs/PERFORMANCE.md, session 32)."""
         from kbs.knowledge.interpreter import _Splitter
 
         rb = run.rule_base
@@ -62,50 +71,113 @@ class Divisive(Strategy):
         ground, ground_facts = run.ground([(cl, rec) for _, cl, rec in wave])
         scene = run.scene(ground)
         leaves: list[tuple[Node, Any, Draft]] = []
-        n_clusters = len(wave)
-        with _Splitter(run.interpreter, run.ufp_kwargs("first_max", rb.engine["split_min_k"])) as splitter:
-            run.splitter = splitter
+        delegate = run.jobs > 1 and rb.limits.get("max_clusters") is None and run.interpreter.forks
+        if not delegate:
+            with _Splitter(run.interpreter, run.ufp_kwargs("first_max", rb.engine["split_min_k"])) as splitter:
+                run.splitter = splitter
+                Divisive.waves(run, wave, scene, records, leaves, n_clusters=len(wave))
+                run.splitter = None
+            return Judged.of(X, leaves, scene, records, ground_facts, tuple(notes))
+        from kbs.knowledge.interpreter import Subtrees
+
+        # a cluster of more than this goes on here, one level at a time (its split in a worker), so
+        # that no subtree holds most of the work while the other workers wait
+        large = X.shape[0] // (SUBTREE_SHARE * run.jobs) if SUBTREE_SHARE else X.shape[0]
+        with _Splitter(run.interpreter, run.ufp_kwargs("first_max", rb.engine["split_min_k"])) as splitter, \
+                Subtrees(run.interpreter, scene) as trees:
+            run.splitter = splitter  # the scene's clusters here, their splits side by side in the workers
+            first = True
             while wave:
-                judged = []
-                for node, cl, rec in wave:
-                    records[node.id] = rec
-                    action, rule = run.judge(cl, scene, rec)
-                    prepared = None
-                    if action.divides and run.cannot_split(node, 0) is None:  # max_clusters: known later
-                        prepared = action.prepare(run, cl)
-                    judged.append((node, cl, rec, action, rule, prepared))
-                wave = []
-                for node, cl, rec, action, rule, prepared in judged:
-                    if not action.divides:
-                        rec.set(action=action.key)
-                        if action.keeps:
-                            leaves.append((node, cl, rec))
-                        continue
-                    why_not = run.cannot_split(node, n_clusters)
-                    division = Division(())
-                    if why_not is None:
-                        try:
-                            division = Division.of(action.divide(run, node, cl, rec.facts, rule, prepared))
-                        except FitError as exc:
-                            why_not = "split_failed", f"the split failed: {exc}"
-                        if division.apd is not None:
-                            rec.set(apd=division.apd)
-                        if why_not is None and len(division.children) < 2:
-                            why_not = "single_cluster", "the split gave a single cluster"
-                    if why_not is not None:
-                        run.stop(rec, *why_not)
-                        leaves.append((node, cl, rec))
-                        continue
-                    kids = division.children
-                    rec.set(action=action.key, children=tuple(k.id for k in kids))
-                    n_clusters += len(kids) - 1
-                    kid_records = [(k, *run.record(k)) for k in kids]
-                    known = action.inherit(run, rule, node)
-                    for _, _, kid in kid_records:
-                        for check, measured in known:
-                            kid.check(check, measured)
-                    wave.extend(kid_records)
-                    if run.progress:
-                        run.progress(f"{node.id} split in {len(kids)}")
+                small = [] if first else [w for w in wave if w[0].size <= large]
+                wave = wave if first else [w for w in wave if w[0].size > large]
+                first = False
+                wave = Divisive.waves(run, wave, scene, records, leaves, n_clusters=0, max_waves=1,
+                                      started=lambda part=small: trees.start(part))  # behind this wave's splits
             run.splitter = None
+            for node, tree_records, kept in trees.results():
+                for rid, record in tree_records:
+                    records[rid] = Draft(record)
+                leaves.extend((Node(n.id, n.parent, n.depth, node.idx[n.idx], n.weight, n.path), cl, Draft(record))
+                              for n, cl, record in kept)
+        order = {rid: i for i, rid in enumerate(_queue_order(records))}
+        queued = sorted(records.items(), key=lambda item: order[item[0]])
+        records.clear()
+        records.update(queued)
+        leaves.sort(key=lambda leaf: order[leaf[0].id])
         return Judged.of(X, leaves, scene, records, ground_facts, tuple(notes))
+
+    @staticmethod
+    def waves(run: Any, wave: list[tuple[Node, Any, Draft]], scene: Any, records: dict[str, Draft],
+              leaves: list[tuple[Node, Any, Draft]], n_clusters: int, max_waves: int | None = None,
+              started: Callable[[], None] | None = None) -> list[tuple[Node, Any, Draft]]:
+        """Judge and divide ``wave`` and the waves below it (``max_waves`` of them at most: then
+        the next wave is returned, empty when the tree is done); the records of the judged clusters
+        go into ``records``, the kept ones into ``leaves``, in the order of a first-in first-out
+        queue. ``started`` is called once the first wave's divisions are started (or at once when
+        ``wave`` is empty)."""
+        done = 0
+        if not wave and started is not None:
+            started()
+        while wave and (max_waves is None or done < max_waves):
+            done += 1
+            judged = []
+            for node, cl, rec in wave:
+                records[node.id] = rec
+                action, rule = run.judge(cl, scene, rec)
+                prepared = None
+                if action.divides and run.cannot_split(node, 0) is None:  # max_clusters: known later
+                    prepared = action.prepare(run, cl)
+                judged.append((node, cl, rec, action, rule, prepared))
+            if started is not None:
+                started()
+                started = None
+            wave = []
+            for node, cl, rec, action, rule, prepared in judged:
+                if not action.divides:
+                    rec.set(action=action.key)
+                    if action.keeps:
+                        leaves.append((node, cl, rec))
+                    continue
+                why_not = run.cannot_split(node, n_clusters)
+                division = Division(())
+                if why_not is None:
+                    try:
+                        division = Division.of(action.divide(run, node, cl, rec.facts, rule, prepared))
+                    except FitError as exc:
+                        why_not = "split_failed", f"the split failed: {exc}"
+                    if division.apd is not None:
+                        rec.set(apd=division.apd)
+                    if why_not is None and len(division.children) < 2:
+                        why_not = "single_cluster", "the split gave a single cluster"
+                if why_not is not None:
+                    run.stop(rec, *why_not)
+                    leaves.append((node, cl, rec))
+                    continue
+                kids = division.children
+                rec.set(action=action.key, children=tuple(k.id for k in kids))
+                n_clusters += len(kids) - 1
+                kid_records = [(k, *run.record(k)) for k in kids]
+                known = action.inherit(run, rule, node)
+                for _, _, kid in kid_records:
+                    for check, measured in known:
+                        kid.check(check, measured)
+                wave.extend(kid_records)
+                if run.progress:
+                    run.progress(f"{node.id} split in {len(kids)}")
+        return wave
+
+
+#: with jobs > 1, a cluster holding more than 1 / (SUBTREE_SHARE x jobs) of the cloud is not given
+#: to a worker whole: it is split here and its children are (0: every child of the first clusters
+#: is given whole)
+SUBTREE_SHARE = 4
+
+
+def _queue_order(records: dict[str, Draft]) -> list[str]:
+    """The ids of the split tree in the order of its first-in first-out queue (level by level,
+    each cluster's children in their order), from the root 'c' and each record's children."""
+    order, i = ["c"], 0
+    while i < len(order):
+        order.extend(records[order[i]].record.children or ())
+        i += 1
+    return order
