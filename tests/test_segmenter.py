@@ -161,7 +161,7 @@ def test_jobs_2_divides_the_subtrees_in_the_workers_as_jobs_1_does(monkeypatch, 
     calls = _subtree_calls(monkeypatch)
     with kbs.Segmenter("outdoor", jobs=2) as seg:
         _same(seg.segment(X), ref)
-    assert sum(calls) >= 2, calls  # subtrees were given to the workers
+    assert sum(calls) >= 2 or share == 1000, calls  # subtrees were given to the workers (1000: all split here)
     assert list(ref.explanation.records) == list(seg.segment(X).explanation.records)  # the queue's order
 
 
