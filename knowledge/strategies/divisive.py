@@ -2,6 +2,7 @@
 on its own, and its children judged in turn."""
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import Any, ClassVar
 
@@ -92,7 +93,7 @@ class Divisive(Strategy):
                 wave = wave if first else [w for w in wave if w[0].size > large]
                 first = False
                 wave = Divisive.waves(run, wave, scene, records, leaves, n_clusters=0, max_waves=1,
-                                      started=lambda part=small: trees.start(part))  # behind this wave's splits
+                                      started=functools.partial(trees.start, small))  # behind this wave's splits
             run.splitter = None
             for node, tree_records, kept in trees.results():
                 for rid, record in tree_records:
