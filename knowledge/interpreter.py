@@ -16,9 +16,8 @@ import numpy as np
 from kbs.errors import FitError, KbsError
 from kbs.inference import UFPONCResult, ufp_onc
 from kbs.knowledge.engine_settings import UFP_ONC_RULE_SETTINGS
-from kbs.knowledge.explain import NO_LABEL
+from kbs.knowledge.explain import NO_LABEL, ClusterRecord
 from kbs.knowledge.groundfacts import GroundFacts
-from kbs.knowledge.explain import ClusterRecord
 from kbs.knowledge.predicates import Cluster, Ground, Scene
 from kbs.knowledge.rulebase import RuleBase
 from kbs.knowledge.segmentation import STOP_KINDS, Segmentation, far_outliers

@@ -60,9 +60,11 @@ class Divisive(Strategy):
         scene's clusters are judged and divided here, the whole subtree of each of their children
         is judged and divided in a worker process (:class:`kbs.knowledge.interpreter.Subtrees`):
         the tree below a cluster depends on its points and the scene alone, so the records and
-        leaves it gives are those of one process, put back in the queue's order (giving the
-        workers smaller subtrees, the large clusters split level by level here, measured no
-        faster: docs/PERFORMANCE.md, session 32)."""
+        leaves it gives are those of one process, put back in the queue's order. A child holding
+        more than 1 / (SUBTREE_SHARE x jobs) of the cloud is split here first, a level at a time
+        (its split in a worker), so that a large cloud is not left to one worker's subtree; on
+        vehicle frames that measured the same as giving every child whole (docs/PERFORMANCE.md,
+        session 32)."""
         from kbs.knowledge.interpreter import _Splitter
 
         rb = run.rule_base
