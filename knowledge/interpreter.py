@@ -328,26 +328,36 @@ class Subtrees:
             self.started.append((node, task, future))
 
     def results(self) -> list[tuple[Node, list[tuple[str, ClusterRecord]], list[tuple[Node, Cluster, ClusterRecord]]]]:
+        from concurrent.futures import as_completed
         from concurrent.futures.process import BrokenProcessPool
 
-        out = []
-        self.started.reverse()
-        while self.started:  # each task let go once its subtree is in (its cluster's points: 240 MB in all at 10^7)
-            node, task, future = self.started[-1]
+        trees: list[Any] = [None] * len(self.started)
+        slot = {future: i for i, (_, _, future) in enumerate(self.started) if future is not None}
+        for future in as_completed(slot):  # as they come: the progress of a long run is said as it goes
+            i = slot[future]
             try:
-                tree = future.result() if future is not None else None
-            except BrokenProcessPool:  # a worker died (killed, out of memory)
-                tree = None
-            if tree is None:  # not started, failed in the worker, or the worker died: this process does it
-                tree = _subtree(self.owner, *task)
-            records, kept, said = tree
-            if self.owner.progress:
-                for message in said:
-                    self.owner.progress(message)
+                trees[i] = future.result()
+            except BrokenProcessPool:  # a worker died (killed, out of memory): this process does it below
+                continue
+            if trees[i] is not None:
+                self._said(trees[i][2])
+                node = self.started[i][0]
+                self.started[i] = (node, (), None)  # its cluster's points let go (240 MB in all at 10^7 points)
+        out = []
+        for i, (node, task, _) in enumerate(self.started):
+            if trees[i] is None:  # not started, failed in the worker, or the worker died: this process does it
+                trees[i] = _subtree(self.owner, *task)
+                self._said(trees[i][2])
+            records, kept, _ = trees[i]
             out.append((node, records, kept))
-            self.started.pop()
-            del task, future, tree
+            trees[i] = None
+        self.started = []
         return out
+
+    def _said(self, messages: list[str]) -> None:
+        if self.owner.progress:
+            for message in messages:
+                self.owner.progress(message)
 
 
 def _worker_subtree(owner_id: int, node: Node, cl: Cluster, draft: Draft, scene: Scene):

@@ -162,7 +162,12 @@ def test_jobs_2_divides_the_subtrees_in_the_workers_as_jobs_1_does(monkeypatch, 
     with kbs.Segmenter("outdoor", jobs=2) as seg:
         _same(seg.segment(X), ref)
     assert sum(calls) >= 2 or share == 1000, calls  # subtrees were given to the workers (1000: all split here)
-    assert list(ref.explanation.records) == list(seg.segment(X).explanation.records)  # the queue's order
+    said: dict[int, list[str]] = {1: [], 2: []}
+    for jobs in (1, 2):
+        with kbs.Segmenter("outdoor", jobs=jobs) as seg:
+            again = seg.segment(X, progress=said[jobs].append)
+    assert list(ref.explanation.records) == list(again.explanation.records)  # the queue's order
+    assert sorted(said[2]) == sorted(said[1]) and said[1]  # every split said, as the subtrees come back
 
 
 def _dies_at_a_subtree(owner_id, node, cl, draft, scene):  # a split worker killed (out of memory, kill -9)
