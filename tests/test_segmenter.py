@@ -170,6 +170,20 @@ def test_jobs_2_divides_the_subtrees_in_the_workers_as_jobs_1_does(monkeypatch, 
     assert sorted(said[2]) == sorted(said[1]) and said[1]  # every split said, as the subtrees come back
 
 
+def test_a_large_cloud_keeps_the_splits_alone_in_the_workers(monkeypatch):
+    """From EARLY_WORKERS points on, no subtree is given whole (10^7 airborne points went over
+    4 GB with them): the same result, the splits alone in the workers."""
+    import kbs.knowledge.run as run_module
+
+    X = read_cloud(EXAMPLE).xyz
+    ref = kbs.Segmenter("outdoor", jobs=1).segment(X)
+    monkeypatch.setattr(run_module, "EARLY_WORKERS", X.shape[0])
+    calls = _subtree_calls(monkeypatch)
+    with kbs.Segmenter("outdoor", jobs=2) as seg:
+        _same(seg.segment(X), ref)
+    assert calls == []
+
+
 def _dies_at_a_subtree(owner_id, node, cl, draft, scene):  # a split worker killed (out of memory, kill -9)
     import os
 

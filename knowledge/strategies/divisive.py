@@ -56,7 +56,9 @@ class Divisive(Strategy):
         first-out queue, so the optional max_clusters, when a rule file sets it, stops the same
         clusters whatever the number of jobs.
 
-        With jobs > 1 (and no max_clusters, and worker processes that can be forked), once the
+        With jobs > 1 (and no max_clusters, worker processes that can be forked, and a cloud of
+        fewer than EARLY_WORKERS points: a larger one keeps the splits alone in the workers, for
+        its memory), once the
         scene's clusters are judged and divided here, the whole subtree of each of their children
         is judged and divided in a worker process (:class:`kbs.knowledge.interpreter.Subtrees`):
         the tree below a cluster depends on its points and the scene alone, so the records and
@@ -74,7 +76,12 @@ class Divisive(Strategy):
         ground, ground_facts = run.ground([(cl, rec) for _, cl, rec in wave])
         scene = run.scene(ground)
         leaves: list[tuple[Node, Any, Draft]] = []
-        delegate = run.jobs > 1 and rb.limits.get("max_clusters") is None and run.interpreter.forks
+        from kbs.knowledge.run import EARLY_WORKERS
+
+        # a large cloud keeps the splits alone in the workers: with whole subtrees, 10^7 airborne points
+        # took 4,475 MiB against 3,937 (over the 4 GB target; docs/PERFORMANCE.md, session 32)
+        delegate = (run.jobs > 1 and rb.limits.get("max_clusters") is None and run.interpreter.forks
+                    and X.shape[0] < EARLY_WORKERS)
         if not delegate:
             with _Splitter(run.interpreter, run.ufp_kwargs("first_max", rb.engine["split_min_k"])) as splitter:
                 run.splitter = splitter
