@@ -115,6 +115,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from kbs.arrays import rows
 from kbs.errors import FitError, ParameterError
 from kbs.geometry.nearest import nearest_label
 from kbs.inference import _flags
@@ -367,7 +368,7 @@ def _distinct(P: np.ndarray) -> _Distinct:
         order = np.argsort(key, kind="stable")
     else:  # a single position
         order = np.arange(n)
-    S = P[order]
+    S = rows(P, order)
     if n < 2:
         return _Distinct(S, np.ones(n, dtype=np.int64), order, np.arange(n), 0.0, S)
     d, tree = _nearest_other(S, side)
@@ -376,11 +377,11 @@ def _distinct(P: np.ndarray) -> _Distinct:
     # Exact duplicates: merge them (x, y sorted within each cell) and measure again.
     sub = np.lexsort((S[:, 1], S[:, 0], key[order])) if side > 0.0 else np.arange(n)
     order = order[sub]
-    S = S[sub]
+    S = rows(S, sub)
     first = np.ones(n, dtype=bool)
     first[1:] = (S[1:] != S[:-1]).any(axis=1)
     point_of = np.cumsum(first) - 1
-    U = S[first]
+    U = rows(S, first)
     tree = None
     spacing = 0.0
     if U.shape[0] > 1:
@@ -538,7 +539,7 @@ def graph_components(P: np.ndarray, r: float) -> tuple[int, np.ndarray]:
         band[a[across]] = True
         band[b[across]] = True
         idx = np.flatnonzero(band[cell])
-    Q = P[idx]
+    Q = rows(P, idx)
     tree = _kdtree(Q)
     src, dst = [], []
     for pairs in _pairs(Q, tree, r, _pair_pieces(Q, tree, r)):

@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from kbs.arrays import rows
 from kbs.geometry.pca import plane_basis
 from kbs.inference import _compiled, _flags
 from kbs.inference.voxel import bounds
@@ -169,7 +170,7 @@ class LocalGround:
             raise ValueError("a radius growing with range (per_range > 0) needs the sensor's position")
         if not 0.0 <= quantile <= 1.0:
             raise ValueError(f"quantile must be within [0, 1], got {quantile}")
-        G = X[index] - point
+        G = rows(X, index) - point
         return cls(normal=normal, point=point, index=np.asarray(index), heights=G @ normal,
                    neighbours=int(neighbours), radius=float(radius), basis=basis,
                    plane=np.ascontiguousarray(G @ basis.T, dtype=np.float64),
@@ -242,10 +243,10 @@ class LocalGround:
         for s in range(0, q, step):
             sel = order[s:s + step]
             if radii is None:
-                d, i = self._knn(Q[sel], k, own, first)
+                d, i = self._knn(rows(Q, sel), k, own, first)
             else:  # the neighbours within the chunk's largest radius, then each point's own
                 r = radii[sel]
-                d, i = self._knn(Q[sel], k, own, first, float(r.max()))
+                d, i = self._knn(rows(Q, sel), k, own, first, float(r.max()))
                 d = np.where(d.reshape(sel.size, k) <= r[:, None], d.reshape(sel.size, k), np.inf)
             ground[sel], nearest[sel] = self._medians(d.reshape(sel.size, k), i.reshape(sel.size, k), own)
             if found is not None:

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kbs.arrays import rows
 from kbs.geometry.pca import principal_axes
 from kbs.inference import _flags
 
@@ -124,7 +125,7 @@ def robust_plane(X: np.ndarray, inlier_distance: float, min_share: float, *,
     if n < 3:
         return None
     order = _xyz_order(X)  # independent of the order given
-    P = X[order]
+    P = rows(X, order)
     rng = np.random.default_rng(random_state)
     S = P if n <= SCORE_POINTS else P[np.sort(rng.choice(n, SCORE_POINTS, replace=False))]
     k = hypotheses_needed(min_share)
@@ -145,13 +146,13 @@ def robust_plane(X: np.ndarray, inlier_distance: float, min_share: float, *,
     for _ in range(REFINEMENTS):
         if inl.sum() < 3:
             break
-        normal, point, thickness = _principal_plane(P[inl])
+        normal, point, thickness = _principal_plane(rows(P, inl))
         new = np.abs((P - point) @ normal) <= inlier_distance
         if np.array_equal(new, inl):
             break
         inl = new
     if inl.sum() >= 3:
-        normal, point, thickness = _principal_plane(P[inl])
+        normal, point, thickness = _principal_plane(rows(P, inl))
         inl = np.abs((P - point) @ normal) <= inlier_distance  # the points on the plane returned
     inliers = np.empty(n, dtype=bool)
     inliers[order] = inl

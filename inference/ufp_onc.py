@@ -16,6 +16,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from kbs.arrays import rows
 from kbs.errors import FitError, ParameterError
 from kbs.inference import _flags
 from kbs.inference._validation import check_points, check_weights, validate_params
@@ -193,7 +194,7 @@ def prepare_fit_set(X: np.ndarray, w: np.ndarray, *, max_fit_points: int | None,
         red = frame.from_frame(red)
         return FitSet(Moments.build(red.centroids, red.weights, red.scatter), offset, red.voxel_size)
     order = _lex_order(Xc)
-    return FitSet(Moments.build(Xc[order], w[order]), offset, None)
+    return FitSet(Moments.build(rows(Xc, order), w[order]), offset, None)
 
 
 def _lex_order(X: np.ndarray) -> np.ndarray:

@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from kbs.arrays import rows
 from kbs.geometry.groundplane import robust_plane, supported_points
 from kbs.inference.voxel import bounds
 from kbs.knowledge.groundfacts import GroundCandidate, GroundFacts
@@ -181,7 +182,7 @@ def _candidate_plane(run: Any, cl: Cluster, rec: Draft, provisional: Scene) -> d
     elif rp.n_inliers < spec.min_points:
         out["why"] = f"its robust plane holds {rp.n_inliers} points < min_points {spec.min_points}"
     else:
-        out.update(plane=(rp.normal, rp.point, cl.X[rp.inliers]), method="robust plane")
+        out.update(plane=(rp.normal, rp.point, rows(cl.X, rp.inliers)), method="robust plane")
         out.pop("why", None)
     return out
 

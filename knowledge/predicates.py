@@ -98,8 +98,17 @@ class Cluster:
         return cluster_geometry(self.X, self.weights)
 
     def view(self) -> ClusterView:
-        """The read-only view a predicate is given."""
-        return ClusterView(self)
+        """The read-only view a predicate is given (made once: nothing can be written through it)."""
+        seen = self.__dict__.get("_view")
+        if seen is None:
+            seen = self.__dict__["_view"] = ClusterView(self)
+        return seen
+
+    def __getstate__(self) -> dict[str, Any]:
+        """What a worker process is sent: not the view (it is made again there when asked)."""
+        state = dict(self.__dict__)
+        state.pop("_view", None)
+        return state
 
 
 class ClusterView:

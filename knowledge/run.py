@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from kbs.arrays import rows
 from kbs.errors import FitError, KbsError, raise_if_interrupted
 from kbs.inference import UFPONCResult
 from kbs.knowledge import ground as ground_search
@@ -135,7 +136,7 @@ def group_descriptors(X: np.ndarray, nodes: list[Node]) -> dict[str, Any]:
     from kbs.inference import cluster_geometry
 
     idx = np.concatenate([nd.idx for nd in nodes])
-    geo = cluster_geometry(X[idx], np.concatenate([nd.weight for nd in nodes]))
+    geo = cluster_geometry(rows(X, idx), np.concatenate([nd.weight for nd in nodes]))
     return {"center": geo.center.tolist(), "normal": geo.normal.tolist(), "thickness": geo.thickness,
             "eigenvalues": geo.eigenvalues.tolist(), "mass": geo.mass}
 
@@ -303,7 +304,7 @@ class RunContext:
     def record(self, node: Node) -> tuple[Cluster, Draft]:
         """The cluster of a node and the draft of its new record (with its descriptors)."""
         # the root's points are the cloud (the same values as X[arange(n)], without the copy)
-        cl = Cluster(node.id, self.X if node.parent is None and node.size == self.X.shape[0] else self.X[node.idx],
+        cl = Cluster(node.id, self.X if node.parent is None and node.size == self.X.shape[0] else rows(self.X, node.idx),
                      node.weight)
         descriptors: dict[str, Any] = {}
         notes: tuple[str, ...] = ()

@@ -61,7 +61,7 @@ class Node:
         order = sorted((j for j in range(len(parts)) if parts[j].size), key=lambda j: -parts[j].size)
         kids = []
         for i, j in enumerate(order):
-            uj = u[parts[j], j]  # gathered once: the weight, and a factor of the path
+            uj = u[:, j][parts[j]]  # gathered once (from the column: faster than u[parts[j], j], the same values): the weight, and a factor of the path
             kids.append(Node(f"{self.id}.{i}" if self.parent is not None else f"c{i}", self.id, self.depth + 1,
                              self.idx[parts[j]], uj, self.path[parts[j]] * uj))
         return kids

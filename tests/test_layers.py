@@ -44,7 +44,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 LAYERS: dict[str, int] = {
     "errors": 0,
-    "units": 1, "formats": 1, "jsoncheck": 1,
+    "units": 1, "formats": 1, "jsoncheck": 1, "arrays": 1,
     "inference": 2, "io": 2,
     "geometry": 3,
     "knowledge": 4,

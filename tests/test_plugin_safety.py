@@ -279,3 +279,17 @@ def test_a_relative_plugin_path_is_named_as_given(tmp_path):
     assert r.returncode == 7
     assert "predicate 'broken' (broken_plugin.py:5) failed on cluster c0 (19,364 points) at broken_plugin.py:8: " \
            "ZeroDivisionError" in r.stderr, r.stderr
+
+
+def test_a_cluster_s_view_is_made_once_and_not_sent_to_workers():
+    """Predicates share one read-only view of a cluster; a cluster sent to a worker process
+    (pickled) leaves it behind and makes its own there."""
+    import pickle
+
+    rng = np.random.default_rng(0)
+    cl = Cluster("c0", rng.normal(size=(50, 3)), np.ones(50))
+    seen = cl.view()
+    assert cl.view() is seen and not seen.X.flags.writeable
+    back = pickle.loads(pickle.dumps(cl))
+    assert "_view" not in back.__dict__
+    assert np.array_equal(back.view().X, cl.X) and not back.view().X.flags.writeable

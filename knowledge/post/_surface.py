@@ -6,6 +6,7 @@ from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 
+from kbs.arrays import rows as take_rows
 from kbs.knowledge.state import Leaf
 
 #: points per batch of surface queries
@@ -67,7 +68,7 @@ def surface_batches(X: np.ndarray, todo: Sequence[Leaf], model, may_matter: Call
             continue
         idx = np.concatenate([b.node.idx for b in batch])
         rows = None if asked is None else np.flatnonzero(asked[idx])  # the points that may be asked
-        P = X[idx] if rows is None else X[idx[rows]]
+        P = take_rows(X, idx if rows is None else idx[rows])
         hp = (P - model.point) @ model.normal
         bounds = model.height_bounds(P) if may_matter is not None and P.shape[0] else None
         ask = None if bounds is None or may_matter is None else np.flatnonzero(may_matter(hp, *bounds, P))

@@ -7,6 +7,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from kbs.arrays import rows
 from kbs.knowledge.parts import PostContext, PostStep, SpecContext
 from kbs.knowledge.predicates import Scene
 from kbs.knowledge.post._surface import needs_surface, receive, surface_batches, take
@@ -110,7 +111,7 @@ class GroundContact(PostStep):
         within = f" + {self.per_range:g} x range" if self.per_range > 0.0 else ""
         for li, (h, nearest) in zip(todo, batches):
             lf = leaves[li]
-            move = np.abs(np.nan_to_num(h, nan=np.inf)) <= self.tolerances(ctx.X[lf.node.idx], sensor)
+            move = np.abs(np.nan_to_num(h, nan=np.inf)) <= self.tolerances(rows(ctx.X, lf.node.idx), sensor)
             n_move, size = int(move.sum()), lf.size
             if not n_move:
                 continue

@@ -8,6 +8,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from kbs.arrays import rows as take_rows
 from kbs.geometry.nearest import NearestIndex
 from kbs.knowledge.parts import PostContext, PostStep, SpecContext
 from kbs.knowledge.post._surface import needs_surface, receive, surface_batches, take
@@ -93,7 +94,7 @@ class GroundRelease(PostStep):
         by cells as wide as the largest radius, a released point's cell and the eight around it."""
         if model.per_range > 0.0:
             assert model.sensor is not None
-            far = float(np.sqrt(((X[model.index] - model.sensor) ** 2).sum(axis=1)).max())
+            far = float(np.sqrt(((take_rows(X, model.index) - model.sensor) ** 2).sum(axis=1)).max())
             side = model.radius + model.per_range * far
         else:
             side = model.radius
@@ -156,13 +157,13 @@ class _Nearest:
     def __init__(self, X: np.ndarray, leaves, target: str) -> None:
         targets = [li for li, lf in enumerate(leaves) if lf.label == target and lf.size]
         self.X = X
-        self.index = NearestIndex(X[np.concatenate([leaves[li].node.idx for li in targets])],
+        self.index = NearestIndex(take_rows(X, np.concatenate([leaves[li].node.idx for li in targets])),
                                   np.concatenate([np.full(leaves[li].size, li) for li in targets]))
 
     def owners(self, idx: np.ndarray) -> np.ndarray:
         """The position (in the leaves) of the cluster nearest to each point ``idx`` (a k-d tree's
         answer, :class:`~kbs.geometry.nearest.NearestIndex`)."""
-        return self.index.label(self.X[idx])
+        return self.index.label(take_rows(self.X, idx))
 
 
 class _Passes:
