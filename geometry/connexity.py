@@ -927,7 +927,7 @@ def connexity(
     else:
         kept = _opening(D, 2.0 * alpha, erosion_fraction) if opening else np.ones(U.shape[0], dtype=bool)
         idx = np.flatnonzero(kept)
-        n_comp, comp = graph_components(U[idx], 2.0 * alpha)
+        n_comp, comp = graph_components(rows(U, idx), 2.0 * alpha)
     # An isolated point (a component of one point: no other point within 2 alpha) is no component.
     alone = (np.bincount(comp, weights=mult[idx], minlength=n_comp) == 1)[comp]
     if alone.any():
@@ -935,7 +935,7 @@ def connexity(
         _, comp = np.unique(comp[~alone], return_inverse=True)
         comp = comp.ravel()
         n_comp = int(comp.max()) + 1 if comp.size else 0
-    new, sizes = _number_by_size(n_comp, comp, size[idx], U[idx])
+    new, sizes = _number_by_size(n_comp, comp, size[idx], rows(U, idx))
     label_u = np.full(U.shape[0], -1, dtype=np.int64)
     label_u[idx] = new[comp]
     labels = np.empty(n, dtype=np.int64)
@@ -993,5 +993,5 @@ def assign_to_nearest(X2d, labels, significant) -> np.ndarray:
         raise FitError("no significant component to assign the points to")
     out = labels.copy()
     good = np.flatnonzero(ok)
-    out[~ok] = nearest_label(P[~ok], P[good], labels[good])
+    out[~ok] = nearest_label(rows(P, ~ok), rows(P, good), labels[good])
     return out

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from kbs.arrays import rows
 from kbs.errors import CloudFileError, KbsError, ParameterError
 from kbs.units import ScanUnits
 
@@ -165,7 +166,7 @@ class PointCloud:
                 n_read,
             )
             index = np.flatnonzero(keep).astype(np.int64, copy=False)
-            kept_xyz = xyz[keep].astype(np.float64, copy=False)
+            kept_xyz = rows(xyz, keep).astype(np.float64, copy=False)
             kept_fields = {name: np.asarray(values)[keep] for name, values in fields.items()}
         else:
             index = np.arange(n_read, dtype=np.int64)

@@ -13,6 +13,7 @@ from typing import Any, Self
 
 import numpy as np
 
+from kbs.arrays import rows
 from kbs.errors import FitError, KbsError
 from kbs.inference import UFPONCResult, ufp_onc
 from kbs.knowledge.engine_settings import UFP_ONC_RULE_SETTINGS
@@ -144,7 +145,7 @@ class Interpreter:
                 f"{self.rb.far_outliers:g} x {side:.4g} {unit} (the largest side of the box of the central 98 % of the "
                 f"cloud) beyond that box, e.g. at {first[0]:.6g}, {first[1]:.6g}, {first[2]:.6g} (far outliers: "
                 f"a glitch, a damaged record)")
-        return run.run(self, X[~aside]).with_set_aside(aside, note)
+        return run.run(self, rows(X, ~aside)).with_set_aside(aside, note)
 
     def finish(self, judged: Judged, t0: float) -> Segmentation:
         """Label the strategy's leaves, run the post steps, make the result

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from kbs.arrays import rows
 from kbs.knowledge.explain import ClusterRecord, Explanation
 from kbs.knowledge.groundfacts import GroundFacts
 from kbs.knowledge.interpreter import Segmentation
@@ -201,7 +202,7 @@ def stitch(X: np.ndarray, grid: TileGrid, tiles: Sequence[Tile], results: Sequen
             if in_core:  # a tile cluster only in a buffer gave its points to the neighbour's core
                 parts.append({"tile": tiles[k].name, "cluster": c, "label": entry["label"], "core_points": in_core,
                               "ids": [f"{tiles[k].name}/{i}" for i in entry["ids"]]})
-        geo = cluster_geometry(X[idx], weights[idx])
+        geo = cluster_geometry(rows(X, idx), weights[idx])
         item = {"index": gi, "ids": [i for p in parts for i in p["ids"]], "label": parts[0]["label"],
                 "n_points": int(idx.size),
                 "descriptors": {"center": geo.center.tolist(), "normal": geo.normal.tolist(),

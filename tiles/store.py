@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from kbs.arrays import rows
 from kbs.errors import CloudFileError
 from kbs.knowledge.explain import Explanation
 from kbs.knowledge.interpreter import Segmentation
@@ -58,7 +59,7 @@ class TileStore:
         """The digest of what ``tile``'s result depends on (``given``: the whole cloud's ground plane
         and its explanation, as :func:`kbs.tiles.run.scene_ground` returns them)."""
         index = tile.index
-        return self.key_of(index, X[index], given)
+        return self.key_of(index, rows(X, index), given)
 
     def key_of(self, index: np.ndarray, points: np.ndarray, given: Any = None) -> str:
         """:meth:`key` of a tile of the points ``points`` (n_tile, 3) at ``index`` in the cloud."""

@@ -50,6 +50,7 @@ from typing import Any
 
 import numpy as np
 
+from kbs.arrays import rows as take_rows
 from kbs.errors import KbsError, ParameterError
 from kbs.knowledge.explain import ClusterRecord, Explanation
 from kbs.knowledge.groundfacts import GroundFacts
@@ -1297,7 +1298,7 @@ def _descriptors_reference(xyz_path: Path, cluster: FileColumn, membership: File
            "eigenvectors": np.zeros((k, 3, 3)), "mass": np.zeros(k)}
     for gi in range(k):
         idx = point_order[starts[gi]:starts[gi + 1]]
-        geo = cluster_geometry(X[idx], weights[idx])
+        geo = cluster_geometry(take_rows(X, idx), weights[idx])
         for name, value in (("center", geo.center), ("covariance", geo.covariance), ("eigenvalues", geo.eigenvalues),
                             ("eigenvectors", geo.eigenvectors), ("mass", geo.mass)):
             out[name][gi] = value

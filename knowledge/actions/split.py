@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from typing import Any, ClassVar
 
+from kbs.arrays import rows
 from kbs.errors import FitError
 from collections.abc import Mapping
 
@@ -26,7 +27,7 @@ class Split(Action):
     def divide(self, engine: Any, node: Node, cluster: Cluster, facts: Mapping[str, Measurement], rule: Any,
                prepared: Any) -> Division:
         # the cluster's points are X[node.idx] (the interpreter's Cluster): no second copy
-        X = cluster.X if cluster.X.shape[0] == node.size else engine.X[node.idx]
+        X = cluster.X if cluster.X.shape[0] == node.size else rows(engine.X, node.idx)
         res = prepared.result() if prepared is not None else \
             engine.ufp_onc(X, "first_max", min_k=engine.rule_base.engine["split_min_k"])
         k = res.chosen_k

@@ -82,7 +82,7 @@ def surface_batches(X: np.ndarray, todo: Sequence[Leaf], model, may_matter: Call
             nearest = np.full(idx.size, -1, dtype=np.int64)
             among = None if found is None else np.empty((ask.size, min(model.neighbours, model.n_points)),
                                                         dtype=np.int64)
-            ground, nearest[at] = model.query(P[ask], nearest_of=nearest_of, found=among)
+            ground, nearest[at] = model.query(take_rows(P, ask), nearest_of=nearest_of, found=among)
             h[at] = hp[ask] - ground
             if found is not None:
                 found(idx[at], among)
