@@ -260,8 +260,45 @@ def read_ply(path: Path) -> PointCloud:
     vertex = elements["vertex"]
     scalars = tuple(p.name for p in vertex.properties if not isinstance(p, plyfile.PlyListProperty))
     _require_xyz(path, scalars, "the PLY vertex element")
+    if not text:
+        _check_ply_byte_order(path, vertex.data, ply.byte_order)
     units, crs = _declared_units(path, [*ply.comments, *ply.obj_info], "PLY")
     return _from_structured(path, vertex.data, skip=lambda name: name not in scalars, units=units, crs=crs)
+
+
+#: a coordinate is implausible when not finite or beyond this magnitude (in any unit a scan is
+#: given in), or non-zero below :data:`_TINY`: what floats read in the wrong byte order look like
+_HUGE, _TINY = 1e12, 1e-30
+
+
+def _implausible(v: np.ndarray) -> float:
+    """The share of ``v`` (floats) that is not finite, beyond :data:`_HUGE` or non-zero below :data:`_TINY`."""
+    a = np.abs(v.astype(np.float64))
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(a) | (a > _HUGE) | ((a > 0.0) & (a < _TINY))
+    return float(bad.mean()) if a.size else 0.0
+
+
+def _check_ply_byte_order(path: Path, data: np.ndarray, declared: str) -> None:
+    """A binary PLY whose header names the wrong byte order reads as coordinates like 1e38 and NaN;
+    the bytes cannot say which order is right, but when at least a tenth of x, y and z read
+    implausible in the declared order and almost none (under 0.1 %) in the other, the header is
+    wrong: an error naming both orders, not a segmentation of nonsense."""
+    if declared not in "<>" or data.size < 16:
+        return
+    names = [n for n in ("x", "y", "z") if data.dtype[n].kind == "f" and data.dtype[n].itemsize > 1]
+    if len(names) < 3:
+        return
+    order = {"<": "binary_little_endian", ">": "binary_big_endian"}
+    given = max(_implausible(data[n]) for n in names)
+    if given < 0.1:
+        return
+    other = max(_implausible(data[n].view(data.dtype[n].newbyteorder())) for n in names)
+    if other < 0.001:
+        raise CloudFileError(str(path), f"the header says 'format {order[declared]}', but its x, y, z read as "
+                                        f"{order['<' if declared == '>' else '>']} ({given:.0%} of one coordinate's values are NaN, "
+                                        f"infinite or beyond {_HUGE:.0e} as declared, {other:.1%} in the other "
+                                        f"order); correct the header's format line")
 
 
 def _declared_units(path: Path, comments: list[str], kind: str) -> tuple[ScanUnits | None, str | None]:

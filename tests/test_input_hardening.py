@@ -397,3 +397,42 @@ def test_a_library_warning_on_a_file_that_reads_names_the_file_once(tmp_path):
         lines = [x for x in r.stderr.splitlines() if "ExtraByteVlr" in x]
         assert lines == [f"kbs: {scan}: There is an ExtraByteVlr but the header.point_size matches the point size "
                          "without extra bytes. The extra bytes vlr info will be ignored"], r.stderr
+
+
+def _raw_ply(path: Path, declared: str, X: np.ndarray) -> Path:
+    """A binary PLY of float x, y, z whose header says ``declared`` whatever order ``X``'s bytes are in."""
+    head = (f"ply\nformat {declared} 1.0\nelement vertex {len(X)}\n"
+            "property float x\nproperty float y\nproperty float z\nend_header\n").encode()
+    path.write_bytes(head + X.tobytes())
+    return path
+
+
+@pytest.mark.parametrize("declared, written", [("binary_big_endian", "<f4"), ("binary_little_endian", ">f4")])
+def test_a_ply_whose_header_names_the_wrong_byte_order_is_refused(tmp_path, declared, written):
+    X = ground_and_rocks(seed=3)[0].astype(written)
+    scan = _raw_ply(tmp_path / "swapped.ply", declared, X)
+    r = kbs("run", "--rules", "outdoor", str(scan), "--out", str(tmp_path / "o"))
+    assert r.returncode == 3, r.stderr
+    assert f"{scan}: the header says 'format {declared}', but its x, y, z read as binary_" in r.stderr
+    assert "correct the header's format line" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("declared, written", [("binary_big_endian", ">f4"), ("binary_little_endian", "<f4")])
+def test_a_ply_in_either_byte_order_it_declares_is_read(tmp_path, declared, written):
+    from kbs.io import read_cloud
+
+    X = ground_and_rocks(seed=3)[0]
+    pc = read_cloud(_raw_ply(tmp_path / "fine.ply", declared, X.astype(written)))
+    assert np.array_equal(pc.xyz, X.astype(np.float32).astype(np.float64))
+
+
+def test_a_ply_of_far_coordinates_in_its_declared_order_is_read(tmp_path):
+    """Coordinates beyond the plausible in the declared order but no better in the other (a
+    damaged file, not a swapped one) are read; what reads them says what is wrong."""
+    from kbs.io import read_cloud
+
+    X = np.full((100, 3), 3e38, dtype=">f4")
+    X[:50] = 1.0
+    pc = read_cloud(_raw_ply(tmp_path / "far.ply", "binary_big_endian", X))
+    assert pc.xyz.shape == (100, 3)
