@@ -382,6 +382,16 @@ def test_coarse_counts_from_the_fine_keys_are_numpys(D):
         assert C.count_coarse_keys(keys, D, float(factor)) == ref, factor
 
 
+@pytest.mark.parametrize("n, high", [(0, 1), (5, 1), (3000, 50), (200_000, 1 << 40)])
+def test_distinct_keys_in_order_of_first_appearance(n, high):
+    """The distinct keys as numpy orders them by first appearance, through tables that grow past
+    their first size (200,000 distinct keys against a start of 2^17)."""
+    rng = np.random.default_rng(n)
+    keys = rng.integers(0, high, n).astype(np.int64)
+    _, first = np.unique(keys, return_index=True)
+    assert np.array_equal(C.distinct_keys(keys), keys[np.sort(first)])
+
+
 @pytest.mark.parametrize("D", [2, 3])
 def test_compiled_frame_and_reduction_are_numpys_bit_for_bit(monkeypatch, D):
     """HorizontalFrame.to_frame and voxel_reduce compiled: the very same floats as numpy's (no
