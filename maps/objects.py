@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kbs.arrays import rows as take_rows
+
 _OFF = np.int64(1 << 20)
 
 
@@ -132,7 +134,7 @@ class ObjectTracker:
             self._frames.append((frame, np.zeros(0, np.int64), np.zeros(0, np.int64)))
             return node_of_point
         cl = cluster[sel].astype(np.int64)
-        cells = cell_keys(xyz[sel], self.cell_size)  # 2D cell keys: 21 bits per axis
+        cells = cell_keys(take_rows(xyz, sel), self.cell_size)  # 2D cell keys: 21 bits per axis
         pair, inv = np.unique((cl << np.int64(42)) | cells, return_inverse=True)
         inv = inv.ravel()
         m = len(pair)
@@ -164,10 +166,10 @@ class ObjectTracker:
         node_of_point[sel] = nodes_pt
         # each node's points, voxel-downsampled: the mean of each (node, voxel)
         keep = nodes_pt >= 0
-        P, npt = xyz[sel][keep], nodes_pt[keep]
+        P, npt = take_rows(take_rows(xyz, sel), keep), nodes_pt[keep]
         vk = voxel_keys(P, self.voxel_size)
         order = np.lexsort((vk, npt))
-        npt, vk, P = npt[order], vk[order], P[order]
+        npt, vk, P = npt[order], vk[order], take_rows(P, order)
         start = np.flatnonzero(np.r_[True, (np.diff(npt) != 0) | (np.diff(vk) != 0)])
         group = np.cumsum(np.r_[False, (np.diff(npt) != 0) | (np.diff(vk) != 0)])
         cnt = np.bincount(group).astype(np.float64)

@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from kbs.arrays import rows as take_rows
 from kbs.errors import CloudFileError
 from kbs.knowledge.segmenter import coordinate_problem
 from kbs.tiles.grid import TileGrid, ground_axes
@@ -266,7 +267,7 @@ def read_copc(path: str | os.PathLike[str], folder: str | os.PathLike[str], size
                 xyz_out.write(np.ascontiguousarray(X, dtype="<f8").tobytes())
                 index_out.write(np.arange(start, start + m, dtype="<i8").tobytes())
                 rows = np.arange(-start % step, m, step)
-                samples.append(X[rows])
+                samples.append(take_rows(X, rows))
                 uv = X @ axes.T
                 lo, hi = np.minimum(lo, uv.min(axis=0)), np.maximum(hi, uv.max(axis=0))
                 start += m
@@ -309,12 +310,12 @@ def read_tile(path: str, nodes: np.ndarray, grid: TileGrid, i: int, j: int,
     rows = np.concatenate([np.arange(f, f + c, dtype=np.int64) for f, c in zip(nodes[:, FIRST], nodes[:, COUNT])]) \
         if len(nodes) else np.zeros(0, dtype=np.int64)
     order = np.argsort(rows, kind="stable")
-    rows, X = rows[order], X[order]
+    rows, X = rows[order], take_rows(X, order)
     uv = X @ grid.axes.T
     (lo_u, lo_v), (hi_u, hi_v) = tile_box(grid, i, j)
     keep = (uv[:, 0] >= lo_u) & (uv[:, 0] <= hi_u) & (uv[:, 1] >= lo_v) & (uv[:, 1] <= hi_v)
     ij = grid.cells(uv[keep])
-    return rows[keep], (ij[:, 0] == i) & (ij[:, 1] == j), X[keep], len(X)
+    return rows[keep], (ij[:, 0] == i) & (ij[:, 1] == j), take_rows(X, keep), len(X)
 
 
 @dataclass(frozen=True)
