@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from kbs.arrays import rows
+from kbs.arrays import rows, minus
 from kbs.geometry.pca import plane_basis
 from kbs.inference import _compiled, _flags
 from kbs.inference.voxel import bounds
@@ -232,7 +232,7 @@ class LocalGround:
         k = min(self.neighbours * (self.EXCLUDE_FACTOR if own >= 0 else 1), self.n_points)
         Q = np.empty((q, 2))
         for s in range(0, q, 1 << 16):  # plane coordinates, without a (q, 3) temporary
-            Q[s:s + (1 << 16)] = (P[s:s + (1 << 16)] - self.point) @ self.basis.T
+            Q[s:s + (1 << 16)] = minus(P[s:s + (1 << 16)], self.point) @ self.basis.T
         order = self._spatial_order(Q)
         if order is None:
             order = np.arange(q)

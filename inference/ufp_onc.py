@@ -16,7 +16,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from kbs.arrays import rows
+from kbs.arrays import rows, minus
 from kbs.errors import FitError, ParameterError
 from kbs.inference import _flags
 from kbs.inference._validation import check_points, check_weights, validate_params
@@ -180,7 +180,7 @@ def prepare_fit_set(X: np.ndarray, w: np.ndarray, *, max_fit_points: int | None,
     counted one, so that the rounding of a turned file does not move it."""
     lo, hi = bounds(X)
     offset = 0.5 * (lo + hi)
-    Xc = X - offset
+    Xc = minus(X, offset)
     reduce = voxel_size is not None or (max_fit_points is not None and X.shape[0] > max_fit_points)
     if reduce and X.shape[1] <= 3:
         frame = HorizontalFrame.of(Xc, w)

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from kbs.arrays import rows
+from kbs.arrays import rows, finite_rows
 from kbs.errors import CloudFileError, KbsError, ParameterError
 from kbs.units import ScanUnits
 
@@ -153,7 +153,7 @@ class PointCloud:
                 raise ParameterError(f"field {name!r} must have shape ({n_read},), got {np.shape(values)}")
         if n_read == 0:
             raise _data_error(path, "the cloud holds no points")
-        keep = np.isfinite(xyz).all(axis=1)
+        keep = finite_rows(xyz)
         n_kept = int(np.count_nonzero(keep))
         if n_kept == 0:
             raise _data_error(path, f"all {n_read} points are NaN/Inf")

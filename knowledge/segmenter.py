@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from kbs.arrays import finite_rows
 from kbs.errors import ParameterError, raise_if_interrupted
 from kbs.geometry.nearest import nearest_other_distances
 from kbs.inference.voxel import bounds
@@ -361,7 +362,7 @@ def as_points(points: Any) -> np.ndarray:
     if X.shape[0] == 0:
         raise ParameterError("points holds no point: shape (0, 3)")
     X = np.ascontiguousarray(X, dtype=np.float64)
-    finite = np.isfinite(X).all(axis=1)
+    finite = finite_rows(X)
     if not finite.all():
         bad = int(X.shape[0] - np.count_nonzero(finite))
         raise ParameterError(f"{bad:,} of the {X.shape[0]:,} points have a NaN or infinite coordinate (first: row "

@@ -39,3 +39,29 @@ def test_rows_raises_what_numpy_raises(index):
         a[index]
     with pytest.raises(IndexError):
         rows(a, index)
+
+
+@pytest.mark.parametrize("n", [0, 5, 999, 1000, 5000])
+@pytest.mark.parametrize("layout", ["C", "F", "strided"])
+def test_minus_is_numpy_s_subtraction(n, layout):
+    from kbs.arrays import minus
+
+    rng = np.random.default_rng(n)
+    base = rng.normal(size=(n, 3)) * 1e3
+    a = {"C": base, "F": np.asfortranarray(base), "strided": np.repeat(base, 2, axis=1)[:, ::2]}[layout]
+    v = rng.normal(size=3)
+    want, got = a - v, minus(a, v)
+    assert got.shape == want.shape and got.dtype == want.dtype
+    assert np.array_equal(got, want)  # the same floats, bit for bit
+    assert np.array_equal(minus(a.astype(np.float32), v), a.astype(np.float32) - v)  # other types: numpy's own
+
+
+@pytest.mark.parametrize("bad", [[], [(3, 0)], [(0, 2), (4000, 1)], [(n, 0) for n in range(0, 5000, 7)]])
+def test_finite_rows_is_numpy_s(bad):
+    from kbs.arrays import finite_rows
+
+    a = np.random.default_rng(2).normal(size=(5000, 3))
+    for row, col in bad:
+        a[row, col] = np.nan if row % 2 else np.inf
+    assert np.array_equal(finite_rows(a), np.isfinite(a).all(axis=1))
+    assert finite_rows(a).dtype == bool
