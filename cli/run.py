@@ -952,10 +952,13 @@ def _scan_worker_start(segmenter: Segmenter, jobs: int) -> None:
     outputs being written are removed), between scans the process just ends."""
     import signal
 
+    from kbs.knowledge.interpreter import unblock_stop_signals
+
     _SCAN_WORKER["segmenter"] = segmenter.with_jobs(jobs)
     _SCAN_WORKER["busy"] = False
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _scan_worker_sigterm)
+    unblock_stop_signals()  # forked with them blocked (start_with_signals_blocked)
 
 
 def _scan_worker_sigterm(signum: int, frame: object) -> None:
@@ -995,9 +998,12 @@ def _scans_in_processes(segmenter: Segmenter, scans: list[Path], out_dir: Path, 
     from concurrent.futures import ProcessPoolExecutor
     from concurrent.futures.process import BrokenProcessPool
 
+    from kbs.knowledge.interpreter import start_with_signals_blocked
+
     jobs = max(1, segmenter.processes // at_once)
     pool = ProcessPoolExecutor(max_workers=at_once, mp_context=multiprocessing.get_context("fork"),
                                initializer=_scan_worker_start, initargs=(segmenter, jobs))
+    start_with_signals_blocked(pool)  # a SIGTERM while they are forked waits for their own handler
     futures = [pool.submit(_scan_in_worker, scan, out_dir, options) for scan in scans]
     results: list[ScanResult | ScanFailure] = []
     try:

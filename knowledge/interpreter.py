@@ -79,6 +79,7 @@ class Interpreter:
             # inside a compiled kernel or numba's finalizers printed its own traceback)
             _OWNERS[id(self)] = self  # what a forked worker finds this interpreter by (Subtrees)
             pool = self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx, initializer=_ignore_sigint)
+            start_with_signals_blocked(pool)
             # stopped when this interpreter is collected or the process exits, before
             # multiprocessing joins its children (in a process that is itself a multiprocessing
             # child, that join comes first and would wait for ever on idle workers)
@@ -207,6 +208,39 @@ def _ignore_sigint() -> None:
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    unblock_stop_signals()  # a SIGTERM that came since the fork ends it now
+
+
+#: the signals a worker is forked with blocked (:func:`start_with_signals_blocked`)
+_STOP_SIGNALS = ("SIGINT", "SIGTERM")
+
+
+def unblock_stop_signals() -> None:
+    """The end of a worker's start (its own handlers set): SIGINT and SIGTERM, blocked while it was
+    forked (:func:`start_with_signals_blocked`), are delivered again, one that came since at once."""
+    import signal
+
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, [getattr(signal, s) for s in _STOP_SIGNALS])
+
+
+def start_with_signals_blocked(pool) -> None:
+    """Start ``pool``'s workers now (a pool of forked processes forks them all at its first task),
+    with SIGINT and SIGTERM blocked while they are forked. A forked worker inherits this process's
+    handlers (the ``kbs`` command's SIGTERM handler raises) until its start sets its own and calls
+    :func:`unblock_stop_signals`: a SIGTERM in between raised inside multiprocessing's start-up
+    and printed a traceback. Blocked, it waits for the worker's own handler, which ends the worker
+    quietly; this process gets its signals once the workers are forked (microseconds later)."""
+    import signal
+
+    if not hasattr(signal, "pthread_sigmask"):
+        pool.submit(int)
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, [getattr(signal, s) for s in _STOP_SIGNALS])
+    try:
+        pool.submit(int)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 def _shutdown_pool(pool) -> None:

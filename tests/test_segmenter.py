@@ -464,6 +464,30 @@ def test_a_scan_process_that_dies_leaves_its_scan_to_the_command(tmp_path):
 
 
 @pytest.mark.slow
+def test_a_sigterm_as_a_scan_process_is_forked_ends_it_without_a_traceback(tmp_path):
+    """A SIGTERM that reaches a scan process between its fork and its start (which sets its own
+    handler) waits, blocked, for that handler, which ends the idle process quietly; without the
+    block the command's handler, inherited by fork, raised inside multiprocessing's start-up and
+    printed a traceback. The command then segments the scans itself: exit code 0, every output."""
+    scans = _three_scans(tmp_path)
+    code = ("import multiprocessing.util, os, signal, sys\n"
+            "parent = os.getpid()\n"
+            "class Hook: pass\n"
+            "hook = Hook()\n"
+            "def term(_):\n"
+            "    if os.getppid() == parent:  # the scan processes, not their split workers\n"
+            "        os.kill(os.getpid(), signal.SIGTERM)\n"
+            "multiprocessing.util.register_after_fork(hook, term)\n"
+            "from kbs.cli.main import entry; sys.argv = ['kbs', *sys.argv[1:]]; entry()")
+    r = subprocess.run([sys.executable, "-c", code, "run", "--rules", "outdoor", "-j", "2", str(scans), "--out",
+                        str(tmp_path / "o")], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert "Traceback" not in r.stderr, r.stderr
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["a.json", "a.ply", "b.json", "b.ply",
+                                                                   "c.json", "c.ply"]
+
+
+@pytest.mark.slow
 def test_sigterm_stops_the_scan_processes_and_leaves_nothing_half_written(tmp_path):
     """SIGTERM to `kbs run -j 2` while two scans are segmented side by side: exit code 143, the scan
     processes end too (none left running), no output and no temporary file in the folder."""
@@ -694,3 +718,56 @@ def test_a_bad_far_outliers_setting_is_a_positioned_rule_file_error(tmp_path, va
     message = str(info.value)
     line = path.read_text(encoding="utf-8").split("\n").index(f"  far_outliers: {value}") + 1
     assert f"far.yaml:{line}:" in message and problem in message, message
+
+
+_SIGTERM_AT_FORK = r"""
+import multiprocessing.util, os, signal, sys
+import kbs
+from kbs.cli.main import _on_sigterm
+from kbs.knowledge import load_rule_base
+from kbs.knowledge.interpreter import Interpreter
+
+signal.signal(signal.SIGTERM, _on_sigterm)  # the kbs command's handler, which a forked worker inherits
+
+
+class Hook:
+    pass
+
+
+hook = Hook()  # SIGTERM arrives in a worker after the fork, before the pool's initializer runs
+multiprocessing.util.register_after_fork(hook, lambda _: os.kill(os.getpid(), signal.SIGTERM))
+it = Interpreter(load_rule_base("outdoor"), jobs=2)
+try:
+    it.start_workers()
+    print("started")
+except Exception as exc:  # the workers died: the pool is broken
+    print("pool:", type(exc).__name__)
+blocked = signal.pthread_sigmask(signal.SIG_BLOCK, [])
+print("parent blocks SIGTERM:", signal.SIGTERM in blocked, "SIGINT:", signal.SIGINT in blocked)
+"""
+
+
+@pytest.mark.skipif(not hasattr(__import__("signal"), "pthread_sigmask"), reason="no signal masks on this platform")
+def test_a_sigterm_between_a_workers_fork_and_its_start_ends_it_without_a_traceback():
+    """The split workers are forked with SIGINT and SIGTERM blocked, and unblock them once their
+    start has set their own handlers: a SIGTERM that arrives in between (the command being stopped
+    while it forks) ends the worker as SIG_DFL does, not through the command's handler inherited by
+    fork, which raised inside multiprocessing's start-up and printed a traceback."""
+    r = subprocess.run([sys.executable, "-c", _SIGTERM_AT_FORK], capture_output=True, text=True, timeout=120)
+    assert "Traceback" not in r.stderr, r.stderr
+    assert "Terminated" not in r.stderr, r.stderr
+    assert "pool: BrokenProcessPool" in r.stdout, (r.stdout, r.stderr)
+    assert "parent blocks SIGTERM: False SIGINT: False" in r.stdout  # the mask is the parent's own again
+
+
+def test_the_split_workers_run_with_no_signal_blocked():
+    from kbs.knowledge.interpreter import Interpreter
+
+    it = Interpreter(load_rule_base("outdoor"), jobs=2)
+    if it.jobs < 2:
+        pytest.skip("one core: no split workers")
+    import signal
+
+    blocked = it._worker_pool().submit(signal.pthread_sigmask, signal.SIG_BLOCK, []).result()
+    it.close()
+    assert signal.SIGTERM not in blocked and signal.SIGINT not in blocked
