@@ -9,6 +9,9 @@ Decided once per process, when kbs is imported, from ``KBS_JIT``:
   installed or changed. Until then the process runs the numpy reference and starts, once, a
   background process (``python -m kbs.inference._warmup``) that compiles and caches every kernel
   (10-30 s), so that no run pays for the compilation; the next processes use the compiled code.
+  The same background process then builds the kernels ahead of time into one extension module
+  (:mod:`kbs.inference._aot`, 1-2 minutes, needs a C compiler), which the processes after it
+  import instead of loading numba (:mod:`kbs.inference._compiled`); ``KBS_JIT=1`` keeps numba's.
 
 Tests switch it with ``monkeypatch.setattr(kbs.inference._flags, "JIT", False)``.
 """
@@ -20,7 +23,7 @@ import sys
 import time
 from pathlib import Path
 
-_SOURCE = Path(__file__).with_name("_compiled.py")
+_SOURCE = Path(__file__).with_name("_numba_kernels.py")
 #: staler than this, a warm-up lock is taken to belong to a warm-up that died
 _LOCK_SECONDS = 900.0
 
@@ -38,8 +41,14 @@ def _stamp() -> str:
 
 
 def _state_dir() -> Path:
-    """Where the marker and the lock live: the package's ``__pycache__`` when writable (where
-    numba caches too), else the user's cache folder."""
+    """Where the marker, the lock and the ahead-of-time module live: ``KBS_CACHE_DIR`` when set,
+    else the package's ``__pycache__`` when writable (where numba caches too), else the user's
+    cache folder."""
+    chosen = os.environ.get("KBS_CACHE_DIR")
+    if chosen:
+        path = Path(chosen)
+        path.mkdir(parents=True, exist_ok=True)
+        return path
     here = _SOURCE.parent / "__pycache__"
     try:
         here.mkdir(exist_ok=True)
@@ -84,6 +93,22 @@ def start_warmup() -> bool:
         return False
 
 
+def _aot_wanted() -> bool:
+    from kbs.inference import _aot
+
+    return _aot.wanted()
+
+
+def _aot_state() -> tuple[bool, bool]:
+    """(built, failed) of the ahead-of-time module of this source, numba and CPU (:mod:`kbs.inference._aot`)."""
+    from kbs.inference import _aot
+
+    try:
+        return _aot.ready(), _aot.failed()
+    except OSError:
+        return False, True
+
+
 def _decide() -> bool:
     mode = os.environ.get("KBS_JIT", "auto").strip().lower()
     if mode == "0":
@@ -91,6 +116,9 @@ def _decide() -> bool:
     if mode == "1":
         return True
     if ready():
+        built, failed = _aot_state()
+        if not built and not failed and _aot_wanted():  # numba's kernels are cached, their ahead-of-time module not yet
+            start_warmup()
         return True
     start_warmup()
     return False

@@ -14,7 +14,7 @@ def warm() -> None:
     from kbs.inference import _flags
 
     _flags.JIT = True
-    from kbs.inference import _compiled as C
+    from kbs.inference import _numba_kernels as C
     from kbs.inference import cluster_geometry, ufp_onc
 
     rng = np.random.default_rng(0)
@@ -71,7 +71,14 @@ def warm() -> None:
 def main() -> None:
     lock = Path(sys.argv[1]) if len(sys.argv) > 1 else None
     try:
-        warm()
+        from kbs.inference import _aot
+
+        warm()  # loads the cached kernels when they are: their signatures are what _aot exports
+        if _aot.wanted() and not _aot.ready() and not _aot.failed():
+            try:
+                _aot.build()
+            except Exception:  # noqa: BLE001 - no C compiler, pycc gone: numba's kernels it is (the note says why)
+                pass
     finally:
         if lock is not None:
             try:

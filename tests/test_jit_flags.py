@@ -2,6 +2,7 @@
 that compiles them once so that no run pays for it (kbs.inference._flags)."""
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import time
@@ -33,7 +34,19 @@ def test_auto_uses_the_compiled_kernels_only_once_the_warm_up_has_cached_them(mo
     (state / "kbs-jit-ready").write_text("a stale stamp")
     assert _flags._decide() is False and started == [1, 1]  # the kernels changed since
     (state / "kbs-jit-ready").write_text(_flags._stamp())
-    assert _flags._decide() is True and started == [1, 1]
+    assert _flags._decide() is True and started == [1, 1, 1]  # numba's cached: the warm-up builds the ahead-of-time module
+    from kbs.inference import _aot
+
+    so, table, note = _aot.paths()
+    note.write_text("no C compiler")
+    assert _flags._decide() is True and started == [1, 1, 1]  # it failed once for this source: not again
+    note.unlink()
+    monkeypatch.setenv("KBS_AOT", "0")
+    assert _flags._decide() is True and started == [1, 1, 1]  # not wanted
+    monkeypatch.delenv("KBS_AOT")
+    so.write_bytes(b"")
+    table.write_text("{}")
+    assert _flags._decide() is True and started == [1, 1, 1]  # built
 
 
 @pytest.mark.slow
@@ -48,7 +61,8 @@ def test_one_warm_up_at_a_time_and_it_writes_the_marker(state):
     r = subprocess.run([sys.executable, "-c", "import kbs.inference._flags as f, pathlib;"
                         f"f._state_dir = lambda: pathlib.Path({str(state)!r});"
                         "import kbs.inference._warmup as w, sys; sys.argv = ['w', sys.argv[1]]; w.main()", str(lock)],
-                       capture_output=True, text=True, timeout=600)
+                       capture_output=True, text=True, timeout=600,
+                       env={**os.environ, "KBS_AOT": "0"})  # the ahead-of-time build: tests/test_aot.py
     assert r.returncode == 0, r.stderr
     assert not lock.exists()
     assert (state / "kbs-jit-ready").read_text() == _flags._stamp()
@@ -66,17 +80,47 @@ def test_a_stale_lock_does_not_block_for_ever(state, monkeypatch):
     assert _flags.start_warmup() is True and len(popen) == 1
 
 
-def test_kbs_warmup_compiles_in_the_foreground_then_says_it_is_done(state):
+def test_kbs_warmup_compiles_in_the_foreground_then_says_it_is_done(state, monkeypatch):
     from click.testing import CliRunner
 
     from kbs.cli.main import cli
+    from kbs.inference import _aot
 
+    built = []
+
+    def build():  # the real build (15 s): tests/test_aot.py
+        so, table, _ = _aot.paths()
+        so.write_bytes(b"")
+        table.write_text("{}")
+        built.append(so)
+        return so
+
+    monkeypatch.setattr(_aot, "build", build)
     r = CliRunner().invoke(cli, ["warmup"])
     assert r.exit_code == 0, r.output
     assert "compiled and cached the kernels" in r.output
+    assert "built the kernels ahead of time" in r.output and len(built) == 1
     assert (state / "kbs-jit-ready").read_text() == _flags._stamp()
     r = CliRunner().invoke(cli, ["warmup"])
-    assert r.exit_code == 0 and "already cached" in r.output
+    assert r.exit_code == 0 and "already cached" in r.output and "already built" in r.output and len(built) == 1
+
+
+def test_kbs_warmup_says_when_the_ahead_of_time_module_cannot_be_built(state, monkeypatch):
+    from click.testing import CliRunner
+
+    from kbs.cli.main import cli
+    from kbs.inference import _aot
+
+    def no_compiler():
+        raise RuntimeError("no C compiler")
+
+    monkeypatch.setattr(_aot, "build", no_compiler)
+    r = CliRunner().invoke(cli, ["warmup"])
+    assert r.exit_code == 0, r.output
+    assert "ahead-of-time module was not built (RuntimeError: no C compiler)" in r.output
+    monkeypatch.setenv("KBS_AOT", "0")
+    r = CliRunner().invoke(cli, ["warmup"])
+    assert r.exit_code == 0 and "ahead-of-time" not in r.output
 
 
 #: kernels that only other kernels call (compiled into their callers, never from Python)
@@ -91,11 +135,11 @@ def test_the_warm_up_compiles_every_kernel_kbs_calls():
     process, so that no other test's calls count."""
     code = (
         "import warnings, numba\n"
-        "from kbs.inference import _compiled, _flags, _warmup\n"
+        "from kbs.inference import _numba_kernels, _flags, _warmup\n"
         "_flags.marker = lambda: type('M', (), {'write_text': lambda self, text: None})()\n"
         "warnings.simplefilter('error')\n"
         "_warmup.warm()\n"
-        "k = {n: f for n, f in vars(_compiled).items() if isinstance(f, numba.core.registry.CPUDispatcher)}\n"
+        "k = {n: f for n, f in vars(_numba_kernels).items() if isinstance(f, numba.core.registry.CPUDispatcher)}\n"
         "cached = {n for n, f in k.items() if type(f._cache).__name__ != 'NullCache'}\n"
         f"print(len(cached), sorted(n for n in cached - set({sorted(CALLED_BY_KERNELS_ONLY)!r}) if not k[n].signatures))\n"
     )

@@ -20,6 +20,7 @@ EXAMPLE = ROOT / "examples" / "data" / "outdoor.ply"
 #: (read_result_json, read_result_pair); anything else is added here with what it reads.
 JSON_READERS = {
     "knowledge/rulebase.py": "the rule files' JSON Schema",
+    "inference/_aot.py": "the table of the kernels built ahead of time (kbs.inference._aot writes it)",
     "maps/files.py": "a map's index, map.json (kbs.maps owns the map files)",
     "maps/poses.py": "a poses file",
     "synth/drive.py": "a generated drive's truth.json",
