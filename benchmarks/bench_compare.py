@@ -13,6 +13,8 @@ uncommitted changes) extracted with ``git archive`` into a temporary folder and 
 there (``PYTHONPATH``), with this venv's packages. Both sides run the compiled kernels
 (``KBS_JIT=1``); the base's are cached separately, so its warm-up frame of the first round
 compiles them (without ``KBS_JIT=1`` it would run the numpy reference, its cache being cold).
+When this tree's kernels are built ahead of time (``kbs warmup``, :mod:`kbs.inference._aot`), its
+side runs them, as its runs do (``KBS_AOT=0`` keeps numba's); the header says which.
 
 The post steps column is the time of ``Interpreter.finish`` in each frame (labels, the post
 steps, the result), median of the same frames.
@@ -84,6 +86,18 @@ print(json.dumps({"times": times, "posts": posts, "kbs": kbs.__file__, "clusters
 """
 
 
+def _this_aot() -> bool:
+    """Whether this working tree's kernels are built ahead of time (``kbs warmup``): its side then
+    runs them, as its runs do; otherwise numba's, as the base's."""
+    if os.environ.get("KBS_AOT", "1") == "0":
+        return False
+    try:
+        from kbs.inference import _aot
+    except ImportError:
+        return False
+    return _aot.ready()
+
+
 def run_side(pythonpath: str | None, scan: str, repeats: int, out: Path, jobs: int = 1) -> dict:
     path, rules, sensor = SCANS[scan]
     if scan == "isprs-tile" and not path.exists():
@@ -94,6 +108,8 @@ def run_side(pythonpath: str | None, scan: str, repeats: int, out: Path, jobs: i
     env = dict(os.environ, KBS_JIT="1")  # compiled on both sides (the base's cache is cold: its warm-up compiles)
     if pythonpath:
         env["PYTHONPATH"] = pythonpath
+    elif _this_aot():  # this tree's kernels as a run takes them: its ahead-of-time module (kbs.inference._aot)
+        env["KBS_JIT"] = "auto"
     proc = subprocess.run([sys.executable, "-c", CHILD, str(path), rules, json.dumps(sensor), str(repeats), str(out), str(jobs)],
                           capture_output=True, text=True, env=env, cwd=tempfile.gettempdir())
     if proc.returncode:
@@ -122,7 +138,9 @@ def main() -> None:
                                  check=True).stdout
         subprocess.run(["tar", "-x", "-C", tmp], input=archive, check=True)
         sides = {"base": tmp, "this": None}
-        print(f"base: {a.base} ({rev}); this: the working tree at {head}{' with uncommitted changes' if dirty else ''}; "
+        kernels = "the kernels built ahead of time" if _this_aot() else "numba's kernels"
+        print(f"base: {a.base} ({rev}); this: the working tree at {head}{' with uncommitted changes' if dirty else ''}, "
+              f"{kernels}; "
               f"{a.repeats} frames x {a.rounds} rounds per side, jobs={a.jobs}, load average {os.getloadavg()[0]:.2f} at the start\n")
         print("| scan | rules | points | base ms | this ms | base / this | post steps, base ms | this ms | result |")
         print("|---|---|---:|---:|---:|---:|---:|---:|---|")
