@@ -15,11 +15,13 @@ def warmup() -> None:
     import instead of loading numba: about 0.5 s less per process. KBS_AOT=0 skips that step."""
     from kbs.inference import _aot, _flags, _warmup
 
+    warmed = False
     if _flags.ready():
         click.echo(f"kbs: the compiled kernels are already cached ({_flags.marker()})")
     else:
         t0 = time.perf_counter()
         _warmup.warm()
+        warmed = True
         click.echo(f"kbs: compiled and cached the kernels in {time.perf_counter() - t0:.1f} s ({_flags.marker()})")
     if not _aot.wanted():
         return
@@ -27,7 +29,8 @@ def warmup() -> None:
         click.echo(f"kbs: the kernels' ahead-of-time module is already built ({_aot.paths()[0]})")
         return
     t0 = time.perf_counter()
-    _warmup.warm()  # the signatures to export: loaded from numba's cache when it is warm
+    if not warmed:
+        _warmup.warm()  # the signatures to export: loaded from numba's cache
     try:
         so = _aot.build()
     except Exception as exc:  # noqa: BLE001 - no C compiler, pycc gone: numba's kernels stay in use

@@ -246,7 +246,7 @@ def _build(so: Path, table: Path) -> Path:
         finally:
             setattr(pycc_compiler, "Flags", Flags)  # noqa: B010
         os.replace(Path(tmp) / cc.output_file, so)
-    tmp_table = table.with_suffix(".json.tmp")
+    tmp_table = table.with_suffix(f".json.{os.getpid()}.tmp")  # two builders (kbs warmup, the background one) do not share it
     tmp_table.write_text(json.dumps({"stamp": stamp(), "python": sys.version, "exports": doc}, indent=1))
     os.replace(tmp_table, table)
     for old_file in so.parent.glob(f"{MODULE}-*"):  # the modules of other kernel versions
