@@ -10,7 +10,7 @@ Decided once per process, when kbs is imported, from ``KBS_JIT``:
   background process (``python -m kbs.inference._warmup``) that compiles and caches every kernel
   (10-30 s), so that no run pays for the compilation; the next processes use the compiled code.
   The same background process then builds the kernels ahead of time into one extension module
-  (:mod:`kbs.inference._aot`, 1-2 minutes, needs a C compiler), which the processes after it
+  (:mod:`kbs.inference._aot`, about 15 s, needs a C compiler), which the processes after it
   import instead of loading numba (:mod:`kbs.inference._compiled`); ``KBS_JIT=1`` keeps numba's.
 
 Tests switch it with ``monkeypatch.setattr(kbs.inference._flags, "JIT", False)``.
