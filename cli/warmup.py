@@ -13,8 +13,15 @@ def warmup() -> None:
     start. Takes 20-30 s once per install; later runs load the cached code. Then build them ahead
     of time into one extension module (about 15 s more, needs a C compiler), which later runs
     import instead of loading numba: about 0.5 s less per process. KBS_AOT=0 skips that step."""
+    import os
+
     from kbs.inference import _aot, _flags, _warmup
 
+    try:
+        _flags._state_dir()
+    except OSError as exc:  # an unusable KBS_CACHE_DIR (or no writable cache folder at all)
+        where = f"KBS_CACHE_DIR={os.environ['KBS_CACHE_DIR']!r}" if os.environ.get("KBS_CACHE_DIR") else "the cache folder"
+        raise click.UsageError(f"{where} cannot hold the compiled kernels' marker: {exc}") from None
     warmed = False
     if _flags.ready():
         click.echo(f"kbs: the compiled kernels are already cached ({_flags.marker()})")

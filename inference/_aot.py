@@ -99,8 +99,8 @@ def failed(folder: Path | None = None) -> bool:
 def load(folder: Path | None = None) -> tuple[Any, dict] | None:
     """The extension module of the current key and its table of exports, or None (not built, or
     it does not import)."""
-    so, table, _ = paths(folder)
     try:
+        so, table, _ = paths(folder)
         doc = json.loads(table.read_text())
         if doc.get("stamp") != stamp() or not so.exists():
             return None

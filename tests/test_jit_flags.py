@@ -147,3 +147,15 @@ def test_the_warm_up_compiles_every_kernel_kbs_calls():
     assert out.returncode == 0, out.stderr[-3000:]
     n, missing = out.stdout.strip().split(" ", 1)
     assert missing == "[]" and int(n) >= 35, out.stdout
+
+
+def test_kbs_warmup_says_when_the_cache_folder_cannot_be_used(tmp_path, monkeypatch):
+    from click.testing import CliRunner
+
+    from kbs.cli.main import cli
+
+    (tmp_path / "a file").write_text("")
+    monkeypatch.setenv("KBS_CACHE_DIR", str(tmp_path / "a file" / "kbs"))
+    r = CliRunner().invoke(cli, ["warmup"])
+    assert r.exit_code == 2, r.output
+    assert "KBS_CACHE_DIR=" in r.output and "cannot hold the compiled kernels' marker" in r.output
