@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import functools
 import copy
+import hashlib
 import json
+import os
 import math
 import reprlib
 from dataclasses import dataclass, field
@@ -25,12 +27,14 @@ from functools import lru_cache
 from importlib import resources
 from pathlib import Path
 from collections.abc import Callable, Iterator, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
 import yaml.cyaml  # noqa: F401 (libyaml when present)
-from jsonschema import Draft202012Validator
+
+if TYPE_CHECKING:  # imported when a file is first validated (_KnownValid: not for a file validated before)
+    from jsonschema import Draft202012Validator
 
 from kbs.errors import ExitCode, KbsError, raise_if_interrupted
 from kbs.knowledge.engine_settings import ENGINE_DEFAULTS as _ENGINE_DEFAULTS
@@ -486,13 +490,78 @@ def _schema_validator(actions: tuple[str, ...] = ()) -> Draft202012Validator:
             return [inline(v) for v in node]
         return node
 
+    from jsonschema import Draft202012Validator
+
     return Draft202012Validator(inline(doc))
 
 
 @lru_cache(maxsize=64)
 def _fragment_validator(step: Any) -> Draft202012Validator:
     """A validator of one post step's spec: its schema, with the rule-file schema's definitions."""
+    from jsonschema import Draft202012Validator
+
     return Draft202012Validator({**step.schema, "$defs": schema().get("$defs", {})})
+
+
+class _KnownValid:
+    """The rule files that passed the JSON Schema before, so that a process loading one again
+    neither imports jsonschema (about 50 ms) nor runs it (10-20 ms): the SHA-256 of what the schema
+    checks decides (the file's data, the schema, the actions and post steps the registry knows,
+    plugins' included, and jsonschema's version), kept in ``kbs-valid-rules`` in the compiled
+    kernels' state folder (:func:`kbs.inference._flags._state_dir`). Only a file that passed every
+    check (the schema and kbs's own) is written; kbs's own checks run every time. Any failure to
+    read, hash or write means the schema is run, as without it."""
+
+    FILE = "kbs-valid-rules"
+    KEEP = 256  #: the most recent keys kept
+
+    @staticmethod
+    def key(data: Any, registry: PredicateRegistry) -> str | None:
+        try:
+            from importlib.metadata import version
+
+            h = hashlib.sha256()
+            h.update(json.dumps(data, sort_keys=True, default=repr).encode())
+            h.update(json.dumps(schema(), sort_keys=True).encode())
+            h.update(repr(tuple(registry.actions)).encode())
+            h.update(json.dumps({k: getattr(v, "schema", None) for k, v in registry.post_steps.items()},
+                                sort_keys=True, default=repr).encode())
+            h.update(version("jsonschema").encode())
+            return h.hexdigest()
+        except Exception:  # noqa: BLE001 - keys of mixed types, a schema that does not dump: validate
+            return None
+
+    @classmethod
+    def _path(cls) -> Path:
+        from kbs.inference import _flags
+
+        return _flags._state_dir() / cls.FILE
+
+    @classmethod
+    def known(cls, key: str | None) -> bool:
+        if key is None:
+            return False
+        try:
+            return key in cls._path().read_text().split()
+        except (OSError, ValueError):
+            return False
+
+    @classmethod
+    def add(cls, key: str | None) -> None:
+        if key is None:
+            return
+        try:
+            path = cls._path()
+            try:
+                keys = path.read_text().split()
+            except FileNotFoundError:
+                keys = []
+            keys = [k for k in keys if k != key][-(cls.KEEP - 1):] + [key]
+            tmp = path.with_name(f"{cls.FILE}.{os.getpid()}.tmp")
+            tmp.write_text("\n".join(keys) + "\n")
+            os.replace(tmp, path)
+        except (OSError, ValueError):
+            pass
 
 
 def _fragment_field(step: Any, field: str) -> dict[str, Any]:
@@ -919,6 +988,8 @@ class _Validator:
         self.problems: list[Problem] = []
         self.warnings: list[Problem] = []
         self._hint_budget = self.HINT_BUDGET
+        self._valid_key = _KnownValid.key(data, registry)
+        self._schema_known = _KnownValid.known(self._valid_key)  # it passed the schema before: not run again
 
     def add(self, path: tuple, message: str, *, key: bool = False) -> None:
         self.problems.append(self.pos.problem(path, message, key=key))
@@ -941,8 +1012,9 @@ class _Validator:
             self.problems.append(Problem(SourcePos(self.pos.file, mark.line + 1, mark.column + 1),
                                          f"duplicate key '{_clip(str(path[-1]), 30)}' in {_where(path[:-1])}",
                                          self.pos.line(mark.line + 1)))
-        for err in _schema_validator(tuple(self.registry.actions)).iter_errors(self.data):
-            self._schema_error(err)
+        if not self._schema_known:
+            for err in _schema_validator(tuple(self.registry.actions)).iter_errors(self.data):
+                self._schema_error(err)
         self._post_shape(self.data.get("post"))
 
     def _post_shape(self, raw: Any) -> None:
@@ -1046,6 +1118,8 @@ class _Validator:
             self.add(("spacing",), f"spacing is [min, max]: {spacing[0]!r} is not below {spacing[1]!r}")
         if self.problems:
             return None
+        if not self._schema_known:
+            _KnownValid.add(self._valid_key)
         return RuleBase(
             name=d["name"], description=str(d.get("description", "")).strip(), units=d["units"], engine=engine,
             strategy=d["strategy"], limits=limits, sensor=tuple(float(x) for x in sensor), ground=ground,
@@ -1435,7 +1509,7 @@ class _Validator:
             if cls is None:
                 continue  # the schema reported it
             before = len(self.problems)
-            for err in _fragment_validator(cls).iter_errors(spec):
+            for err in () if self._schema_known else _fragment_validator(cls).iter_errors(spec):
                 self._schema_error(err, prefix=path)
             invalid = len(self.problems) > before
             ctx = _StepContext(self, path, names, checks, tuple(out))

@@ -65,6 +65,8 @@ PRIVATE_EXCEPTIONS: dict[tuple[str, str], str] = {
                                    "compiled module, one warm-up, one KBS_JIT for the whole library",
     ("tiles", "kbs.inference"): "as above (_flags: the streamed sums take the compiled path as the engine does)",
     ("cli", "kbs.inference"): "kbs warmup runs the compiled kernels' warm-up (_flags, _warmup)",
+    ("knowledge", "kbs.inference"): "the rule files known to pass the schema are kept in the compiled kernels' "
+                                    "state folder (_flags._state_dir: one KBS_CACHE_DIR)",
 }
 
 THIRD_PARTY = {"yaml": {"knowledge", "cli"}, "click": {"cli"}}
