@@ -521,7 +521,7 @@ class _KnownValid:
             from importlib.metadata import version
 
             h = hashlib.sha256()
-            h.update(json.dumps(data, sort_keys=True, default=repr).encode())
+            h.update(json.dumps(_KnownValid._typed(data), sort_keys=True, default=repr).encode())
             h.update(json.dumps(schema(), sort_keys=True).encode())
             h.update(repr(tuple(registry.actions)).encode())
             h.update(json.dumps({k: getattr(v, "schema", None) for k, v in registry.post_steps.items()},
@@ -530,6 +530,16 @@ class _KnownValid:
             return h.hexdigest()
         except Exception:  # noqa: BLE001 - keys of mixed types, a schema that does not dump: validate
             return None
+
+    @staticmethod
+    def _typed(node: Any) -> Any:
+        """``node`` with each mapping key written with its type (``int:1`` and ``str:'1'`` differ:
+        the schema may pass one and refuse the other)."""
+        if isinstance(node, dict):
+            return {f"{type(k).__name__}:{k!r}": _KnownValid._typed(v) for k, v in node.items()}
+        if isinstance(node, list):
+            return [_KnownValid._typed(v) for v in node]
+        return node
 
     @classmethod
     def _path(cls) -> Path:

@@ -96,3 +96,13 @@ def test_a_process_loading_a_known_rule_base_does_not_import_jsonschema(tmp_path
            for _ in range(2)]
     assert all(r.returncode == 0 for r in out), [r.stderr for r in out]
     assert [r.stdout.strip() for r in out] == ["True", "False"]
+
+
+def test_a_key_of_another_type_is_another_file(tmp_path, schema_runs):
+    """A mapping key 1 and a key '1' hash differently (the schema may refuse one and pass the other)."""
+    from kbs.knowledge.predicates import PredicateRegistry
+
+    reg = PredicateRegistry.default()
+    assert rb_module._KnownValid.key({"a": {1: 2}}, reg) != rb_module._KnownValid.key({"a": {"1": 2}}, reg)
+    assert rb_module._KnownValid.key({"a": [1]}, reg) != rb_module._KnownValid.key({"a": [1.0]}, reg)
+    assert rb_module._KnownValid.key({"a": True}, reg) != rb_module._KnownValid.key({"a": 1}, reg)
