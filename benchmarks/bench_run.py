@@ -188,6 +188,20 @@ def batch(repeats: int, jobs_list: list[int]) -> None:
         print(f"| {k} | {med:.2f} | {min(ts):.2f} | {max(ts):.2f} | {statistics.median(times[first]) / med:.2f}x |")
 
 
+def kernels() -> str:
+    """Which compiled kernels this process and the ``kbs run`` processes it starts use: the module
+    built ahead of time (kbs.inference._aot), numba's, or the numpy reference (KBS_JIT, the warm-up)."""
+    from kbs.inference import _aot, _compiled, _flags
+
+    if not _flags.JIT:
+        return "the numpy reference (KBS_JIT=0, or the warm-up has not cached the compiled kernels yet)"
+    if _compiled._aot() is not None:
+        return f"built ahead of time ({_aot.paths()[0].name}); KBS_AOT=0 or KBS_JIT=1 runs numba's"
+    if _aot.ready():
+        return "numba's (KBS_JIT=1 or KBS_AOT=0: the module built ahead of time is not used)"
+    return "numba's (no module built ahead of time for these kernels and this CPU: kbs warmup builds it)"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5, help="frames timed per scan and setting")
@@ -198,6 +212,7 @@ def main() -> None:
     args = ap.parse_args()
     if not DATA.is_dir():
         sys.exit(f"the benchmark needs the real scans in {DATA}")
+    print(f"Kernels: {kernels()}\n")
     latency(args.repeats, args.jobs)
     if args.process_repeats:
         process(args.process_repeats, args.jobs)
