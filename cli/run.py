@@ -12,7 +12,7 @@ import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -1004,11 +1004,18 @@ def _scans_in_processes(segmenter: Segmenter, scans: list[Path], out_dir: Path, 
     pool = ProcessPoolExecutor(max_workers=at_once, mp_context=multiprocessing.get_context("fork"),
                                initializer=_scan_worker_start, initargs=(segmenter, jobs))
     start_with_signals_blocked(pool)  # a SIGTERM while they are forked waits for their own handler
-    futures = [pool.submit(_scan_in_worker, scan, out_dir, options) for scan in scans]
+    futures: list[Any] = []
+    for scan in scans:
+        try:
+            futures.append(pool.submit(_scan_in_worker, scan, out_dir, options))
+        except BrokenProcessPool:  # a scan process died already (killed at its start): the rest here
+            futures.append(None)
     results: list[ScanResult | ScanFailure] = []
     try:
         for scan, future in zip(scans, futures):
             try:
+                if future is None:
+                    raise BrokenProcessPool("not submitted")
                 outcome = future.result()
             except BrokenProcessPool:  # its process died: the scan again, here
                 results.append(_one_scan(segmenter, scan, out_dir, options))
@@ -1016,7 +1023,7 @@ def _scans_in_processes(segmenter: Segmenter, scans: list[Path], out_dir: Path, 
             results.append(_reported(scan, outcome))
     except BaseException:  # Ctrl-C, SIGTERM: what finished is said, the rest stopped
         for scan, future in zip(scans[len(results):], futures[len(results):]):
-            if not future.done() or future.cancelled() or future.exception() is not None:
+            if future is None or not future.done() or future.cancelled() or future.exception() is not None:
                 break
             _reported(scan, future.result())
         for process in list(getattr(pool, "_processes", {}).values()):

@@ -101,7 +101,12 @@ class Interpreter:
         not the partition's working arrays (which this process frees, but a worker forked after
         them would keep as its own: 0.65 GB per worker on 10^7 points)."""
         if self.jobs > 1 and self._pool is None:
-            self._worker_pool().submit(int).result()  # forked workers start together, at the first task
+            from concurrent.futures.process import BrokenProcessPool
+
+            try:
+                self._worker_pool().submit(int).result()  # forked workers start together, at the first task
+            except BrokenProcessPool:  # one died at its start (killed): the splits are done here, a fresh pool later
+                self.close()
 
     def close(self) -> None:
         """Stop the worker processes, if any were started (they start again when needed)."""
