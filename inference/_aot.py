@@ -172,12 +172,10 @@ def _wrapper(nb: Any, name: str, n: int):
     """A numba function of ``n`` arguments that calls kernel ``name``: exported instead of the
     kernel itself, so that the kernel is compiled with its own options (pycc compiles what it
     exports with its defaults: no fastmath)."""
-    from numba import njit
-
     args = ", ".join(f"a{i}" for i in range(n))
     ns: dict = {"_k": getattr(nb, name)}
     exec(f"def _w({args}):\n    return _k({args})\n", ns)  # noqa: S102 - generated from a count
-    return njit(ns["_w"])
+    return ns["_w"]
 
 
 def build(folder: Path | None = None) -> Path:
@@ -215,7 +213,7 @@ def _build(so: Path, table: Path) -> Path:
     doc: dict[str, list] = {}
     for i, (name, sig, desc, names, defaults) in enumerate(exports):
         symbol = f"{name}__{i}"
-        cc.export(symbol, sig)(_wrapper(nb, name, len(desc)).py_func)
+        cc.export(symbol, sig)(_wrapper(nb, name, len(desc)))
         doc.setdefault(name, []).append({"symbol": symbol, "args": desc, "params": names,
                                         "defaults": {k: v for k, v in defaults.items()
                                                      if isinstance(v, (bool, int, float))}})
