@@ -575,3 +575,61 @@ def test_grid_knn_rows_give_the_kd_tree_s_medians():
     T = rng.normal(size=(1000, 2))
     assert C.plane_grid(T, 0.2)[-1]
     assert not C.plane_grid(np.vstack([T, T[:50]]), 0.2)[-1]  # 5 % of the positions repeated: no grid
+
+
+def _symmetric(rng, kind: int) -> np.ndarray:
+    """A symmetric 3 x 3 matrix of one of the shapes covariances take."""
+    Q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    if kind == 0:  # any
+        M = rng.normal(size=(3, 3))
+        return M @ M.T
+    if kind == 1:  # a plane: the smallest eigenvalue 1e-14 .. 1e-2 of the others
+        lam = [10 ** rng.uniform(-14, -2), rng.uniform(0.5, 2.0), rng.uniform(2.0, 9.0)]
+    elif kind == 2:  # two equal eigenvalues
+        lo = rng.uniform(0.0, 3.0)
+        lam = [lo, lo, 2.0 * lo]
+    elif kind == 3:  # a line: rank 1
+        lam = [0.0, 0.0, rng.uniform(1.0, 2.0)]
+    else:  # far from the origin, large values
+        M = rng.normal(size=(3, 3)) * 1e3 + 5e5
+        return M @ M.T
+    A = Q @ np.diag(lam) @ Q.T
+    return 0.5 * (A + A.T)
+
+
+def test_the_kernels_eigensolver_equals_lapacks_to_rounding():
+    """``_eigh3`` (cyclic Jacobi; the kernels' own, so that they need no LAPACK) against numpy's
+    ``eigh``: the same eigenvalues to rounding, ascending, orthonormal eigenvectors with a residual
+    at rounding level, for matrices of every shape a cluster's covariance takes."""
+    rng = np.random.default_rng(7)
+    for i in range(3000):
+        A = _symmetric(rng, i % 5)
+        lam, vec = C._eigh3(A)
+        ref, ref_vec = np.linalg.eigh(A)
+        scale = max(float(np.abs(ref).max()), 1e-300)
+        assert np.all(np.diff(lam) >= 0.0), (A, lam)
+        assert np.abs(lam - ref).max() <= 1e-14 * scale, (A, lam, ref)
+        assert np.abs(A @ vec - vec * lam).max() <= 1e-14 * scale, A
+        assert np.abs(vec.T @ vec - np.eye(3)).max() <= 1e-14, A
+        # a simple eigenvalue's eigenvector is LAPACK's up to its sign
+        for k in range(3):
+            gap = min(abs(ref[k] - ref[j]) for j in range(3) if j != k)
+            if gap > 1e-6 * scale:
+                assert abs(abs(vec[:, k] @ ref_vec[:, k]) - 1.0) <= 1e-9, (A, k)
+
+
+def test_the_kernels_eigensolver_on_exact_cases_and_bad_input():
+    lam, vec = C._eigh3(np.zeros((3, 3)))
+    assert np.array_equal(lam, np.zeros(3)) and np.array_equal(vec, np.eye(3))
+    lam, vec = C._eigh3(np.diag([3.0, 1.0, 2.0]))
+    assert np.array_equal(lam, [1.0, 2.0, 3.0]) and np.array_equal(vec, np.eye(3)[:, [1, 2, 0]])
+    lam, vec = C._eigh3(np.eye(3) * 5.0)  # ties keep their order
+    assert np.array_equal(lam, [5.0, 5.0, 5.0]) and np.array_equal(vec, np.eye(3))
+    # the lower triangle is read, as LAPACK's eigh (UPLO='L') reads it
+    A = np.array([[2.0, 99.0, 99.0], [1.0, 2.0, 99.0], [0.0, 0.5, 1.0]])
+    np.testing.assert_allclose(C._eigh3(A)[0], np.linalg.eigh(A)[0], rtol=0, atol=1e-14)
+    for bad in (np.nan, np.inf):
+        A = np.eye(3)
+        A[2, 1] = bad
+        with pytest.raises(np.linalg.LinAlgError, match="infs or NaNs"):
+            C._eigh3(A)

@@ -10,6 +10,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from kbs.inference import _numba_kernels
+
 
 @njit(cache=True, nogil=True)
 def centre_sums(X, cluster, u, den, mass, c):  # pragma: no cover - compiled
@@ -50,7 +52,8 @@ def covariance_sums(X, cluster, u, centre, s):  # pragma: no cover - compiled
 @njit(cache=True, nogil=True)
 def eigen(s, mass, ok):  # pragma: no cover - compiled
     """Covariances (k, 3, 3), their eigenvalues (clipped at 0) and eigenvectors, as geometry3
-    makes them (zeros and the identity for a cluster that is not ``ok``)."""
+    makes them, by its own 3 x 3 eigensolver (zeros and the identity for a cluster that is not
+    ``ok``)."""
     k = s.shape[0]
     covs = np.zeros((k, 3, 3))
     lams = np.zeros((k, 3))
@@ -67,7 +70,7 @@ def eigen(s, mass, ok):  # pragma: no cover - compiled
         cov[1, 1] = s[i, 3] / m
         cov[1, 2] = cov[2, 1] = s[i, 4] / m
         cov[2, 2] = s[i, 5] / m
-        lam, vec = np.linalg.eigh(cov)
+        lam, vec = _numba_kernels._eigh3(cov)
         covs[i] = cov
         lams[i] = np.maximum(lam, 0.0)
         vecs[i] = vec
