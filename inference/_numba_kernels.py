@@ -1096,6 +1096,36 @@ def geometry3(X, u, w, power):
 
 
 @njit(cache=True, nogil=True)
+def covariance_eigen(s, mass, ok):
+    """From per-cluster sums ``s`` (k, 6) of ``u d_a d_b`` (the order 00 01 02 11 12 22) and masses
+    (k,): the covariances (k, 3, 3), their eigenvalues (clipped at 0) and eigenvectors, as
+    :func:`geometry3` makes them from the same sums (zeros and the identity for a cluster that is
+    not ``ok``). The streamed tiles' descriptors (:mod:`kbs.tiles.streamed`), summed over files in
+    chunks, end here, so that they are an in-memory run's to the last bit."""
+    k = s.shape[0]
+    covs = np.zeros((k, 3, 3))
+    lams = np.zeros((k, 3))
+    vecs = np.zeros((k, 3, 3))
+    for i in range(k):
+        if not ok[i]:
+            vecs[i] = np.eye(3)
+            continue
+        m = mass[i]
+        cov = np.zeros((3, 3))
+        cov[0, 0] = s[i, 0] / m
+        cov[0, 1] = cov[1, 0] = s[i, 1] / m
+        cov[0, 2] = cov[2, 0] = s[i, 2] / m
+        cov[1, 1] = s[i, 3] / m
+        cov[1, 2] = cov[2, 1] = s[i, 4] / m
+        cov[2, 2] = s[i, 5] / m
+        lam, vec = _eigh3(cov)
+        covs[i] = cov
+        lams[i] = np.maximum(lam, 0.0)
+        vecs[i] = vec
+    return covs, lams, vecs
+
+
+@njit(cache=True, nogil=True)
 def local_medians(d, idx, heights, owners, own, neighbours, quantile):
     """For each row of a k-nearest query (``d``, ``idx`` (q, k), nearest first, ``inf`` / ``m``
     where fewer were found): the median height (``quantile`` 0.5; another: that quantile, see

@@ -64,7 +64,7 @@ PRIVATE_EXCEPTIONS: dict[tuple[str, str], str] = {
     ("geometry", "kbs.inference"): "the compiled kernels (_compiled, numba) and their switch (_flags): one "
                                    "compiled module, one warm-up, one KBS_JIT for the whole library",
     ("tiles", "kbs.inference"): "as above (_flags: the streamed sums take the compiled path as the engine does; "
-                                "_numba_kernels._eigh3: their eigenvectors are geometry3's, by the same solver)",
+                                "_compiled.covariance_eigen: their eigenvectors are geometry3's, by the same solver)",
     ("cli", "kbs.inference"): "kbs warmup runs the compiled kernels' warm-up (_flags, _warmup)",
     ("knowledge", "kbs.inference"): "the rule files known to pass the schema are kept in the compiled kernels' "
                                     "state folder (_flags._state_dir: one KBS_CACHE_DIR)",

@@ -7,10 +7,7 @@ cluster's points, to the last bit; the tests compare them with it.
 """
 from __future__ import annotations
 
-import numpy as np
 from numba import njit
-
-from kbs.inference import _numba_kernels
 
 
 @njit(cache=True, nogil=True)
@@ -47,31 +44,3 @@ def covariance_sums(X, cluster, u, centre, s):  # pragma: no cover - compiled
         s[k, 3] += uw * d1 * d1
         s[k, 4] += uw * d1 * d2
         s[k, 5] += uw * d2 * d2
-
-
-@njit(cache=True, nogil=True)
-def eigen(s, mass, ok):  # pragma: no cover - compiled
-    """Covariances (k, 3, 3), their eigenvalues (clipped at 0) and eigenvectors, as geometry3
-    makes them, by its own 3 x 3 eigensolver (zeros and the identity for a cluster that is not
-    ``ok``)."""
-    k = s.shape[0]
-    covs = np.zeros((k, 3, 3))
-    lams = np.zeros((k, 3))
-    vecs = np.zeros((k, 3, 3))
-    for i in range(k):
-        if not ok[i]:
-            vecs[i] = np.eye(3)
-            continue
-        m = mass[i]
-        cov = np.zeros((3, 3))
-        cov[0, 0] = s[i, 0] / m
-        cov[0, 1] = cov[1, 0] = s[i, 1] / m
-        cov[0, 2] = cov[2, 0] = s[i, 2] / m
-        cov[1, 1] = s[i, 3] / m
-        cov[1, 2] = cov[2, 1] = s[i, 4] / m
-        cov[2, 2] = s[i, 5] / m
-        lam, vec = _numba_kernels._eigh3(cov)
-        covs[i] = cov
-        lams[i] = np.maximum(lam, 0.0)
-        vecs[i] = vec
-    return covs, lams, vecs

@@ -1242,7 +1242,8 @@ def _descriptors(xyz_path: Path, cluster: FileColumn, membership: FileColumn, k:
         return out if folder is None else _in_files(folder, out)
     if folder is not None and k == 0:
         return _in_files(folder, _descriptors(xyz_path, cluster, membership, k))
-    from kbs.tiles._sums import centre_sums, covariance_sums, eigen
+    from kbs.inference import _compiled
+    from kbs.tiles._sums import centre_sums, covariance_sums
 
     def array(name: str, shape: tuple[int, ...]) -> np.ndarray:
         if folder is None:
@@ -1269,7 +1270,8 @@ def _descriptors(xyz_path: Path, cluster: FileColumn, membership: FileColumn, k:
     for a in range(0, k, step):
         b = min(k, a + step)
         ok = (den[a:b] > 0.0) & (mass[a:b] > 0.0)
-        cov[a:b], lam[a:b], vec[a:b] = eigen(np.ascontiguousarray(s[a:b]), np.ascontiguousarray(mass[a:b]), ok)
+        cov[a:b], lam[a:b], vec[a:b] = _compiled.covariance_eigen(np.ascontiguousarray(s[a:b]),
+                                                                  np.ascontiguousarray(mass[a:b]), ok)
     out = {"center": centre, "covariance": cov, "eigenvalues": lam, "eigenvectors": vec, "mass": mass}
     if folder is None:
         return out
