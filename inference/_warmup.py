@@ -34,6 +34,8 @@ def warm() -> None:
     degree = C.connexity_degrees(U, np.ones(len(U), dtype=np.int64), 0.5, 4.0 * len(U) + 4096.0)
     C.connexity_components(U, degree >= np.median(degree) * 0.3, 0.5, True, 4.0 * len(U) + 4096.0)
     C.geometry3(X, np.zeros(0), np.zeros(0), 2.0)
+    # the streamed tiles' descriptors (kbs.tiles.streamed): covariances from their sums
+    C.covariance_eigen(np.ascontiguousarray(rng.random((4, 6))), np.ones(4), np.array([True, True, False, True]))
     ny, start, order, lo = C.surface_grid(U, 1.0, 4.0 * len(U) + 4096.0)  # the slope surface
     C.slope_lowest(U[:50].copy(), U, X[:3000, 2].copy(), np.zeros(3000, dtype=np.int64), 0, ny, start, order, lo,
                    1.0, 0.8, 1.0)
