@@ -271,17 +271,18 @@ class LocalGround:
                                    workers=self.workers if Q.shape[0] >= 4096 else 1)
             return d.reshape(Q.shape[0], k), i.reshape(Q.shape[0], k)
         Q = np.ascontiguousarray(Q)
+        T = self.plane
         owners = np.ascontiguousarray(self.owners if self.owners is not None else np.zeros(0), dtype=np.int64)
         rest = (float(radius), self.heights, owners, int(own), int(self.neighbours), int(first))
         if self.workers > 1 and Q.shape[0] >= 4096:  # the kernel releases the GIL: rows in threads, the same answers
             from concurrent.futures import ThreadPoolExecutor
 
             with ThreadPoolExecutor(self.workers) as pool:
-                parts = list(pool.map(lambda rows: _compiled.grid_knn(Q[rows], *grid, k, *rest),  # type: ignore[call-arg]
+                parts = list(pool.map(lambda rows: _compiled.grid_knn(Q[rows], T, *grid, k, *rest),  # type: ignore[call-arg]
                                       np.array_split(np.arange(Q.shape[0]), self.workers)))
             d, i, ok = (np.concatenate([p[j] for p in parts]) for j in range(3))
         else:
-            d, i, ok = _compiled.grid_knn(Q, *grid, k, *rest)  # type: ignore[call-arg]
+            d, i, ok = _compiled.grid_knn(Q, T, *grid, k, *rest)  # type: ignore[call-arg]
         redo = np.flatnonzero(~ok)
         tally[0] += Q.shape[0]
         tally[1] += redo.size

@@ -295,9 +295,10 @@ def _eigh3(A):
 
     Why not ``np.linalg.eigh``: in numba it calls LAPACK through ``scipy.linalg.cython_lapack``,
     whose import costs a ``kbs run`` process about 0.1 s; and in one scratch loop over 20,000
-    covariance-like matrices a call took 1.1-1.6 us here against 4.4-4.6 us there. Jacobi's method is the accurate one for small symmetric matrices (small eigenvalues to
-    a high relative accuracy, orthogonal eigenvectors), and converges quadratically: 3 to 5
-    sweeps of three rotations. An element is also set to zero once it is too small to change
+    covariance-like matrices a call took 1.1-1.6 us here against 4.4-4.6 us there. Jacobi's
+    method is the accurate one for small symmetric matrices (small eigenvalues to a high relative
+    accuracy, orthogonal eigenvectors), and converges quadratically: 3 to 5 sweeps of three
+    rotations. An element is also set to zero once it is too small to change
     either diagonal element it rotates (after three sweeps, as in Numerical Recipes' ``jacobi``),
     so that the loop ends on any finite matrix. A non-finite matrix raises ``LinAlgError``, as
     numba's ``np.linalg.eigh`` does."""
@@ -2130,17 +2131,14 @@ def kdtree_nearest(Q, T, perm, start, stop, left, right, lo, hi, labels):
 def plane_grid(T, side, per_cell=4.0, max_dup=0.01):
     """A grid over the rows of ``T`` (m, 2) for :func:`grid_knn`: cells of about ``side``, shrunk
     to about ``per_cell`` points per occupied cell. Returns ``(lo0, lo1, side, nx, ny, start,
-    member, cells, ok)``, ``cells`` (m, 2) the rows of ``T`` in the grid's order (``T[member]``: the
-    search reads each cell's points from consecutive rows, not scattered over ``T``); ``ok`` False
-    when no grid of at most ``8 m + 64`` cells fits, or when more than
+    member, ok)``; ``ok`` False when no grid of at most ``8 m + 64`` cells fits, or when more than
     ``max_dup`` of the rows repeat an earlier row's position (their distances tie, and rows with
     ties in the wrong places go to the k-d tree: a third of a GndNet scan's points are
     duplicated)."""
     m = T.shape[0]
     e = np.zeros(0, dtype=np.int64)
-    e2 = np.zeros((0, 2))
     if m < 1 or not (side > 0.0 and side < np.inf):
-        return 0.0, 0.0, 0.0, 0, 0, e, e, e2, False
+        return 0.0, 0.0, 0.0, 0, 0, e, e, False
     lo0 = T[0, 0]
     lo1 = T[0, 1]
     hi0 = lo0
@@ -2154,7 +2152,7 @@ def plane_grid(T, side, per_cell=4.0, max_dup=0.01):
     fx = math.floor((hi0 - lo0) / side) + 1.0
     fy = math.floor((hi1 - lo1) / side) + 1.0
     if not (fx * fy <= limit):
-        return 0.0, 0.0, 0.0, 0, 0, e, e, e2, False
+        return 0.0, 0.0, 0.0, 0, 0, e, e, False
     nx = int(fx)
     ny = int(fy)
     cx, cy, start, member = _point_grid(T, lo0, lo1, side, nx, ny)
@@ -2179,12 +2177,8 @@ def plane_grid(T, side, per_cell=4.0, max_dup=0.01):
                     dup += 1
                     break
     if dup > max_dup * m:
-        return 0.0, 0.0, 0.0, 0, 0, e, e, e2, False
-    cells = np.empty((m, 2))
-    for t in range(m):
-        cells[t, 0] = T[member[t], 0]
-        cells[t, 1] = T[member[t], 1]
-    return lo0, lo1, side, nx, ny, start, member, cells, True
+        return 0.0, 0.0, 0.0, 0, 0, e, e, False
+    return lo0, lo1, side, nx, ny, start, member, True
 
 
 @njit(nogil=True)
@@ -2234,10 +2228,9 @@ def _knn_ambiguous(bs, bi, cnt, k, near_r2, far_r2, heights, owners, own, neighb
 
 
 @njit(cache=True, nogil=True)
-def grid_knn(Q, lo0, lo1, side, nx, ny, start, member, cells, k, radius, heights, owners, own, neighbours, first):
+def grid_knn(Q, T, lo0, lo1, side, nx, ny, start, member, k, radius, heights, owners, own, neighbours, first):
     """``cKDTree(T).query(Q, k, distance_upper_bound=radius)`` over the grid of
-    :func:`plane_grid` of ``T`` (its ``cells``: ``T``'s rows in the grid's order): ``(d, i, ok)``
-    with ``d`` (q, k) the distances nearest first (scipy's
+    :func:`plane_grid`: ``(d, i, ok)`` with ``d`` (q, k) the distances nearest first (scipy's
     ``sqrt((0 + d0 d0) + d1 d1)``, ``d = query - data``), inf and ``m`` where fewer than k points
     lie nearer than ``radius``. A row is ``ok`` when :func:`local_medians_fast` (``heights``,
     ``owners``, ``own``, ``neighbours``) gives it the k-d tree's outputs whatever the order of
@@ -2248,7 +2241,7 @@ def grid_knn(Q, lo0, lo1, side, nx, ny, start, member, cells, k, radius, heights
     cluster; 2: not asked), and no group holds two kept points when a kept height is zero or NaN
     (their order then decides the sort). The caller asks its k-d tree for the other rows."""
     q = Q.shape[0]
-    m = cells.shape[0]
+    m = T.shape[0]
     d = np.full((q, k), np.inf)
     idx = np.full((q, k), m, dtype=np.int64)
     ok = np.ones(q, dtype=np.bool_)
@@ -2285,8 +2278,9 @@ def grid_knn(Q, lo0, lo1, side, nx, ny, start, member, cells, k, radius, heights
                         continue
                     c = ia * ny + ib
                     for t in range(start[c], start[c + 1]):
-                        d0 = q0 - cells[t, 0]
-                        d1 = q1 - cells[t, 1]
+                        i = member[t]
+                        d0 = q0 - T[i, 0]
+                        d1 = q1 - T[i, 1]
                         s = (0.0 + d0 * d0) + d1 * d1
                         if s >= far_r2:
                             continue
@@ -2298,7 +2292,7 @@ def grid_knn(Q, lo0, lo1, side, nx, ny, start, member, cells, k, radius, heights
                             bi[p] = bi[p - 1]
                             p -= 1
                         bs[p] = s
-                        bi[p] = member[t]
+                        bi[p] = i
                         if cnt < kk:
                             cnt += 1
                     ib += 1

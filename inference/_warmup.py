@@ -55,7 +55,7 @@ def warm() -> None:
     heights = np.ascontiguousarray(X[:3000, 2])
     owners = (np.arange(3000) % 7).astype(np.int64)
     for k, own in ((8, -1), (64, 2)):
-        C.grid_knn(np.ascontiguousarray(T[:50] + 0.01), *grid, k, 3.0, heights, owners, own, 8, 0)  # type: ignore[call-arg]
+        C.grid_knn(np.ascontiguousarray(T[:50] + 0.01), T, *grid, k, 3.0, heights, owners, own, 8, 0)  # type: ignore[call-arg]
     # the nearest point and the nearest other (kbs.geometry.nearest), components (connexity, merge)
     tree = C.kdtree_build(np.ascontiguousarray(X[:2000]))
     C.kdtree_nearest(np.ascontiguousarray(X[2000:2100]), np.ascontiguousarray(X[:2000]), *tree, owners[:2000].copy())  # type: ignore[call-arg]

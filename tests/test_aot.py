@@ -211,7 +211,7 @@ def test_the_built_kernels_release_the_gil_as_numbas_do(built, monkeypatch):
     def work():
         started.set()
         t0 = time.perf_counter()
-        fn(Q, *grid, 16, 3.0, heights, owners, -1, 16, 0)
+        fn(Q, T, *grid, 16, 3.0, heights, owners, -1, 16, 0)
         span.extend((t0, time.perf_counter()))
         done.set()
 

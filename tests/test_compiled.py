@@ -559,8 +559,8 @@ def test_grid_knn_rows_give_the_kd_tree_s_medians():
         *grid, ok = C.plane_grid(np.ascontiguousarray(T), side, 4.0, 1.0)  # duplicates allowed: the ties tested
         assert ok
         first = t % 3  # the nearest point asked for: its position, its owner, nothing
-        assert np.array_equal(grid[-1], T[grid[-2]])  # the cells: T's rows in the grid's order
-        d, i, rows = C.grid_knn(np.ascontiguousarray(Q), *grid, k, radius, heights, owners, own, 16, first)
+        d, i, rows = C.grid_knn(np.ascontiguousarray(Q), np.ascontiguousarray(T), *grid, k, radius, heights, owners, own,
+                                16, first)
         rd, ri = cKDTree(T).query(Q, k=k, distance_upper_bound=radius)
         a = C.local_medians_fast(d[rows], i[rows], heights, owners, own, 16, 0.5)
         b = C.local_medians_fast(rd.reshape(len(Q), k)[rows], ri.reshape(len(Q), k)[rows], heights, owners, own, 16, 0.5)
