@@ -23,7 +23,8 @@ def find(run: Any, X: np.ndarray, candidates: list[tuple[Cluster, Draft]]) -> tu
     candidates (the clusters of the initial partition with at least min_points points): a
     candidate passing the candidate check gives the plane of all its points; one that fails it
     but whose robust plane (scene.ground.plane) holds enough of its points within the inlier
-    distance, and lies within its max_tilt of the fallback normal, gives that plane. The
+    distance, and lies within its max_tilt of the fallback normal, gives that plane; with
+    sensor_above, a plane with the sensor on the side opposite the fallback normal is refused. The
     fallback only when no candidate gives a plane. Returns the plane (None: the rule base uses
     none) and the explanation's ``ground`` facts: which cluster, how it was found, and every
     candidate's verdict."""
@@ -36,7 +37,7 @@ def find(run: Any, X: np.ndarray, candidates: list[tuple[Cluster, Draft]]) -> tu
         return plane_from_normal(X, np.asarray(spec.normal, float), "fixed", GroundFacts())
     fallback = np.asarray(spec.fallback, float)
     fallback = fallback / np.linalg.norm(fallback)
-    best, no_plane, verdicts, tilted, planes = None, [], [], [], []
+    best, no_plane, verdicts, tilted, under, planes = None, [], [], [], [], []
     if spec.candidate is not None or spec.plane is not None:
         provisional = Scene(run.sensor, None, run.rule_base.units)
         for cl, rec in candidates:
@@ -57,6 +58,13 @@ def find(run: Any, X: np.ndarray, candidates: list[tuple[Cluster, Draft]]) -> tu
                 n = -n
             tilt = float(np.degrees(np.arccos(min(1.0, abs(float(n @ fallback))))))
             verdict["angle_to_fallback"] = round(tilt, 3)
+            if spec.sensor_above and float(n @ fallback) < 0.0:  # the sensor under its plane
+                depth = float((point - run.sensor) @ n)
+                unit = run.rule_base.length_unit and " " + run.rule_base.length_unit
+                verdict["why"] = (f"the sensor lies {depth:.3g}{unit} below its plane (on the side opposite the "
+                                  "fallback normal): seen from underneath, not the ground (sensor_above)")
+                under.append(cl.id)
+                continue
             max_tilt = spec.plane.max_tilt if spec.plane is not None else None
             if found["method"] == "robust plane" and max_tilt is not None and tilt > max_tilt:
                 verdict["why"] = f"its robust plane is {tilt:.1f} deg from the fallback normal > max_tilt {max_tilt:g} deg"
@@ -80,8 +88,12 @@ def find(run: Any, X: np.ndarray, candidates: list[tuple[Cluster, Draft]]) -> tu
         if tilted:
             why += (f" within max_tilt {spec.plane.max_tilt:g} deg of the fallback (the robust plane of "
                     f"{', '.join(tilted[:5])}{' ...' if len(tilted) > 5 else ''} is tilted more)")
+        if under:
+            why += (f", with the sensor above it ({', '.join(under[:5])}{' ...' if len(under) > 5 else ''} "
+                    f"gave a plane with the sensor {list(np.round(run.sensor, 6).tolist())} below it: is the scan in "
+                    "the sensor's frame? kbs run --sensor X,Y,Z gives its position)")
         shares = [f"{v['cluster']} {v['inlier_share']:.0%}" for v in verdicts
-                  if v.get("inlier_share") is not None and v["cluster"] not in tilted]
+                  if v.get("inlier_share") is not None and v["cluster"] not in tilted and v["cluster"] not in under]
         if shares:
             why += f" (the share of their points on their robust planes: {', '.join(shares[:5])})"
         facts = GroundFacts(note=f"{why}: the fallback normal {list(spec.fallback)} is used")

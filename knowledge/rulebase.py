@@ -51,7 +51,7 @@ ENGINE_DEFAULTS: Mapping[str, Any] = _ENGINE_DEFAULTS
 #: which makes a point's result depend on the rest of the file; no shipped rule base sets it.
 LIMIT_DEFAULTS: dict[str, Any] = {"max_depth": 8, "min_points": 30, "max_clusters": None}
 GROUND_DEFAULTS: dict[str, Any] = {"normal": "auto", "candidate": None, "min_points": 500, "fallback": [0.0, 0.0, 1.0],
-                                   "plane": None, "choose": None}
+                                   "plane": None, "choose": None, "sensor_above": False}
 
 
 # --- positions and problems ------------------------------------------------------------------
@@ -318,6 +318,10 @@ class GroundSpec:
     #: which plane is the ground: None, the closest to the sensor (the paper's rule); or the one
     #: supporting the most points
     support: SupportSpec | None = None
+    #: the sensor sees the ground from above: a candidate plane with the sensor on the side
+    #: opposite the fallback normal (seen from underneath: a box's face turned towards a camera
+    #: looking down, a ceiling) is not the ground
+    sensor_above: bool = False
 
 
 #: Evenly spaced values a ``tune: {min, max}`` mark tries when it gives no ``steps``.
@@ -1488,8 +1492,12 @@ class _Validator:
             if not auto:
                 self.warn(("scene", "ground", "choose"), "scene.ground.choose is not used: scene.ground.normal "
                           "fixes the ground direction (choose only applies with 'normal: auto')", key=True)
+        above = g["sensor_above"] is True  # its type: the schema
+        if above and not auto:
+            self.warn(("scene", "ground", "sensor_above"), "scene.ground.sensor_above is not used: scene.ground.normal "
+                      "fixes the ground direction (sensor_above only applies with 'normal: auto')", key=True)
         return GroundSpec(normal=normal, candidate=cand, min_points=_number(g["min_points"], 0, int),
-                          fallback=fallback or (0.0, 0.0, 1.0), plane=plane, support=support)
+                          fallback=fallback or (0.0, 0.0, 1.0), plane=plane, support=support, sensor_above=above)
 
     def _label_ref(self, path: tuple, name: Any, names: list[str]) -> None:
         if isinstance(name, str) and name not in names:
