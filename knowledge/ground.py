@@ -59,7 +59,7 @@ def find(run: Any, X: np.ndarray, candidates: list[tuple[Cluster, Draft]]) -> tu
             tilt = float(np.degrees(np.arccos(min(1.0, abs(float(n @ fallback))))))
             verdict["angle_to_fallback"] = round(tilt, 3)
             if spec.sensor_above and float(n @ fallback) < 0.0:  # the sensor under its plane
-                depth = float((point - run.sensor) @ n)
+                depth = float((run.sensor - point) @ n)  # n points towards it: its distance to the plane
                 unit = run.rule_base.length_unit and " " + run.rule_base.length_unit
                 verdict["why"] = (f"the sensor lies {depth:.3g}{unit} below its plane (on the side opposite the "
                                   "fallback normal): seen from underneath, not the ground (sensor_above)")

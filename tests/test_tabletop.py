@@ -170,6 +170,8 @@ def test_a_face_seen_from_underneath_is_not_the_table(tmp_path):
     g = doc["explanation"]["ground"]
     refused = [v for v in g["candidates"] if "below its plane" in v.get("why", "")]
     assert refused and "(sensor_above)" in refused[0]["why"], g["candidates"]
+    depth = float(refused[0]["why"].split("the sensor lies ")[1].split(" m below")[0])
+    assert 0.0 < depth < 1.0, refused[0]["why"]  # a distance: the camera 0.27 m under the box face's plane
     assert refused[0]["cluster"] != g["cluster"]
     n, p = np.array(g["normal"]), np.array(g["point"])
     assert (lab[np.abs((X - p) @ n) < 0.01] == 1).mean() > 0.95  # the plane found is the table's
