@@ -1,7 +1,7 @@
 """Benchmark: generated forest tiles (issue 12's forest failure kind), kbs against CSF in the same run.
 
 Usage: python benchmarks/bench_forest.py [--part tune|validate|all] [--rules FILE] [--before FILE]
-                                         [--density D] [--no-csf]
+                                         [--density D] [--no-csf] [--seeds FIRST LAST]
 
 The scenes are ``benchmarks/forest_scenes.forest_scene`` (100 m x 100 m of hilly ground under
 50-95 % canopy, 1-4 pulses per square metre, up to three returns a pulse; its docstring says what
@@ -10,7 +10,8 @@ is drawn and from which ranges), the seeds of each part as benchmarks/splits.yam
 (10: the density of a modern survey). kbs runs the rule file (default: the shipped airborne) in
 one process (``jobs=1``; the labels do not depend on it), centred as bench_ground.py centres the
 airborne scans, with no sensor; CSF as bench_ground.py runs it on airborne scans (cloth 0.5 m,
-slope smoothing on). Prints one markdown row per scene (ground precision, recall, F1, total error
+slope smoothing on). ``--seeds`` runs the seeds FIRST..LAST instead of the parts' (part 'extra':
+seeds neither part holds). Prints one markdown row per scene (ground precision, recall, F1, total error
 %, seconds) and the medians per part.
 """
 from __future__ import annotations
@@ -50,9 +51,15 @@ def main() -> None:
     ap.add_argument("--before", help="another rule file, scored in the same run (e.g. the one before a change)")
     ap.add_argument("--density", type=float, help="pulses per square metre for every scene (default: each scene's)")
     ap.add_argument("--no-csf", action="store_true", help="kbs only")
+    ap.add_argument("--seeds", nargs=2, type=int, metavar=("FIRST", "LAST"),
+                    help="the scenes FIRST..LAST instead of the parts' (part 'extra')")
     args = ap.parse_args()
-    seeds = bg.splits()["airborne-forest-generated"]
+    seeds = dict(bg.splits()["airborne-forest-generated"])
     parts = ["tune", "validate"] if args.part == "all" else [args.part]
+    if args.seeds:
+        if args.seeds[0] > args.seeds[1]:
+            ap.error(f"--seeds: FIRST {args.seeds[0]} is after LAST {args.seeds[1]}")
+        parts, seeds["extra_seeds"] = ["extra"], list(args.seeds)
     methods = ([("kbs " + Path(args.before).stem, args.before)] if args.before else []) + [("kbs " + Path(args.rules).stem, args.rules)]
     rbs = {name: load_rule_base(f) for name, f in methods}
     names = [name for name, _ in methods] + ([] if args.no_csf else ["CSF"])

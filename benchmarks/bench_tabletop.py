@@ -7,9 +7,11 @@ the lowest F1 and the scenes that fail (table F1 below 0.9). Every method runs i
 the same points.
 
 Usage: python benchmarks/bench_tabletop.py [--rules FILE] [--before FILE] [--sets mosd generated]
-                                           [--part tune|validate|all]
+                                           [--part tune|validate|all] [--seeds FIRST LAST]
 ``--before`` adds the rows of another rule file (e.g. the one before a change, from
-``git show REV:examples/rules/tabletop.yaml``) in the same run.
+``git show REV:examples/rules/tabletop.yaml``) in the same run. ``--seeds`` runs the generated
+scenes FIRST..LAST instead of the parts' (part 'extra': seeds neither part holds, to see how the
+rules hold on scenes nobody chose anything on; not the mOSD scans).
 """
 from __future__ import annotations
 
@@ -38,8 +40,14 @@ def seeds(part: str) -> list[int]:
     return list(range(int(lo), int(hi) + 1))
 
 
-def scenes(sets: list[str], part: str):
-    """(name, part, points (n, 3), truth: table (n,) bool, valid (n,) bool)."""
+def scenes(sets: list[str], part: str, extra: tuple[int, int] | None = None):
+    """(name, part, points (n, 3), truth: table (n,) bool, valid (n,) bool); with ``extra``
+    (first, last), the generated seeds first..last alone, as part 'extra'."""
+    if extra is not None:
+        for s in range(extra[0], extra[1] + 1):
+            X, lab, _ = tabletop_scene(s)
+            yield f"generated {s}", "extra", X, lab == 1, np.ones(len(X), bool)
+        return
     parts = ["tune", "validate"] if part == "all" else [part]
     if "mosd" in sets:
         kind = splits()["table-top"]
@@ -70,7 +78,11 @@ def main() -> None:
     ap.add_argument("--before", help="another rule file, run in the same process (rows 'kbs before')")
     ap.add_argument("--sets", nargs="+", default=["mosd", "generated"])
     ap.add_argument("--part", choices=["tune", "validate", "all"], default="all")
+    ap.add_argument("--seeds", nargs=2, type=int, metavar=("FIRST", "LAST"),
+                    help="generated scenes FIRST..LAST instead of the parts' (part 'extra')")
     args = ap.parse_args()
+    if args.seeds and args.seeds[0] > args.seeds[1]:
+        ap.error(f"--seeds: FIRST {args.seeds[0]} is after LAST {args.seeds[1]}")
     methods = {"kbs tabletop": kbs_table(args.rules)}
     if args.before:
         methods = {"kbs before": kbs_table(args.before), **methods}
@@ -84,7 +96,7 @@ def main() -> None:
     print("|---|---|---:|" + "---:|" * len(names))
     scores: dict[tuple[str, str], list[tuple[str, float]]] = {}
     seconds: dict[str, float] = dict.fromkeys(names, 0.0)
-    for name, part, X, truth, valid in scenes(args.sets, args.part):
+    for name, part, X, truth, valid in scenes(args.sets, args.part, tuple(args.seeds) if args.seeds else None):
         row = []
         for m, fn in methods.items():
             t0 = time.perf_counter()
