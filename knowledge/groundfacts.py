@@ -37,7 +37,7 @@ class GroundCandidate:
     cluster: str
     points: int
     thickness: float | None = None  #: of its points (its fuzzy covariance)
-    why: str | None = None  #: why it gives no plane, or was not chosen for its tilt (None: it gives one)
+    why: str | None = None  #: why it gives no plane, or was refused (its tilt, the sensor under it) (None: it gives one)
     inliers: int | None = None  #: points within the inlier distance of its robust plane
     inlier_share: float | None = None
     plane_thickness: float | None = None  #: of its robust plane's inliers
