@@ -448,7 +448,7 @@ def test_predicted_memberships_by_rows_are_the_chunked_ones(monkeypatch):
     res = ufp_onc(X, k_max=3)
     for p in res.partitions:
         centers = p.centers - p.offset
-        ref = memberships_in_chunks(X, p.offset, lambda XT: gg_memberships(XT, centers, p.gaussians, p.priors, p.m),
+        ref = memberships_in_chunks(X, p.offset, lambda XT, c=centers, p=p: gg_memberships(XT, c, p.gaussians, p.priors, p.m),
                                     p.k, 777)
         assert p.predict_proba(X, chunk_size=777).tobytes() == ref.tobytes()
 

@@ -429,7 +429,7 @@ def test_several_scans_side_by_side_write_what_one_after_the_other_writes(tmp_pa
     runs = {j: kbs_command("run", "--rules", "outdoor", "-j", j, str(scans), "--out", str(tmp_path / f"o{j}"))
             for j in ("1", "2")}
     for j, r in runs.items():
-        assert r.returncode == 0, r.stderr
+        assert r.returncode == 0, (j, r.stderr)
         assert [m["path"] for m in map(SCAN_LINE.match, r.stdout.splitlines()) if m] == [
             str(scans / n) for n in ("a.ply", "b.ply", "c.npy")], r.stdout
         assert [TIME_ROW.match(line)["name"] for line in _table(r.stdout)[1:4]] == ["a.ply", "b.ply", "c.npy"]
