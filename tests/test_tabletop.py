@@ -147,14 +147,15 @@ def test_a_bad_choice_is_refused_at_its_position(tmp_path, capsys, old, new, at,
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
 
 
-def test_choose_with_a_fixed_normal_is_a_warning(tmp_path, capsys):
+@pytest.mark.parametrize("key", ["choose", "sensor_above"])
+def test_a_ground_search_setting_with_a_fixed_normal_is_a_warning(tmp_path, capsys, key):
     text = TABLETOP.replace("normal: auto", "normal: [0, -1, 0]", 1)
     rules = tmp_path / "t.yaml"
     rules.write_text(text, encoding="utf-8")
     assert main(["rules", "check", str(rules)]) == 0
     err = capsys.readouterr().err
-    line = text[:text.index("    choose:")].count("\n") + 1
-    assert f"t.yaml:{line}:5: warning: scene.ground.choose is not used" in err, err
+    line = text[:text.index(f"    {key}:")].count("\n") + 1
+    assert f"t.yaml:{line}:5: warning: scene.ground.{key} is not used" in err, err
 
 
 @pytest.mark.slow
@@ -209,13 +210,3 @@ def test_sensor_above_must_be_a_boolean(tmp_path, capsys):
     assert main(["rules", "check", str(rules)]) == 4
     err = capsys.readouterr().err
     assert f"t.yaml:{line}:" in err and "sensor_above" in err and "Traceback" not in err, err
-
-
-def test_sensor_above_with_a_fixed_normal_is_a_warning(tmp_path, capsys):
-    text = TABLETOP.replace("normal: auto", "normal: [0, -1, 0]", 1)
-    rules = tmp_path / "t.yaml"
-    rules.write_text(text, encoding="utf-8")
-    assert main(["rules", "check", str(rules)]) == 0
-    err = capsys.readouterr().err
-    line = text[:text.index("    sensor_above:")].count("\n") + 1
-    assert f"t.yaml:{line}:5: warning: scene.ground.sensor_above is not used" in err, err
