@@ -69,6 +69,112 @@ def _slide(A: np.ndarray, reach: int, op) -> np.ndarray:
 
 
 @dataclass(frozen=True)
+class SurfaceEdges:
+    """The surface's points grouped into continuous surfaces, and how far the points at the edge of
+    each stand above the surfaces beside it (:meth:`LocalGround.edges`).
+
+    Two surface points are continuous when one is among the other's :attr:`NEIGHBOURS` nearest
+    (in the plane) within ``gap`` and their heights differ by at most ``max(step, tan(slope) d)``
+    (``d`` their distance in the plane): terrain no steeper than ``slope``, or a step no higher
+    than ``step``. A continuous surface (a *region*) is a connected set of such links. A point has
+    a *drop* when points of other regions lie within ``gap`` of it: its height less the lowest
+    terrain those allow, ``min_j (h_j + tan(slope) d_ij)``; a roof's edge above the street beside
+    the building drops by about its height, terrain beside a building rises (negative).
+    """
+
+    #: the nearest surface points a point's continuity is judged with
+    NEIGHBOURS = 8
+
+    #: (m,) the region of each surface point
+    region: np.ndarray
+    #: (m,) each point's drop (NaN where no other region lies within ``gap``)
+    drop: np.ndarray
+    n_regions: int
+    #: (number of owners,) the region holding most of each owner's points (-1: none)
+    owner_region: np.ndarray
+    #: the points with a drop, ordered by region, and where each region's run starts and ends
+    _edge_order: np.ndarray
+    _starts: np.ndarray
+    _ends: np.ndarray
+    _values: dict = field(default_factory=dict, repr=False, compare=False)
+
+    @classmethod
+    def build(cls, plane: np.ndarray, heights: np.ndarray, owners: np.ndarray | None, n_owners: int,
+              tree: Any, gap: float, slope: float, step: float) -> SurfaceEdges:
+        """The regions and drops of the surface points ``plane`` (m, 2) with ``heights`` (m,),
+        ``owners`` (m,) (indices below ``n_owners``), ``tree`` a k-d tree over ``plane``."""
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+
+        m = int(heights.size)
+        rise = float(np.tan(np.radians(slope)))
+        if m == 0:
+            empty = np.zeros(0, dtype=np.int64)
+            return cls(empty, np.zeros(0), 0, np.full(n_owners, -1, dtype=np.int64), empty, empty, empty)
+        k = min(cls.NEIGHBOURS + 1, m)
+        d, j = tree.query(plane, k=k, distance_upper_bound=gap)
+        d, j = np.asarray(d).reshape(m, k), np.asarray(j).reshape(m, k)
+        i = np.broadcast_to(np.arange(m)[:, None], (m, k))
+        ok = (j < m) & (j != i)
+        jj = np.where(ok, j, 0)
+        dd = np.where(ok, d, 0.0)
+        linked = ok & (np.abs(heights[i] - heights[jj]) <= np.maximum(step, rise * dd))
+        graph = coo_matrix((np.ones(int(linked.sum()), dtype=np.int8), (i[linked], jj[linked])), shape=(m, m))
+        n, region = connected_components(graph, directed=False)
+        region = region.astype(np.int64)
+        lowest = np.full(m, np.inf)
+        chunk = 1 << 13
+        for s in range(0, m, chunk):
+            found = tree.query_ball_point(plane[s:s + chunk], r=gap)
+            sizes = np.fromiter((len(f) for f in found), dtype=np.int64, count=len(found))
+            if not sizes.sum():
+                continue
+            b = np.concatenate([np.asarray(f, dtype=np.int64) for f in found])
+            a = np.repeat(np.arange(s, s + len(found)), sizes)
+            other = region[a] != region[b]
+            a, b = a[other], b[other]
+            dist = np.sqrt(((plane[b] - plane[a]) ** 2).sum(axis=1))
+            np.minimum.at(lowest, a, heights[b] + rise * dist)
+        edge = np.isfinite(lowest)
+        drop = np.full(m, np.nan)
+        drop[edge] = heights[edge] - lowest[edge]
+        at = np.flatnonzero(edge)
+        order = at[np.argsort(region[at], kind="stable")]
+        runs = region[order]
+        starts = np.flatnonzero(np.r_[True, runs[1:] != runs[:-1]]) if runs.size else np.zeros(0, dtype=np.int64)
+        first = np.full(n, -1, dtype=np.int64)
+        last = np.full(n, -1, dtype=np.int64)
+        if runs.size:
+            first[runs[starts]] = starts
+            last[runs[starts]] = np.r_[starts[1:], runs.size]
+        owner_region = np.full(n_owners, -1, dtype=np.int64)
+        if owners is not None and n_owners:
+            pair, count = np.unique(np.asarray(owners, dtype=np.int64) * n + region, return_counts=True)
+            po, pr = pair // n, pair % n
+            best = np.lexsort((pr, -count, po))  # per owner: the most points, then the lowest region
+            po, pr = po[best], pr[best]
+            head = np.r_[True, po[1:] != po[:-1]]
+            owner_region[po[head]] = pr[head]
+        return cls(region, drop, int(n), owner_region, order, first, last)
+
+    def drops_of(self, r: int) -> np.ndarray:
+        """The drops of region ``r``'s edge points (empty when it meets no other region)."""
+        if r < 0 or self._starts[r] < 0:
+            return np.zeros(0)
+        return self.drop[self._edge_order[self._starts[r]:self._ends[r]]]
+
+    def size_of(self, r: int) -> int:
+        """How many surface points region ``r`` holds."""
+        if r < 0:
+            return 0
+        key = ("size",)
+        sizes = self._values.get(key)
+        if sizes is None:
+            sizes = self._values[key] = np.bincount(self.region, minlength=self.n_regions)
+        return int(sizes[r])
+
+
+@dataclass(frozen=True)
 class _BlockGrid:
     """Square cells of ``side`` over the plane from ``origin``: ``blocks`` = (lowest height,
     highest height, surface points of the 3 x 3 block) per cell, arrays of ``shape``."""
@@ -139,6 +245,8 @@ class LocalGround:
     #: measure the same cluster on the same surface with several statistics (airborne: `raised`,
     #: `stands_up`, `joins`), each asking for the same heights
     _heights: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+    #: the :class:`SurfaceEdges` built, by (gap, slope, step)
+    _edges: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     #: how many more neighbours are fetched when a cluster's own points are left out
     EXCLUDE_FACTOR = 8
@@ -553,6 +661,17 @@ class LocalGround:
         blocks = (_slide(lo_c.reshape(shape2), reach, np.minimum), _slide(hi_c.reshape(shape2), reach, np.maximum),
                   _slide(n_c.reshape(shape2), 1, np.add))
         return _BlockGrid(origin, side, shape2, blocks)
+
+    def edges(self, gap: float, slope: float, step: float) -> SurfaceEdges:
+        """The surface's points grouped into continuous surfaces and their edges' drops (see
+        :class:`SurfaceEdges`), built at the first call for these parameters."""
+        key = (float(gap), float(slope), float(step))
+        got = self._edges.get(key)
+        if got is None:
+            got = SurfaceEdges.build(self.plane, self.heights, self.owners, len(self.owner_ids), self.tree,
+                                     float(gap), float(slope), float(step))
+            self._edges[key] = got
+        return got
 
     def height(self, P: np.ndarray, exclude: str | None = None) -> np.ndarray:
         """Heights (q,) of points ``P`` above the local ground surface (NaN where it is unknown);

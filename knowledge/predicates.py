@@ -832,5 +832,32 @@ def height_above_slope_surface(cluster: Cluster, scene: Scene, *, slope: float =
     return float(_STATS[stat](h))
 
 
+@predicate(unit="length", needs_ground_model=True, choices={"stat": tuple(_STATS)},
+           bounds={"gap": (0.0, None), "slope": (0.0, 89.0), "step": (0.0, None)})
+def edge_drop(cluster: Cluster, scene: Scene, *, gap: float = 3.0, slope: float = 45.0, step: float = 0.5,
+              stat: str = "median") -> Measurement:
+    """How far the continuous ground surface the cluster is part of stands above the surfaces
+    beside its edges: the local ground surface's points (post.ground_model) are joined into
+    continuous surfaces (a point and one of its 8 nearest within gap, along the ground plane, whose
+    heights differ by at most tan(slope) x their distance or step); a point of one with points of
+    others within gap stands at its edge, by its height less the lowest terrain those allow
+    (their height + tan(slope) x the distance). The stat (max, 90th percentile, mean, median, 10th
+    percentile or min) over the edge points of the surface holding most of the cluster's points: a
+    roof's surface drops by about the building's height at every edge, however large the roof and
+    however far the cluster lies from its edge; terrain beside buildings rises at its edges. The
+    value is undefined for a cluster that is not part of the surface (not labelled as the surface
+    is) and for a surface that meets no other within gap. Usable in post.relabel conditions only."""
+    model = scene.ground_model
+    if cluster.id not in model.owner_ids:
+        return Measurement(math.nan, undefined="not part of the local ground surface")
+    edges = model.edges(gap, slope, step)
+    r = int(edges.owner_region[model.owner_ids.index(cluster.id)])
+    d = edges.drops_of(r)
+    if not d.size:
+        return Measurement(math.nan, undefined=f"its continuous surface ({edges.size_of(r):,} points) meets no "
+                                               f"other within {gap:g}")
+    return Measurement(float(_STATS[stat](d)), details={"surface_points": edges.size_of(r), "edge_points": int(d.size)})
+
+
 BUILTINS: tuple[Predicate, ...] = (thickness, flatness, ground_angle, connexity, point_count, extent, height_above_ground,
-                                   distance_to_sensor, height_above_local_ground, height_above_slope_surface)
+                                   distance_to_sensor, height_above_local_ground, height_above_slope_surface, edge_drop)

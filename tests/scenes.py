@@ -177,3 +177,24 @@ def airborne_large_roof(seed: int = 9) -> tuple[np.ndarray, np.ndarray, np.ndarr
     z[core] += 0.8
     X = np.column_stack([xy, z]) + [512000.0, 5400000.0, 250.0]
     return X, building.astype(int), core
+
+
+def airborne_without(folder, rules: tuple[str, ...], checks: tuple[str, ...] = ()) -> str:
+    """rules/airborne.yaml without the relabel rules ``rules`` and the checks ``checks``, written in
+    ``folder``: the rule base as it was before those rules, to show what each one does."""
+    from pathlib import Path
+
+    import yaml
+
+    root = Path(__file__).resolve().parents[1]
+    doc = yaml.safe_load((root / "rules" / "airborne.yaml").read_text())
+    for step in doc["post"]:
+        if "relabel" in step:
+            names = [r["name"] for r in step["relabel"]]
+            assert set(rules) <= set(names), (rules, names)
+            step["relabel"] = [r for r in step["relabel"] if r["name"] not in rules]
+    for name in checks:
+        del doc["checks"][name]
+    path = Path(folder) / ("airborne-without-" + "-".join(rules) + ".yaml")
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return str(path)

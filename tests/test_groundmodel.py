@@ -17,7 +17,8 @@ from kbs.knowledge import Interpreter, PredicateRegistry, RuleFileError, load_ru
 from kbs.geometry.groundmodel import LocalGround
 from kbs.geometry.pca import plane_basis
 from kbs.knowledge.rulebase import parse_rule_base
-from scenes import airborne_large_building, airborne_step_and_building, ground_and_parked_cars, ground_and_rocks
+from scenes import (airborne_large_building, airborne_step_and_building, airborne_without, ground_and_parked_cars,
+                    ground_and_rocks)
 from test_cli import kbs
 
 # --- the surface ---------------------------------------------------------------------------------
@@ -939,18 +940,29 @@ def test_airborne_rules_take_a_large_buildings_inner_roof_for_an_object(tmp_path
     """Issue 12: the roofs of large buildings became ground, each roof patch judged against the
     roof patches around it. airborne.yaml's 'above_terrain' judges it against the lowest terrain
     the ground within 30 m allows, no steeper than 40 deg: a six-storey roof 70 m x 50 m, in
-    sections of three levels, had 21 % of its points taken for ground (the inner sections); now
-    those within the slope's reach of the ground beside it are objects."""
+    sections of three levels, had 21 % of its points taken for ground (the inner sections); those
+    within the slope's reach of the ground beside it became objects. Since session 37
+    'large_roofs' takes every patch of a continuous surface whose edges drop 5 m or more (the roof
+    sections' surface, 3 m apart at most), before 'roofs' is asked."""
     X, labels = airborne_large_building()
     ground, doc = _ground_of_run(tmp_path, X, "airborne", "block")
     assert ground[labels == 0].mean() > 0.99
-    assert ground[labels == 1].mean() < 0.1, ground[labels == 1].mean()  # 0.207 before, 0.062 measured
+    assert ground[labels == 1].mean() < 0.1, ground[labels == 1].mean()  # 0.207 before 'above_terrain'
+    large = [c for c in doc["explanation"]["clusters"] if c["relabel"] and c["relabel"]["rule"] == "large_roofs"]
+    assert large and all(c["label"] == "object" for c in large)
+    r = kbs("explain", str(tmp_path / "o" / "block.json"), "--cluster", large[0]["id"])
+    assert r.returncode == 0, r.stderr
+    assert "relabelled object by large_roofs [airborne.yaml:" in r.stdout and "edge_raised (edge_drop = " in r.stdout
+    # the rule base without 'large_roofs': 'above_terrain' takes inner sections 'raised' does not
+    ground, doc = _ground_of_run(tmp_path, X, airborne_without(tmp_path, ("large_roofs",), ("edge_raised",)), "block")
+    assert ground[labels == 1].mean() < 0.1, ground[labels == 1].mean()  # 0.062 measured
     roofs = [c for c in doc["explanation"]["clusters"] if c["relabel"] and c["relabel"]["rule"] == "roofs"
              and not next(k for k in c["checks"] if k["check"] == "raised")["passed"]]
     assert roofs, "inner roof patches: not raised above their neighbours, above the terrain the slope allows"
     r = kbs("explain", str(tmp_path / "o" / "block.json"), "--cluster", roofs[0]["id"])
     assert r.returncode == 0, r.stderr
-    assert "relabelled object by roofs [airborne.yaml:" in r.stdout and "above_terrain (height_above_slope_surface = " in r.stdout
+    assert "relabelled object by roofs [airborne-without-large_roofs.yaml:" in r.stdout
+    assert "above_terrain (height_above_slope_surface = " in r.stdout
 
 
 @pytest.mark.slow
@@ -1059,6 +1071,87 @@ def test_height_above_slope_surface_is_undefined_with_no_ground_within_its_radiu
     near = pred.measure(cl, scene, {"slope": 10.0, "radius": 80.0})  # the ground in reach: a height
     assert near.defined and near.value < 8 - np.tan(np.radians(10)) * 50  # at least 50 m from the ground
 
+
+
+def _street_block_and_terrace(seed: int = 0):
+    """Surface points at 1 a square metre of a 100 m x 100 m street level (z 0, a 1 % grade) around a
+    40 m x 40 m roof 10 m up in two sections 0.3 m apart (c1, c2), and a terrace 4 m up (c3) that a
+    20 deg ramp (c4) joins to the street on one side; owners c0 (street) to c4."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-50, 50, (10000, 2))
+    x, y = xy[:, 0], xy[:, 1]
+    roof = (np.abs(x) < 20) & (np.abs(y) < 20)
+    terrace = (x > 30) & (np.abs(y) < 10)
+    ramp = (x > 19) & (x <= 30) & (np.abs(y) < 10)  # rises 4 m over 11 m: 20 deg
+    z = 0.01 * x + rng.normal(0, 0.03, x.size)
+    z[roof] = 10.0 + 0.3 * (x[roof] > 0) + rng.normal(0, 0.03, roof.sum())
+    z[terrace] = 0.01 * x[terrace] + 4.0
+    z[ramp] = 0.01 * x[ramp] + 4.0 * (x[ramp] - 19) / 11
+    owner = np.zeros(x.size, dtype=np.int64)
+    owner[roof & (x <= 0)], owner[roof & (x > 0)], owner[terrace], owner[ramp] = 1, 2, 3, 4
+    return np.column_stack([xy, z]), owner
+
+
+def test_edges_join_a_roofs_sections_and_measure_the_drop_at_its_walls():
+    """LocalGround.edges: the roof's two sections (0.3 m apart, under the 0.5 m step) are one
+    continuous surface, which drops about 10 m at its edges, less a 45 deg slope's rise over the
+    metre or so to the street beside it; the street, the ramp and the terrace are one surface
+    (no steeper than 45 deg between neighbours), which rises at the roof's walls; the same answer
+    whatever the order of the points."""
+    X, owner = _street_block_and_terrace()
+    model = LocalGround.build(X, np.arange(len(X)), np.array([0, 0, 1.0]), np.zeros(3), owners=owner,
+                              owner_ids=("c0", "c1", "c2", "c3", "c4"))
+    edges = model.edges(3.0, 45.0, 0.5)
+    assert model.edges(3.0, 45.0, 0.5) is edges  # built once per surface and parameters
+    r = edges.owner_region
+    assert r[1] == r[2] and r[0] == r[3] == r[4] and r[0] != r[1]
+    roof_drop = np.median(edges.drops_of(int(r[1])))
+    assert 7.0 < roof_drop < 10.0, roof_drop
+    assert np.median(edges.drops_of(int(r[0]))) < -7.0
+    assert edges.size_of(int(r[1])) == np.isin(owner, [1, 2]).sum()
+    # the points in another order: the same surfaces and drops
+    perm = np.random.default_rng(1).permutation(len(X))
+    again = LocalGround.build(X[perm], np.arange(len(X)), np.array([0, 0, 1.0]), np.zeros(3), owners=owner[perm],
+                              owner_ids=("c0", "c1", "c2", "c3", "c4")).edges(3.0, 45.0, 0.5)
+    assert np.median(again.drops_of(int(again.owner_region[1]))) == roof_drop
+    assert np.array_equal(np.isnan(again.drop), np.isnan(edges.drop[perm]))
+    assert np.allclose(again.drop[~np.isnan(again.drop)], edges.drop[perm][~np.isnan(edges.drop[perm])])
+    # a 1 m step still keeps the roof apart from the street (its walls are 10 m high)
+    assert model.edges(3.0, 45.0, 1.0).owner_region[1] != model.edges(3.0, 45.0, 1.0).owner_region[0]
+    # without the ramp, the terrace is a surface of its own that drops 4 m less the slope's rise
+    keep = owner != 4
+    alone = LocalGround.build(X[keep], np.arange(keep.sum()), np.array([0, 0, 1.0]), np.zeros(3),
+                              owners=owner[keep], owner_ids=("c0", "c1", "c2", "c3", "c4")).edges(3.0, 45.0, 0.5)
+    assert alone.owner_region[3] != alone.owner_region[0] and alone.owner_region[4] == -1
+    assert 1.0 < np.median(alone.drops_of(int(alone.owner_region[3]))) < 4.0
+
+
+def test_edge_drop_predicate_measures_the_surface_a_cluster_is_part_of():
+    """The predicate 'edge_drop': a roof section's value is its whole roof's (however far it lies
+    from the walls); a cluster not part of the surface, and a surface with no other within the
+    gap, have no value (the check fails and says why)."""
+    from kbs.knowledge.predicates import Cluster, Ground, Scene
+
+    X, owner = _street_block_and_terrace()
+    ids = ("c0", "c1", "c2", "c3", "c4")
+    model = LocalGround.build(X, np.arange(len(X)), np.array([0, 0, 1.0]), np.zeros(3), owners=owner, owner_ids=ids)
+    scene = Scene(np.zeros(3), Ground(np.array([0, 0, 1.0]), np.zeros(3), "fixed"), "m", ground_model=model)
+    pred = PredicateRegistry.default(entry_points_too=False).get("edge_drop")
+    params = {"gap": 3.0, "slope": 45.0, "step": 0.5, "stat": "median"}
+    one, two = (pred.measure(Cluster(c, X[owner == k], np.ones((owner == k).sum())), scene, params)
+                for k, c in ((1, "c1"), (2, "c2")))
+    assert one.defined and one.value == two.value and one.value > 5.0
+    assert one.details["surface_points"] == np.isin(owner, [1, 2]).sum()
+    street = pred.measure(Cluster("c0", X[owner == 0], np.ones((owner == 0).sum())), scene, params)
+    assert street.defined and street.value < 0.0
+    other = pred.measure(Cluster("c9", X[:10], np.ones(10)), scene, params)
+    assert not other.defined and "not part of the local ground surface" in other.undefined
+    lone = LocalGround.build(X[owner == 1], np.arange((owner == 1).sum()), np.array([0, 0, 1.0]), np.zeros(3),
+                             owners=np.zeros((owner == 1).sum(), int), owner_ids=("c1",))
+    m = pred.measure(Cluster("c1", X[owner == 1], np.ones((owner == 1).sum())),
+                     Scene(np.zeros(3), Ground(np.array([0, 0, 1.0]), np.zeros(3), "fixed"), "m", ground_model=lone),
+                     params)
+    assert not m.defined and "meets no other within 3" in m.undefined
 
 
 @pytest.mark.parametrize("exclude", [None, "c1"])
