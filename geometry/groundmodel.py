@@ -127,10 +127,12 @@ class SurfaceEdges:
         n, region = connected_components(graph, directed=False)
         region = region.astype(np.int64)
         lowest = np.full(m, np.inf)
-        for s in range(0, m, cls.CHUNK):  # the pairs within gap, a chunk of points at a time (bounded memory)
-            part = cKDTree(plane[s:s + cls.CHUNK], balanced_tree=False, compact_nodes=False)
+        near = cls._near_other_regions(plane, region, gap)
+        for s in range(0, near.size, cls.CHUNK):  # their pairs within gap, a chunk at a time (bounded memory)
+            at = near[s:s + cls.CHUNK]
+            part = cKDTree(plane[at], balanced_tree=False, compact_nodes=False)
             pairs = part.sparse_distance_matrix(tree, gap, output_type="ndarray")
-            a, b = pairs["i"].astype(np.int64) + s, pairs["j"].astype(np.int64)
+            a, b = at[pairs["i"]], pairs["j"].astype(np.int64)
             other = region[a] != region[b]
             np.minimum.at(lowest, a[other], heights[b[other]] + rise * pairs["v"][other])
         edge = np.isfinite(lowest)
@@ -154,6 +156,31 @@ class SurfaceEdges:
             head = np.r_[True, po[1:] != po[:-1]]
             owner_region[po[head]] = pr[head]
         return cls(region, drop, int(n), owner_region, order, first, last)
+
+    @classmethod
+    def _near_other_regions(cls, plane: np.ndarray, region: np.ndarray, gap: float) -> np.ndarray:
+        """The points (indices, ascending) that may have a point of another region within ``gap``:
+        those whose 3 x 3 block of square cells of side ``gap`` holds more than one region (the
+        block holds every point within ``gap``); all points when such a grid would be too large."""
+        m = region.size
+        lo, hi = bounds(plane)
+        if not gap > 0.0:
+            return np.arange(m)
+        origin = lo - gap
+        shape = np.floor((hi - origin) / gap).astype(np.int64) + 2
+        if float(shape[0]) * float(shape[1]) > 4.0 * m + 4096:
+            return np.arange(m)
+        ij = np.floor((plane - origin) / gap).astype(np.int64)
+        cell = ij[:, 0] * shape[1] + ij[:, 1]
+        size = int(shape[0] * shape[1])
+        low = np.full(size, np.iinfo(np.int64).max)
+        high = np.full(size, -1, dtype=np.int64)
+        np.minimum.at(low, cell, region)
+        np.maximum.at(high, cell, region)
+        shape2 = (int(shape[0]), int(shape[1]))
+        low_b = _slide(low.reshape(shape2), 1, np.minimum).ravel()
+        high_b = _slide(high.reshape(shape2), 1, np.maximum).ravel()
+        return np.flatnonzero(low_b[cell] != high_b[cell])
 
     def drops_of(self, r: int) -> np.ndarray:
         """The drops of region ``r``'s edge points (empty when it meets no other region)."""
