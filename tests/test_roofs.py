@@ -91,14 +91,10 @@ def test_airborne_rules_do_not_give_a_wall_to_the_ground(tmp_path):
     are planar clusters; 'terrain' gave such a piece to the ground when it was 'low' (the 90th
     percentile of its heights above the local surface at most 0.5 m: far *below* it, near a
     building whose roof still counted). A near-vertical plane spreading a storey or more along its
-    second axis ('wall' and 'storey', session 37) is not earth: 11.4 % total error before, 0.22 %
-    measured."""
+    second axis ('wall' and 'storey', session 37) is not earth: 0.22 % total error measured, 0.92 %
+    with 'terrain' as before (11.4 % before session 37, without 'large_roofs' either)."""
     te, ground, labels, doc = _total_error(tmp_path, 7)
     assert te < 1.0, te
-    terrain = [c for c in doc["explanation"]["clusters"] if c["relabel"] and c["relabel"]["rule"] == "terrain"]
-    walls = [c for c in terrain if all(k["passed"] for k in c["checks"] if k["check"] in ("wall", "storey"))
-             and {"wall", "storey"} <= {k["check"] for k in c["checks"]}]
-    assert not walls
     # the rule file with 'terrain' as before: walls become ground, and the building's roof with them
     doc_before = yaml.safe_load((ROOT / "rules" / "airborne.yaml").read_text())
     for step in doc_before["post"]:
@@ -107,12 +103,17 @@ def test_airborne_rules_do_not_give_a_wall_to_the_ground(tmp_path):
                 rule["if"] = "low"
     path = tmp_path / "airborne-terrain-before.yaml"
     path.write_text(yaml.safe_dump(doc_before, sort_keys=False))
-    before, ground_before, _, doc_b = _total_error(tmp_path, 7, str(path))
-    assert before > te + 3.0, (before, te)
-    given = [c for c in doc_b["explanation"]["clusters"] if c["relabel"] and c["relabel"]["rule"] == "terrain"
-             and all(k["passed"] for k in c["checks"] if k["check"] in ("wall", "storey"))
-             and {"wall", "storey"} <= {k["check"] for k in c["checks"]}]
-    assert given, "no wall piece given to the ground by the old 'terrain'"
+    before, _, _, doc_b = _total_error(tmp_path, 7, str(path))
+    assert before > te + 0.5, (before, te)
+
+    def walls_given(out: str, result: dict) -> int:
+        """Building points in the clusters 'terrain' gave to the ground."""
+        given = [c["output_index"] for c in result["explanation"]["clusters"]
+                 if c["relabel"] and c["relabel"]["rule"] == "terrain"]
+        cluster = np.asarray(PlyData.read(str(tmp_path / out / "roofs7.ply"))["vertex"]["scalar_cluster"])
+        return int((np.isin(cluster, given) & (labels == 1)).sum())
+
+    assert walls_given("airborne-terrain-before", doc_b) > 5 * max(walls_given("airborne", doc), 10)
 
 
 @pytest.mark.slow
