@@ -786,8 +786,8 @@ def run(ctx: click.Context, rules: str, clouds: tuple[Path, ...], sensor, out_di
 
     Outputs: never an input file; an existing file that kbs did not write (no kbs run id) only
     with --force; an earlier kbs result is replaced. Each pair is written whole or not at all.
-    On a stderr that is not a terminal, a progress line every 10 s (KBS_PROGRESS_SECONDS); -q
-    prints nothing but errors."""
+    On a stderr that is not a terminal, a progress line every 10 s (KBS_PROGRESS_SECONDS); `kbs
+    -q run` (the option before the command) prints nothing but errors."""
     quiet = ctx.obj.get("quiet", False)
     t0 = time.perf_counter()
     if not quiet:
