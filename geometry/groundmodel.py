@@ -95,11 +95,12 @@ class SurfaceEdges:
     n_regions: int
     #: (number of owners,) the region holding most of each owner's points (-1: none)
     owner_region: np.ndarray
+    #: (n_regions,) the surface points each region holds
+    sizes: np.ndarray
     #: the points with a drop, ordered by region, and where each region's run starts and ends
     _edge_order: np.ndarray
     _starts: np.ndarray
     _ends: np.ndarray
-    _values: dict = field(default_factory=dict, repr=False, compare=False)
 
     @classmethod
     def build(cls, plane: np.ndarray, heights: np.ndarray, owners: np.ndarray | None, n_owners: int,
@@ -114,7 +115,7 @@ class SurfaceEdges:
         rise = float(np.tan(np.radians(slope)))
         if m == 0:
             empty = np.zeros(0, dtype=np.int64)
-            return cls(empty, np.zeros(0), 0, np.full(n_owners, -1, dtype=np.int64), empty, empty, empty)
+            return cls(empty, np.zeros(0), 0, np.full(n_owners, -1, dtype=np.int64), empty, empty, empty, empty)
         k = min(cls.NEIGHBOURS + 1, m)
         d, j = tree.query(plane, k=k, distance_upper_bound=gap)
         d, j = np.asarray(d).reshape(m, k), np.asarray(j).reshape(m, k)
@@ -155,7 +156,7 @@ class SurfaceEdges:
             po, pr = po[best], pr[best]
             head = np.r_[True, po[1:] != po[:-1]]
             owner_region[po[head]] = pr[head]
-        return cls(region, drop, int(n), owner_region, order, first, last)
+        return cls(region, drop, int(n), owner_region, np.bincount(region, minlength=n), order, first, last)
 
     @classmethod
     def _near_other_regions(cls, plane: np.ndarray, region: np.ndarray, gap: float) -> np.ndarray:
@@ -189,14 +190,8 @@ class SurfaceEdges:
         return self.drop[self._edge_order[self._starts[r]:self._ends[r]]]
 
     def size_of(self, r: int) -> int:
-        """How many surface points region ``r`` holds."""
-        if r < 0:
-            return 0
-        key = ("size",)
-        sizes = self._values.get(key)
-        if sizes is None:
-            sizes = self._values[key] = np.bincount(self.region, minlength=self.n_regions)
-        return int(sizes[r])
+        """How many surface points region ``r`` holds (0 for -1, no region)."""
+        return int(self.sizes[r]) if r >= 0 else 0
 
 
 @dataclass(frozen=True)
@@ -686,6 +681,11 @@ class LocalGround:
         blocks = (_slide(lo_c.reshape(shape2), reach, np.minimum), _slide(hi_c.reshape(shape2), reach, np.maximum),
                   _slide(n_c.reshape(shape2), 1, np.add))
         return _BlockGrid(origin, side, shape2, blocks)
+
+    @functools.cached_property
+    def owner_index(self) -> dict[str, int]:
+        """Each owner id's index in :attr:`owner_ids` (a dict: asked once per cluster and check)."""
+        return {oid: k for k, oid in enumerate(self.owner_ids)}
 
     def edges(self, gap: float, slope: float, step: float) -> SurfaceEdges:
         """The surface's points grouped into continuous surfaces and their edges' drops (see

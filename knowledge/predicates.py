@@ -848,10 +848,11 @@ def edge_drop(cluster: Cluster, scene: Scene, *, gap: float = 3.0, slope: float 
     value is undefined for a cluster that is not part of the surface (not labelled as the surface
     is) and for a surface that meets no other within gap. Usable in post.relabel conditions only."""
     model = scene.ground_model
-    if cluster.id not in model.owner_ids:
+    k = model.owner_index.get(cluster.id)
+    if k is None:
         return Measurement(math.nan, undefined="not part of the local ground surface")
     edges = model.edges(gap, slope, step)
-    r = int(edges.owner_region[model.owner_ids.index(cluster.id)])
+    r = int(edges.owner_region[k])
     d = edges.drops_of(r)
     if not d.size:
         return Measurement(math.nan, undefined=f"its continuous surface ({edges.size_of(r):,} points) meets no "
