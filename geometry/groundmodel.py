@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -101,6 +102,11 @@ class SurfaceEdges:
     _edge_order: np.ndarray
     _starts: np.ndarray
     _ends: np.ndarray
+    #: (m, 2) the surface points in the plane, and (m,) for each point with a drop the point of
+    #: another region that allows the lowest terrain under it (-1: no drop)
+    plane: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    partner: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    _cache: dict = field(default_factory=dict, compare=False, repr=False)
 
     @classmethod
     def build(cls, plane: np.ndarray, heights: np.ndarray, owners: np.ndarray | None, n_owners: int,
@@ -115,7 +121,8 @@ class SurfaceEdges:
         rise = float(np.tan(np.radians(slope)))
         if m == 0:
             empty = np.zeros(0, dtype=np.int64)
-            return cls(empty, np.zeros(0), 0, np.full(n_owners, -1, dtype=np.int64), empty, empty, empty, empty)
+            return cls(empty, np.zeros(0), 0, np.full(n_owners, -1, dtype=np.int64), empty, empty, empty, empty,
+                       np.zeros((0, 2)), empty)
         k = min(cls.NEIGHBOURS + 1, m)
         d, j = tree.query(plane, k=k, distance_upper_bound=gap)
         d, j = np.asarray(d).reshape(m, k), np.asarray(j).reshape(m, k)
@@ -128,6 +135,7 @@ class SurfaceEdges:
         n, region = connected_components(graph, directed=False)
         region = region.astype(np.int64)
         lowest = np.full(m, np.inf)
+        partner = np.full(m, -1, dtype=np.int64)
         near = cls._near_other_regions(plane, region, gap)
         for s in range(0, near.size, cls.CHUNK):  # their pairs within gap, a chunk at a time (bounded memory)
             at = near[s:s + cls.CHUNK]
@@ -135,7 +143,14 @@ class SurfaceEdges:
             pairs = part.sparse_distance_matrix(tree, gap, output_type="ndarray")
             a, b = at[pairs["i"]], pairs["j"].astype(np.int64)
             other = region[a] != region[b]
-            np.minimum.at(lowest, a[other], heights[b[other]] + rise * pairs["v"][other])
+            a, b, low = a[other], b[other], heights[b[other]] + rise * pairs["v"][other]
+            np.minimum.at(lowest, a, low)
+            # the partner realising each point's lowest: the pairs in the order (point, value, partner)
+            # (a point's pairs all fall in one chunk), the first of each point's run
+            best = np.lexsort((b, low, a))
+            a, b, low = a[best], b[best], low[best]
+            head = np.r_[True, a[1:] != a[:-1]] if a.size else np.zeros(0, dtype=bool)
+            partner[a[head]] = b[head]
         edge = np.isfinite(lowest)
         drop = np.full(m, np.nan)
         drop[edge] = heights[edge] - lowest[edge]
@@ -156,7 +171,8 @@ class SurfaceEdges:
             po, pr = po[best], pr[best]
             head = np.r_[True, po[1:] != po[:-1]]
             owner_region[po[head]] = pr[head]
-        return cls(region, drop, int(n), owner_region, np.bincount(region, minlength=n), order, first, last)
+        return cls(region, drop, int(n), owner_region, np.bincount(region, minlength=n), order, first, last,
+                   plane, partner)
 
     @classmethod
     def _near_other_regions(cls, plane: np.ndarray, region: np.ndarray, gap: float) -> np.ndarray:
@@ -192,6 +208,103 @@ class SurfaceEdges:
     def size_of(self, r: int) -> int:
         """How many surface points region ``r`` holds (0 for -1, no region)."""
         return int(self.sizes[r]) if r >= 0 else 0
+
+    def areas(self, cell: float) -> np.ndarray:
+        """(n_regions,) the area each region covers: its occupied square cells of side ``cell`` in
+        the plane, times ``cell`` squared (an outline traced at that resolution, holes and all)."""
+        key = ("area", float(cell))
+        got = self._cache.get(key)
+        if got is None:
+            if not self.region.size:
+                got = np.zeros(self.n_regions)
+            else:
+                ij = np.floor((self.plane - self.plane.min(axis=0)) / cell).astype(np.int64)
+                cells = (int(ij[:, 0].max()) + 1) * (int(ij[:, 1].max()) + 1)
+                pair = np.unique(self.region * cells + ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1])
+                got = np.bincount(pair // cells, minlength=self.n_regions) * (cell * cell)
+            self._cache[key] = got
+        return got
+
+    def enclosure(self, r: int, min_drop: float) -> tuple[float, int]:
+        """How far region ``r`` is enclosed by the surfaces it drops to: the share of its points
+        inside the convex hull (in the plane) of the points that allow the lowest terrain under its
+        edge points dropping by ``min_drop`` or more, and how many such edge points it has (0: the
+        share is NaN). A roof drops to the street on every side: the street's points around it
+        enclose it (1), or half of it where the scan cuts the building with two walls in view; the
+        upper terrace of a terrain step drops on one side only, the street beside it lies along a
+        line (0), as does the rim of a pit, whose floor lies inside the rim, not around it."""
+        key = ("enclosure", int(r), float(min_drop))
+        got = self._cache.get(key)
+        if got is None:
+            got = self._enclosure(r, min_drop)
+            self._cache[key] = got
+        return got
+
+    def _enclosure(self, r: int, min_drop: float) -> tuple[float, int]:
+        import shapely
+
+        if r < 0 or self._starts[r] < 0:
+            return math.nan, 0
+        at = self._edge_order[self._starts[r]:self._ends[r]]
+        at = at[self.drop[at] >= min_drop]
+        if not at.size:
+            return math.nan, 0
+        lows = self.plane[np.unique(self.partner[at])]
+        mine = self.plane[self.region == r]
+        hull = shapely.MultiPoint(lows).convex_hull
+        if hull.area <= 0.0:  # the lower points on a line (or one point): nothing inside
+            return 0.0, int(at.size)
+        inside = shapely.intersects_xy(hull, mine[:, 0], mine[:, 1])
+        return float(inside.mean()), int(at.size)
+
+
+@dataclass(frozen=True)
+class SurfaceRegions:
+    """The points the continuous surfaces of a ground surface are built from (its plane
+    coordinates, heights and owners, shared with it, not copied), and the :class:`SurfaceEdges`
+    built on them, by parameters. Held apart from the :class:`LocalGround` so that a surface
+    rebuilt within a relabel step can measure on its predecessor's without keeping it whole."""
+
+    plane: np.ndarray
+    heights: np.ndarray
+    owners: np.ndarray | None
+    owner_ids: tuple[str, ...]
+    tree_: Any = None
+    _edges: dict = field(default_factory=dict, repr=False, compare=False)
+
+    @functools.cached_property
+    def owner_index(self) -> dict[str, int]:
+        """Each owner id's index in :attr:`owner_ids`."""
+        return {oid: k for k, oid in enumerate(self.owner_ids)}
+
+    @functools.cached_property
+    def _by_owner(self) -> tuple[np.ndarray, np.ndarray]:
+        """The points ordered by owner, and where each owner's run starts (n_owners + 1,)."""
+        n = len(self.owner_ids)
+        if self.owners is None:
+            return np.arange(self.heights.size), np.r_[0, np.full(n, self.heights.size)]
+        order = np.argsort(self.owners, kind="stable")
+        return order, np.searchsorted(self.owners[order], np.arange(n + 1))
+
+    def points_of(self, k: int) -> np.ndarray:
+        """The points (indices) of owner ``k``."""
+        order, starts = self._by_owner
+        return order[starts[k]:starts[k + 1]]
+
+    def edges(self, gap: float, slope: float, step: float) -> SurfaceEdges:
+        """The :class:`SurfaceEdges` for these parameters, built at the first call."""
+        key = (float(gap), float(slope), float(step))
+        got = self._edges.get(key)
+        if got is None:
+            tree = self.tree_
+            if tree is None:
+                from scipy.spatial import cKDTree
+
+                tree = cKDTree(self.plane)
+            got = SurfaceEdges.build(self.plane, self.heights, self.owners, len(self.owner_ids), tree,
+                                     float(gap), float(slope), float(step))
+            self._edges[key] = got
+        return got
 
 
 @dataclass(frozen=True)
@@ -265,8 +378,6 @@ class LocalGround:
     #: measure the same cluster on the same surface with several statistics (airborne: `raised`,
     #: `stands_up`, `joins`), each asking for the same heights
     _heights: dict = field(default_factory=dict, init=False, repr=False, compare=False)
-    #: the :class:`SurfaceEdges` built, by (gap, slope, step)
-    _edges: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     #: how many more neighbours are fetched when a cluster's own points are left out
     EXCLUDE_FACTOR = 8
@@ -687,16 +798,23 @@ class LocalGround:
         """Each owner id's index in :attr:`owner_ids` (a dict: asked once per cluster and check)."""
         return {oid: k for k, oid in enumerate(self.owner_ids)}
 
+    @functools.cached_property
+    def regions(self) -> SurfaceRegions:
+        """Where the continuous surfaces (:meth:`edges`) are measured: this surface's points, or
+        those of the surface a relabel step started from (:meth:`measure_regions_on`)."""
+        return SurfaceRegions(self.plane, self.heights, self.owners, self.owner_ids, self.__dict__.get("tree"))
+
+    def measure_regions_on(self, regions: SurfaceRegions) -> None:
+        """Measure the continuous surfaces on ``regions`` (those of an earlier surface) instead of
+        this surface's points: a relabel step judging its rules again on a surface rebuilt without
+        the clusters it moved keeps the surfaces as the step found them (a roof whose outer patches
+        were taken is still the roof whose streets enclose it, not the patch left)."""
+        self.__dict__["regions"] = regions
+
     def edges(self, gap: float, slope: float, step: float) -> SurfaceEdges:
         """The surface's points grouped into continuous surfaces and their edges' drops (see
-        :class:`SurfaceEdges`), built at the first call for these parameters."""
-        key = (float(gap), float(slope), float(step))
-        got = self._edges.get(key)
-        if got is None:
-            got = SurfaceEdges.build(self.plane, self.heights, self.owners, len(self.owner_ids), self.tree,
-                                     float(gap), float(slope), float(step))
-            self._edges[key] = got
-        return got
+        :class:`SurfaceEdges`), built at the first call for these parameters (on :attr:`regions`)."""
+        return self.regions.edges(gap, slope, step)
 
     def height(self, P: np.ndarray, exclude: str | None = None) -> np.ndarray:
         """Heights (q,) of points ``P`` above the local ground surface (NaN where it is unknown);

@@ -38,6 +38,7 @@ UNITS: dict[str, str] = {
     "count": "a count",
     "points": "number of points",
     "ratio": "dimensionless",
+    "area": "area in the rule base's unit, squared",
 }
 
 ENTRY_POINT_GROUP = "kbs.predicates"
@@ -374,7 +375,8 @@ class Predicate:
         return f" at {frames[-1].filename}:{frames[-1].lineno}" if frames else ""
 
     def unit_label(self, length_unit: str) -> str:
-        return {"length": length_unit, "deg": "deg", "count": "", "points": "pts", "ratio": ""}[self.unit]
+        return {"length": length_unit, "deg": "deg", "count": "", "points": "pts", "ratio": "",
+                "area": f"{length_unit}²"}[self.unit]
 
     @property
     def summary(self) -> str:
@@ -756,15 +758,17 @@ def _order_stat(q: float, median: bool, reference: Callable[[np.ndarray], Any]) 
     return stat
 
 
-_STATS = {"max": np.max, "p90": _order_stat(90 / 100, False, lambda h: np.percentile(h, 90)), "mean": np.mean,
+_STATS = {"max": np.max, "p90": _order_stat(90 / 100, False, lambda h: np.percentile(h, 90)),
+          "p75": _order_stat(75 / 100, False, lambda h: np.percentile(h, 75)), "mean": np.mean,
           "median": _order_stat(0.5, True, np.median),
+          "p25": _order_stat(25 / 100, False, lambda h: np.percentile(h, 25)),
           "p10": _order_stat(10 / 100, False, lambda h: np.percentile(h, 10)), "min": np.min}
 
 
 @predicate(unit="length", needs_ground=True, choices={"stat": tuple(_STATS)})
 def height_above_ground(cluster: Cluster, scene: Scene, *, stat: str = "max") -> float:
     """Height of the cluster's points above the ground plane (signed, along the ground normal):
-    their max, 90th percentile, mean, median, 10th percentile or min."""
+    their max, 90th or 75th percentile, mean, median, 25th or 10th percentile, or min."""
     h = scene.ground.height(cluster.X)
     return float(_STATS[stat](h))
 
@@ -789,7 +793,7 @@ def height_above_local_ground(cluster: Cluster, scene: Scene, *, stat: str = "p9
                               max_points: int = 0) -> float:
     """Height of the cluster's points above the local ground surface (the median height of the
     nearest points of the clusters labelled ground, see post.ground_model), along the ground
-    normal: their max, 90th percentile, mean, median, 10th percentile or min, over the points
+    normal: their max, 90th or 75th percentile, mean, median, 25th or 10th percentile, or min, over the points
     with ground within the model's radius (above the ground plane when none has). With
     exclude_self, the cluster's own points are not part of the surface: a ground cluster is
     compared with the ground around it (a roof stands high above it); a point counts then only if
@@ -817,7 +821,7 @@ def height_above_slope_surface(cluster: Cluster, scene: Scene, *, slope: float =
     min over the surface points of other clusters within radius (along the ground plane) of
     (their height + tan(slope) x their distance). Ground on a hillside no steeper than slope
     measures 0 or less, a roof its height less the slope's rise to the ground beside the building,
-    however many roof patches surround it. The stat (max, 90th percentile, mean, median, 10th
+    however many roof patches surround it. The stat (max, 90th or 75th percentile, mean, median, 25th or 10th
     percentile or min) over up to max_points of its points, evenly taken; points with no surface
     within radius are left out, and the value is undefined when none has (no ground around it says
     nothing of its height above the terrain: its check fails). Usable in post.relabel conditions
@@ -832,26 +836,35 @@ def height_above_slope_surface(cluster: Cluster, scene: Scene, *, slope: float =
     return float(_STATS[stat](h))
 
 
-@predicate(unit="length", needs_ground_model=True, choices={"stat": tuple(_STATS)},
+@predicate(unit="length", needs_ground_model=True, choices={"stat": tuple(_STATS), "over": ("surface", "cluster")},
            bounds={"gap": (0.0, None), "slope": (0.0, 89.0), "step": (0.0, None)})
 def edge_drop(cluster: Cluster, scene: Scene, *, gap: float = 3.0, slope: float = 45.0, step: float = 0.5,
-              stat: str = "median") -> Measurement:
+              stat: str = "median", over: str = "surface") -> Measurement:
     """How far the continuous ground surface the cluster is part of stands above the surfaces
     beside its edges: the local ground surface's points (post.ground_model) are joined into
     continuous surfaces (a point and one of its 8 nearest within gap, along the ground plane, whose
     heights differ by at most tan(slope) x their distance or step); a point of one with points of
     others within gap stands at its edge, by its height less the lowest terrain those allow
-    (their height + tan(slope) x the distance). The stat (max, 90th percentile, mean, median, 10th
+    (their height + tan(slope) x the distance). The stat (max, 90th or 75th percentile, mean, median, 25th or 10th
     percentile or min) over the edge points of the surface holding most of the cluster's points: a
     roof's surface drops by about the building's height at every edge, however large the roof and
     however far the cluster lies from its edge; terrain beside buildings rises at its edges. The
     value is undefined for a cluster that is not part of the surface (not labelled as the surface
-    is) and for a surface that meets no other within gap. Usable in post.relabel conditions only."""
-    model = scene.ground_model
-    k = model.owner_index.get(cluster.id)
+    is) and for a surface that meets no other within gap. With over: cluster, the stat is over the
+    cluster's own points that stand at an edge of their surface (how far the cluster itself stands
+    above the surfaces beside it), undefined when none does. Rules judged again (passes) measure
+    the surfaces the relabel step started from. Usable in post.relabel conditions only."""
+    regions = scene.ground_model.regions
+    k = regions.owner_index.get(cluster.id)
     if k is None:
         return Measurement(math.nan, undefined="not part of the local ground surface")
-    edges = model.edges(gap, slope, step)
+    edges = regions.edges(gap, slope, step)
+    if over == "cluster":
+        d = edges.drop[regions.points_of(k)]
+        d = d[~np.isnan(d)]
+        if not d.size:
+            return Measurement(math.nan, undefined=f"none of its points meets another continuous surface within {gap:g}")
+        return Measurement(float(_STATS[stat](d)), details={"edge_points": int(d.size)})
     r = int(edges.owner_region[k])
     d = edges.drops_of(r)
     if not d.size:
@@ -860,5 +873,54 @@ def edge_drop(cluster: Cluster, scene: Scene, *, gap: float = 3.0, slope: float 
     return Measurement(float(_STATS[stat](d)), details={"surface_points": edges.size_of(r), "edge_points": int(d.size)})
 
 
+def _surface_region(cluster: Cluster, scene: Scene, gap: float, slope: float, step: float):
+    """(the continuous surfaces, the one holding most of the cluster's points) or (None, a reason)."""
+    regions = scene.ground_model.regions
+    k = regions.owner_index.get(cluster.id)
+    if k is None:
+        return None, "not part of the local ground surface"
+    edges = regions.edges(gap, slope, step)
+    return edges, int(edges.owner_region[k])
+
+
+@predicate(unit="ratio", value_range=(0.0, 1.0), needs_ground_model=True,
+           bounds={"gap": (0.0, None), "slope": (0.0, 89.0), "step": (0.0, None), "min_drop": (0.0, None)})
+def surface_enclosure(cluster: Cluster, scene: Scene, *, gap: float = 3.0, slope: float = 45.0, step: float = 0.5,
+                      min_drop: float = 5.0) -> Measurement:
+    """How far the continuous ground surface the cluster is part of (as edge_drop joins them) is
+    enclosed by the surfaces it drops to: the share of its points inside the convex hull, along
+    the ground plane, of the points beside its edges that allow the lowest terrain under each edge
+    point dropping by min_drop or more. A roof drops to the street on every side and the street
+    around it encloses it (1; about a half where the scan cuts the building with two walls in
+    view); the upper terrace of a terrain step drops on one side only (0), and the rim of a pit
+    drops to a floor that lies inside the rim, not around it (0). Undefined for a cluster not part
+    of the surface and for a surface with no edge dropping by min_drop. Rules judged again (passes)
+    measure the surfaces the relabel step started from. Usable in post.relabel conditions only."""
+    edges, r = _surface_region(cluster, scene, gap, slope, step)
+    if edges is None:
+        return Measurement(math.nan, undefined=r)
+    share, n_edge = edges.enclosure(r, min_drop)
+    if not n_edge:
+        return Measurement(math.nan, undefined=f"its continuous surface ({edges.size_of(r):,} points) has no edge "
+                                               f"dropping by {min_drop:g} or more")
+    return Measurement(share, details={"surface_points": edges.size_of(r), "dropping_edge_points": n_edge})
+
+
+@predicate(unit="area", value_range=(0.0, None), needs_ground_model=True,
+           bounds={"gap": (0.0, None), "slope": (0.0, 89.0), "step": (0.0, None), "cell": (0.0, None)})
+def surface_area(cluster: Cluster, scene: Scene, *, gap: float = 3.0, slope: float = 45.0, step: float = 0.5,
+                 cell: float = 3.0) -> Measurement:
+    """The area the continuous ground surface the cluster is part of (as edge_drop joins them)
+    covers along the ground plane: its occupied square cells of side cell, times cell squared. A
+    building's roof covers what its footprint does; terrain reaches as far as the scan. Undefined
+    for a cluster not part of the surface. Rules judged again (passes) measure the surfaces the
+    relabel step started from. Usable in post.relabel conditions only."""
+    edges, r = _surface_region(cluster, scene, gap, slope, step)
+    if edges is None:
+        return Measurement(math.nan, undefined=r)
+    return Measurement(float(edges.areas(cell)[r]), details={"surface_points": edges.size_of(r)})
+
+
 BUILTINS: tuple[Predicate, ...] = (thickness, flatness, ground_angle, connexity, point_count, extent, height_above_ground,
-                                   distance_to_sensor, height_above_local_ground, height_above_slope_surface, edge_drop)
+                                   distance_to_sensor, height_above_local_ground, height_above_slope_surface, edge_drop,
+                                   surface_enclosure, surface_area)

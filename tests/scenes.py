@@ -163,6 +163,23 @@ def airborne_step_and_building(seed: int = 9, step: float = 4.0) -> tuple[np.nda
     return X, np.r_[inside.astype(int), np.ones(len(wall), int)]
 
 
+def airborne_pit(seed: int = 3, depth: float = 8.0) -> tuple[np.ndarray, np.ndarray]:
+    """An airborne scan (z up, about 1 point per square metre) of gently sloping terrain (1 %),
+    160 m x 160 m, with a pit ``depth`` metres deep, 60 m x 40 m (a quarry: its walls 2 m wide,
+    76 deg for 8 m), and beside it a flat-roofed building 24 m x 16 m, its roof 7 m up, with a few
+    points on a wall. Labels: 0 bare earth (the terrain, the pit's floor and walls), 1 the
+    building."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-80, 80, (25600, 2))
+    inside = np.minimum(30.0 - np.abs(xy[:, 0] - 20.0), 20.0 - np.abs(xy[:, 1]))  # metres inside the pit's rim
+    z = -depth * np.clip(inside / 2.0, 0.0, 1.0) + 0.01 * xy[:, 0] + rng.normal(0, 0.05, len(xy))
+    building = (np.abs(xy[:, 0] + 45.0) < 12) & (np.abs(xy[:, 1] - 40.0) < 8)
+    z[building] += 7.0
+    wall = np.column_stack([rng.uniform(-57, -33, 120), np.full(120, 32.0), rng.uniform(0.5, 6.5, 120)])
+    X = np.vstack([np.column_stack([xy, z]), wall]) + [512000.0, 5400000.0, 250.0]
+    return X, np.r_[building.astype(int), np.ones(len(wall), int)]
+
+
 def airborne_large_roof(seed: int = 9) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """An airborne scan (z up, 1 point per square metre) of level ground, 120 m x 120 m, with a
     building 50 m x 50 m whose flat roof, 8 m up, has a raised core 26 m x 26 m (0.8 m higher) in

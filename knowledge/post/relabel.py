@@ -332,8 +332,14 @@ class Relabel(PostStep):
         """The state in ``hand`` (taken out: the caller holds no reference to it, nor to its
         surface) with ``leaves`` and the surface built again from their labels by ``spec`` (the
         step that built it), the old surface freed first."""
+        before = hand[0].surface
+        regions = before.model.regions if before is not None else None  # the step's continuous surfaces
+        del before
         state = replace(hand.pop(), leaves=tuple(leaves), surface=None)
-        return replace(state, surface=spec.build(state, ctx))
+        built = spec.build(state, ctx)
+        if regions is not None:
+            built.model.measure_regions_on(regions)
+        return replace(state, surface=built)
 
     @staticmethod
     def _scene(state: PostState) -> Scene:
