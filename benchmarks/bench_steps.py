@@ -9,9 +9,12 @@ Usage: python benchmarks/bench_steps.py [--part tune|validate|all] [--before FIL
 Prints one markdown row per scan (total error % with each rule file, the difference) and the
 median per part. The generated scenes are ``tests/scenes.airborne_step_and_building`` (level
 terrain 160 m x 160 m, 1 point per square metre, a terrain step of 1.5, 2, 3, 4 or 5 m with a 2 m
-wide bank, a flat-roofed building 7 m up beside it; seeds 9, 1, 2), whole (the upper terrace and
-its bank one patch) and cropped to their middle 90 m x 90 m (the bank a patch of its own). Steps of
-1.5 and 2 m are below `roofs`' 2.5 m: what `understory` and `low_terraces` decide. kbs runs
+wide bank, a flat-roofed building 7 m up beside it; seeds 9, 1, 2; and, since session 38, steps of
+8, 10 and 12 m, seed 9), whole (the upper terrace and its bank one patch) and cropped to their
+middle 90 m x 90 m (the bank a patch of its own), and ``tests/scenes.airborne_pit`` (a quarry pit
+8 or 12 m deep in 1 % terrain, a building beside it; seeds 3, 4). Steps of 1.5 and 2 m are below
+`roofs`' 2.5 m: what `understory` and `low_terraces` decide; from 7 m, and in the pits, the
+terrain above the face is a plateau (`drops`, `open_surface`, `vast`). kbs runs
 in one process (``jobs=1``: the same labels as any number of processes), as bench_ground.py's
 'kbs airborne' rows. The urban blocks are ``benchmarks/roof_scenes.roofs_scene``, the seeds of
 each part as benchmarks/splits.yaml's ``airborne-roofs-generated`` declares them (part
@@ -31,7 +34,7 @@ sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE.parent / "tests"))
 import bench_ground as bg  # noqa: E402
 from roof_scenes import roofs_scene  # noqa: E402
-from scenes import airborne_step_and_building  # noqa: E402
+from scenes import airborne_pit, airborne_step_and_building  # noqa: E402
 
 from kbs.knowledge import Interpreter, load_rule_base  # noqa: E402
 
@@ -39,7 +42,8 @@ from kbs.knowledge import Interpreter, load_rule_base  # noqa: E402
 def generated() -> list[bg.Scan]:
     out = []
     for crop in (False, True):
-        for step, seed in ((1.5, 9), (2.0, 9), (3.0, 9), (4.0, 9), (5.0, 9), (4.0, 1), (4.0, 2)):
+        for step, seed in ((1.5, 9), (2.0, 9), (3.0, 9), (4.0, 9), (5.0, 9), (4.0, 1), (4.0, 2), (8.0, 9), (10.0, 9),
+                           (12.0, 9)):
             X, labels = airborne_step_and_building(seed=seed, step=step)
             if crop:
                 keep = (np.abs(X[:, 0] - 512000.0) < 45) & (np.abs(X[:, 1] - 5400000.0) < 45)
@@ -48,6 +52,11 @@ def generated() -> list[bg.Scan]:
             name = f"step {step:g} m, seed {seed}" + (", cropped" if crop else "")
             out.append(bg.Scan("generated", name, X, labels == 0, np.ones(len(X), bool), None,
                                np.array([0.0, 0.0, X[:, 2].min() - 10.0]), 0.5))
+    for depth, seed in ((8.0, 3), (12.0, 3), (8.0, 4), (12.0, 4)):
+        X, labels = airborne_pit(seed=seed, depth=depth)
+        X = X - X.mean(axis=0)
+        out.append(bg.Scan("generated", f"pit {depth:g} m, seed {seed}", X, labels == 0, np.ones(len(X), bool), None,
+                           np.array([0.0, 0.0, X[:, 2].min() - 10.0]), 0.5))
     return out
 
 
