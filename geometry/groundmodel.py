@@ -205,6 +205,16 @@ class SurfaceEdges:
             return np.zeros(0)
         return self.drop[self._edge_order[self._starts[r]:self._ends[r]]]
 
+    def stat_of(self, r: int, name: str, stat: Callable[[np.ndarray], Any]) -> float:
+        """``stat`` (called ``name``) of region ``r``'s drops (non-empty), computed once per region:
+        every cluster of a large surface asks for the same value."""
+        key = ("stat", int(r), name)
+        got = self._cache.get(key)
+        if got is None:
+            got = float(stat(self.drops_of(r)))
+            self._cache[key] = got
+        return got
+
     def size_of(self, r: int) -> int:
         """How many surface points region ``r`` holds (0 for -1, no region)."""
         return int(self.sizes[r]) if r >= 0 else 0
@@ -802,7 +812,9 @@ class LocalGround:
     def regions(self) -> SurfaceRegions:
         """Where the continuous surfaces (:meth:`edges`) are measured: this surface's points, or
         those of the surface a relabel step started from (:meth:`measure_regions_on`)."""
-        return SurfaceRegions(self.plane, self.heights, self.owners, self.owner_ids, self.__dict__.get("tree"))
+        # the surface's own k-d tree (built now if no query built it yet, and kept for its queries),
+        # held by reference: not the whole surface
+        return SurfaceRegions(self.plane, self.heights, self.owners, self.owner_ids, self.tree)
 
     def measure_regions_on(self, regions: SurfaceRegions) -> None:
         """Measure the continuous surfaces on ``regions`` (those of an earlier surface) instead of

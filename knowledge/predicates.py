@@ -299,7 +299,8 @@ class Predicate:
     #: far from the cluster's points (along the ground plane) the surface points it reads may lie,
     #: given its parameters (every one, defaults filled in) and the surface (a
     #: :class:`~kbs.geometry.groundmodel.LocalGround`); None: not known. A relabel rule judged again
-    #: (``passes``) asks only the clusters within reach of those whose label changed.
+    #: (``passes``) asks only the clusters within reach of those whose label changed; 0: it reads
+    #: nothing the step's moves change.
     reach: Callable[[Mapping[str, Any], Any], float | None] | None = None
 
     @property
@@ -457,7 +458,8 @@ def predicate(
         plane between a cluster's point and a surface point the measure reads (None when not
         known). A ``post.relabel`` rule judged again with ``passes`` then asks only the clusters
         within reach of those whose label changed: the others would measure the same. Without it
-        every cluster is asked again.
+        every cluster is asked again. 0: the measure reads nothing a relabel step's moves change
+        (the continuous surfaces, fixed within a step): it asks no cluster again by itself.
     """
 
     def wrap(func: Callable) -> Predicate:
@@ -836,8 +838,14 @@ def height_above_slope_surface(cluster: Cluster, scene: Scene, *, slope: float =
     return float(_STATS[stat](h))
 
 
+def _step_regions(params: Mapping[str, Any], model: Any) -> float:
+    """0: the continuous surfaces are those the relabel step found (LocalGround.regions), whatever
+    its passes move."""
+    return 0.0
+
+
 @predicate(unit="length", needs_ground_model=True, choices={"stat": tuple(_STATS), "over": ("surface", "cluster")},
-           bounds={"gap": (0.0, None), "slope": (0.0, 89.0), "step": (0.0, None)})
+           bounds={"gap": (0.0, None), "slope": (0.0, 89.0), "step": (0.0, None)}, reach=_step_regions)
 def edge_drop(cluster: Cluster, scene: Scene, *, gap: float = 3.0, slope: float = 45.0, step: float = 0.5,
               stat: str = "median", over: str = "surface") -> Measurement:
     """How far the continuous ground surface the cluster is part of stands above the surfaces
@@ -870,7 +878,8 @@ def edge_drop(cluster: Cluster, scene: Scene, *, gap: float = 3.0, slope: float 
     if not d.size:
         return Measurement(math.nan, undefined=f"its continuous surface ({edges.size_of(r):,} points) meets no "
                                                f"other within {gap:g}")
-    return Measurement(float(_STATS[stat](d)), details={"surface_points": edges.size_of(r), "edge_points": int(d.size)})
+    return Measurement(edges.stat_of(r, stat, _STATS[stat]), details={"surface_points": edges.size_of(r),
+                                                                       "edge_points": int(d.size)})
 
 
 def _surface_region(cluster: Cluster, scene: Scene, gap: float, slope: float, step: float):
@@ -884,7 +893,8 @@ def _surface_region(cluster: Cluster, scene: Scene, gap: float, slope: float, st
 
 
 @predicate(unit="ratio", value_range=(0.0, 1.0), needs_ground_model=True,
-           bounds={"gap": (0.0, None), "slope": (0.0, 89.0), "step": (0.0, None), "min_drop": (0.0, None)})
+           bounds={"gap": (0.0, None), "slope": (0.0, 89.0), "step": (0.0, None), "min_drop": (0.0, None)},
+           reach=_step_regions)
 def surface_enclosure(cluster: Cluster, scene: Scene, *, gap: float = 3.0, slope: float = 45.0, step: float = 0.5,
                       min_drop: float = 5.0) -> Measurement:
     """How far the continuous ground surface the cluster is part of (as edge_drop joins them) is
@@ -907,7 +917,8 @@ def surface_enclosure(cluster: Cluster, scene: Scene, *, gap: float = 3.0, slope
 
 
 @predicate(unit="area", value_range=(0.0, None), needs_ground_model=True,
-           bounds={"gap": (0.0, None), "slope": (0.0, 89.0), "step": (0.0, None), "cell": (0.0, None)})
+           bounds={"gap": (0.0, None), "slope": (0.0, 89.0), "step": (0.0, None), "cell": (0.0, None)},
+           reach=_step_regions)
 def surface_area(cluster: Cluster, scene: Scene, *, gap: float = 3.0, slope: float = 45.0, step: float = 0.5,
                  cell: float = 3.0) -> Measurement:
     """The area the continuous ground surface the cluster is part of (as edge_drop joins them)

@@ -171,3 +171,46 @@ def test_a_predicate_without_a_reach_has_every_cluster_asked_again():
     assert not (seg.label[core] == rb.label_names.index("ground")).any()  # taken in pass 2 all the same
     ref, *_ = _run(8)
     assert np.array_equal(seg.label, ref.label)
+
+
+def test_the_continuous_surface_checks_ask_no_cluster_again():
+    """The airborne gates on plateaus (`drops`, `open_surface`, `vast`) measure the continuous
+    surfaces the relabel step found, which its passes do not change: their predicates' reach is 0,
+    so `inner_roofs` still asks again only the clusters within the surface's radius (5 m) of those
+    that moved, and a rule reading nothing else would ask every cluster (None: not known). On a
+    quarry pit (the rim a plateau), asking every cluster gives the same labels and records."""
+    from kbs.knowledge import load_rule_base
+    from kbs.knowledge.post.relabel import Relabel
+    from scenes import airborne_pit
+
+    rb = load_rule_base("airborne")
+
+    class Ctx:
+        rule_base = rb
+
+    class Model:
+        radius, per_range = 5.0, 0.0
+
+    assert Relabel._reach({"well_raised", "drops", "open_surface", "vast"}, Ctx, Model) == 5.0
+    assert Relabel._reach({"drops", "open_surface", "vast"}, Ctx, Model) is None
+    X, labels = airborne_pit(depth=8.0)
+    X = X - X.mean(axis=0)
+    sensor = np.array([0.0, 0.0, X[:, 2].min() - 10.0])
+    asked: list[str] = []
+    judge = Relabel._judge
+
+    def counting(rule, lf, scene, ctx, fresh):
+        asked.append(lf.id)
+        return judge(rule, lf, scene, ctx, fresh)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(Relabel, "_judge", staticmethod(counting))
+        seg = Interpreter(rb, sensor=sensor, jobs=1).run(X)
+        near = len(asked)
+        asked.clear()
+        mp.setattr(Relabel, "_near", staticmethod(lambda todo, *a: todo))
+        every = Interpreter(rb, sensor=sensor, jobs=1).run(X)
+    assert (seg.label[labels == 0] == rb.label_names.index("ground")).mean() > 0.97
+    assert np.array_equal(seg.label, every.label) and np.array_equal(seg.cluster, every.cluster)
+    assert seg.explanation.to_dict() == every.explanation.to_dict()
+    assert 0 < near < len(asked), (near, len(asked))  # later passes ran, asking fewer

@@ -351,7 +351,8 @@ class Relabel(PostStep):
     @staticmethod
     def _reach(names: set[str], ctx: PostContext, model: Any) -> float | None:
         """How far from a cluster's points the surface points its checks ``names`` read may lie
-        (the largest of their predicates' reach), or None when one does not say."""
+        (the largest of their predicates' reach, those that read nothing the step's moves change
+        left out), or None when one does not say."""
         checks = ctx.rule_base.checks
         reach = 0.0
         for n in names:
@@ -360,6 +361,8 @@ class Relabel(PostStep):
                 return None
             params = {p.name: p.default for p in pred.params.values()} | dict(checks[n].params)
             r = pred.reach(params, model)
+            if r == 0.0:  # reads nothing the step's moves change
+                continue
             if r is None or not np.isfinite(r) or r <= 0.0:
                 return None
             reach = max(reach, float(r))
