@@ -1052,7 +1052,7 @@ def test_airborne_rules_keep_a_terrace_whose_bank_is_a_patch_of_its_own(tmp_path
     back = [c for c in doc["explanation"]["clusters"] if c["relabel"] and c["relabel"]["rule"] == "terraces"]
     assert len(back) == 1
     measured = {m["check"]: m["passed"] for m in back[0]["relabel"]["measured"]}
-    assert measured == {"joins": False, "bank": True, "on_terrain": True}, measured
+    assert measured == {"joins": False, "bank": True, "on_terrain": True, "drops": False}, measured
 
 
 def test_height_above_slope_is_at_most_zero_on_terrain_no_steeper_than_the_slope():
