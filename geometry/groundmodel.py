@@ -240,7 +240,8 @@ class SurfaceEdges:
         inside the convex hull (in the plane) of the points that allow the lowest terrain under its
         edge points dropping by ``min_drop`` or more, and how many such edge points it has (0: the
         share is NaN). A roof drops to the street on every side: the street's points around it
-        enclose it (1), or half of it where the scan cuts the building with two walls in view; the
+        enclose it (1), a quarter to a half of it where the scan cuts the building with two walls
+        in view; the
         upper terrace of a terrain step drops on one side only, the street beside it lies along a
         line (0), as does the rim of a pit, whose floor lies inside the rim, not around it."""
         key = ("enclosure", int(r), float(min_drop))
@@ -307,10 +308,10 @@ class SurfaceRegions:
         got = self._edges.get(key)
         if got is None:
             tree = self.tree_
-            if tree is None:
+            if tree is None:  # as LocalGround.tree builds it (the same neighbours, ties and all)
                 from scipy.spatial import cKDTree
 
-                tree = cKDTree(self.plane)
+                tree = cKDTree(self.plane, balanced_tree=False, compact_nodes=False)
             got = SurfaceEdges.build(self.plane, self.heights, self.owners, len(self.owner_ids), tree,
                                      float(gap), float(slope), float(step))
             self._edges[key] = got
@@ -812,9 +813,9 @@ class LocalGround:
     def regions(self) -> SurfaceRegions:
         """Where the continuous surfaces (:meth:`edges`) are measured: this surface's points, or
         those of the surface a relabel step started from (:meth:`measure_regions_on`)."""
-        # the surface's own k-d tree (built now if no query built it yet, and kept for its queries),
-        # held by reference: not the whole surface
-        return SurfaceRegions(self.plane, self.heights, self.owners, self.owner_ids, self.tree)
+        # the surface's k-d tree if a query built it (held by reference: not the whole surface);
+        # otherwise the regions build the same tree when their edges are first asked for
+        return SurfaceRegions(self.plane, self.heights, self.owners, self.owner_ids, self.__dict__.get("tree"))
 
     def measure_regions_on(self, regions: SurfaceRegions) -> None:
         """Measure the continuous surfaces on ``regions`` (those of an earlier surface) instead of
