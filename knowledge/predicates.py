@@ -901,8 +901,8 @@ def surface_enclosure(cluster: Cluster, scene: Scene, *, gap: float = 3.0, slope
     enclosed by the surfaces it drops to: the share of its points inside the convex hull, along
     the ground plane, of the points beside its edges that allow the lowest terrain under each edge
     point dropping by min_drop or more. A roof drops to the street on every side and the street
-    around it encloses it (1; about a half where the scan cuts the building with two walls in
-    view); the upper terrace of a terrain step drops on one side only (0), and the rim of a pit
+    around it encloses it (1; a quarter to a half where the scan cuts the building with two walls
+    in view); the upper terrace of a terrain step drops on one side only (0), and the rim of a pit
     drops to a floor that lies inside the rim, not around it (0). Undefined for a cluster not part
     of the surface and for a surface with no edge dropping by min_drop. Rules judged again (passes)
     measure the surfaces the relabel step started from. Usable in post.relabel conditions only."""
