@@ -805,11 +805,6 @@ class LocalGround:
         return _BlockGrid(origin, side, shape2, blocks)
 
     @functools.cached_property
-    def owner_index(self) -> dict[str, int]:
-        """Each owner id's index in :attr:`owner_ids` (a dict: asked once per cluster and check)."""
-        return {oid: k for k, oid in enumerate(self.owner_ids)}
-
-    @functools.cached_property
     def regions(self) -> SurfaceRegions:
         """Where the continuous surfaces (:meth:`edges`) are measured: this surface's points, or
         those of the surface a relabel step started from (:meth:`measure_regions_on`)."""

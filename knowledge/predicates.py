@@ -844,6 +844,16 @@ def _step_regions(params: Mapping[str, Any], model: Any) -> float:
     return 0.0
 
 
+def _surfaces_of(cluster: Cluster, scene: Scene, gap: float, slope: float, step: float):
+    """(the surfaces' regions, their :class:`~kbs.geometry.groundmodel.SurfaceEdges`, the
+    cluster's owner index), or (regions, None, None) for a cluster not part of the surface."""
+    regions = scene.ground_model.regions
+    k = regions.owner_index.get(cluster.id)
+    if k is None:
+        return regions, None, None
+    return regions, regions.edges(gap, slope, step), k
+
+
 @predicate(unit="length", needs_ground_model=True, choices={"stat": tuple(_STATS), "over": ("surface", "cluster")},
            bounds={"gap": (0.0, None), "slope": (0.0, 89.0), "step": (0.0, None)}, reach=_step_regions)
 def edge_drop(cluster: Cluster, scene: Scene, *, gap: float = 3.0, slope: float = 45.0, step: float = 0.5,
@@ -862,11 +872,9 @@ def edge_drop(cluster: Cluster, scene: Scene, *, gap: float = 3.0, slope: float 
     cluster's own points that stand at an edge of their surface (how far the cluster itself stands
     above the surfaces beside it), undefined when none does. Rules judged again (passes) measure
     the surfaces the relabel step started from. Usable in post.relabel conditions only."""
-    regions = scene.ground_model.regions
-    k = regions.owner_index.get(cluster.id)
-    if k is None:
+    regions, edges, k = _surfaces_of(cluster, scene, gap, slope, step)
+    if edges is None:
         return Measurement(math.nan, undefined="not part of the local ground surface")
-    edges = regions.edges(gap, slope, step)
     if over == "cluster":
         d = edges.drop[regions.points_of(k)]
         d = d[~np.isnan(d)]
@@ -884,11 +892,9 @@ def edge_drop(cluster: Cluster, scene: Scene, *, gap: float = 3.0, slope: float 
 
 def _surface_region(cluster: Cluster, scene: Scene, gap: float, slope: float, step: float):
     """(the continuous surfaces, the one holding most of the cluster's points) or (None, a reason)."""
-    regions = scene.ground_model.regions
-    k = regions.owner_index.get(cluster.id)
-    if k is None:
+    _, edges, k = _surfaces_of(cluster, scene, gap, slope, step)
+    if edges is None:
         return None, "not part of the local ground surface"
-    edges = regions.edges(gap, slope, step)
     return edges, int(edges.owner_region[k])
 
 
