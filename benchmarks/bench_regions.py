@@ -35,7 +35,7 @@ def load(name: str, seg: Segmenter) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     if name in ("samp11", "samp12"):
         pc = read_cloud(DATA / "isprs" / f"{name}.txt")
         truth, valid = pc.fields["col3"].astype(int) == 0, np.ones(len(pc), bool)
-    elif name.startswith("samp"):
+    elif name.startswith("samp") and name[4:].isdigit():  # not sample_c
         pc = read_cloud(DATA / "isprs" / f"{name}-utm.pcd")
         truth = np.loadtxt(DATA / "isprs" / f"{name}-utm.labels.txt")[pc.index].astype(int) == 0
         valid = np.ones(len(pc), bool)
