@@ -69,10 +69,11 @@ def main() -> None:
     ap.add_argument("--scans", nargs="+", default=TUNE + VALIDATE)
     ap.add_argument("--sizes", nargs="+", type=float, default=[100.0])
     ap.add_argument("--repeat", type=int, default=2, help="copies along each axis of the larger file (default 2)")
+    ap.add_argument("--rules", default="airborne", help="rule base (default: the shipped airborne one)")
     args = ap.parse_args()
-    seg = Segmenter("airborne", jobs=1)
+    seg = Segmenter(args.rules, jobs=1)
     runs = [("untiled", None)] + [(f"--tile {t:g}", t) for t in args.sizes]
-    print(f"rules airborne; the larger file: {args.repeat} x {args.repeat} mirrored copies; total error %, "
+    print(f"rules {args.rules}; the larger file: {args.repeat} x {args.repeat} mirrored copies; total error %, "
           "the original copy's points" + ("; mean (min-max) over the copies" if args.repeat > 2 else ""))
     print()
     print("| scan | part | points | width m | " + " | ".join(f"alone, {n} | in the larger file, {n}" for n, _ in runs)

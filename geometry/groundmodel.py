@@ -307,15 +307,72 @@ class SurfaceRegions:
         key = (float(gap), float(slope), float(step))
         got = self._edges.get(key)
         if got is None:
-            tree = self.tree_
-            if tree is None:  # as LocalGround.tree builds it (the same neighbours, ties and all)
-                from scipy.spatial import cKDTree
-
-                tree = cKDTree(self.plane, balanced_tree=False, compact_nodes=False)
-            got = SurfaceEdges.build(self.plane, self.heights, self.owners, len(self.owner_ids), tree,
+            got = SurfaceEdges.build(self.plane, self.heights, self.owners, len(self.owner_ids), self._tree(),
                                      float(gap), float(slope), float(step))
             self._edges[key] = got
         return got
+
+    def drops_beside(self, gap: float, slope: float, step: float, r: int, alive: np.ndarray) -> np.ndarray:
+        """The drops of region ``r``'s edge points (:meth:`edges`) when only the points of the
+        owners ``alive`` (bool, one per owner) may lie beside them: an edge point whose surfaces
+        beside it all belong to owners no longer alive is no longer at an edge (left out). With
+        every owner alive, the drops of :meth:`SurfaceEdges.drops_of`. A low roof between taller
+        ones drops to the street and rises to them; once they are taken for roofs, it drops."""
+        edges = self.edges(gap, slope, step)
+        if r < 0 or edges._starts[r] < 0:
+            return np.zeros(0)
+        if not self.touched(gap, slope, step, alive)[r]:  # no point that left lies beside it
+            return edges.drops_of(r)
+        key = ("beside", float(gap), float(slope), float(step), int(r), alive.tobytes())
+        got = self._edges.get(key)
+        if got is None:
+            from scipy.spatial import cKDTree
+
+            # an edge point's partners may only be fewer: its pairs are among those of the points
+            # that stood at an edge with every owner alive
+            at = edges._edge_order[edges._starts[r]:edges._ends[r]]
+            pairs = cKDTree(self.plane[at], balanced_tree=False, compact_nodes=False).sparse_distance_matrix(
+                self._tree(), gap, output_type="ndarray")
+            a, b = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
+            keep = edges.region[b] != r
+            if self.owners is not None:
+                keep &= alive[self.owners[b]]
+            lowest = np.full(at.size, np.inf)
+            np.minimum.at(lowest, a[keep], self.heights[b[keep]] + float(np.tan(np.radians(slope))) * pairs["v"][keep])
+            edge = np.isfinite(lowest)
+            got = self.heights[at[edge]] - lowest[edge]
+            self._edges[key] = got
+        return got
+
+    def touched(self, gap: float, slope: float, step: float, alive: np.ndarray) -> np.ndarray:
+        """(regions,) bool: the regions (:meth:`edges`) with a point of an owner no longer alive
+        (``alive``: bool, one per owner) beside them, within ``gap``: those whose drops
+        :meth:`drops_beside` measures anew; computed once per ``alive``."""
+        edges = self.edges(gap, slope, step)
+        key = ("touched", float(gap), float(slope), float(step), alive.tobytes())
+        got = self._edges.get(key)
+        if got is None:
+            got = np.zeros(edges.n_regions, dtype=bool)
+            gone = np.flatnonzero(~alive[self.owners]) if self.owners is not None else np.zeros(0, np.int64)
+            if gone.size:
+                from scipy.spatial import cKDTree
+
+                pairs = cKDTree(self.plane[gone], balanced_tree=False, compact_nodes=False).sparse_distance_matrix(
+                    self._tree(), gap, output_type="ndarray")
+                a, b = gone[pairs["i"]], pairs["j"].astype(np.int64)
+                other = edges.region[a] != edges.region[b]
+                got[edges.region[b[other]]] = True
+            self._edges[key] = got
+        return got
+
+    def _tree(self) -> Any:
+        """A k-d tree over :attr:`plane`: the surface's own, when a query built it, else one built
+        as LocalGround.tree builds it (the same neighbours, ties and all), kept."""
+        if self.tree_ is None:
+            from scipy.spatial import cKDTree
+
+            object.__setattr__(self, "tree_", cKDTree(self.plane, balanced_tree=False, compact_nodes=False))
+        return self.tree_
 
 
 @dataclass(frozen=True)
@@ -812,12 +869,33 @@ class LocalGround:
         # otherwise the regions build the same tree when their edges are first asked for
         return SurfaceRegions(self.plane, self.heights, self.owners, self.owner_ids, self.__dict__.get("tree"))
 
-    def measure_regions_on(self, regions: SurfaceRegions) -> None:
+    def measure_regions_on(self, regions: SurfaceRegions | None) -> None:
         """Measure the continuous surfaces on ``regions`` (those of an earlier surface) instead of
         this surface's points: a relabel step judging its rules again on a surface rebuilt without
         the clusters it moved keeps the surfaces as the step found them (a roof whose outer patches
-        were taken is still the roof whose streets enclose it, not the patch left)."""
-        self.__dict__["regions"] = regions
+        were taken is still the roof whose streets enclose it, not the patch left). None: on this
+        surface's own points again (the step is over; a later step finds its own surfaces)."""
+        if regions is None:
+            self.__dict__.pop("regions", None)
+        else:
+            self.__dict__["regions"] = regions
+
+    def owners_alive(self) -> np.ndarray:
+        """(owners of :attr:`regions`,) bool: which of the owners the continuous surfaces are
+        measured on are owners of this surface (all, unless it measures on an earlier surface's
+        regions and some clusters left it since); computed once."""
+        regions = self.regions
+        got = self.__dict__.get("_owners_alive")
+        if got is None or got[0] is not regions:
+            alive = np.zeros(len(regions.owner_ids), dtype=bool)
+            index = regions.owner_index
+            for oid in self.owner_ids:
+                k = index.get(oid)
+                if k is not None:
+                    alive[k] = True
+            got = (regions, alive)
+            self.__dict__["_owners_alive"] = got
+        return got[1]
 
     def edges(self, gap: float, slope: float, step: float) -> SurfaceEdges:
         """The surface's points grouped into continuous surfaces and their edges' drops (see

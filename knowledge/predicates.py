@@ -844,6 +844,12 @@ def _step_regions(params: Mapping[str, Any], model: Any) -> float:
     return 0.0
 
 
+def _edge_drop_reach(params: Mapping[str, Any], model: Any) -> float | None:
+    """0 (the step's surfaces, :func:`_step_regions`), but None with beside: ground: what left the
+    surface beside any edge of the cluster's surface, however far from the cluster, moves it."""
+    return None if params.get("beside") == "ground" else 0.0
+
+
 def _surfaces_of(cluster: Cluster, scene: Scene, gap: float, slope: float, step: float):
     """(the surfaces' regions, their :class:`~kbs.geometry.groundmodel.SurfaceEdges`, the
     cluster's owner index), or (regions, None, None) for a cluster not part of the surface."""
@@ -854,10 +860,12 @@ def _surfaces_of(cluster: Cluster, scene: Scene, gap: float, slope: float, step:
     return regions, regions.edges(gap, slope, step), k
 
 
-@predicate(unit="length", needs_ground_model=True, choices={"stat": tuple(_STATS), "over": ("surface", "cluster")},
-           bounds={"gap": (0.0, None), "slope": (0.0, 89.0), "step": (0.0, None)}, reach=_step_regions)
+@predicate(unit="length", needs_ground_model=True,
+           choices={"stat": tuple(_STATS), "over": ("surface", "cluster"), "beside": ("all", "ground")},
+           applies_with={"beside": ("over", "surface")},
+           bounds={"gap": (0.0, None), "slope": (0.0, 89.0), "step": (0.0, None)}, reach=_edge_drop_reach)
 def edge_drop(cluster: Cluster, scene: Scene, *, gap: float = 3.0, slope: float = 45.0, step: float = 0.5,
-              stat: str = "median", over: str = "surface") -> Measurement:
+              stat: str = "median", over: str = "surface", beside: str = "all") -> Measurement:
     """How far the continuous ground surface the cluster is part of stands above the surfaces
     beside its edges: the local ground surface's points (post.ground_model) are joined into
     continuous surfaces (a point and one of its 8 nearest within gap, along the ground plane, whose
@@ -871,10 +879,23 @@ def edge_drop(cluster: Cluster, scene: Scene, *, gap: float = 3.0, slope: float 
     is) and for a surface that meets no other within gap. With over: cluster, the stat is over the
     cluster's own points that stand at an edge of their surface (how far the cluster itself stands
     above the surfaces beside it), undefined when none does. Rules judged again (passes) measure
-    the surfaces the relabel step started from. Usable in post.relabel conditions only."""
+    the surfaces the relabel step started from; with beside: ground, only those of their points
+    still labelled as the surface is count beside its edges (the clusters the rules took in earlier
+    passes are out): a low roof between taller ones, which rises to them, drops at its edges once
+    they are taken for roofs. Usable in post.relabel conditions only."""
     regions, edges, k = _surfaces_of(cluster, scene, gap, slope, step)
     if edges is None:
         return Measurement(math.nan, undefined="not part of the local ground surface")
+    alive = scene.ground_model.owners_alive() if beside == "ground" else None
+    if (alive is not None and not alive.all()  # a later pass: some clusters left the surface, beside this one's
+            and regions.touched(gap, slope, step, alive)[int(edges.owner_region[k])]):
+        r = int(edges.owner_region[k])
+        d = regions.drops_beside(gap, slope, step, r, alive)
+        if not d.size:
+            return Measurement(math.nan, undefined=f"its continuous surface ({edges.size_of(r):,} points) meets no "
+                                                   f"other still labelled as the surface within {gap:g}")
+        return Measurement(float(_STATS[stat](d)), details={"surface_points": edges.size_of(r),
+                                                            "edge_points": int(d.size)})
     if over == "cluster":
         d = edges.drop[regions.points_of(k)]
         d = d[~np.isnan(d)]

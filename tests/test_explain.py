@@ -304,6 +304,35 @@ def test_the_readme_run_and_explain_block_is_what_kbs_prints(tmp_path):
             at = got.index(line, at) + 1
 
 
+@pytest.mark.slow
+def test_the_readme_airborne_outputs_are_what_kbs_prints(shared_data, tmp_path):
+    """Two printed outputs of the README's airborne examples, on the shared scans: the tiles line of
+    `kbs run --rules airborne --tile 121 samp11.txt`, and the classes of the LAS it writes for
+    autzen_trim.las (they had gone stale: 69 clusters stitched and other class counts, from rule
+    bases sessions before)."""
+    import subprocess
+    import sys
+
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    tiles = re.search(r"\$ kbs run --rules airborne --tile 121 \.\./shared/data/isprs/samp11\.txt\n\.\.\.\n(  tiles: .*)\n",
+                      readme).group(1)
+    classes = re.search(r"print\(np\.bincount\(laspy\.read\('out/autzen_trim\.las'\)\.classification\)\)\"\n(\[.*\])\n",
+                        readme).group(1)
+    run = [sys.executable, "-c", "import sys; from kbs.cli.main import main; sys.exit(main())", "run", "--rules",
+           "airborne"]
+    r = subprocess.run([*run, "--tile", "121", str(shared_data / "isprs" / "samp11.txt"), "--out", str(tmp_path / "a")],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert tiles in (r.stderr + r.stdout).splitlines(), (tiles, r.stderr)
+    r = subprocess.run([*run, str(shared_data / "las" / "autzen_trim.las"), "--out", str(tmp_path / "b")],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    import laspy
+
+    got = np.bincount(laspy.read(str(tmp_path / "b" / "autzen_trim.las")).classification)
+    assert str(got) == classes, (str(got), classes)
+
+
 # -- 7. the records are frozen ------------------------------------------------------------------------
 
 

@@ -953,15 +953,17 @@ def test_airborne_rules_take_a_large_buildings_inner_roof_for_an_object(tmp_path
     r = kbs("explain", str(tmp_path / "o" / "block.json"), "--cluster", large[0]["id"])
     assert r.returncode == 0, r.stderr
     assert "relabelled object by large_roofs [airborne.yaml:" in r.stdout and "edge_raised (edge_drop = " in r.stdout
-    # the rule base without 'large_roofs': 'above_terrain' takes inner sections 'raised' does not
-    ground, doc = _ground_of_run(tmp_path, X, airborne_without(tmp_path, ("large_roofs",), ("edge_raised",)), "block")
+    # the rule base without 'large_roofs' (nor 'low_roofs', judged again on its evidence):
+    # 'above_terrain' takes inner sections 'raised' does not
+    before = airborne_without(tmp_path, ("large_roofs", "low_roofs"), ("edge_raised", "edge_raised_left"))
+    ground, doc = _ground_of_run(tmp_path, X, before, "block")
     assert ground[labels == 1].mean() < 0.1, ground[labels == 1].mean()  # 0.062 measured
     roofs = [c for c in doc["explanation"]["clusters"] if c["relabel"] and c["relabel"]["rule"] == "roofs"
              and not next(k for k in c["checks"] if k["check"] == "raised")["passed"]]
     assert roofs, "inner roof patches: not raised above their neighbours, above the terrain the slope allows"
     r = kbs("explain", str(tmp_path / "o" / "block.json"), "--cluster", roofs[0]["id"])
     assert r.returncode == 0, r.stderr
-    assert "relabelled object by roofs [airborne-without-large_roofs.yaml:" in r.stdout
+    assert "relabelled object by roofs [airborne-without-large_roofs-low_roofs.yaml:" in r.stdout
     assert "above_terrain (height_above_slope_surface = " in r.stdout
 
 
@@ -1177,6 +1179,86 @@ def test_edge_drop_predicate_measures_the_surface_a_cluster_is_part_of():
                      Scene(np.zeros(3), Ground(np.array([0, 0, 1.0]), np.zeros(3), "fixed"), "m", ground_model=lone),
                      params)
     assert not m.defined and "meets no other within 3" in m.undefined
+
+
+def _low_roof_between_taller_ones(seed: int = 0):
+    """Surface points at 1 a square metre of a 100 m x 100 m street level (z 0) with a block 40 m deep
+    (y > 10) of three buildings side by side: a low roof 8 m up (c1, x in [-10, 10]) between two
+    taller ones 18 m up (c2, c3); the street (c0) along the block's front only (the scan ends at the
+    block's back). Owners c0 to c3."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-50, 50, (10000, 2))
+    x, y = xy[:, 0], xy[:, 1]
+    block = y > 10
+    low = block & (np.abs(x) <= 10)
+    z = rng.normal(0, 0.03, x.size)
+    z[block] += 18.0
+    z[low] -= 10.0
+    owner = np.zeros(x.size, dtype=np.int64)
+    owner[low], owner[block & (x < -10)], owner[block & (x > 10)] = 1, 2, 3
+    return np.column_stack([xy, z]), owner
+
+
+def test_drops_beside_the_surfaces_still_ground():
+    """SurfaceRegions.drops_beside: with every owner alive, the drops of SurfaceEdges.drops_of; the
+    low roof between two taller ones rises to them at most of its edges (median below 0), and drops
+    by about its height to the street once they are out (their points no longer beside its edges)."""
+    X, owner = _low_roof_between_taller_ones()
+    ids = ("c0", "c1", "c2", "c3")
+    model = LocalGround.build(X, np.arange(len(X)), np.array([0, 0, 1.0]), np.zeros(3), owners=owner, owner_ids=ids)
+    regions = model.regions
+    edges = regions.edges(3.0, 45.0, 0.5)
+    r = int(edges.owner_region[1])
+    every = regions.drops_beside(3.0, 45.0, 0.5, r, np.ones(4, bool))
+    assert np.allclose(np.sort(every), np.sort(edges.drops_of(r)))
+    assert np.median(every) < -5.0 and every.max() > 5.0  # rises to the taller roofs, drops to the street
+    street_only = regions.drops_beside(3.0, 45.0, 0.5, r, np.array([True, True, False, False]))
+    assert 0 < street_only.size < every.size
+    assert street_only.min() > 5.0 and np.median(street_only) > 6.0  # 8 m less a 45 deg slope's rise
+    assert regions.drops_beside(3.0, 45.0, 0.5, r, np.array([True, True, False, False])) is street_only  # cached
+    assert regions.drops_beside(3.0, 45.0, 0.5, r, np.array([False, True, False, False])).size == 0
+
+
+def test_edge_drop_beside_ground_in_a_later_pass():
+    """The predicate 'edge_drop' with beside: ground: on the surface the relabel step started from,
+    the same value as without; on a surface rebuilt without the taller roofs (a later pass, the
+    step's surfaces kept), the low roof drops at its edges; a rule file giving 'beside' with
+    over: cluster is refused where it says so."""
+    from kbs.knowledge.predicates import Cluster, Ground, Scene
+
+    X, owner = _low_roof_between_taller_ones()
+    ids = ("c0", "c1", "c2", "c3")
+    model = LocalGround.build(X, np.arange(len(X)), np.array([0, 0, 1.0]), np.zeros(3), owners=owner, owner_ids=ids)
+    ground = Ground(np.array([0, 0, 1.0]), np.zeros(3), "fixed")
+    pred = PredicateRegistry.default(entry_points_too=False).get("edge_drop")
+    params = {"gap": 3.0, "slope": 45.0, "step": 0.5, "stat": "median"}
+    low = Cluster("c1", X[owner == 1], np.ones((owner == 1).sum()))
+    first = pred.measure(low, Scene(np.zeros(3), ground, "m", ground_model=model), params)
+    same = pred.measure(low, Scene(np.zeros(3), ground, "m", ground_model=model), {**params, "beside": "ground"})
+    assert first.value == same.value < -5.0
+    keep = owner <= 1  # the taller roofs taken: the surface rebuilt without them, the step's surfaces kept
+    later = LocalGround.build(X[keep], np.arange(keep.sum()), np.array([0, 0, 1.0]), np.zeros(3), owners=owner[keep],
+                              owner_ids=("c0", "c1"))
+    later.measure_regions_on(model.regions)
+    scene = Scene(np.zeros(3), ground, "m", ground_model=later)
+    assert pred.measure(low, scene, params).value == first.value  # 'all': the step's surfaces as they were
+    m = pred.measure(low, scene, {**params, "beside": "ground"})
+    assert m.defined and m.value > 6.0 and m.details["edge_points"] < first.details["edge_points"]
+    later.measure_regions_on(None)  # its own points again
+    assert later.regions is not model.regions and later.regions.owner_ids == ("c0", "c1")
+
+
+def test_edge_drop_beside_applies_over_the_surface_only(tmp_path):
+    import yaml
+
+    doc = yaml.safe_load((Path(__file__).resolve().parents[1] / "rules" / "airborne.yaml").read_text())
+    doc["checks"]["edge_raised"]["params"].update({"over": "cluster", "beside": "ground"})
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    with pytest.raises(RuleFileError) as exc:
+        load_rule_base(str(path))
+    assert "parameter 'beside' applies only with over: surface" in str(exc.value)
+    assert "bad.yaml:" in str(exc.value)
 
 
 def _street_roof_corner_and_step(seed: int = 0):

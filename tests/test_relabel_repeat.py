@@ -193,6 +193,10 @@ def test_the_continuous_surface_checks_ask_no_cluster_again():
 
     assert Relabel._reach({"well_raised", "drops", "open_surface", "vast"}, Ctx, Model) == 5.0
     assert Relabel._reach({"drops", "open_surface", "vast"}, Ctx, Model) is None
+    # 'edge_drop' with 'beside: ground' (session 39) changes where anything left the surface beside
+    # any edge of the cluster's surface, however far: with it, every cluster is asked again
+    assert Relabel._reach({"well_raised", "edge_raised"}, Ctx, Model) == 5.0
+    assert Relabel._reach({"well_raised", "edge_raised_left"}, Ctx, Model) is None
     X, labels = airborne_pit(depth=8.0)
     X = X - X.mean(axis=0)
     sensor = np.array([0.0, 0.0, X[:, 2].min() - 10.0])

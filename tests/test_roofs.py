@@ -81,7 +81,7 @@ def test_airborne_rules_take_every_roof_of_a_large_block_for_an_object(tmp_path)
     # 5 m above the ground left)
     import yaml
 
-    path = Path(airborne_without(tmp_path, ("large_roofs",), ("edge_raised",)))
+    path = Path(airborne_without(tmp_path, ("large_roofs", "low_roofs"), ("edge_raised", "edge_raised_left")))
     doc = yaml.safe_load(path.read_text())
     for step in doc["post"]:
         for rule in step.get("relabel", []):
@@ -96,7 +96,8 @@ def test_airborne_rules_take_every_roof_of_a_large_block_for_an_object(tmp_path)
     # without 'large_roofs' alone, 'terraces' no longer gives the outer patches back (their surface
     # drops to streets that enclose it): most of the roof is an object, the ridge patches not
     (tmp_path / "alone").mkdir()
-    alone, _, _, _ = _total_error(tmp_path / "alone", 0, airborne_without(tmp_path, ("large_roofs",), ("edge_raised",)))
+    alone, _, _, _ = _total_error(tmp_path / "alone", 0, airborne_without(tmp_path, ("large_roofs", "low_roofs"),
+                                                                          ("edge_raised", "edge_raised_left")))
     assert 0.5 < alone < without, (alone, without)  # 4.12 measured
     r = kbs("explain", str(tmp_path / "airborne" / "roofs0.json"))
     assert (f"ground -> object if edge_raised and (not drops or not vast or not open_surface): {len(large)} "

@@ -181,11 +181,15 @@ class Relabel(PostStep):
         del surface
         state = replace(state, ground_facts=state.ground_facts.with_local_model(relabelled=changed))
         built = False  # the surface in the state was built again from labels this step changed
+        since = list(moved)  # the leaves whose label changed since the rules were first judged
         for r in self.rules:
             if r.undoes is None and r.passes > 1:
                 hand = [state]
                 del state
-                state, changed, passes, moved = self._repeat(r, hand.pop(), ctx, changed, moved)
+                # judged again on what moved since it was first judged (by the first rules and by
+                # the passes of the rules before it), not only on what the last pass moved
+                state, changed, passes, took = self._repeat(r, hand.pop(), ctx, changed, since)
+                since += took
                 built = built or passes > 0
         for r in self.rules:
             if r.undoes is not None:
@@ -199,6 +203,9 @@ class Relabel(PostStep):
         elif not built:
             return state
         assert state.surface is not None
+        # rebuilt within this step, the surface measured the continuous surfaces the step started
+        # from; the steps after this one measure those of the surface they are given
+        state.surface.model.measure_regions_on(None)
         return replace(state, ground_facts=state.ground_facts.with_local_model(
             points_after_relabel=state.surface.model.n_points))
 
@@ -283,12 +290,12 @@ class Relabel(PostStep):
                 moved: list[int]) -> tuple[PostState, int, int, list[int]]:
         """``rule`` (it undoes none) judged again, pass after pass, on the clusters still labelled
         its 'from' that no rule relabelled, each pass against the surface built from the labels the
-        passes before left (``changed``: labels changed since the state's surface was built,
-        ``moved``: the leaves whose label they changed; the passes stop at the first that relabels
-        none). Only the clusters within reach of the moved ones are asked (:meth:`_near`): the
-        surface the others' checks read is what it was. Returns the state, the labels changed
-        since its surface was built, the passes run after the first (each built the surface) and
-        the leaves the last pass relabelled."""
+        passes before left (``changed``: labels changed since the state's surface was built, which
+        is built again first if any; ``moved``: the leaves whose label changed since the rule was
+        last judged; the passes stop at the first that relabels none). Only the clusters within
+        reach of the moved ones are asked (:meth:`_near`): the surface the others' checks read is
+        what it was. Returns the state, the labels changed since its surface was built, the passes
+        run after the first and the leaves the passes relabelled."""
         assert state.surface is not None
         checks = ctx.rule_base.checks
         fresh = {n for n in ctx.names(rule.condition) if checks[n].predicate.needs_ground_model}
@@ -296,11 +303,13 @@ class Relabel(PostStep):
         spec = state.surface.spec
         leaves = list(state.leaves)
         passes = taken = 0
-        while changed and passes + 1 < rule.passes:
+        took: list[int] = []
+        while moved and passes + 1 < rule.passes:
             surface = post_scene = None
-            hand = [state]
-            del state
-            state = self._rebuilt(hand, leaves, spec, ctx)
+            if changed:  # built again from the labels the passes before left
+                hand = [state]
+                del state
+                state = self._rebuilt(hand, leaves, spec, ctx)
             surface, changed = state.surface, 0
             assert surface is not None
             passes += 1
@@ -320,12 +329,13 @@ class Relabel(PostStep):
                     moved.append(i)
             changed = len(moved)
             taken += changed
+            took += moved
         state = replace(state, leaves=tuple(leaves))
         model = state.ground_facts.local_model
         if taken and model is not None:
             state = replace(state, ground_facts=state.ground_facts.with_local_model(
                 relabelled=(model.relabelled or 0) + taken))
-        return state, changed, passes, moved
+        return state, changed, passes, took
 
     @staticmethod
     def _rebuilt(hand: list[PostState], leaves: list[Leaf], spec: Any, ctx: PostContext) -> PostState:
