@@ -21,6 +21,7 @@ Usage:
     python benchmarks/bench_crops.py                           # real scans and the blocks of both parts
     python benchmarks/bench_crops.py --scans samp11 --blocks tune --frac 0.5
     python benchmarks/bench_crops.py --no-scans --blocks tune --before /tmp/airborne-before.yaml
+    python benchmarks/bench_crops.py --no-scans --blocks --seeds 800 819   # fresh seeds, part 'extra'
 """
 from __future__ import annotations
 
@@ -58,8 +59,10 @@ def corner_crops(X: np.ndarray, frac: float) -> list[tuple[str, np.ndarray]]:
     return out
 
 
-def scans(names: list[str], blocks: list[str]) -> list[tuple[str, str, np.ndarray, np.ndarray, np.ndarray]]:
-    """(name, part, points, truth, valid) of the real scans named and the generated blocks of the parts named."""
+def scans(names: list[str], blocks: list[str],
+          seeds: tuple[int, int] | None = None) -> list[tuple[str, str, np.ndarray, np.ndarray, np.ndarray]]:
+    """(name, part, points, truth, valid) of the real scans named, the generated blocks of the parts
+    named, and those of ``seeds`` (first, last; part 'extra': seeds neither part holds)."""
     seg = Segmenter("airborne", jobs=1)  # only for the file's unit (metres)
     out = []
     for name in names:
@@ -72,6 +75,10 @@ def scans(names: list[str], blocks: list[str]) -> list[tuple[str, str, np.ndarra
             X, labels, _ = roof_scenes.roofs_scene(seed)
             X = X - np.floor(X.min(axis=0))
             out.append((f"block {seed}", part, X, labels == 0, np.ones(len(X), bool)))
+    for seed in range(seeds[0], seeds[1] + 1) if seeds else ():
+        X, labels, _ = roof_scenes.roofs_scene(seed)
+        X = X - np.floor(X.min(axis=0))
+        out.append((f"block {seed}", "extra", X, labels == 0, np.ones(len(X), bool)))
     return out
 
 
@@ -82,6 +89,8 @@ def main() -> None:
     ap.add_argument("--no-scans", action="store_true", help="the generated blocks only")
     ap.add_argument("--blocks", nargs="*", choices=["tune", "validate"], default=["tune", "validate"],
                     help="parts of the generated urban blocks to run (none: --blocks with no value)")
+    ap.add_argument("--seeds", nargs=2, type=int, metavar=("FIRST", "LAST"), default=None,
+                    help="also the generated blocks of these seeds (part 'extra': neither part's)")
     ap.add_argument("--frac", type=float, default=0.6, help="a crop's share of the scan's width and depth")
     ap.add_argument("--fail", type=float, default=5.0, help="points of total error a crop alone may lose before it fails")
     ap.add_argument("--min-ground", type=float, default=0.1,
@@ -103,7 +112,7 @@ def main() -> None:
     print(head + "seconds |")
     print("|---|---|---:|" + "---:|---|" * len(segs) + "---:|")
     diffs: dict[tuple[str, str], list[float]] = {}
-    for name, part, X, truth, valid in scans([] if args.no_scans else args.scans, args.blocks):
+    for name, part, X, truth, valid in scans([] if args.no_scans else args.scans, args.blocks, args.seeds):
         t0 = time.perf_counter()
         cells = []
         for label, seg in segs:

@@ -887,9 +887,9 @@ def edge_drop(cluster: Cluster, scene: Scene, *, gap: float = 3.0, slope: float 
     if edges is None:
         return Measurement(math.nan, undefined="not part of the local ground surface")
     alive = scene.ground_model.owners_alive() if beside == "ground" else None
-    if (alive is not None and not alive.all()  # a later pass: some clusters left the surface, beside this one's
-            and regions.touched(gap, slope, step, alive)[int(edges.owner_region[k])]):
-        r = int(edges.owner_region[k])
+    r = int(edges.owner_region[k])
+    if (alive is not None and r >= 0 and not alive.all()  # a later pass: some left the surface, beside this one's
+            and regions.touched(gap, slope, step, alive)[r]):
         d = regions.drops_beside(gap, slope, step, r, alive)
         if not d.size:
             return Measurement(math.nan, undefined=f"its continuous surface ({edges.size_of(r):,} points) meets no "
