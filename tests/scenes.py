@@ -205,11 +205,12 @@ def airborne_without(folder, rules: tuple[str, ...], checks: tuple[str, ...] = (
 
     root = Path(__file__).resolve().parents[1]
     doc = yaml.safe_load((root / "rules" / "airborne.yaml").read_text())
-    for step in doc["post"]:
-        if "relabel" in step:
-            names = [r["name"] for r in step["relabel"]]
-            assert set(rules) <= set(names), (rules, names)
-            step["relabel"] = [r for r in step["relabel"] if r["name"] not in rules]
+    steps = [step for step in doc["post"] if "relabel" in step]
+    names = [r["name"] for step in steps for r in step["relabel"]]
+    assert set(rules) <= set(names), (rules, names)
+    for step in steps:
+        step["relabel"] = [r for r in step["relabel"] if r["name"] not in rules]
+    doc["post"] = [step for step in doc["post"] if "relabel" not in step or step["relabel"]]
     for name in checks:
         del doc["checks"][name]
     path = Path(folder) / ("airborne-without-" + "-".join(rules) + ".yaml")
