@@ -510,7 +510,7 @@ class Explanation:
         return f"as {given}"
 
     def _relabel_text(self, rec: ClusterRecord) -> str:
-        """', relabelled ground by low_level [outdoor.yaml:95]: level (...), low (...)'."""
+        """', relabelled ground by low_level [outdoor.yaml:102]: level (...), low (...)'."""
         if not rec.relabel:
             return ""
         r = rec.relabel

@@ -39,13 +39,13 @@ def _explain(capsys, *args: str) -> tuple[int, str, str]:
 def test_the_summary_names_each_rule_label_and_check_with_its_doc(example, capsys):
     code, out, _ = _explain(capsys, example)
     assert code == 0
-    assert "  SAh [outdoor.yaml:74] split if not planar and level and sheet: 4 split\n" in out
+    assert "  SAh [outdoor.yaml:81] split if not planar and level and sheet: 4 split\n" in out
     assert "      size ambiguity — a wide ground cluster has swallowed small obstacles\n" in out
-    assert "  CAh [outdoor.yaml:78] split_components if not planar and not connected: 2 split in components\n" in out
-    assert "  ground [outdoor.yaml:84] if planar and level (navigable): 6 clusters" in out
+    assert "  CAh [outdoor.yaml:85] split_components if not planar and not connected: 2 split in components\n" in out
+    assert "  ground [outdoor.yaml:91] if planar and level (navigable): 6 clusters" in out
     assert re.search(r"\n  planar +thickness <= 0\.05 m \[outdoor\.yaml:38\]: PAh, planar ambiguity — thin across", out)
     # the tree's lines name the rule that acted and the terms of its condition
-    assert ("c1 (6,869 pts) split in 4 by SAh [outdoor.yaml:74]: not planar (thickness = 0.1179 m > 0.05 m), "
+    assert ("c1 (6,869 pts) split in 4 by SAh [outdoor.yaml:81]: not planar (thickness = 0.1179 m > 0.05 m), "
             "level (ground_angle = 0.9913 deg <= 22.5 deg), sheet (flatness = 0.03933 <= 0.3)\n") in out
 
 
@@ -54,11 +54,11 @@ def test_why_shows_each_check_with_its_doc_and_no_fail_for_a_check_that_went_the
     for, and 'tiny' no is what keeps it from being noise. Neither is a failure."""
     code, out, _ = _explain(capsys, example, "--cluster", "c1")
     assert code == 0 and "FAIL" not in out and "pass " not in out
-    assert ("    noise [outdoor.yaml:71] reject if tiny: does not hold: tiny does not hold "
+    assert ("    noise [outdoor.yaml:78] reject if tiny: does not hold: tiny does not hold "
             "(point_count = 6,869 pts > 15 pts)\n") in out
-    assert ("    SAh [outdoor.yaml:74] split if not planar and level and sheet: holds: not planar "
+    assert ("    SAh [outdoor.yaml:81] split if not planar and level and sheet: holds: not planar "
             "(thickness = 0.1179 m > 0.05 m), level (ground_angle = 0.9913 deg <= 22.5 deg), sheet") in out
-    assert "CAh" not in out.split("checks measured")[0].split("SAh [outdoor.yaml:74] split if")[1]  # not evaluated
+    assert "CAh" not in out.split("checks measured")[0].split("SAh [outdoor.yaml:81] split if")[1]  # not evaluated
     assert re.search(r"\n    planar +no +thickness = 0\.1179 m > 0\.05 m +\[outdoor\.yaml:38\] +PAh, planar ambiguity", out)
     assert re.search(r"\n    tiny +no +point_count = 6,869 pts > 15 pts +\[outdoor\.yaml:55\] +too few points", out)
     assert "tree below c1" in out and "  c1.2.1.1 (128 pts) split in 2 components by CAh" in out
@@ -68,10 +68,10 @@ def test_why_of_an_obstacle_says_which_label_conditions_did_not_hold(example, ca
     code, out, _ = _explain(capsys, example, "--cluster", "c1.3.0")
     assert code == 0
     assert "c1.3.0 (1,078 pts) accepted as obstacle, not ground: planar does not hold (thickness = 0.06635 m > 0.05 m)" in out
-    assert ("    ground [outdoor.yaml:84] if planar and level: does not hold: planar does not hold "
+    assert ("    ground [outdoor.yaml:91] if planar and level: does not hold: planar does not hold "
             "(thickness = 0.06635 m > 0.05 m); navigable\n") in out
-    assert "    obstacle [outdoor.yaml:87] no condition (the default label)\n" in out
-    assert "  post.relabel, the rules for clusters labelled obstacle:\n    low_level [outdoor.yaml:95] obstacle -> ground" in out
+    assert "    obstacle [outdoor.yaml:94] no condition (the default label)\n" in out
+    assert "  post.relabel, the rules for clusters labelled obstacle:\n    low_level [outdoor.yaml:102] obstacle -> ground" in out
 
 
 # -- 2. a cluster a limit stopped ---------------------------------------------------------------
@@ -83,7 +83,7 @@ def test_a_cluster_stopped_by_a_limit_says_which_rule_wanted_a_split_and_how_it_
     assert main(["-q", "run", "--rules", str(rules), "-j", "1", str(EXAMPLE), "--out", str(tmp_path)]) == 0
     code, out, _ = _explain(capsys, tmp_path / "outdoor.json")
     assert code == 0
-    assert ("  c1 (6,869 pts) kept as obstacle (limit reached: limits.max_depth = 1): SAh [shallow.yaml:74] would "
+    assert ("  c1 (6,869 pts) kept as obstacle (limit reached: limits.max_depth = 1): SAh [shallow.yaml:81] would "
             "split it: not planar (thickness = 0.1179 m > 0.05 m), level (ground_angle = 0.9913 deg <= 22.5 deg), "
             "sheet (flatness = 0.03933 <= 0.3); label obstacle, not ground: planar does not hold "
             "(thickness = 0.1179 m > 0.05 m)\n") in out
@@ -91,7 +91,7 @@ def test_a_cluster_stopped_by_a_limit_says_which_rule_wanted_a_split_and_how_it_
     code, out, _ = _explain(capsys, tmp_path / "outdoor.json", "--cluster", "c1")
     assert code == 0
     assert "    the split did not happen (limit reached: limits.max_depth = 1): the cluster is kept as it is and labelled\n" in out
-    assert "  labels, in order (the first whose condition holds gives the label):\n    ground [shallow.yaml:84] if planar and level: does not hold: planar does not hold" in out
+    assert "  labels, in order (the first whose condition holds gives the label):\n    ground [shallow.yaml:91] if planar and level: does not hold: planar does not hold" in out
 
 
 # -- 3. a large tree, grouped and folded ------------------------------------------------------------
@@ -151,7 +151,7 @@ def test_the_result_and_its_explanation_carry_format_and_version(example):
     assert list(doc)[:2] == ["format", "version"] and (doc["format"], doc["version"]) == ("kbs-result", "1.1")
     e = doc["explanation"]
     assert (e["format"], e["version"]) == ("kbs-explanation", "1.2")  # 1.2: the global strategy's sweep
-    assert {c["name"] for c in e["catalogue"]["checks"]} == {"planar", "level", "sheet", "connected", "tiny", "low", "raised"}
+    assert {c["name"] for c in e["catalogue"]["checks"]} == {"planar", "level", "sheet", "connected", "tiny", "low", "raised", "sunk"}
     assert [r["name"] for r in e["catalogue"]["rules"]] == ["noise", "SAh", "CAh"]
 
 
@@ -206,7 +206,7 @@ def test_results_written_before_versions_and_newer_minor_versions_still_read(exa
 
     js = _copy_pair(example, tmp_path / "legacy", legacy)
     code, out, _ = _explain(capsys, js)
-    assert code == 0 and "c1 (6,869 pts) split in 4 by SAh [outdoor.yaml:74]: thickness = 0.1179 m > 0.05 m" in out
+    assert code == 0 and "c1 (6,869 pts) split in 4 by SAh [outdoor.yaml:81]: thickness = 0.1179 m > 0.05 m" in out
     code, out, _ = _explain(capsys, js, "--cluster", "c1.3.0")
     assert code == 0 and "accepted as obstacle" in out and "FAIL" not in out
     def minor(doc):  # keys a newer 1.x may add, at every level: ignored

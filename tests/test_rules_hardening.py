@@ -369,7 +369,7 @@ def test_a_condition_that_can_hold_gets_no_warning(tmp_path, capsys, cond):
 
 def test_labels_relabel_rules_and_ground_contact_are_checked_too(tmp_path, capsys):
     text = (OUTDOOR.replace("    if: [planar, level]", "    if: [planar, level, not sheet, sheet]")
-            .replace("      if: [level, low]", "      if: [level, low, not level]")
+            .replace("      if: [level, low, not sunk]", "      if: [level, low, not sunk, not level]")
             .replace("if: {any: [not level, not sheet]}", "if: {any: [[level, not level], [sheet, not sheet]]}"))
     code, out, err = check(capsys, write(tmp_path, text))
     assert code == 0 and out.strip().endswith("; 3 warnings"), err
