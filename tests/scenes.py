@@ -216,3 +216,19 @@ def airborne_without(folder, rules: tuple[str, ...], checks: tuple[str, ...] = (
     path = Path(folder) / ("airborne-without-" + "-".join(rules) + ".yaml")
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     return str(path)
+
+
+def outdoor_rejecting_fragments(folder) -> str:
+    """The path of a copy of the shipped outdoor rules (written in ``folder``) whose noise rule
+    rejects every cluster of 15 points or fewer, as it did before session 41 (now only a point
+    alone): for runs that need tiles with no cluster at all."""
+    import re
+    from pathlib import Path
+
+    from kbs.knowledge.rulebase import shipped_text
+
+    text, n = re.subn(r"(  tiny:\n(?:    [^\n]*\n)*?    max: )1\b[^\n]*\n", r"\g<1>15\n", shipped_text("outdoor"))
+    assert n == 1
+    path = Path(folder) / "outdoor-fragments-rejected.yaml"
+    path.write_text(text, encoding="utf-8")
+    return str(path)

@@ -55,12 +55,12 @@ def test_why_shows_each_check_with_its_doc_and_no_fail_for_a_check_that_went_the
     code, out, _ = _explain(capsys, example, "--cluster", "c1")
     assert code == 0 and "FAIL" not in out and "pass " not in out
     assert ("    noise [outdoor.yaml:78] reject if tiny: does not hold: tiny does not hold "
-            "(point_count = 6,869 pts > 15 pts)\n") in out
+            "(point_count = 6,869 pts > 1 pts)\n") in out
     assert ("    SAh [outdoor.yaml:81] split if not planar and level and sheet: holds: not planar "
             "(thickness = 0.1179 m > 0.05 m), level (ground_angle = 0.9913 deg <= 22.5 deg), sheet") in out
     assert "CAh" not in out.split("checks measured")[0].split("SAh [outdoor.yaml:81] split if")[1]  # not evaluated
     assert re.search(r"\n    planar +no +thickness = 0\.1179 m > 0\.05 m +\[outdoor\.yaml:38\] +PAh, planar ambiguity", out)
-    assert re.search(r"\n    tiny +no +point_count = 6,869 pts > 15 pts +\[outdoor\.yaml:55\] +too few points", out)
+    assert re.search(r"\n    tiny +no +point_count = 6,869 pts > 1 pts +\[outdoor\.yaml:55\] +a point alone", out)
     assert "tree below c1" in out and "  c1.2.1.1 (128 pts) split in 2 components by CAh" in out
 
 

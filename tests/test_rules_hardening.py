@@ -123,7 +123,7 @@ def test_an_alias_bomb_is_refused_at_the_alias_that_crosses_the_bound(tmp_path, 
         text = OUTDOOR + bomb
     else:  # a check's doc, which the schema wants a string: the old message quoted the expansion
         bomb = billion_laughs_inline()
-        text = OUTDOOR.replace("doc: too few points to be anything but noise", f"doc: {bomb}")
+        text = OUTDOOR.replace("doc: a point alone in a cluster of its own, neither ground nor an obstacle", f"doc: {bomb}")
     assert len(bomb) < 1100 and bomb in text
     path = write(tmp_path, text, "bomb.yaml")
     k, j = first_alias_past_the_bound()
@@ -168,7 +168,7 @@ def test_a_recursive_alias_is_refused_with_its_position(tmp_path, capsys):
 @pytest.mark.parametrize("old, new, value", [
     ("max: 0.05                  # m", "max: .nan", ".nan"),
     ("max: 22.5                  # degrees", "max: .inf", ".inf"),
-    ("max: 15", "max: -.inf", "-.inf"),
+    ("max: 1                     # not 15", "max: -.inf  # not 15", "-.inf"),
     ("sensor: [0, 0, 0]", "sensor: [.inf, 0, 0]", ".inf"),
     ("fallback: [0, 0, 1]", "fallback: [0, 0, .NaN]", ".NaN"),
     ("normal: auto ", "normal: [0, 0, -.Inf]", "-.Inf"),
@@ -197,7 +197,7 @@ def test_non_finite_numbers_are_all_reported_and_no_run_starts(tmp_path, capsys)
 
 def test_an_integer_too_large_for_a_float_is_refused(tmp_path, capsys):
     digits = "9" * 400
-    text = OUTDOOR.replace("max: 15", f"max: {digits}")
+    text = OUTDOOR.replace("max: 1                     # not 15", f"max: {digits}  # not 15")
     code, out, err = check(capsys, write(tmp_path, text))
     assert code == 4 and "Traceback" not in err
     assert f"t.yaml:{line_col(text, digits)}: 999999999999...999999999999 (400 digits) is too large" in err

@@ -14,7 +14,7 @@ from kbs.errors import ParameterError
 from kbs.tiles import TileGrid
 from kbs.tiles.grid import MAX_BUFFER_TILES
 from kbs.tiles.stream import SpilledTiles, spill_las
-from scenes import ground_and_rocks
+from scenes import ground_and_rocks, outdoor_rejecting_fragments
 from test_cli import kbs as kbs_cmd
 
 
@@ -306,13 +306,15 @@ def test_a_stray_point_thousands_of_km_away_leaves_the_scan_s_labels_as_they_wer
 
 
 def test_a_streamed_run_with_no_cluster_at_all_writes_what_the_in_memory_run_writes(tmp_path):
-    """Ten points 50 m apart, tiled: every point is noise and no tile has a cluster. The streamed
-    LAS run crashed writing the explanation (IndexError in record_texts: an empty array of roots
-    indexed; the shipped simple.las with the airborne rules did it too); now its JSON is the PLY run's."""
+    """Ten points 50 m apart, tiled: every point is noise and no tile has a cluster (the outdoor
+    rules as before session 41, rejecting clusters of 15 points or fewer). The streamed LAS run
+    crashed writing the explanation (IndexError in record_texts: an empty array of roots indexed;
+    the shipped simple.las with the airborne rules did it too); now its JSON is the PLY run's."""
     rng = np.random.default_rng(0)
     _write_las(tmp_path / "ten.las", rng.uniform(0, 50, (10, 3)), scale=1e-3)
+    rules = outdoor_rejecting_fragments(tmp_path)
     for fmt in ("las", "ply"):
-        r = kbs_cmd("-q", "run", "--rules", "outdoor", "--tile", "100", "--out-format", fmt, str(tmp_path / "ten.las"),
+        r = kbs_cmd("-q", "run", "--rules", rules, "--tile", "100", "--out-format", fmt, str(tmp_path / "ten.las"),
                     "--out", str(tmp_path / fmt))
         assert r.returncode == 0, r.stderr
     docs = []

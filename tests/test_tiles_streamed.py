@@ -19,7 +19,7 @@ from kbs.tiles import streamed
 from kbs.tiles import TileGrid
 from kbs.tiles.stream import spill_las
 from kbs.tiles.streamed import TileJob, Texts, _descriptors, _edge_mask, _new_column
-from scenes import ground_and_rocks
+from scenes import ground_and_rocks, outdoor_rejecting_fragments
 from test_cli import kbs as kbs_cmd
 
 
@@ -166,7 +166,8 @@ def test_a_streamed_run_on_a_scan_with_too_large_coordinates_names_the_row_and_c
 def test_a_streamed_run_whose_last_tile_holds_only_noise_is_the_run_in_memory(tmp_path):
     """The last tile in row order holds a few points alone, rejected as noise: it has no cluster,
     and its points' output cluster is -1 (the stitching looked up a cluster past the last one: an
-    IndexError, found at 20 m tiles of the 2x10^5-point bench cloud)."""
+    IndexError, found at 20 m tiles of the 2x10^5-point bench cloud). The outdoor rules as before
+    session 41, which rejected clusters of 15 points or fewer (now only a point alone)."""
     X, _ = ground_and_rocks()
     far = X[:5].copy()
     far[:, 0] = X[:, 0].max() + 20.0 + np.arange(5) * 0.3  # a row of tiles of its own, beyond every buffer
@@ -176,7 +177,8 @@ def test_a_streamed_run_whose_last_tile_holds_only_noise_is_the_run_in_memory(tm
     las = laspy.LasData(header)
     las.x, las.y, las.z = X[:, 0], X[:, 1], X[:, 2]
     las.write(str(tmp_path / "lone.las"))
-    base = ["run", "--rules", "outdoor", "-j", "1", "--tile", "6", "--buffer", "1", str(tmp_path / "lone.las")]
+    base = ["run", "--rules", outdoor_rejecting_fragments(tmp_path), "-j", "1", "--tile", "6", "--buffer", "1",
+            str(tmp_path / "lone.las")]
     streamed = kbs_cmd(*base, "--chunk-points", "1000", "--out", str(tmp_path / "a"))
     whole = kbs_cmd(*base, "--chunk-points", "0", "--out", str(tmp_path / "b"))
     assert streamed.returncode == whole.returncode == 0, (streamed.stderr, whole.stderr)
