@@ -15,14 +15,7 @@ import pytest
 from kbs.knowledge import Interpreter, load_rule_base
 from kbs.knowledge.predicates import PredicateRegistry
 from kbs.knowledge.rulebase import parse_rule_base, shipped_text
-
-
-def _isprs(shared_data, name: str):
-    from kbs.io import read_cloud
-
-    pc = read_cloud(shared_data / "isprs" / f"{name}-utm.pcd")
-    truth = np.loadtxt(shared_data / "isprs" / f"{name}-utm.labels.txt")[pc.index] == 0
-    return pc.xyz - pc.xyz.mean(axis=0), truth
+from test_groundmodel import _isprs_centred
 
 
 def _with_noise_rule(text: str) -> str:
@@ -45,7 +38,7 @@ def test_airborne_fragments_are_judged_by_where_they_lie_not_rejected_as_noise(s
     with the old noise rule: no point is noise now; the points the old rules rejected are
     labelled, most of their bare earth ground; `specks` took only fragments lying at the terrain;
     the total error falls (measured 6.32 -> 5.85 %)."""
-    X, truth = _isprs(shared_data, "samp61")
+    _, X, truth = _isprs_centred(shared_data, "samp61")
     rb = load_rule_base("airborne")
     old_text = _with_noise_rule(shipped_text("airborne"))
     rb_old = parse_rule_base(old_text, "airborne-before.yaml", PredicateRegistry.default())
