@@ -724,6 +724,43 @@ class LocalGround:
         out[reached] = hp[reached] - lowest[reached]
         return out
 
+    #: surface points a neighbourhood of :meth:`thickness_within` needs (fewer: no thickness)
+    THICKNESS_MIN_POINTS = 8
+
+    def thickness_within(self, P: np.ndarray, radius: float) -> np.ndarray:
+        """How rough the surface is around points ``P`` (q, 3): the thickness of the surface's
+        points within ``radius`` of each (plane distance), as the ``thickness`` predicate measures
+        a cluster (the square root of the smallest eigenvalue of their covariance, their heights
+        along :attr:`normal`): a few millimetres on a road, a kerb's step spread over the radius, a
+        few centimetres in grass and low plants. NaN where fewer than
+        :attr:`THICKNESS_MIN_POINTS` surface points lie within ``radius``."""
+        P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
+        out = np.full(P.shape[0], np.nan)
+        if P.shape[0] == 0 or self.n_points == 0:
+            return out
+        G = P - self.point
+        Q, hq = np.ascontiguousarray(G @ self.basis.T), np.ascontiguousarray(G @ self.normal)
+        grid = self._slope_grid(radius) if _flags.JIT else None
+        if grid is not None:  # compiled: the same points, summed in the grid's order
+            ny, start, order, lo, side = grid
+            return _compiled.ball_thickness(Q, hq, self.plane, self.heights, ny, start, order, lo, side,
+                                            float(radius) ** 2, self.THICKNESS_MIN_POINTS)
+        found = self.tree.query_ball_point(Q, r=radius)  # type: ignore[attr-defined]
+        sizes = np.fromiter((len(f) for f in found), dtype=np.int64, count=len(found))
+        some = np.flatnonzero(sizes >= self.THICKNESS_MIN_POINTS)
+        if not some.size:
+            return out
+        j = np.concatenate([np.asarray(found[s], dtype=np.int64) for s in some])
+        k = np.repeat(np.arange(some.size), sizes[some])
+        D = np.column_stack([self.plane[j] - Q[some][k], self.heights[j] - hq[some][k]])
+        n = sizes[some].astype(np.float64)
+        m = np.stack([np.bincount(k, D[:, a], minlength=some.size) for a in range(3)], axis=1) / n[:, None]
+        S = np.stack([np.bincount(k, D[:, a] * D[:, b], minlength=some.size) for a in range(3) for b in range(3)],
+                     axis=1).reshape(-1, 3, 3) / n[:, None, None]
+        lam = np.linalg.eigvalsh(S - m[:, :, None] * m[:, None, :])[:, 0]
+        out[some] = np.sqrt(np.maximum(lam, 0.0))
+        return out
+
     def _slope_grid(self, radius: float) -> tuple | None:
         """The surface points in cells of side just over ``radius`` for the compiled
         :meth:`height_above_slope` (``(ny, start, order, lo, side)``, built once per radius), or

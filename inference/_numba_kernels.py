@@ -1534,6 +1534,65 @@ def slope_lowest(Q, T, heights, owners, own, ny, start, order, lo, side, rise, r
 
 
 @njit(cache=True, nogil=True)
+def ball_thickness(Q, hq, T, heights, ny, start, order, lo, side, r2, min_points):
+    """For each query ``Q[k]`` (q, 2) at height ``hq[k]``: the thickness of the points ``T[j]``
+    (plane coordinates, m x 2) at ``heights[j]`` with ``d2 = dx*dx + dy*dy <= r2`` (as scipy's
+    ``query_ball_point`` compares them), the square root of the smallest eigenvalue of the
+    covariance of their positions (plane coordinates and height, each taken from the query's);
+    NaN where fewer than ``min_points`` lie there. The grid (``surface_grid`` of side at least
+    ``sqrt(r2)``) holds every such point in the 3 x 3 block of cells around the query's cell."""
+    q = Q.shape[0]
+    nx = (start.shape[0] - 1) // ny
+    out = np.full(q, np.nan)
+    cov = np.empty((3, 3))
+    for k in range(q):
+        fa = math.floor((Q[k, 0] - lo[0]) / side)
+        fb = math.floor((Q[k, 1] - lo[1]) / side)
+        if not (fa >= -1.0 and fa <= nx and fb >= -1.0 and fb <= ny):
+            continue
+        a0 = max(int(fa) - 1, 0)
+        a1 = min(int(fa) + 1, nx - 1)
+        b0 = max(int(fb) - 1, 0)
+        b1 = min(int(fb) + 1, ny - 1)
+        n = 0
+        s0 = s1 = s2 = 0.0
+        s00 = s01 = s02 = s11 = s12 = s22 = 0.0
+        for a in range(a0, a1 + 1):
+            for b in range(b0, b1 + 1):
+                c = a * ny + b
+                for p in range(start[c], start[c + 1]):
+                    j = order[p]
+                    dx = T[j, 0] - Q[k, 0]
+                    dy = T[j, 1] - Q[k, 1]
+                    if dx * dx + dy * dy <= r2:
+                        dz = heights[j] - hq[k]
+                        n += 1
+                        s0 += dx
+                        s1 += dy
+                        s2 += dz
+                        s00 += dx * dx
+                        s01 += dx * dy
+                        s02 += dx * dz
+                        s11 += dy * dy
+                        s12 += dy * dz
+                        s22 += dz * dz
+        if n < min_points:
+            continue
+        m0 = s0 / n
+        m1 = s1 / n
+        m2 = s2 / n
+        cov[0, 0] = s00 / n - m0 * m0
+        cov[1, 0] = s01 / n - m0 * m1
+        cov[2, 0] = s02 / n - m0 * m2
+        cov[1, 1] = s11 / n - m1 * m1
+        cov[2, 1] = s12 / n - m1 * m2
+        cov[2, 2] = s22 / n - m2 * m2
+        lam, _vec = _eigh3(cov)
+        out[k] = math.sqrt(max(lam[0], 0.0))
+    return out
+
+
+@njit(cache=True, nogil=True)
 def slope_cells(T, heights, side, max_cells):
     """The points ``T`` (m, 2) in square cells of ``side`` for :func:`slope_lowest_pruned`:
     ``(ny, start, order, lo, hmin, box)`` as :func:`surface_grid`, with per cell the lowest of its

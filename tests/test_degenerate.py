@@ -179,13 +179,16 @@ def test_a_line_in_a_scene_is_explained_and_the_other_labels_do_not_move(tmp_pat
     # every other point is labelled as without the degenerate-cluster outcome (tolerances off)
     monkeypatch.setattr(geometry, "RANK_TOLERANCE", -1.0)
     monkeypatch.setattr(geometry, "COINCIDENT_TOLERANCE", -1.0)
-    # ... and without outdoor.yaml's 'raised' relabel rule, which now also takes a cable 1 m above
-    # the ground for an obstacle whatever its plane: the made-up plane alone is what is shown here
+    # ... and without outdoor.yaml's 'raised' relabel rule and its second ground_release (on rough
+    # ground, session 42), which now also take a cable 1 m above the ground for an obstacle whatever
+    # its plane: the made-up plane alone is what is shown here
     text = (ROOT / "rules" / "outdoor.yaml").read_text()
     rules = tmp_path / "outdoor.yaml"
-    rules.write_text(re.sub(r"\n      - name: raised\n(.*\n)*?        if: raised\n", "\n", text))
+    text = re.sub(r"\n      - name: raised\n(.*\n)*?        if: raised\n", "\n", text)
+    rules.write_text(re.sub(r"\n  - ground_release:[^\n]*\n(      .*\n)*?      rough: .*\n", "\n", text))
     rb = load_rule_base(str(rules))
     assert [r.name for r in rb.relabel] == ["low_level"]
+    assert [s.rough for s in rb.post if s.key == "ground_release"] == [None]
     with Interpreter(rb) as it:
         before = it.run(X)
     assert not any("degenerate" in n for rec in before.explanation.records.values() for n in rec.notes)

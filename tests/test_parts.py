@@ -206,8 +206,14 @@ def test_steps_run_in_the_order_the_sequence_gives():
 
 def test_a_post_mapping_as_older_files_write_it_runs_in_the_fixed_order(rocks):
     """outdoor.yaml with its post written as one mapping, merge_coplanar first as the files before
-    the sequence had it: the same labels, clusters and memberships as the shipped sequence."""
-    rb = load_rule_base("outdoor")
+    the sequence had it: the same labels, clusters and memberships as the shipped sequence (without
+    its second ground_release, which a mapping, one step of each kind, cannot hold)."""
+    shipped = load_rule_base("outdoor")
+    lines = shipped.text.split("\n")
+    second = [i for i, ln in enumerate(lines) if ln.startswith("  - ground_release:")][1]
+    end = next(i for i in range(second + 1, len(lines)) if not lines[i].startswith("      "))
+    rb = parse_rule_base("\n".join(lines[:second] + lines[end:]), "outdoor.yaml",
+                         PredicateRegistry.default(entry_points_too=False))
     text = rb.text
     start = text.index("\npost:")
     end = text.index("\n\n", start + 1)

@@ -477,7 +477,7 @@ def test_clusters_no_label_matched_are_not_called_noise(tmp_path, capsys):
 @pytest.mark.parametrize("old, new, at, message", [
     ("fallback: [0, 0, 1]", "fallback: [0, 0, up]", "up]", "scene.ground.fallback[2] must be a number; got 'up'"),
     ("min_points: 500", "min_points: ~", "~", "scene.ground.min_points must be an integer; got None"),
-    ("max_angle: 10", "max_angle: ten", "ten", "post[4].merge_coplanar.max_angle must be a number; got 'ten'"),
+    ("max_angle: 10", "max_angle: ten", "ten", "post[5].merge_coplanar.max_angle must be a number; got 'ten'"),
     ("neighbours: 16", "neighbours: [16]", "[16]", "post[0].ground_model.neighbours must be an integer; got [16]"),
     ("radius: 3.0                # m", "radius: 3 m", "3 m", "post[0].ground_model.radius must be a number; got '3 m'"),
     ("normal: auto ", "normal: [1.0e+200, 1.0e+200, 0]", "[1.0e+200", "the ground normal is too long to be normalised"),

@@ -27,7 +27,16 @@ class GroundRelease(PostStep):
     low plants stand in a ground cluster, it lies between the plants and the terrain. With
     'passes: N', after a pass that released points the surface is built again from the ground
     points left and the ground clusters are measured against it again, until a pass releases
-    none or after N passes; the last surface built stays for the steps after."""
+    none or after N passes; the last surface built stays for the steps after.
+
+    With 'quantile' or 'neighbours', the step measures against a surface of its own, built from
+    the ground points as they are when it starts (and again between its passes), the ground
+    model's but for that statistic of that many neighbours (a low quantile: the lowest ground
+    around a point, under the plants that stand among the ground points); the steps after it
+    find the ground model's surface as they would have. With 'rough: {radius: R, min: T}', only
+    the points where that surface within R of them is thicker than T are released
+    (:meth:`~kbs.geometry.groundmodel.LocalGround.thickness_within`: grass and low plants, not a
+    smooth pavement a kerb raises above the road)."""
 
     key: ClassVar[str] = "ground_release"
     schema: ClassVar[dict[str, Any]] = {
@@ -39,6 +48,17 @@ class GroundRelease(PostStep):
             "passes": {"description": "at most this many passes, each after the surface was built again from the "
                                       "ground points the passes before left (default 1)",
                        "type": "integer", "minimum": 1, "maximum": MAX_PASSES},
+            "quantile": {"description": "the quantile of the neighbours' heights the step measures against, on a "
+                                        "surface of its own (default: the ground model's)",
+                         "type": "number", "minimum": 0, "maximum": 1},
+            "neighbours": {"description": "ground points whose heights give the surface the step measures against, "
+                                          "on a surface of its own (default: the ground model's)",
+                           "type": "integer", "minimum": 1},
+            "rough": {"description": "release only the points where the surface is rough: thicker than min "
+                                     "within radius of them (length units; at least 8 surface points there)",
+                      "type": "object", "additionalProperties": False, "required": ["radius", "min"],
+                      "properties": {"radius": {"type": "number", "exclusiveMinimum": 0},
+                                     "min": {"type": "number", "minimum": 0}}},
             "tune": {"$ref": "#/$defs/tune"},
         },
     }
@@ -48,6 +68,10 @@ class GroundRelease(PostStep):
     target: str  #: the label of the clusters released points join
     pos: SourcePos
     passes: int = 1  #: at most this many passes, the surface built again between them
+    #: (radius, min): only points where the surface within radius is thicker than min are released
+    rough: tuple[float, float] | None = None
+    quantile: float | None = None  #: the statistic of a surface of its own (None: the ground model's)
+    neighbours: int | None = None  #: the neighbours of a surface of its own (None: the ground model's)
 
     @classmethod
     def parse(cls, raw: Any, ctx: SpecContext) -> GroundRelease | None:
@@ -59,7 +83,13 @@ class GroundRelease(PostStep):
         model = next((s for s in reversed(ctx.earlier) if s.key == "ground_model"), None)
         if model is not None and raw["to"] == getattr(model, "label", None):
             ctx.add(ctx.path + ("to",), f"ground_release to '{raw['to']}', the ground model's own label, changes nothing")
-        return cls(float(tol), raw["to"], ctx.pos(ctx.path, key=True), ctx.number(raw.get("passes"), 1, int))
+        rough = raw.get("rough")
+        if isinstance(rough, dict):
+            rough = (ctx.number(rough.get("radius"), 1.0), ctx.number(rough.get("min"), 0.0))
+        q, k = raw.get("quantile"), raw.get("neighbours")
+        return cls(float(tol), raw["to"], ctx.pos(ctx.path, key=True), ctx.number(raw.get("passes"), 1, int),
+                   rough if isinstance(rough, tuple) else None, None if q is None else ctx.number(q, 0.5),
+                   None if k is None else ctx.number(k, 8, int))
 
     def apply(self, state: PostState, ctx: PostContext) -> PostState:
         surface = state.surface
@@ -69,8 +99,16 @@ class GroundRelease(PostStep):
         if not any(lf.label == self.target and lf.size for lf in state.leaves):
             note = f"no {self.target} cluster to take released points"
             return replace(state, ground_facts=state.ground_facts.with_local_model(release_note=note))
+        kept = None  # with a surface of its own: the one the steps after find
+        if self.quantile is not None or self.neighbours is not None:
+            kept = surface
+            spec = replace(surface.spec, **{f: v for f, v in (("quantile", self.quantile),
+                                                               ("neighbours", self.neighbours)) if v is not None})
+            state = replace(state, surface=spec.build(state, ctx))
         del surface
-        passes = _Passes(ctx.X) if self.passes > 1 else None
+        # a point's roughness may change with any point released within its radius, which the
+        # passes' record of each point's nearest does not follow: with 'rough', every pass asks all
+        passes = _Passes(ctx.X) if self.passes > 1 and self.rough is None else None
         total = 0
         for p in range(self.passes):
             if p:  # the surface again, from the ground points the passes before left
@@ -85,7 +123,10 @@ class GroundRelease(PostStep):
             total += released.size
             if not released.size:
                 break
-        return replace(state, ground_facts=state.ground_facts.with_local_model(released=total))
+        if kept is not None:
+            state = replace(state, surface=kept)
+        before = state.ground_facts.local_model.released if state.ground_facts.local_model is not None else None
+        return replace(state, ground_facts=state.ground_facts.with_local_model(released=(before or 0) + total))
 
     @staticmethod
     def _near(X: np.ndarray, model: Any, released: np.ndarray) -> np.ndarray:
@@ -129,9 +170,17 @@ class GroundRelease(PostStep):
         nearest = _Nearest(X, leaves, self.target)  # of this pass's clusters (with the points received before)
         gone = []
         which = f" (pass {p + 1}: the surface without the points released before)" if p else ""
+        if self.quantile is not None or self.neighbours is not None:
+            which = (f" (the {surface.spec.quantile:g} quantile of the heights of {surface.spec.neighbours} ground "
+                     f"points around each{', ' + which[2:-1] if which else ''})")
+        if self.rough is not None:
+            which += f" where it is thicker than {self.rough[1]:g} {unit} within {self.rough[0]:g} {unit}"
         for li, (h, _) in zip(todo, batches):
             lf = leaves[li]
             move = np.nan_to_num(h, nan=-np.inf) > tol
+            if self.rough is not None and move.any():  # of those, the points where the surface is rough
+                thick = surface.model.thickness_within(take_rows(X, lf.node.idx[move]), self.rough[0])
+                move[move] = np.nan_to_num(thick, nan=-np.inf) > self.rough[1]
             n_move, size = int(move.sum()), lf.size
             if not n_move:
                 continue
