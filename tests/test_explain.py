@@ -499,3 +499,29 @@ def test_a_record_evolved_is_the_record_dataclasses_replace_gives():
     assert r.noted("y").notes == ("x", "y")
     with pytest.raises(TypeError, match="no field 'nope'"):
         r.evolve(nope=1)
+
+
+def test_a_patch_no_relabel_rule_took_keeps_the_values_that_decided_it():
+    """rules/airborne.yaml has two relabel steps: the roof rules (ground -> object), then the rough
+    bits (object -> ground). The second forgets the surface checks of the clusters it judges, to
+    measure them on its own surface; a ground patch it does not judge keeps what the first step
+    measured, so the explanation says which roof check failed, not 'not evaluated' (before session
+    42 the second step forgot them on every cluster)."""
+    from kbs.knowledge import Interpreter, load_rule_base
+    from scenes import airborne_step_and_building
+
+    X, _ = airborne_step_and_building()
+    rb = load_rule_base("airborne")
+    assert [s.key for s in rb.post].count("relabel") == 2
+    seg = Interpreter(rb).run(X)
+    roof_checks = {"edge_raised", "raised", "above_terrain"}
+    kept = [r for r in seg.explanation.records.values()
+            if r.label == "ground" and r.first_label == "ground" and not r.relabel and r.output_index is not None]
+    assert kept
+    for rec in kept:
+        assert roof_checks <= {c.check for c in rec.checks}, rec.id
+        why = seg.explanation.why(rec.id)
+        lines = why[why.index("post.relabel, the rules for clusters labelled ground"):].splitlines()
+        large = next(ln for ln in lines if ln.strip().startswith("large_roofs ["))
+        assert "does not hold: edge_raised does not hold (edge_drop = " in large, large
+        assert not any("not evaluated" in ln for ln in lines if "ground -> object" in ln), why

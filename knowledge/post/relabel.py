@@ -216,7 +216,8 @@ class Relabel(PostStep):
         post_scene = Scene(scene.sensor, scene.ground, scene.unit,
                            ground_model=surface.model if surface is not None else None)
         changed = 0
-        leaves = [self._fresh(lf, ctx) for lf in state.leaves]
+        judged = {r.source for r in self.rules}  # a leaf of another label keeps what an earlier step measured
+        leaves = [self._fresh(lf, ctx) if lf.label in judged else lf for lf in state.leaves]
         first = [r for r in self.rules if r.undoes is None]
         for i, lf in enumerate(leaves):
             fact = ctx.fact(lf.cluster, post_scene, lf.record)
@@ -411,7 +412,10 @@ class Relabel(PostStep):
         """``lf`` with its checks on the surface forgotten, so that this step measures them against
         its own surface: an earlier relabel step measured them against the surface of its time,
         which it built again if it changed a label. The values an earlier step's relabelling
-        decided on stay in that relabel entry's 'measured' (the explanation of that decision)."""
+        decided on stay in that relabel entry's 'measured' (the explanation of that decision).
+        Only for the leaves this step judges (its rules' 'from' label): the others keep the values
+        an earlier step decided on, relabelled or not (the explanation of a roof patch left ground
+        by the airborne rules' first step says which of its checks failed, not 'not evaluated')."""
         checks = ctx.rule_base.checks
         stale = [c for c in lf.record.checks if c.check in checks and checks[c.check].predicate.needs_ground_model]
         if not stale:
