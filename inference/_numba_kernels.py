@@ -1494,6 +1494,18 @@ def surface_grid(T, side, max_cells):
     return ny, start, order, lo
 
 
+@njit(nogil=True)
+def _block3(x, y, lo, side, nx, ny):
+    """The 3 x 3 block of cells (of ``side``, ``nx`` x ``ny`` from ``lo``) around the point ``(x,
+    y)``'s cell, clipped to the grid: ``(inside, a0, a1, b0, b1)``, ``inside`` False when no cell of
+    the block is in the grid (the point lies a cell or more outside it)."""
+    fa = math.floor((x - lo[0]) / side)
+    fb = math.floor((y - lo[1]) / side)
+    if not (fa >= -1.0 and fa <= nx and fb >= -1.0 and fb <= ny):
+        return False, 0, -1, 0, -1
+    return True, max(int(fa) - 1, 0), min(int(fa) + 1, nx - 1), max(int(fb) - 1, 0), min(int(fb) + 1, ny - 1)
+
+
 @njit(cache=True, nogil=True)
 def slope_lowest(Q, T, heights, owners, own, ny, start, order, lo, side, rise, r2):
     """For each query ``Q[k]`` (q, 2): ``min_j heights[j] + rise * sqrt(d2)`` over the points
@@ -1506,14 +1518,9 @@ def slope_lowest(Q, T, heights, owners, own, ny, start, order, lo, side, rise, r
     nx = (start.shape[0] - 1) // ny
     out = np.full(q, np.inf)
     for k in range(q):
-        fa = math.floor((Q[k, 0] - lo[0]) / side)
-        fb = math.floor((Q[k, 1] - lo[1]) / side)
-        if not (fa >= -1.0 and fa <= nx and fb >= -1.0 and fb <= ny):
+        inside, a0, a1, b0, b1 = _block3(Q[k, 0], Q[k, 1], lo, side, nx, ny)
+        if not inside:
             continue
-        a0 = max(int(fa) - 1, 0)
-        a1 = min(int(fa) + 1, nx - 1)
-        b0 = max(int(fb) - 1, 0)
-        b1 = min(int(fb) + 1, ny - 1)
         best = np.inf
         for a in range(a0, a1 + 1):
             for b in range(b0, b1 + 1):
@@ -1546,14 +1553,9 @@ def ball_thickness(Q, hq, T, heights, ny, start, order, lo, side, r2, min_points
     out = np.full(q, np.nan)
     cov = np.empty((3, 3))
     for k in range(q):
-        fa = math.floor((Q[k, 0] - lo[0]) / side)
-        fb = math.floor((Q[k, 1] - lo[1]) / side)
-        if not (fa >= -1.0 and fa <= nx and fb >= -1.0 and fb <= ny):
+        inside, a0, a1, b0, b1 = _block3(Q[k, 0], Q[k, 1], lo, side, nx, ny)
+        if not inside:
             continue
-        a0 = max(int(fa) - 1, 0)
-        a1 = min(int(fa) + 1, nx - 1)
-        b0 = max(int(fb) - 1, 0)
-        b1 = min(int(fb) + 1, ny - 1)
         n = 0
         s0 = s1 = s2 = 0.0
         s00 = s01 = s02 = s11 = s12 = s22 = 0.0

@@ -232,3 +232,20 @@ def outdoor_rejecting_fragments(folder) -> str:
     path = Path(folder) / "outdoor-fragments-rejected.yaml"
     path.write_text(text, encoding="utf-8")
     return str(path)
+
+
+def outdoor_one_release(rb=None):
+    """The outdoor rule base (``rb``, default the shipped one) parsed again without its second
+    ground_release (on rough ground, session 42): the rules the tests of the first release, of a
+    post mapping (one step of each kind) and of the degenerate-cluster outcome were written on."""
+    from pathlib import Path
+
+    from kbs.knowledge import PredicateRegistry, load_rule_base
+    from kbs.knowledge.rulebase import parse_rule_base
+
+    rb = load_rule_base("outdoor") if rb is None else rb
+    lines = rb.text.split("\n")
+    second = [i for i, ln in enumerate(lines) if ln.startswith("  - ground_release:")][1]
+    end = next(i for i in range(second + 1, len(lines)) if not lines[i].startswith("      "))
+    return parse_rule_base("\n".join(lines[:second] + lines[end:]), Path(rb.path).name,
+                           PredicateRegistry.default(entry_points_too=False))

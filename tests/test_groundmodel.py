@@ -18,7 +18,7 @@ from kbs.geometry.groundmodel import LocalGround
 from kbs.geometry.pca import plane_basis
 from kbs.knowledge.rulebase import parse_rule_base
 from scenes import (airborne_large_building, airborne_pit, airborne_step_and_building, airborne_without, ground_and_parked_cars,
-                    ground_and_rocks)
+                    ground_and_rocks, outdoor_one_release)
 from test_cli import kbs
 
 # --- the surface ---------------------------------------------------------------------------------
@@ -602,7 +602,7 @@ def test_ground_release_moves_raised_ground_points_to_the_nearest_obstacle(share
     data = shared_data / "semantickitti"
     X = np.load(data / "000001.points.npy").astype(np.float64)
     gt = np.load(data / "000001.labels.npy").ravel()
-    rb = _with_release_passes(_one_release(), 1)  # one pass: against the surface before any release
+    rb = _with_release_passes(outdoor_one_release(), 1)  # one pass: against the surface before any release
     lines = rb.text.splitlines()
     start = lines.index(next(line for line in lines if line.startswith("  - ground_release:")))
     end = next(i for i in range(start + 1, len(lines)) if not lines[i].startswith("      "))
@@ -643,18 +643,6 @@ def test_ground_release_moves_raised_ground_points_to_the_nearest_obstacle(share
         assert c["n_points"] == (seg.cluster == c["index"]).sum()
 
 
-def _one_release(rb=None):
-    """outdoor.yaml without its second ground_release (on rough ground, session 42): the rules the
-    tests of the first release (its tolerance, its passes, the lower-quartile variant) were written
-    on."""
-    rb = load_rule_base("outdoor") if rb is None else rb
-    lines = rb.text.split("\n")
-    second = [i for i, ln in enumerate(lines) if ln.startswith("  - ground_release:")][1]
-    end = next(i for i in range(second + 1, len(lines)) if not lines[i].startswith("      "))
-    return parse_rule_base("\n".join(lines[:second] + lines[end:]), Path(rb.path).name,
-                           PredicateRegistry.default(entry_points_too=False))
-
-
 def _with_release_passes(rb, passes: int, *without: str):
     """The rule base ``rb`` with ``passes`` on its ground_release step (and without the post steps
     ``without``)."""
@@ -678,7 +666,7 @@ def test_ground_release_passes_release_what_the_surface_left_shows(shared_data, 
     data = shared_data / "semantickitti"
     X = np.load(data / "000001.points.npy").astype(np.float64)
     gt = np.load(data / "000001.labels.npy").ravel()
-    rb = _one_release()
+    rb = outdoor_one_release()
     one, two = (_with_release_passes(rb, n, "ground_contact") for n in (1, 2))
     assert one.release.passes == 1 and two.release.passes == 2
     seg1, seg2 = Interpreter(one).run(X), Interpreter(two).run(X)
@@ -808,7 +796,7 @@ def test_the_lower_quartile_surface_raises_f1_on_semantickitti(shared_data):
     data = shared_data / "semantickitti"
     X = np.load(data / "000001.points.npy").astype(np.float64)
     gt = np.load(data / "000001.labels.npy").ravel()
-    rb_old = _one_release()
+    rb_old = outdoor_one_release()
     rb = parse_rule_base(_lower_quartile(rb_old.text), "outdoor.yaml", PredicateRegistry.default(entry_points_too=False))
     new, before = Interpreter(rb).run(X).label == 0, Interpreter(rb_old).run(X).label == 0
     valid = gt != 0

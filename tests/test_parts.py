@@ -4,7 +4,6 @@ command."""
 from __future__ import annotations
 
 import json
-import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +17,7 @@ from kbs.knowledge.parts import post_schema
 from kbs.knowledge.post import LEGACY_ORDER, STEPS
 from kbs.knowledge.rulebase import RuleFileError, parse_rule_base, schema
 from kbs.knowledge.strategies import STRATEGIES
-from scenes import ground_and_rocks
+from scenes import ground_and_rocks, outdoor_one_release
 from test_cli import ROOT, kbs
 
 PLUGIN = '''
@@ -208,12 +207,7 @@ def test_a_post_mapping_as_older_files_write_it_runs_in_the_fixed_order(rocks):
     """outdoor.yaml with its post written as one mapping, merge_coplanar first as the files before
     the sequence had it: the same labels, clusters and memberships as the shipped sequence (without
     its second ground_release, which a mapping, one step of each kind, cannot hold)."""
-    shipped = load_rule_base("outdoor")
-    lines = shipped.text.split("\n")
-    second = [i for i, ln in enumerate(lines) if ln.startswith("  - ground_release:")][1]
-    end = next(i for i in range(second + 1, len(lines)) if not lines[i].startswith("      "))
-    rb = parse_rule_base("\n".join(lines[:second] + lines[end:]), "outdoor.yaml",
-                         PredicateRegistry.default(entry_points_too=False))
+    rb = outdoor_one_release()
     text = rb.text
     start = text.index("\npost:")
     end = text.index("\n\n", start + 1)

@@ -12,19 +12,11 @@ import pytest
 from kbs.geometry.groundmodel import LocalGround
 from kbs.knowledge import Interpreter, PredicateRegistry, RuleFileError, load_rule_base
 from kbs.knowledge.rulebase import parse_rule_base
-from scenes import _dome, _ground
+from scenes import _dome, _ground, outdoor_one_release as _without_second_release
 
 
 def _registry() -> PredicateRegistry:
     return PredicateRegistry.default(entry_points_too=False)
-
-
-def _without_second_release(rb):
-    """The rule base ``rb`` parsed again without its second ground_release step (its lines cut)."""
-    lines = rb.text.split("\n")
-    second = [i for i, ln in enumerate(lines) if ln.startswith("  - ground_release:")][1]
-    end = next(i for i in range(second + 1, len(lines)) if not lines[i].startswith("      "))
-    return parse_rule_base("\n".join(lines[:second] + lines[end:]), "outdoor.yaml", _registry())
 
 
 def _rough_step(rb):
