@@ -73,6 +73,11 @@ class GroundRelease(PostStep):
     quantile: float | None = None  #: the statistic of a surface of its own (None: the ground model's)
     neighbours: int | None = None  #: the neighbours of a surface of its own (None: the ground model's)
 
+    @property
+    def own_surface(self) -> bool:
+        """Whether the step measures against a surface of its own ('quantile' or 'neighbours')."""
+        return self.quantile is not None or self.neighbours is not None
+
     @classmethod
     def parse(cls, raw: Any, ctx: SpecContext) -> GroundRelease | None:
         tol = raw.get("tolerance") if isinstance(raw, dict) else None
@@ -100,7 +105,7 @@ class GroundRelease(PostStep):
             note = f"no {self.target} cluster to take released points"
             return replace(state, ground_facts=state.ground_facts.with_local_model(release_note=note))
         kept = None  # with a surface of its own: the one the steps after find
-        if self.quantile is not None or self.neighbours is not None:
+        if self.own_surface:
             kept = surface
             spec = replace(surface.spec, **{f: v for f, v in (("quantile", self.quantile),
                                                                ("neighbours", self.neighbours)) if v is not None})
@@ -169,10 +174,11 @@ class GroundRelease(PostStep):
                                   functools.partial(passes.found, surface.model))
         nearest = _Nearest(X, leaves, self.target)  # of this pass's clusters (with the points received before)
         gone = []
-        which = f" (pass {p + 1}: the surface without the points released before)" if p else ""
-        if self.quantile is not None or self.neighbours is not None:
-            which = (f" (the {surface.spec.quantile:g} quantile of the heights of {surface.spec.neighbours} ground "
-                     f"points around each{', ' + which[2:-1] if which else ''})")
+        parts = [f"the {surface.spec.quantile:g} quantile of the heights of {surface.spec.neighbours} ground points "
+                 "around each"] if self.own_surface else []
+        if p:
+            parts.append(f"pass {p + 1}: the surface without the points released before")
+        which = f" ({', '.join(parts)})" if parts else ""
         if self.rough is not None:
             which += f" where it is thicker than {self.rough[1]:g} {unit} within {self.rough[0]:g} {unit}"
         for li, (h, _) in zip(todo, batches):
