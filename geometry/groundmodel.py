@@ -761,6 +761,54 @@ class LocalGround:
         out[some] = np.sqrt(np.maximum(lam, 0.0))
         return out
 
+    def spread_within(self, P: np.ndarray, radius: float) -> np.ndarray | None:
+        """For points ``P`` (q, 3): a bound of twice :meth:`thickness_within` (``radius``) without
+        finding the surface points within ``radius`` of each: how far apart the points of the
+        3 x 3 block of cells of side just over ``radius`` around its cell (which holds them) lie
+        across a plane, highest less lowest; -inf where the block holds none. Compiled: across the
+        block's least-squares plane (:func:`~kbs.inference._compiled.block_plane_spread`: a tilted
+        road measures its noise); otherwise across the horizontal (the spread of the heights).
+        None when the grid would have too many cells (see :meth:`height_bounds`)."""
+        P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
+        grids = self._spread_grids
+        if radius not in grids:
+            grids[radius] = self._spread_grid(float(radius) * 1.001) if self.n_points else None
+        grid = grids[radius]
+        if grid is None:
+            return None
+        origin, side, spread = grid
+        Q = (P - self.point) @ self.basis.T
+        out = np.full(P.shape[0], -np.inf)
+        with np.errstate(invalid="ignore"):
+            ij = np.floor((Q - origin) / side)
+        inside = np.isfinite(ij).all(axis=1) & (ij >= 0).all(axis=1) & (ij[:, 0] < spread.shape[0]) & \
+            (ij[:, 1] < spread.shape[1])
+        k = np.flatnonzero(inside)
+        c = ij[k].astype(np.int64)
+        out[k] = spread[c[:, 0], c[:, 1]]
+        return out
+
+    def _spread_grid(self, side: float) -> tuple[np.ndarray, float, np.ndarray] | None:
+        """(origin, side, per cell the spread of its 3 x 3 block) for :meth:`spread_within`."""
+        if _flags.JIT:
+            T = self.plane
+            lo, hi = self._plane_bounds
+            origin = lo - 2 * side
+            cells = np.floor((hi - origin) / side) + 3
+            if not side > 0.0 or float(cells[0]) * float(cells[1]) > self.BOUND_CELLS_PER_POINT * T.shape[0] + 4096:
+                return None
+            nx, ny = (int(v) for v in cells)
+            return origin, side, _compiled.block_plane_spread(T, self.heights, origin, float(side), nx, ny)
+        grid = self._block_grid(side, reach=1)
+        if grid is None:
+            return None
+        lo_b, hi_b, _ = grid.blocks
+        return grid.origin, grid.side, hi_b - lo_b
+
+    @functools.cached_property
+    def _spread_grids(self) -> dict:
+        return {}
+
     def _slope_grid(self, radius: float) -> tuple | None:
         """The surface points in cells of side just over ``radius`` for the compiled
         :meth:`height_above_slope` (``(ny, start, order, lo, side)``, built once per radius), or

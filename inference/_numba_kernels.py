@@ -1865,6 +1865,85 @@ def surface_blocks(T, heights, origin, side, nx, ny, reach):
 
 
 @njit(cache=True, nogil=True)
+def block_plane_spread(T, heights, origin, side, nx, ny):
+    """Per cell of an (nx, ny) grid of ``side`` from ``origin`` holding the points ``T`` (m, 2) at
+    ``heights`` (m,): how far apart the points of its 3 x 3 block of cells lie across the block's
+    least-squares plane ``h = h0 + b x + c y``, highest residual less lowest (-inf where the block
+    is empty). The thickness of any of those points (the square root of the smallest eigenvalue of
+    their covariance) is at most half of it: the variance along any direction bounds the smallest
+    eigenvalue, and the residual of a plane is the projection on its normal scaled by at least 1.
+    A tilted smooth road measures its noise, where the spread of its heights measures its slope.
+    Any plane gives a bound: the fit only makes it tight (a block of fewer than 3 points, or a
+    degenerate one, is measured across the horizontal)."""
+    m = T.shape[0]
+    S = np.zeros((nx, ny, 9))  # per block: n, sx, sy, sz, sxx, sxy, syy, sxz, syz (block-local x, y)
+    ca = np.empty(m, dtype=np.int64)
+    cb = np.empty(m, dtype=np.int64)
+    zref = 0.0
+    for i in range(m):
+        zref += heights[i]
+    zref = zref / m if m else 0.0
+    for i in range(m):
+        a = int(math.floor((T[i, 0] - origin[0]) / side))
+        b = int(math.floor((T[i, 1] - origin[1]) / side))
+        ca[i] = a
+        cb[i] = b
+        z = heights[i] - zref
+        for u in range(max(a - 1, 0), min(a + 1, nx - 1) + 1):
+            x = T[i, 0] - (origin[0] + u * side)
+            for v in range(max(b - 1, 0), min(b + 1, ny - 1) + 1):
+                y = T[i, 1] - (origin[1] + v * side)
+                S[u, v, 0] += 1.0
+                S[u, v, 1] += x
+                S[u, v, 2] += y
+                S[u, v, 3] += z
+                S[u, v, 4] += x * x
+                S[u, v, 5] += x * y
+                S[u, v, 6] += y * y
+                S[u, v, 7] += x * z
+                S[u, v, 8] += y * z
+    P = np.zeros((nx, ny, 5))  # per block: mean x, y, z and the slopes b, c
+    for u in range(nx):
+        for v in range(ny):
+            n = S[u, v, 0]
+            if n == 0.0:
+                continue
+            mx = S[u, v, 1] / n
+            my = S[u, v, 2] / n
+            mz = S[u, v, 3] / n
+            P[u, v, 0] = mx
+            P[u, v, 1] = my
+            P[u, v, 2] = mz
+            if n < 3.0:
+                continue
+            cxx = S[u, v, 4] / n - mx * mx
+            cxy = S[u, v, 5] / n - mx * my
+            cyy = S[u, v, 6] / n - my * my
+            cxz = S[u, v, 7] / n - mx * mz
+            cyz = S[u, v, 8] / n - my * mz
+            det = cxx * cyy - cxy * cxy
+            if det > 1e-9 * (cxx + cyy) * (cxx + cyy) and det > 0.0:
+                P[u, v, 3] = (cxz * cyy - cyz * cxy) / det
+                P[u, v, 4] = (cyz * cxx - cxz * cxy) / det
+    lo = np.full((nx, ny), np.inf)
+    hi = np.full((nx, ny), -np.inf)
+    for i in range(m):
+        a = ca[i]
+        b = cb[i]
+        z = heights[i] - zref
+        for u in range(max(a - 1, 0), min(a + 1, nx - 1) + 1):
+            x = T[i, 0] - (origin[0] + u * side)
+            for v in range(max(b - 1, 0), min(b + 1, ny - 1) + 1):
+                y = T[i, 1] - (origin[1] + v * side)
+                r = z - (P[u, v, 2] + P[u, v, 3] * (x - P[u, v, 0]) + P[u, v, 4] * (y - P[u, v, 1]))
+                if r < lo[u, v]:
+                    lo[u, v] = r
+                if r > hi[u, v]:
+                    hi[u, v] = r
+    return hi - lo
+
+
+@njit(cache=True, nogil=True)
 def surface_bounds(Q, lo, hi, origin, side, lo_b, hi_b, n3, need, narrow):
     """Write the bounds of one block grid (see :func:`surface_blocks`) for the plane points ``Q``
     (q, 2) into ``lo``, ``hi`` (q,): the block's lowest and highest height where the point's cell

@@ -47,6 +47,7 @@ def warm() -> None:
         C.quantile_linear(X[:100, 2].copy(), q, median)
     nx, ny = int((U[:, 0].max() - lo[0]) / 0.5) + 5, int((U[:, 1].max() - lo[1]) / 0.5) + 5  # the surface's bounds
     b_lo, b_hi, n3 = C.surface_blocks(U, X[:3000, 2].copy(), lo - 2.0, 0.5, nx, ny, 3)
+    C.block_plane_spread(U, X[:3000, 2].copy(), lo - 2.0, 0.5, nx, ny)  # a thickness bound (ground_release's tiers)
     for narrow in (False, True):
         C.surface_bounds(U[:50].copy(), np.full(50, np.inf), np.full(50, -np.inf), lo - 2.0, 0.5, b_lo, b_hi, n3, 8,
                          narrow)

@@ -17,6 +17,16 @@ from kbs.knowledge.rulebase import SourcePos
 from kbs.knowledge.state import PostState
 
 
+#: one tier of 'rough': where the surface within radius is thicker than min, points more than
+#: tolerance (default the step's) above it are released
+_ROUGH_TIER: dict[str, Any] = {
+    "type": "object", "additionalProperties": False, "required": ["radius", "min"],
+    "properties": {"radius": {"type": "number", "exclusiveMinimum": 0},
+                   "min": {"type": "number", "minimum": 0},
+                   "tolerance": {"description": "length units, along the ground normal (default: the step's)",
+                                 "type": "number", "exclusiveMinimum": 0}}}
+
+
 @dataclass(frozen=True)
 class GroundRelease(PostStep):
     """Points of the ground model's clusters standing more than tolerance above the local ground
@@ -36,7 +46,9 @@ class GroundRelease(PostStep):
     find the ground model's surface as they would have. With 'rough: {radius: R, min: T}', only
     the points where that surface within R of them is thicker than T are released
     (:meth:`~kbs.geometry.groundmodel.LocalGround.thickness_within`: grass and low plants, not a
-    smooth pavement a kerb raises above the road)."""
+    smooth pavement a kerb raises above the road). 'rough' may be a list of such tiers, each
+    with a tolerance of its own (default: the step's): a point is released when one holds (the
+    rougher the ground, the less a plant need stand above it), in one pass against one surface."""
 
     key: ClassVar[str] = "ground_release"
     schema: ClassVar[dict[str, Any]] = {
@@ -55,10 +67,11 @@ class GroundRelease(PostStep):
                                           "on a surface of its own (default: the ground model's)",
                            "type": "integer", "minimum": 1},
             "rough": {"description": "release only the points where the surface is rough: thicker than min "
-                                     "within radius of them (length units; at least 8 surface points there)",
-                      "type": "object", "additionalProperties": False, "required": ["radius", "min"],
-                      "properties": {"radius": {"type": "number", "exclusiveMinimum": 0},
-                                     "min": {"type": "number", "minimum": 0}}},
+                                     "within radius of them (length units; at least 8 surface points there); a "
+                                     "list: tiers, each with a tolerance of its own (default the step's), a point "
+                                     "released when one holds",
+                      "oneOf": [_ROUGH_TIER,
+                                {"type": "array", "minItems": 1, "items": _ROUGH_TIER}]},
             "tune": {"$ref": "#/$defs/tune"},
         },
     }
@@ -68,8 +81,9 @@ class GroundRelease(PostStep):
     target: str  #: the label of the clusters released points join
     pos: SourcePos
     passes: int = 1  #: at most this many passes, the surface built again between them
-    #: (radius, min): only points where the surface within radius is thicker than min are released
-    rough: tuple[float, float] | None = None
+    #: tiers (radius, min, tolerance): only points where the surface within radius is thicker than
+    #: min and that stand more than that tolerance above it are released (one tier holding is enough)
+    rough: tuple[tuple[float, float, float], ...] | None = None
     quantile: float | None = None  #: the statistic of a surface of its own (None: the ground model's)
     neighbours: int | None = None  #: the neighbours of a surface of its own (None: the ground model's)
 
@@ -89,11 +103,12 @@ class GroundRelease(PostStep):
         if model is not None and raw["to"] == getattr(model, "label", None):
             ctx.add(ctx.path + ("to",), f"ground_release to '{raw['to']}', the ground model's own label, changes nothing")
         rough = raw.get("rough")
-        if isinstance(rough, dict):
-            rough = (ctx.number(rough.get("radius"), 1.0), ctx.number(rough.get("min"), 0.0))
+        tiers = [rough] if isinstance(rough, dict) else rough if isinstance(rough, list) else []
+        parsed = tuple((ctx.number(t.get("radius"), 1.0), ctx.number(t.get("min"), 0.0),
+                        ctx.number(t.get("tolerance", tol), float(tol))) for t in tiers if isinstance(t, dict))
         q, k = raw.get("quantile"), raw.get("neighbours")
         return cls(float(tol), raw["to"], ctx.pos(ctx.path, key=True), ctx.number(raw.get("passes"), 1, int),
-                   rough if isinstance(rough, tuple) else None, None if q is None else ctx.number(q, 0.5),
+                   parsed or None, None if q is None else ctx.number(q, 0.5),
                    None if k is None else ctx.number(k, 8, int))
 
     def apply(self, state: PostState, ctx: PostContext) -> PostState:
@@ -168,6 +183,8 @@ class GroundRelease(PostStep):
         # queries for batches of clusters (points move only after the loop)
         tol = self.tolerance
         above = lambda hp, lo, hi, P: hp - lo > tol  # noqa: E731 (no surface height under it is low enough: stays)
+        if self.rough is not None:  # nor where the surface is too smooth for each tier it may stand high enough for
+            above = functools.partial(_rough_enough, surface.model, self.rough)
         batches = surface_batches(X, [leaves[li] for li in todo], surface.model, above, nearest_of="none",
                                   asked=None if passes is None else passes.asked,
                                   found=None if passes is None or p + 1 == self.passes else
@@ -179,14 +196,30 @@ class GroundRelease(PostStep):
         if p:
             parts.append(f"pass {p + 1}: the surface without the points released before")
         which = f" ({', '.join(parts)})" if parts else ""
+        stand = f"stand more than {tol:g} {unit} above the local ground surface{which}"
         if self.rough is not None:
-            which += f" where it is thicker than {self.rough[1]:g} {unit} within {self.rough[0]:g} {unit}"
+            tiers = [f"where it is thicker than {t_min:g} {unit} within {radius:g} {unit}"
+                     for radius, t_min, _ in self.rough]
+            if len(self.rough) == 1:
+                stand = f"stand more than {self.rough[0][2]:g} {unit} above the local ground surface{which} {tiers[0]}"
+            else:
+                stand = f"stand above the local ground surface{which} " + ", or ".join(
+                    f"more than {t[2]:g} {unit} {where}" for t, where in zip(self.rough, tiers))
+        low = tol if self.rough is None else min(t[2] for t in self.rough)  # no tier releases a point lower
         for li, (h, _) in zip(todo, batches):
             lf = leaves[li]
-            move = np.nan_to_num(h, nan=-np.inf) > tol
-            if self.rough is not None and move.any():  # of those, the points where the surface is rough
-                thick = surface.model.thickness_within(take_rows(X, lf.node.idx[move]), self.rough[0])
-                move[move] = np.nan_to_num(thick, nan=-np.inf) > self.rough[1]
+            height = np.nan_to_num(h, nan=-np.inf)
+            move = height > low
+            if self.rough is not None and move.any():  # of those, the points where the surface is rough enough
+                P = take_rows(X, lf.node.idx[move])
+                hm = height[move]
+                held = np.zeros(hm.size, dtype=bool)
+                thick: dict[float, np.ndarray] = {}  # by radius: each asked once
+                for radius, t_min, t_tol in self.rough:
+                    if radius not in thick:
+                        thick[radius] = np.nan_to_num(surface.model.thickness_within(P, radius), nan=-np.inf)
+                    held |= (hm > t_tol) & (thick[radius] > t_min)
+                move[move] = held
             n_move, size = int(move.sum()), lf.size
             if not n_move:
                 continue
@@ -194,8 +227,8 @@ class GroundRelease(PostStep):
             gone.append(lf.node.idx[move])
             ids = [leaves[t].id for t in dest]
             leaves[li] = taken.with_record(released=lf.record.released + n_move, notes=(
-                f"{n_move:,} of its {size:,} points stand more than {tol:g} {unit} above the "
-                f"local ground surface{which} and joined {self.target} cluster{'s' if len(ids) > 1 else ''} "
+                f"{n_move:,} of its {size:,} points {stand} and joined {self.target} "
+                f"cluster{'s' if len(ids) > 1 else ''} "
                 f"{', '.join(ids[:5])}{' ...' if len(ids) > 5 else ''} [{self.pos.short} ground_release]",))
         receive(leaves, moved_in, "{n} points released by ground clusters joined it (the nearest "
                 f"{self.target} cluster) [{self.pos.short} ground_release]")
@@ -203,6 +236,34 @@ class GroundRelease(PostStep):
         if passes is not None and p + 1 < self.passes and released.size:  # what the next pass asks
             passes.after(surface.model, released, keep=p + 2 < self.passes)
         return replace(state, leaves=tuple(leaves)), released
+
+
+def _rough_enough(model: Any, tiers: tuple[tuple[float, float, float], ...], hp: np.ndarray, lo: np.ndarray,
+                  hi: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """Which points ``P`` (heights ``hp`` above the ground plane, ``lo`` the lowest surface height
+    under each, :meth:`~kbs.geometry.groundmodel.LocalGround.height_bounds`) one of the ``tiers``
+    (radius, min, tolerance) may release: more than its tolerance above the lowest surface under
+    them, where the surface is thicker than its min (the others' outcome is known without their
+    height: they stay). Where half the spread of the surface's heights around a point
+    (:meth:`~kbs.geometry.groundmodel.LocalGround.spread_within`, a bound of the thickness) is
+    no more than a tier's min, the thickness is not measured: a smooth road's."""
+    up = hp - lo
+    keep = np.zeros(up.shape, dtype=bool)
+    thick: dict[float, np.ndarray] = {}  # by radius, NaN where not measured yet
+    for radius, t_min, t_tol in tiers:
+        ask = (up > t_tol) & ~keep
+        if ask.any():
+            spread = model.spread_within(take_rows(P, np.flatnonzero(ask)), radius)
+            if spread is not None:
+                ask[ask] = 0.5 * spread * (1.0 + 1e-6) > t_min
+        if not ask.any():
+            continue
+        have = thick.setdefault(radius, np.full(up.shape, np.nan))
+        todo = ask & np.isnan(have)
+        if todo.any():
+            have[todo] = np.nan_to_num(model.thickness_within(take_rows(P, np.flatnonzero(todo)), radius), nan=-np.inf)
+        keep |= ask & (have > t_min)
+    return keep
 
 
 class _Nearest:
