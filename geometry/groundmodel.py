@@ -743,8 +743,15 @@ class LocalGround:
         grid = self._slope_grid(radius) if _flags.JIT else None
         if grid is not None:  # compiled: the same points, summed in the grid's order
             ny, start, order, lo, side = grid
-            return _compiled.ball_thickness(Q, hq, self.plane, self.heights, ny, start, order, lo, side,
-                                            float(radius) ** 2, self.THICKNESS_MIN_POINTS)
+            rest = (self.plane, self.heights, ny, start, order, lo, side, float(radius) ** 2, self.THICKNESS_MIN_POINTS)
+            if self.workers > 1 and Q.shape[0] >= 4096:  # the kernel releases the GIL: rows in threads, the same answers
+                from concurrent.futures import ThreadPoolExecutor
+
+                parts = np.array_split(np.arange(Q.shape[0]), self.workers)
+                with ThreadPoolExecutor(self.workers) as pool:
+                    got = list(pool.map(lambda rows: _compiled.ball_thickness(Q[rows], hq[rows], *rest), parts))
+                return np.concatenate(got)
+            return _compiled.ball_thickness(Q, hq, *rest)
         found = self.tree.query_ball_point(Q, r=radius)  # type: ignore[attr-defined]
         sizes = np.fromiter((len(f) for f in found), dtype=np.int64, count=len(found))
         some = np.flatnonzero(sizes >= self.THICKNESS_MIN_POINTS)

@@ -83,6 +83,20 @@ def test_the_spread_within_a_radius_bounds_the_thickness(monkeypatch):
         assert np.all(0.5 * spreads[True, 0.8][smooth] < 0.06)  # a smooth tilted road: its thickness is not measured
 
 
+def test_the_thickness_in_threads_is_the_same():
+    """LocalGround.thickness_within with workers (the kernel in threads, rows split; `-j 2`):
+    the same array as in one thread."""
+    rng = np.random.default_rng(9)
+    xy = rng.uniform(-20, 20, (20000, 2))
+    G = np.column_stack([xy, 0.05 * xy[:, 0] + rng.normal(0, 0.03, len(xy))])
+    P = G[rng.integers(0, len(G), 9000)]
+    one = LocalGround.build(G, np.arange(len(G)), np.array([0, 0, 1.0]), np.zeros(3), neighbours=16, radius=3.0)
+    two = LocalGround.build(G, np.arange(len(G)), np.array([0, 0, 1.0]), np.zeros(3), neighbours=16, radius=3.0,
+                            workers=2)
+    a, b = one.thickness_within(P, 0.8), two.thickness_within(P, 0.8)
+    assert np.isfinite(a).mean() > 0.9 and a.tobytes() == b.tobytes()
+
+
 def test_the_compiled_thickness_equals_the_numpy_path(monkeypatch):
     from kbs.inference import _flags
 
