@@ -254,8 +254,8 @@ def _rough_enough(model: Any, tiers: tuple[tuple[float, float, float], ...], hp:
         ask = (up > t_tol) & ~keep
         if ask.any():
             spread = model.spread_within(take_rows(P, np.flatnonzero(ask)), radius)
-            if spread is not None:
-                ask[ask] = 0.5 * spread * (1.0 + 1e-6) > t_min
+            if spread is not None:  # with room for rounding (a flat surface's thickness is not exactly 0)
+                ask[ask] = 0.5 * spread * (1.0 + 1e-6) + 1e-6 * radius > t_min
         if not ask.any():
             continue
         have = thick.setdefault(radius, np.full(up.shape, np.nan))
