@@ -798,14 +798,11 @@ class LocalGround:
     def _spread_grid(self, side: float) -> tuple[np.ndarray, float, np.ndarray] | None:
         """(origin, side, per cell the spread of its 3 x 3 block) for :meth:`spread_within`."""
         if _flags.JIT:
-            T = self.plane
-            lo, hi = self._plane_bounds
-            origin = lo - 2 * side
-            cells = np.floor((hi - origin) / side) + 3
-            if not side > 0.0 or float(cells[0]) * float(cells[1]) > self.BOUND_CELLS_PER_POINT * T.shape[0] + 4096:
+            laid = self._cells(side, 2)  # as the 3 x 3 blocks of _block_grid
+            if laid is None:
                 return None
-            nx, ny = (int(v) for v in cells)
-            return origin, side, _compiled.block_plane_spread(T, self.heights, origin, float(side), nx, ny)
+            origin, (nx, ny) = laid
+            return origin, side, _compiled.block_plane_spread(self.plane, self.heights, origin, float(side), nx, ny)
         grid = self._block_grid(side, reach=1)
         if grid is None:
             return None
@@ -921,21 +918,29 @@ class LocalGround:
         coarse = self._block_grid(self.radius * 1.001, reach=1)
         return coarse, None if coarse is None else self._block_grid(self.radius / 6.0, reach=3)
 
-    def _block_grid(self, side: float, reach: int) -> _BlockGrid | None:
-        """The surface on cells of ``side``: per cell, the lowest and highest height over the
-        (2 reach + 1)^2 block around it and the number of surface points of the 3 x 3 block; None
-        when there would be more than :attr:`BOUND_CELLS_PER_POINT` cells per surface point."""
-        T = self.plane  # the surface points' plane coordinates
-        pad = reach + 1  # empty rings of cells around the surface
+    def _cells(self, side: float, pad: int) -> tuple[np.ndarray, tuple[int, int]] | None:
+        """(origin, (nx, ny)) of a grid of cells of ``side`` over the surface's plane coordinates
+        with ``pad`` empty rings of cells around them; None when ``side`` is not positive or there
+        would be more than :attr:`BOUND_CELLS_PER_POINT` cells per surface point."""
         if not side > 0.0:
             return None
         lo, hi = self._plane_bounds
         origin = lo - pad * side
         cells = np.floor((hi - origin) / side) + pad + 1  # floats: may be huge
-        if float(cells[0]) * float(cells[1]) > self.BOUND_CELLS_PER_POINT * T.shape[0] + 4096:
+        if float(cells[0]) * float(cells[1]) > self.BOUND_CELLS_PER_POINT * self.plane.shape[0] + 4096:
             return None
-        shape = cells.astype(np.int64)
-        shape2 = (int(shape[0]), int(shape[1]))
+        return origin, (int(cells[0]), int(cells[1]))
+
+    def _block_grid(self, side: float, reach: int) -> _BlockGrid | None:
+        """The surface on cells of ``side``: per cell, the lowest and highest height over the
+        (2 reach + 1)^2 block around it and the number of surface points of the 3 x 3 block; None
+        when there would be more than :attr:`BOUND_CELLS_PER_POINT` cells per surface point."""
+        T = self.plane  # the surface points' plane coordinates
+        laid = self._cells(side, reach + 1)
+        if laid is None:
+            return None
+        origin, shape2 = laid
+        shape = np.array(shape2, dtype=np.int64)
         if _flags.JIT:  # the same arrays, compiled: one pass over the points, no sort
             blocks = _compiled.surface_blocks(T, self.heights, origin, float(side), shape2[0], shape2[1], reach)
             return _BlockGrid(origin, side, shape2, blocks)
