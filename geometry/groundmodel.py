@@ -740,10 +740,10 @@ class LocalGround:
             return out
         G = P - self.point
         Q, hq = np.ascontiguousarray(G @ self.basis.T), np.ascontiguousarray(G @ self.normal)
-        grid = self._slope_grid(radius) if _flags.JIT else None
+        grid = self._ball_grid(radius) if _flags.JIT else None
         if grid is not None:  # compiled: the same points, summed in the grid's order
-            ny, start, order, lo, side = grid
-            rest = (self.plane, self.heights, ny, start, order, lo, side, float(radius) ** 2, self.THICKNESS_MIN_POINTS)
+            ny, start, S, lo, side, reach = grid
+            rest = (S, ny, start, lo, side, reach, float(radius) ** 2, self.THICKNESS_MIN_POINTS)
             if self.workers > 1 and Q.shape[0] >= 4096:  # the kernel releases the GIL: rows in threads, the same answers
                 from concurrent.futures import ThreadPoolExecutor
 
@@ -767,6 +767,34 @@ class LocalGround:
         lam = np.linalg.eigvalsh(S - m[:, :, None] * m[:, None, :])[:, 0]
         out[some] = np.sqrt(np.maximum(lam, 0.0))
         return out
+
+    #: cells of :meth:`_ball_grid` per radius
+    BALL_CELLS = 3
+
+    def _ball_grid(self, radius: float) -> tuple | None:
+        """The surface points for the compiled :meth:`thickness_within`: ``(ny, start, S, lo,
+        side, reach)``, the points (plane coordinates and height, ``S``) in the order of square
+        cells of ``side`` a third of ``radius`` (just over), ``reach`` cells around a query's
+        holding its disc; built once per radius. Cells as wide as the radius (``reach`` 1) when
+        the finer grid would have more than :attr:`BOUND_CELLS_PER_POINT` cells per surface point;
+        None when that one would too (the k-d tree answers then). A third of the radius: on the
+        tiered release's queries of SemanticKITTI 000001 and GndNet 000000, 44 -> 37 and 101 ->
+        53 ms against a 3 x 3 block of cells as wide as the radius (docs/PERFORMANCE.md, session 44)."""
+        grids = self._slope_grids
+        key = ("ball", radius)
+        if key not in grids:
+            grids[key] = None
+            T = self.plane
+            for cells in (self.BALL_CELLS, 1):
+                side = float(radius) * 1.001 / cells  # ``cells`` of them hold the radius, rounding aside
+                if not (side > 0.0 and np.isfinite(side)):
+                    break
+                ny, start, order, lo = _compiled.surface_grid(T, side, float(self.BOUND_CELLS_PER_POINT * T.shape[0] + 4096))
+                if ny >= 0:
+                    S = np.ascontiguousarray(np.column_stack([rows(T, order), self.heights[order]]))
+                    grids[key] = (int(ny), start, S, lo, side, cells)
+                    break
+        return grids[key]
 
     def spread_within(self, P: np.ndarray, radius: float) -> np.ndarray | None:
         """For points ``P`` (q, 3): a bound of twice :meth:`thickness_within` (``radius``) without

@@ -287,30 +287,13 @@ def _gg_sums(uk, R, power, S):
 
 
 @njit(nogil=True)
-def _eigh3(A):
-    """Eigenvalues (3,), ascending, and unit eigenvectors (3, 3), columns, of the symmetric 3 x 3
-    matrix ``A``, of which the lower triangle is read (as ``np.linalg.eigh``, whose results these
-    equal to rounding): cyclic Jacobi rotations (Rutishauser's formulation, Golub and Van Loan
-    section 8.5), each of which sets one off-diagonal element to zero, until all three are zero.
-
-    Why not ``np.linalg.eigh``: in numba it calls LAPACK through ``scipy.linalg.cython_lapack``,
-    whose import costs a ``kbs run`` process about 0.1 s; and in one scratch loop over 20,000
-    covariance-like matrices a call took 1.1-1.6 us here against 4.4-4.6 us there. Jacobi's
-    method is the accurate one for small symmetric matrices (small eigenvalues to a high relative
-    accuracy, orthogonal eigenvectors), and converges quadratically: 3 to 5 sweeps of three
-    rotations. An element is also set to zero once it is too small to change
-    either diagonal element it rotates (after three sweeps, as in Numerical Recipes' ``jacobi``),
-    so that the loop ends on any finite matrix. A non-finite matrix raises ``LinAlgError``, as
-    numba's ``np.linalg.eigh`` does."""
-    a = np.empty((3, 3))
-    for i in range(3):
-        for j in range(i + 1):
-            x = A[i, j]
-            if not np.isfinite(x):
-                raise np.linalg.LinAlgError("Array must not contain infs or NaNs.")
-            a[i, j] = x
-            a[j, i] = x
-    v = np.eye(3)
+def _jacobi(a, v, vectors):
+    """The cyclic Jacobi rotations of :func:`_eigh3` on the symmetric 3 x 3 ``a`` (both triangles
+    set), in place, until it is diagonal: its diagonal then holds the eigenvalues (unsorted);
+    with ``vectors``, the rotations are also applied to ``v`` (the identity at the start: the
+    eigenvectors, columns). The eigenvalues do not depend on ``vectors`` (the same rotations):
+    a caller that needs the values only (:func:`ball_thickness`) skips the vectors, and the
+    arrays of a call (it allocates none)."""
     for sweep in range(64):
         if a[0, 1] == 0.0 and a[0, 2] == 0.0 and a[1, 2] == 0.0:
             break
@@ -347,11 +330,40 @@ def _eigh3(A):
             arq = a[r, q]
             a[r, p] = a[p, r] = arp - s * (arq + arp * tau)
             a[r, q] = a[q, r] = arq + s * (arp - arq * tau)
-            for j in range(3):
-                vjp = v[j, p]
-                vjq = v[j, q]
-                v[j, p] = vjp - s * (vjq + vjp * tau)
-                v[j, q] = vjq + s * (vjp - vjq * tau)
+            if vectors:
+                for j in range(3):
+                    vjp = v[j, p]
+                    vjq = v[j, q]
+                    v[j, p] = vjp - s * (vjq + vjp * tau)
+                    v[j, q] = vjq + s * (vjp - vjq * tau)
+
+
+@njit(nogil=True)
+def _eigh3(A):
+    """Eigenvalues (3,), ascending, and unit eigenvectors (3, 3), columns, of the symmetric 3 x 3
+    matrix ``A``, of which the lower triangle is read (as ``np.linalg.eigh``, whose results these
+    equal to rounding): cyclic Jacobi rotations (Rutishauser's formulation, Golub and Van Loan
+    section 8.5), each of which sets one off-diagonal element to zero, until all three are zero.
+
+    Why not ``np.linalg.eigh``: in numba it calls LAPACK through ``scipy.linalg.cython_lapack``,
+    whose import costs a ``kbs run`` process about 0.1 s; and in one scratch loop over 20,000
+    covariance-like matrices a call took 1.1-1.6 us here against 4.4-4.6 us there. Jacobi's
+    method is the accurate one for small symmetric matrices (small eigenvalues to a high relative
+    accuracy, orthogonal eigenvectors), and converges quadratically: 3 to 5 sweeps of three
+    rotations. An element is also set to zero once it is too small to change
+    either diagonal element it rotates (after three sweeps, as in Numerical Recipes' ``jacobi``),
+    so that the loop ends on any finite matrix. A non-finite matrix raises ``LinAlgError``, as
+    numba's ``np.linalg.eigh`` does."""
+    a = np.empty((3, 3))
+    for i in range(3):
+        for j in range(i + 1):
+            x = A[i, j]
+            if not np.isfinite(x):
+                raise np.linalg.LinAlgError("Array must not contain infs or NaNs.")
+            a[i, j] = x
+            a[j, i] = x
+    v = np.eye(3)
+    _jacobi(a, v, True)
     # ascending, ties in their order (a stable sort of three)
     o0, o1, o2 = 0, 1, 2
     if a[o1, o1] < a[o0, o0]:
@@ -1541,33 +1553,56 @@ def slope_lowest(Q, T, heights, owners, own, ny, start, order, lo, side, rise, r
 
 
 @njit(cache=True, nogil=True)
-def ball_thickness(Q, hq, T, heights, ny, start, order, lo, side, r2, min_points):
-    """For each query ``Q[k]`` (q, 2) at height ``hq[k]``: the thickness of the points ``T[j]``
-    (plane coordinates, m x 2) at ``heights[j]`` with ``d2 = dx*dx + dy*dy <= r2`` (as scipy's
+def ball_thickness(Q, hq, S, ny, start, lo, side, reach, r2, min_points):
+    """For each query ``Q[k]`` (q, 2) at height ``hq[k]``: the thickness of the surface points
+    ``S[p]`` (m, 3: plane coordinates and height, in the order of their cells: those of cell ``c``
+    at ``start[c]:start[c + 1]``, cells ``c = a * ny + b`` of ``side`` from ``lo``, as
+    :func:`surface_grid` lays them out) with ``d2 = dx*dx + dy*dy <= r2`` (as scipy's
     ``query_ball_point`` compares them), the square root of the smallest eigenvalue of the
     covariance of their positions (plane coordinates and height, each taken from the query's);
-    NaN where fewer than ``min_points`` lie there. The grid (``surface_grid`` of side at least
-    ``sqrt(r2)``) holds every such point in the 3 x 3 block of cells around the query's cell."""
+    NaN where fewer than ``min_points`` lie there. ``reach * side`` must be at least
+    ``sqrt(r2)``: the cells within ``reach`` of the query's hold every such point, and of them
+    only those whose rectangle comes within the radius are read (with cells a third of the radius
+    wide, about half the points of a 3 x 3 block of cells as wide as the radius; the points of a
+    cell lie in one run of ``S``: no gather). Non-finite sums raise ``LinAlgError``, as
+    :func:`_eigh3` does."""
     q = Q.shape[0]
     nx = (start.shape[0] - 1) // ny
     out = np.full(q, np.nan)
-    cov = np.empty((3, 3))
+    a = np.empty((3, 3))
+    # a cell is skipped when its rectangle lies beyond the radius by more than the rounding of
+    # the cell's bounds (a point's cell is floor((x - lo) / side), computed in floating point)
+    slack = r2 + 1e-9 * (r2 + side * side)
     for k in range(q):
-        inside, a0, a1, b0, b1 = _block3(Q[k, 0], Q[k, 1], lo, side, nx, ny)
-        if not inside:
-            continue
+        x = Q[k, 0]
+        y = Q[k, 1]
+        fa = math.floor((x - lo[0]) / side)
+        fb = math.floor((y - lo[1]) / side)
+        if not (fa >= -reach and fa < nx + reach and fb >= -reach and fb < ny + reach):
+            continue  # no cell within reach (NaN coordinates too)
+        a0 = max(int(fa) - reach, 0)
+        a1 = min(int(fa) + reach, nx - 1)
+        b0 = max(int(fb) - reach, 0)
+        b1 = min(int(fb) + reach, ny - 1)
         n = 0
         s0 = s1 = s2 = 0.0
         s00 = s01 = s02 = s11 = s12 = s22 = 0.0
-        for a in range(a0, a1 + 1):
-            for b in range(b0, b1 + 1):
-                c = a * ny + b
+        for ca in range(a0, a1 + 1):
+            x0 = lo[0] + ca * side
+            ex = x0 - x if x < x0 else (x - x0 - side if x > x0 + side else 0.0)
+            if ex * ex > slack:
+                continue
+            for cb in range(b0, b1 + 1):
+                y0 = lo[1] + cb * side
+                ey = y0 - y if y < y0 else (y - y0 - side if y > y0 + side else 0.0)
+                if ex * ex + ey * ey > slack:
+                    continue
+                c = ca * ny + cb
                 for p in range(start[c], start[c + 1]):
-                    j = order[p]
-                    dx = T[j, 0] - Q[k, 0]
-                    dy = T[j, 1] - Q[k, 1]
+                    dx = S[p, 0] - x
+                    dy = S[p, 1] - y
                     if dx * dx + dy * dy <= r2:
-                        dz = heights[j] - hq[k]
+                        dz = S[p, 2] - hq[k]
                         n += 1
                         s0 += dx
                         s1 += dy
@@ -1583,14 +1618,18 @@ def ball_thickness(Q, hq, T, heights, ny, start, order, lo, side, r2, min_points
         m0 = s0 / n
         m1 = s1 / n
         m2 = s2 / n
-        cov[0, 0] = s00 / n - m0 * m0
-        cov[1, 0] = s01 / n - m0 * m1
-        cov[2, 0] = s02 / n - m0 * m2
-        cov[1, 1] = s11 / n - m1 * m1
-        cov[2, 1] = s12 / n - m1 * m2
-        cov[2, 2] = s22 / n - m2 * m2
-        lam, _vec = _eigh3(cov)
-        out[k] = math.sqrt(max(lam[0], 0.0))
+        a[0, 0] = s00 / n - m0 * m0
+        a[1, 0] = a[0, 1] = s01 / n - m0 * m1
+        a[2, 0] = a[0, 2] = s02 / n - m0 * m2
+        a[1, 1] = s11 / n - m1 * m1
+        a[2, 1] = a[1, 2] = s12 / n - m1 * m2
+        a[2, 2] = s22 / n - m2 * m2
+        for i in range(3):
+            for j in range(i + 1):
+                if not np.isfinite(a[i, j]):
+                    raise np.linalg.LinAlgError("Array must not contain infs or NaNs.")
+        _jacobi(a, a, False)  # the eigenvalues only (the second argument is not read)
+        out[k] = math.sqrt(max(min(a[0, 0], min(a[1, 1], a[2, 2])), 0.0))
     return out
 
 

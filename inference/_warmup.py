@@ -39,7 +39,8 @@ def warm() -> None:
     ny, start, order, lo = C.surface_grid(U, 1.0, 4.0 * len(U) + 4096.0)  # the slope surface
     C.slope_lowest(U[:50].copy(), U, X[:3000, 2].copy(), np.zeros(3000, dtype=np.int64), 0, ny, start, order, lo,
                    1.0, 0.8, 1.0)
-    C.ball_thickness(U[:50].copy(), X[:50, 2].copy(), U, X[:3000, 2].copy(), ny, start, order, lo, 1.0, 1.0, 8)
+    S = np.ascontiguousarray(np.column_stack([U[order], X[:3000, 2][order]]))  # the thickness's grid
+    C.ball_thickness(U[:50].copy(), X[:50, 2].copy(), S, ny, start, lo, 1.0, 1, 1.0, 8)
     ny, start, order, lo, hmin, box = C.slope_cells(U, X[:3000, 2].copy(), 0.25, 4.0 * len(U) + 4096.0)
     C.slope_lowest_pruned(U[:50].copy(), U, X[:3000, 2].copy(), np.zeros(3000, dtype=np.int64), 0, ny, start, order,
                           lo, 0.25, hmin, box, 0.8, 1.0, 1.0)

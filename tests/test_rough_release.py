@@ -111,6 +111,64 @@ def test_the_compiled_thickness_equals_the_numpy_path(monkeypatch):
     assert np.array_equal(np.isnan(a), np.isnan(b)) and np.nanmax(np.abs(a - b)) < 1e-12
 
 
+def test_the_thickness_grid_of_thirds_gives_the_cells_of_the_radius_answers(monkeypatch):
+    """The compiled thickness reads cells a third of the radius wide, those whose rectangle comes
+    within the radius (session 44); with cells as wide as the radius (its fallback when the finer
+    grid would be too large) the same points are summed: the same thickness to rounding, NaN at
+    the same queries, queries at a cell's corner and outside the grid included."""
+    from kbs.inference import _flags
+
+    monkeypatch.setattr(_flags, "JIT", True)
+    rng = np.random.default_rng(12)
+    xy = rng.uniform(-12, 12, (12000, 2))
+    G = np.column_stack([xy, 0.03 * xy[:, 1] + rng.normal(0, 0.02, len(xy))])
+    sparse = (xy[:, 0] > 6.0) & (rng.random(len(xy)) < 0.97)  # a sparse strip: NaN where fewer than 8
+    G = G[~sparse]
+    P = np.vstack([G[rng.integers(0, len(G), 3000)] + rng.normal(0, 0.3, (3000, 3)),
+                   [[-12.8, -12.8, 0.0], [13.0, 0.0, 0.0], [40.0, 40.0, 0.0]]])  # at the edges, outside
+    got = {}
+    for cells in (3, 1):
+        monkeypatch.setattr(LocalGround, "BALL_CELLS", cells)
+        model = LocalGround.build(G, np.arange(len(G)), np.array([0, 0, 1.0]), np.zeros(3), neighbours=16, radius=3.0)
+        assert model._ball_grid(0.8)[-1] == cells
+        got[cells] = model.thickness_within(P, 0.8)
+    a, b = got[3], got[1]
+    assert np.array_equal(np.isnan(a), np.isnan(b)) and np.isnan(a).sum() > 10 and np.isnan(a[-1])
+    assert np.nanmax(np.abs(a - b)) < 1e-12
+
+
+def test_the_tiers_measure_each_points_thickness_once(monkeypatch):
+    """The tiers' check of which points to ask and the release of those asked need the same
+    thickness: each point's is measured once in a pass (ground_release._Thickness), and the labels
+    are those of measuring it twice (the step before session 44, its values recomputed)."""
+    from kbs.knowledge.post import ground_release as gr
+
+    X, _labels = _kerb_and_verge(0.15)
+    rb = load_rule_base("outdoor")
+    asked: list[np.ndarray] = []
+    measure = LocalGround.thickness_within
+
+    def counted(self, P, radius):
+        asked.append(np.asarray(P))
+        return measure(self, P, radius)
+
+    monkeypatch.setattr(LocalGround, "thickness_within", counted)
+    once = Interpreter(rb).run(X)
+    rows = np.concatenate(asked)
+    assert len(rows) > 100 and len(np.unique(rows, axis=0)) == len(rows)
+
+    def twice(self, radius, rows, P=None):  # nothing kept: every call measures again
+        self.known.clear()
+        return remember(self, radius, rows, P)
+
+    remember = gr._Thickness.at
+    asked.clear()
+    monkeypatch.setattr(gr._Thickness, "at", twice)
+    again = Interpreter(rb).run(X)
+    assert len(np.concatenate(asked)) > len(rows)  # the movers measured again
+    assert np.array_equal(once.label, again.label) and np.array_equal(once.cluster, again.cluster)
+
+
 _TIERS = "      rough:\n        - {radius: 0.8, min: 0.02}\n        - {radius: 0.8, min: 0.06, tolerance: 0.05}"
 
 

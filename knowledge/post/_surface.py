@@ -50,8 +50,9 @@ def surface_batches(X: np.ndarray, todo: Sequence[Leaf], model, may_matter: Call
     nearest surface points) of its points, asked for batches of leaves of about
     :data:`SURFACE_BATCH` points together (few small queries, bounded temporaries).
 
-    ``may_matter(hp, lo, hi, P)``: which points ``P`` the caller needs, from their heights above
-    the ground plane and the bounds of the surface under them (:meth:`LocalGround.height_bounds`);
+    ``may_matter(hp, lo, hi, P, at)``: which points ``P`` (the rows ``at`` of ``X``) the caller
+    needs, from their heights above the ground plane and the bounds of the surface under them
+    (:meth:`LocalGround.height_bounds`);
     the others are not asked for and come back as NaN (height) and -1 (nearest). The caller
     promises that their outcome is the same either way (the bounds decide it). ``nearest_of``:
     what the caller uses of the nearest surface points (:meth:`LocalGround.query`). ``asked``
@@ -68,10 +69,11 @@ def surface_batches(X: np.ndarray, todo: Sequence[Leaf], model, may_matter: Call
             continue
         idx = np.concatenate([b.node.idx for b in batch])
         rows = None if asked is None else np.flatnonzero(asked[idx])  # the points that may be asked
-        P = take_rows(X, idx if rows is None else idx[rows])
+        at = idx if rows is None else idx[rows]
+        P = take_rows(X, at)
         hp = (P - model.point) @ model.normal
         bounds = model.height_bounds(P) if may_matter is not None and P.shape[0] else None
-        ask = None if bounds is None or may_matter is None else np.flatnonzero(may_matter(hp, *bounds, P))
+        ask = None if bounds is None or may_matter is None else np.flatnonzero(may_matter(hp, *bounds, P, at))
         if rows is None and ask is None and found is None:
             ground, nearest = model.query(P, nearest_of=nearest_of)
             h = hp - ground

@@ -102,7 +102,7 @@ class GroundContact(PostStep):
         tol, sensor = self.tolerance, state.scene.sensor
         # a point whose surface bounds put it farther than the tolerance from any height the
         # surface can have under it does not move: it is not asked for
-        def near(hp: np.ndarray, lo: np.ndarray, hi: np.ndarray, P: np.ndarray) -> np.ndarray:
+        def near(hp: np.ndarray, lo: np.ndarray, hi: np.ndarray, P: np.ndarray, _at: np.ndarray) -> np.ndarray:
             t = self.tolerances(P, sensor)
             return (hp - hi <= t) & (hp - lo >= -t)
 

@@ -182,9 +182,10 @@ class GroundRelease(PostStep):
         todo = [li for li, lf in enumerate(leaves) if lf.label == gl and lf.size]
         # queries for batches of clusters (points move only after the loop)
         tol = self.tolerance
-        above = lambda hp, lo, hi, P: hp - lo > tol  # noqa: E731 (no surface height under it is low enough: stays)
-        if self.rough is not None:  # nor where the surface is too smooth for each tier it may stand high enough for
-            above = functools.partial(_rough_enough, surface.model, self.rough)
+        above = lambda hp, lo, hi, P, at: hp - lo > tol  # noqa: E731 (no surface height under it is low enough: stays)
+        thickness = _Thickness(surface.model, X) if self.rough is not None else None
+        if thickness is not None:  # nor where the surface is too smooth for each tier it may stand high enough for
+            above = functools.partial(_rough_enough, thickness, self.rough)
         batches = surface_batches(X, [leaves[li] for li in todo], surface.model, above, nearest_of="none",
                                   asked=None if passes is None else passes.asked,
                                   found=None if passes is None or p + 1 == self.passes else
@@ -210,15 +211,12 @@ class GroundRelease(PostStep):
             lf = leaves[li]
             height = np.nan_to_num(h, nan=-np.inf)
             move = height > low
-            if self.rough is not None and move.any():  # of those, the points where the surface is rough enough
-                P = take_rows(X, lf.node.idx[move])
+            if thickness is not None and move.any():  # of those, the points where the surface is rough enough
+                at = lf.node.idx[move]
                 hm = height[move]
                 held = np.zeros(hm.size, dtype=bool)
-                thick: dict[float, np.ndarray] = {}  # by radius: each asked once
-                for radius, t_min, t_tol in self.rough:
-                    if radius not in thick:
-                        thick[radius] = np.nan_to_num(surface.model.thickness_within(P, radius), nan=-np.inf)
-                    held |= (hm > t_tol) & (thick[radius] > t_min)
+                for radius, t_min, t_tol in self.rough:  # (measured while the heights were asked, most of them)
+                    held |= (hm > t_tol) & (thickness.at(radius, at) > t_min)
                 move[move] = held
             n_move, size = int(move.sum()), lf.size
             if not n_move:
@@ -238,32 +236,55 @@ class GroundRelease(PostStep):
         return replace(state, leaves=tuple(leaves)), released
 
 
-def _rough_enough(model: Any, tiers: tuple[tuple[float, float, float], ...], hp: np.ndarray, lo: np.ndarray,
-                  hi: np.ndarray, P: np.ndarray) -> np.ndarray:
-    """Which points ``P`` (heights ``hp`` above the ground plane, ``lo`` the lowest surface height
-    under each, :meth:`~kbs.geometry.groundmodel.LocalGround.height_bounds`) one of the ``tiers``
-    (radius, min, tolerance) may release: more than its tolerance above the lowest surface under
-    them, where the surface is thicker than its min (the others' outcome is known without their
-    height: they stay). Where half the spread of the surface's heights around a point
-    (:meth:`~kbs.geometry.groundmodel.LocalGround.spread_within`, a bound of the thickness) is
-    no more than a tier's min, the thickness is not measured: a smooth road's."""
+def _rough_enough(thickness: _Thickness, tiers: tuple[tuple[float, float, float], ...], hp: np.ndarray,
+                  lo: np.ndarray, hi: np.ndarray, P: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Which points ``P`` (the rows ``at`` of ``X``; heights ``hp`` above the ground plane, ``lo``
+    the lowest surface height under each, :meth:`~kbs.geometry.groundmodel.LocalGround.height_bounds`)
+    one of the ``tiers`` (radius, min, tolerance) may release: more than its tolerance above the
+    lowest surface under them, where the surface is thicker than its min (the others' outcome is
+    known without their height: they stay). Where half the spread of the surface's heights around
+    a point (:meth:`~kbs.geometry.groundmodel.LocalGround.spread_within`, a bound of the
+    thickness) is no more than a tier's min, the thickness is not measured: a smooth road's."""
     up = hp - lo
     keep = np.zeros(up.shape, dtype=bool)
-    thick: dict[float, np.ndarray] = {}  # by radius, NaN where not measured yet
     for radius, t_min, t_tol in tiers:
         ask = (up > t_tol) & ~keep
         if ask.any():
-            spread = model.spread_within(take_rows(P, np.flatnonzero(ask)), radius)
+            spread = thickness.model.spread_within(take_rows(P, np.flatnonzero(ask)), radius)
             if spread is not None:  # with room for rounding (a flat surface's thickness is not exactly 0)
                 ask[ask] = 0.5 * spread * (1.0 + 1e-6) + 1e-6 * radius > t_min
         if not ask.any():
             continue
-        have = thick.setdefault(radius, np.full(up.shape, np.nan))
-        todo = ask & np.isnan(have)
-        if todo.any():
-            have[todo] = np.nan_to_num(model.thickness_within(take_rows(P, np.flatnonzero(todo)), radius), nan=-np.inf)
-        keep |= ask & (have > t_min)
+        sel = np.flatnonzero(ask)
+        keep[sel] = thickness.at(radius, at[sel], take_rows(P, sel)) > t_min
     return keep
+
+
+class _Thickness:
+    """The thickness of the surface ``model`` within a radius around points of ``X`` (by row; -inf
+    where too few surface points are near), each measured once in a pass: the tiers' check of
+    which points to ask (:func:`_rough_enough`) and the release of the points asked need the
+    same values (the release measured them a second time before: about a tenth of the step on
+    SemanticKITTI 000001)."""
+
+    def __init__(self, model: Any, X: np.ndarray) -> None:
+        self.model = model
+        self.X = X
+        self.known: dict[float, np.ndarray] = {}  # by radius, one per row of X (NaN: not measured)
+
+    def at(self, radius: float, rows: np.ndarray, P: np.ndarray | None = None) -> np.ndarray:
+        """The thickness within ``radius`` around the points of ``X`` at ``rows`` (``P``: those
+        points, when the caller has them)."""
+        known = self.known.get(radius)
+        if known is None:
+            known = self.known[radius] = np.full(self.X.shape[0], np.nan)
+        got = known[rows]
+        todo = np.flatnonzero(np.isnan(got))
+        if todo.size:
+            Q = take_rows(self.X, rows[todo]) if P is None else take_rows(P, todo)
+            got[todo] = np.nan_to_num(self.model.thickness_within(Q, radius), nan=-np.inf)
+            known[rows[todo]] = got[todo]
+        return got
 
 
 class _Nearest:
