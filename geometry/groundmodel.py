@@ -744,14 +744,22 @@ class LocalGround:
         if grid is not None:  # compiled: the same points, summed in the grid's order
             ny, start, S, lo, side, reach = grid
             rest = (S, ny, start, lo, side, reach, float(radius) ** 2, self.THICKNESS_MIN_POINTS)
+            order = self._spatial_order(Q)  # neighbouring queries read the same cells (the same answers)
+            if order is not None:
+                Q, hq = rows(Q, order), hq[order]
             if self.workers > 1 and Q.shape[0] >= 4096:  # the kernel releases the GIL: rows in threads, the same answers
                 from concurrent.futures import ThreadPoolExecutor
 
                 parts = np.array_split(np.arange(Q.shape[0]), self.workers)
                 with ThreadPoolExecutor(self.workers) as pool:
-                    got = list(pool.map(lambda rows: _compiled.ball_thickness(Q[rows], hq[rows], *rest), parts))
-                return np.concatenate(got)
-            return _compiled.ball_thickness(Q, hq, *rest)
+                    got = np.concatenate(list(pool.map(
+                        lambda part: _compiled.ball_thickness(Q[part], hq[part], *rest), parts)))
+            else:
+                got = _compiled.ball_thickness(Q, hq, *rest)
+            if order is None:
+                return got
+            out[order] = got
+            return out
         found = self.tree.query_ball_point(Q, r=radius)  # type: ignore[attr-defined]
         sizes = np.fromiter((len(f) for f in found), dtype=np.int64, count=len(found))
         some = np.flatnonzero(sizes >= self.THICKNESS_MIN_POINTS)
@@ -770,6 +778,8 @@ class LocalGround:
 
     #: cells of :meth:`_ball_grid` per radius
     BALL_CELLS = 3
+    #: at most this many cells in the finer grid of :meth:`_ball_grid` (32 MB of offsets)
+    BALL_MAX_CELLS = 1 << 22
 
     def _ball_grid(self, radius: float) -> tuple | None:
         """The surface points for the compiled :meth:`thickness_within`: ``(ny, start, S, lo,
@@ -777,19 +787,23 @@ class LocalGround:
         cells of ``side`` a third of ``radius`` (just over), ``reach`` cells around a query's
         holding its disc; built once per radius. Cells as wide as the radius (``reach`` 1) when
         the finer grid would have more than :attr:`BOUND_CELLS_PER_POINT` cells per surface point;
-        None when that one would too (the k-d tree answers then). A third of the radius: on the
-        tiered release's queries of SemanticKITTI 000001 and GndNet 000000, 44 -> 37 and 101 ->
-        53 ms against a 3 x 3 block of cells as wide as the radius (docs/PERFORMANCE.md, session 44)."""
+        None when that one would too (the k-d tree answers then). The finer grid may have as many
+        cells per surface point as the cells of the radius have in a 3 x 3 block (9 x), up to
+        :attr:`BALL_MAX_CELLS`. A third of the radius: on the tiered release's queries of GndNet
+        000000, 101 -> 53 ms against a 3 x 3 block of cells as wide as the radius
+        (docs/PERFORMANCE.md, session 44)."""
         grids = self._slope_grids
         key = ("ball", radius)
         if key not in grids:
             grids[key] = None
             T = self.plane
-            for cells in (self.BALL_CELLS, 1):
+            coarse = float(self.BOUND_CELLS_PER_POINT * T.shape[0] + 4096)
+            for cells, most in ((self.BALL_CELLS, min(coarse * self.BALL_CELLS ** 2, float(self.BALL_MAX_CELLS))),
+                                (1, coarse)):
                 side = float(radius) * 1.001 / cells  # ``cells`` of them hold the radius, rounding aside
                 if not (side > 0.0 and np.isfinite(side)):
                     break
-                ny, start, order, lo = _compiled.surface_grid(T, side, float(self.BOUND_CELLS_PER_POINT * T.shape[0] + 4096))
+                ny, start, order, lo = _compiled.surface_grid(T, side, most)
                 if ny >= 0:
                     S = np.ascontiguousarray(np.column_stack([rows(T, order), self.heights[order]]))
                     grids[key] = (int(ny), start, S, lo, side, cells)

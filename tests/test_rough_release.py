@@ -127,7 +127,7 @@ def test_the_thickness_grid_of_thirds_gives_the_cells_of_the_radius_answers(monk
     P = np.vstack([G[rng.integers(0, len(G), 3000)] + rng.normal(0, 0.3, (3000, 3)),
                    [[-12.8, -12.8, 0.0], [13.0, 0.0, 0.0], [40.0, 40.0, 0.0]]])  # at the edges, outside
     got = {}
-    for cells in (3, 1):
+    for cells in (1, 3):  # the shipped 3 last: the spatial order below reads its grid
         monkeypatch.setattr(LocalGround, "BALL_CELLS", cells)
         model = LocalGround.build(G, np.arange(len(G)), np.array([0, 0, 1.0]), np.zeros(3), neighbours=16, radius=3.0)
         assert model._ball_grid(0.8)[-1] == cells
@@ -135,6 +135,11 @@ def test_the_thickness_grid_of_thirds_gives_the_cells_of_the_radius_answers(monk
     a, b = got[3], got[1]
     assert np.array_equal(np.isnan(a), np.isnan(b)) and np.isnan(a).sum() > 10 and np.isnan(a[-1])
     assert np.nanmax(np.abs(a - b)) < 1e-12
+    # 2,048 queries or more are asked in a spatial order: each its own sums, the same bits
+    model = LocalGround.build(G, np.arange(len(G)), np.array([0, 0, 1.0]), np.zeros(3), neighbours=16, radius=3.0)
+    assert model._spatial_order(P) is not None and model._spatial_order(P[:1000]) is None
+    alone = np.concatenate([model.thickness_within(P[i:i + 1000], 0.8) for i in range(0, len(P), 1000)])
+    assert alone.tobytes() == model.thickness_within(P, 0.8).tobytes()
 
 
 def test_the_tiers_measure_each_points_thickness_once(monkeypatch):
