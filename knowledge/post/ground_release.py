@@ -183,9 +183,10 @@ class GroundRelease(PostStep):
         # queries for batches of clusters (points move only after the loop)
         tol = self.tolerance
         above = lambda hp, lo, hi, P, at: hp - lo > tol  # noqa: E731 (no surface height under it is low enough: stays)
-        thickness = _Thickness(surface.model, X) if self.rough is not None else None
-        if thickness is not None:  # nor where the surface is too smooth for each tier it may stand high enough for
-            above = functools.partial(_rough_enough, thickness, self.rough)
+        rough, thickness = self.rough, None
+        if rough is not None:  # nor where the surface is too smooth for each tier it may stand high enough for
+            thickness = _Thickness(surface.model, X)
+            above = functools.partial(_rough_enough, thickness, rough)
         batches = surface_batches(X, [leaves[li] for li in todo], surface.model, above, nearest_of="none",
                                   asked=None if passes is None else passes.asked,
                                   found=None if passes is None or p + 1 == self.passes else
@@ -211,11 +212,11 @@ class GroundRelease(PostStep):
             lf = leaves[li]
             height = np.nan_to_num(h, nan=-np.inf)
             move = height > low
-            if thickness is not None and move.any():  # of those, the points where the surface is rough enough
+            if rough is not None and thickness is not None and move.any():  # of those, where the surface is rough enough
                 at = lf.node.idx[move]
                 hm = height[move]
                 held = np.zeros(hm.size, dtype=bool)
-                for radius, t_min, t_tol in self.rough:  # (measured while the heights were asked, most of them)
+                for radius, t_min, t_tol in rough:  # (measured while the heights were asked, most of them)
                     held |= (hm > t_tol) & (thickness.at(radius, at) > t_min)
                 move[move] = held
             n_move, size = int(move.sum()), lf.size
