@@ -183,10 +183,9 @@ class GroundRelease(PostStep):
         # queries for batches of clusters (points move only after the loop)
         tol = self.tolerance
         above = lambda hp, lo, hi, P, at: hp - lo > tol  # noqa: E731 (no surface height under it is low enough: stays)
-        rough, thickness = self.rough, None
-        if rough is not None:  # nor where the surface is too smooth for each tier it may stand high enough for
-            thickness = _Thickness(surface.model, X)
-            above = functools.partial(_rough_enough, thickness, rough)
+        thickness = None if self.rough is None else _Thickness(surface.model, X, self.rough)
+        if thickness is not None:  # nor where the surface is too smooth for each tier it may stand high enough for
+            above = thickness.may_hold
         batches = surface_batches(X, [leaves[li] for li in todo], surface.model, above, nearest_of="none",
                                   asked=None if passes is None else passes.asked,
                                   found=None if passes is None or p + 1 == self.passes else
@@ -212,13 +211,8 @@ class GroundRelease(PostStep):
             lf = leaves[li]
             height = np.nan_to_num(h, nan=-np.inf)
             move = height > low
-            if rough is not None and thickness is not None and move.any():  # of those, where the surface is rough enough
-                at = lf.node.idx[move]
-                hm = height[move]
-                held = np.zeros(hm.size, dtype=bool)
-                for radius, t_min, t_tol in rough:  # (measured while the heights were asked, most of them)
-                    held |= (hm > t_tol) & (thickness.at(radius, at) > t_min)
-                move[move] = held
+            if thickness is not None and move.any():  # of those, the points where the surface is rough enough
+                move[move] = thickness.holds(lf.node.idx[move], height[move])
             n_move, size = int(move.sum()), lf.size
             if not n_move:
                 continue
@@ -237,40 +231,18 @@ class GroundRelease(PostStep):
         return replace(state, leaves=tuple(leaves)), released
 
 
-def _rough_enough(thickness: _Thickness, tiers: tuple[tuple[float, float, float], ...], hp: np.ndarray,
-                  lo: np.ndarray, hi: np.ndarray, P: np.ndarray, at: np.ndarray) -> np.ndarray:
-    """Which points ``P`` (the rows ``at`` of ``X``; heights ``hp`` above the ground plane, ``lo``
-    the lowest surface height under each, :meth:`~kbs.geometry.groundmodel.LocalGround.height_bounds`)
-    one of the ``tiers`` (radius, min, tolerance) may release: more than its tolerance above the
-    lowest surface under them, where the surface is thicker than its min (the others' outcome is
-    known without their height: they stay). Where half the spread of the surface's heights around
-    a point (:meth:`~kbs.geometry.groundmodel.LocalGround.spread_within`, a bound of the
-    thickness) is no more than a tier's min, the thickness is not measured: a smooth road's."""
-    up = hp - lo
-    keep = np.zeros(up.shape, dtype=bool)
-    for radius, t_min, t_tol in tiers:
-        ask = (up > t_tol) & ~keep
-        if ask.any():
-            spread = thickness.model.spread_within(take_rows(P, np.flatnonzero(ask)), radius)
-            if spread is not None:  # with room for rounding (a flat surface's thickness is not exactly 0)
-                ask[ask] = 0.5 * spread * (1.0 + 1e-6) + 1e-6 * radius > t_min
-        if not ask.any():
-            continue
-        sel = np.flatnonzero(ask)
-        keep[sel] = thickness.at(radius, at[sel], take_rows(P, sel)) > t_min
-    return keep
-
-
 class _Thickness:
-    """The thickness of the surface ``model`` within a radius around points of ``X`` (by row; -inf
-    where too few surface points are near), each measured once in a pass: the tiers' check of
-    which points to ask (:func:`_rough_enough`) and the release of the points asked need the
-    same values (the release measured them a second time before: about a tenth of the step on
+    """The tiers of 'rough' (radius, min, tolerance) against the surface ``model``, and the
+    thickness of that surface within a radius around points of ``X`` (by row; -inf where too few
+    surface points are near), each measured once in a pass: the check of which points to ask
+    (:meth:`may_hold`) and the release of the points asked (:meth:`holds`) need the same values
+    (the release measured them a second time before session 44: about a tenth of the step on
     SemanticKITTI 000001)."""
 
-    def __init__(self, model: Any, X: np.ndarray) -> None:
+    def __init__(self, model: Any, X: np.ndarray, tiers: tuple[tuple[float, float, float], ...]) -> None:
         self.model = model
         self.X = X
+        self.tiers = tiers
         self.known: dict[float, np.ndarray] = {}  # by radius, one per row of X (NaN: not measured)
 
     def at(self, radius: float, rows: np.ndarray, P: np.ndarray | None = None) -> np.ndarray:
@@ -286,6 +258,37 @@ class _Thickness:
             got[todo] = np.nan_to_num(self.model.thickness_within(Q, radius), nan=-np.inf)
             known[rows[todo]] = got[todo]
         return got
+
+    def holds(self, rows: np.ndarray, heights: np.ndarray) -> np.ndarray:
+        """Which of the points of ``X`` at ``rows``, standing ``heights`` above the surface, a tier
+        releases: more than its tolerance up where the surface is thicker than its min."""
+        held = np.zeros(rows.size, dtype=bool)
+        for radius, t_min, t_tol in self.tiers:  # (measured while the heights were asked, most of them)
+            held |= (heights > t_tol) & (self.at(radius, rows) > t_min)
+        return held
+
+    def may_hold(self, hp: np.ndarray, lo: np.ndarray, hi: np.ndarray, P: np.ndarray, at: np.ndarray) -> np.ndarray:
+        """Which points ``P`` (the rows ``at`` of ``X``; heights ``hp`` above the ground plane, ``lo``
+        the lowest surface height under each, :meth:`~kbs.geometry.groundmodel.LocalGround.height_bounds`)
+        a tier may release: more than its tolerance above the lowest surface under them, where the
+        surface is thicker than its min (the others' outcome is known without their height: they
+        stay; :func:`~kbs.knowledge.post._surface.surface_batches`' ``may_matter``). Where half the
+        spread of the surface's heights around a point
+        (:meth:`~kbs.geometry.groundmodel.LocalGround.spread_within`, a bound of the thickness) is
+        no more than a tier's min, the thickness is not measured: a smooth road's."""
+        up = hp - lo
+        keep = np.zeros(up.shape, dtype=bool)
+        for radius, t_min, t_tol in self.tiers:
+            ask = (up > t_tol) & ~keep
+            if ask.any():
+                spread = self.model.spread_within(take_rows(P, np.flatnonzero(ask)), radius)
+                if spread is not None:  # with room for rounding (a flat surface's thickness is not exactly 0)
+                    ask[ask] = 0.5 * spread * (1.0 + 1e-6) + 1e-6 * radius > t_min
+            if not ask.any():
+                continue
+            sel = np.flatnonzero(ask)
+            keep[sel] = self.at(radius, at[sel], take_rows(P, sel)) > t_min
+        return keep
 
 
 class _Nearest:
