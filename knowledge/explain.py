@@ -765,9 +765,16 @@ class Explanation:
             return "not used"
         parts = [str(g.source)]
         if g.method == "robust plane":
-            parts.append(f"its robust plane ({g.inlier_share:.0%} of its points, {g.inliers:,}, on it)")
+            of = "its points" if g.plane is None else "the points its earlier planes did not hold"
+            if g.share_of == "not_above":
+                of += " not above it"
+            parts.append(f"its robust plane{'' if g.plane is None else f' {g.plane}'} ({g.inlier_share:.0%} of {of}, "
+                         f"{g.inliers:,}, on it)")
         elif g.method:
             parts.append(f"it passes {g.method.removeprefix('check ')}")
+            if g.inliers is not None and g.inlier_share is not None:  # refit: its robust plane is the ground's
+                of = "its points not above it" if g.share_of == "not_above" else "its points"
+                parts.append(f"its robust plane ({g.inlier_share:.0%} of {of}, {g.inliers:,}, on it)")
         if g.supported is not None:  # scene.ground.choose supporting: why this cluster won
             parts.append(f"{g.supported:,} points standing on it")
         if g.distance is not None:  # of the nearest point of its plane: why this cluster won
@@ -784,9 +791,10 @@ class Explanation:
         out = [f"ground: {self.ground_line()}"]
         unit = f" {self.ground.unit}" if self.ground.unit else ""
         for v in self.ground.candidates or ():
-            what = [f"{v.points:,} points"]
+            what = [f"{v.points:,} points" if v.plane is None else f"robust plane {v.plane}, among {v.points:,} points"]
             if v.inlier_share is not None:
-                what.append(f"{v.inlier_share:.0%} on its robust plane")
+                what.append(f"{v.inlier_share:.0%}{' of those not above it' if self.ground.share_of == 'not_above' else ''}"
+                            f" on {'its robust plane' if v.plane is None else 'it'}")
             if v.distance is not None:
                 what.append(f"{v.distance:.2f}{unit} from the sensor")
             if v.supported is not None:

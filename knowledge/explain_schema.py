@@ -81,7 +81,7 @@ _GROUND_CANDIDATE = {
     "properties": {"cluster": _STR, "points": _COUNT, "thickness": _NUM_OR_NULL, "why": _STR_OR_NULL,
                    "inliers": _COUNT_OR_NULL, "inlier_share": _NUM_OR_NULL, "plane_thickness": _NUM_OR_NULL,
                    "method": _STR_OR_NULL, "angle_to_fallback": _NUM_OR_NULL, "distance": _NUM_OR_NULL,
-                   "supported": _COUNT_OR_NULL},
+                   "supported": _COUNT_OR_NULL, "plane": _COUNT_OR_NULL},
 }
 
 _LOCAL_MODEL = {
@@ -104,7 +104,7 @@ _GROUND = {
         "support_band": {"type": ["array", "null"], "items": _NUM_OR_NULL, "minItems": 2, "maxItems": 2,
                          "x-expected": "2 numbers"},
         "angle_to_fallback": _NUM_OR_NULL, "inliers": _COUNT_OR_NULL, "inlier_share": _NUM_OR_NULL,
-        "note": _STR_OR_NULL, "scope": _STR_OR_NULL,
+        "plane": _COUNT_OR_NULL, "share_of": _STR_OR_NULL, "note": _STR_OR_NULL, "scope": _STR_OR_NULL,
         "tiles": {"type": ["object", "null"], "additionalProperties": {"$ref": "#/$defs/ground"}},
         "local_model": _LOCAL_MODEL,
     },

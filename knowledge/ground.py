@@ -48,31 +48,28 @@ def find(run: Any, X: np.ndarray, candidates: list[tuple[Cluster, Draft]]) -> tu
                 verdicts.append({"cluster": cl.id, "points": cl.n_points,
                                  "why": f"degenerate: {cl.geometry.degeneracy}"})
                 continue
-            found = _candidate_plane(run, cl, rec, provisional)
-            verdict = {"cluster": cl.id, "points": cl.n_points, **{k: v for k, v in found.items() if k != "plane"}}
-            verdicts.append(verdict)
-            if found["plane"] is None:
-                continue
-            n, point, on = found["plane"]
-            if (run.sensor - point) @ n < 0:  # point up, towards the sensor
-                n = -n
-            tilt = float(np.degrees(np.arccos(min(1.0, abs(float(n @ fallback))))))
-            verdict["angle_to_fallback"] = round(tilt, 3)
-            if spec.sensor_above and float(n @ fallback) < 0.0:  # the sensor under its plane
-                depth = float((run.sensor - point) @ n)  # n points towards it: its distance to the plane
-                unit = run.rule_base.length_unit and " " + run.rule_base.length_unit
-                verdict["why"] = (f"the sensor lies {depth:.3g}{unit} below its plane (on the side opposite the "
-                                  "fallback normal): seen from underneath, not the ground (sensor_above)")
-                under.append(cl.id)
-                continue
-            max_tilt = spec.plane.max_tilt if spec.plane is not None else None
-            if found["method"] == "robust plane" and max_tilt is not None and tilt > max_tilt:
-                verdict["why"] = f"its robust plane is {tilt:.1f} deg from the fallback normal > max_tilt {max_tilt:g} deg"
-                tilted.append(cl.id)
-                continue
-            dist = float(np.sqrt(((on - run.sensor) ** 2).sum(axis=1).min()))
-            verdict["distance"] = dist  # to the sensor, of its plane's nearest point
-            planes.append((dist, cl, n, point, tilt, found, on, verdict))
+            n_planes = spec.plane.planes if spec.plane is not None else 1
+            rest = None  # positions in the cluster of the points no earlier plane holds (None: all)
+            for rank in range(1, n_planes + 1):
+                found = _candidate_plane(run, cl, rec, provisional, rest)
+                verdict = {"cluster": cl.id, "points": cl.n_points if rest is None else int(rest.size),
+                           **({"plane": rank} if rank > 1 else {}),
+                           **{k: v for k, v in found.items() if k not in ("plane", "held")}}
+                verdicts.append(verdict)
+                if found["plane"] is None:
+                    break
+                refused = _refused(run, found, verdict, fallback)
+                if refused is None:
+                    n, point, on = found["plane"]
+                    dist = float(np.sqrt(((on - run.sensor) ** 2).sum(axis=1).min()))
+                    verdict["distance"] = dist  # to the sensor, of its plane's nearest point
+                    planes.append((dist, cl, n, point, verdict["angle_to_fallback"], found, on, verdict))
+                    break
+                (under if refused == "under" else tilted).append(cl.id)
+                if found["method"] != "robust plane":  # the plane of all its points: no other
+                    break
+                held = found["held"]  # the next plane among the points this one does not hold
+                rest = np.flatnonzero(~held) if rest is None else rest[~held]
     if planes:
         best = _choose(run, X, planes)
     if best is None:
@@ -85,6 +82,7 @@ def find(run: Any, X: np.ndarray, candidates: list[tuple[Cluster, Draft]]) -> tu
         if no_plane:
             why += (f" and has a plane ({len(no_plane)} degenerate)" if spec.plane is None else
                     f" ({len(no_plane)} degenerate: no plane)")
+        tilted, under = list(dict.fromkeys(tilted)), list(dict.fromkeys(under))  # a cluster once
         if tilted:
             why += (f" within max_tilt {spec.plane.max_tilt:g} deg of the fallback (the robust plane of "
                     f"{', '.join(tilted[:5])}{' ...' if len(tilted) > 5 else ''} is tilted more)")
@@ -98,22 +96,24 @@ def find(run: Any, X: np.ndarray, candidates: list[tuple[Cluster, Draft]]) -> tu
             why += f" (the share of their points on their robust planes: {', '.join(shares[:5])})"
         facts = GroundFacts(note=f"{why}: the fallback normal {list(spec.fallback)} is used")
         if verdicts and spec.plane is not None:
-            facts = replace(facts, candidates=_candidates(verdicts), unit=run.rule_base.length_unit)
+            facts = replace(facts, candidates=_candidates(verdicts), unit=run.rule_base.length_unit,
+                            share_of=_share_of(spec))
         return plane_from_normal(X, np.asarray(spec.fallback, float), "fallback", facts)
     dist, cl, n, point, tilt, found, _, verdict = best
     below = bool(n @ fallback < 0)  # the sensor lies below the ground: its frame is not the scan's (_sensor_note)
     if below:
         n = -n
-    robust = spec.plane is not None and found["method"] == "robust plane"
+    robust = spec.plane is not None and "inliers" in found  # a robust plane, or a checked one's (refit)
     facts = GroundFacts(
         source=f"cluster {cl.id}", cluster=cl.id, normal=tuple(n.tolist()), point=tuple(point.tolist()),
-        distance_to_sensor=dist, thickness=found.get("plane_thickness", found["thickness"]), distance=dist,
+        distance_to_sensor=dist, thickness=found.get("plane_thickness", found.get("thickness")), distance=dist,
         unit=run.rule_base.length_unit, method=found["method"],
         supported=verdict["supported"] if spec.support is not None else None,
         candidates=_candidates(verdicts) if spec.support is not None or spec.plane is not None else None,
         support_band=(spec.support.min_height, spec.support.max_height) if spec.support is not None else None,
         angle_to_fallback=round(tilt, 3) if spec.plane is not None else None,
         inliers=found["inliers"] if robust else None, inlier_share=found["inlier_share"] if robust else None,
+        plane=verdict.get("plane"), share_of=_share_of(spec),
         note=_sensor_note(run, X, fallback, n, point, below) or None)
     return Ground(normal=n, point=np.asarray(point, float).copy(), source=f"cluster {cl.id}"), facts
 
@@ -168,35 +168,99 @@ def _choose(run: Any, X: np.ndarray, planes: list[tuple]) -> tuple:
         p[7]["supported"] = supported_points(X, p[2], p[3], p[6], support.min_height, support.max_height)
     return min(planes, key=lambda p: (-p[7]["supported"], p[0]))
 
-def _candidate_plane(run: Any, cl: Cluster, rec: Draft, provisional: Scene) -> dict[str, Any]:
+def _share_of(spec: Any) -> str | None:
+    """What the robust planes' shares are counted among, for the facts: None when all of a
+    candidate's points (the default)."""
+    return spec.plane.share_of if spec.plane is not None and spec.plane.share_of != "all" else None
+
+
+def _refused(run: Any, found: dict[str, Any], verdict: dict[str, Any], fallback: np.ndarray) -> str | None:
+    """Whether a candidate's plane is refused for its direction: 'under' (sensor_above: the sensor
+    under it), 'tilted' (a robust plane past max_tilt), None (a ground plane). Turns its normal
+    towards the sensor, and writes its angle to the fallback (and the reason) in ``verdict``."""
+    spec = run.rule_base.ground
+    n, point, on = found["plane"]
+    if (run.sensor - point) @ n < 0:  # point up, towards the sensor
+        n = -n
+        found["plane"] = (n, point, on)
+    tilt = float(np.degrees(np.arccos(min(1.0, abs(float(n @ fallback))))))
+    verdict["angle_to_fallback"] = round(tilt, 3)
+    if spec.sensor_above and float(n @ fallback) < 0.0:  # the sensor under its plane
+        depth = float((run.sensor - point) @ n)  # n points towards it: its distance to the plane
+        unit = run.rule_base.length_unit and " " + run.rule_base.length_unit
+        verdict["why"] = (f"the sensor lies {depth:.3g}{unit} below its plane (on the side opposite the "
+                          "fallback normal): seen from underneath, not the ground (sensor_above)")
+        return "under"
+    max_tilt = spec.plane.max_tilt if spec.plane is not None else None
+    if found["method"] == "robust plane" and max_tilt is not None and tilt > max_tilt:
+        verdict["why"] = f"its robust plane is {tilt:.1f} deg from the fallback normal > max_tilt {max_tilt:g} deg"
+        return "tilted"
+    return None
+
+
+def _candidate_plane(run: Any, cl: Cluster, rec: Draft, provisional: Scene,
+                     rest: np.ndarray | None = None) -> dict[str, Any]:
     """How a ground candidate gives a plane: ``plane`` (normal, point, its points) or None,
-    ``method``, and what was measured."""
+    ``method``, what was measured, and (a robust plane) ``held``, which of the points it was
+    sought among it holds. ``rest``: the positions in the cluster of the points an earlier plane
+    of it did not hold (scene.ground.plane.planes): the next robust plane is sought among them
+    alone, with no candidate check."""
     spec = run.rule_base.ground
     geo = cl.geometry
-    if spec.candidate is not None and run.fact(cl, provisional, rec)(spec.candidate):
-        return {"plane": (geo.normal, geo.center, cl.X), "method": f"check '{spec.candidate}'",
-                "thickness": geo.thickness}
-    out: dict[str, Any] = {"plane": None, "thickness": geo.thickness}
-    if spec.candidate is not None:
+    if rest is None and spec.candidate is not None and run.fact(cl, provisional, rec)(spec.candidate):
+        checked = {"plane": (geo.normal, geo.center, cl.X), "method": f"check '{spec.candidate}'",
+                   "thickness": geo.thickness}
+        if spec.plane is not None and spec.plane.refit:  # the plane most of its points lie on
+            rp = robust_plane(cl.X, spec.plane.inlier_distance, spec.plane.min_inlier_share)
+            share = 0.0 if rp is None else _share(run, spec.plane, cl.X, rp)[0]
+            if (rp is not None and share >= spec.plane.min_inlier_share and rp.n_inliers >= spec.min_points
+                    and (spec.plane.max_thickness is None or rp.thickness <= spec.plane.max_thickness)):
+                checked.update(plane=(rp.normal, rp.point, cl.X), inliers=rp.n_inliers,
+                               inlier_share=round(share, 4), plane_thickness=rp.thickness)
+        return checked
+    out: dict[str, Any] = {"plane": None} if rest is not None else {"plane": None, "thickness": geo.thickness}
+    if spec.candidate is not None and rest is None:
         out["why"] = f"fails '{spec.candidate}'"
     if spec.plane is None:
         return out
     p = spec.plane
-    rp = robust_plane(cl.X, p.inlier_distance, p.min_inlier_share)
+    P = cl.X if rest is None else rows(cl.X, rest)
+    rp = robust_plane(P, p.inlier_distance, p.min_inlier_share)
     if rp is None:
-        out["why"] = "no plane through its points"
+        out["why"] = ("no plane through its points" if rest is None else
+                      "no plane through the points its earlier planes do not hold")
         return out
-    out.update(inliers=rp.n_inliers, inlier_share=round(rp.share, 4), plane_thickness=rp.thickness)
+    share, among = _share(run, p, P, rp)
+    out.update(inliers=rp.n_inliers, inlier_share=round(share, 4), plane_thickness=rp.thickness)
     unit = run.rule_base.length_unit and " " + run.rule_base.length_unit
-    if rp.share < p.min_inlier_share:
-        out["why"] = (f"its robust plane holds {rp.share:.0%} of its points within {p.inlier_distance:g}{unit}"
-                      f" < {p.min_inlier_share:.0%}")
+    of = "its points" if rest is None else "the points its earlier planes do not hold"
+    if p.share_of == "not_above":
+        of += f" not above it ({among:,})"
+    if share < p.min_inlier_share:
+        out["why"] = (f"its {'' if rest is None else 'next '}robust plane holds {share:.0%} of {of} within "
+                      f"{p.inlier_distance:g}{unit} < {p.min_inlier_share:.0%}")
     elif rp.n_inliers < spec.min_points:
-        out["why"] = f"its robust plane holds {rp.n_inliers} points < min_points {spec.min_points}"
+        out["why"] = f"its {'' if rest is None else 'next '}robust plane holds {rp.n_inliers} points < min_points {spec.min_points}"
+    elif p.max_thickness is not None and rp.thickness > p.max_thickness:
+        out["why"] = (f"its {'' if rest is None else 'next '}robust plane's points spread {rp.thickness:.3g}{unit} across "
+                      f"it > max_thickness {p.max_thickness:g}{unit}: a slab through a volume, not a surface")
     else:
-        out.update(plane=(rp.normal, rp.point, rows(cl.X, rp.inliers)), method="robust plane")
+        out.update(plane=(rp.normal, rp.point, rows(P, rp.inliers)), method="robust plane", held=rp.inliers)
         out.pop("why", None)
     return out
+
+
+def _share(run: Any, p: Any, P: np.ndarray, rp: Any) -> tuple[float, int]:
+    """The share of the points ``P`` the robust plane ``rp`` holds, and how many points it is
+    counted among: all of them, or (share_of: not_above) those not above it, on the sensor's side
+    farther than the inlier distance (what stands on the ground does not count against it)."""
+    if p.share_of != "not_above":
+        return rp.share, P.shape[0]
+    side = (P - rp.point) @ rp.normal
+    if float((run.sensor - rp.point) @ rp.normal) < 0:
+        side = -side  # positive towards the sensor
+    among = int(np.count_nonzero(side <= p.inlier_distance))  # the inliers among them: never 0
+    return (rp.n_inliers / among if among else 0.0), among
 
 
 def _uses_ground(rule_base: Any) -> bool:

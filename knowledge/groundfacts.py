@@ -35,7 +35,7 @@ class GroundCandidate:
     """One cluster of the first partition considered for the ground plane, and its verdict."""
 
     cluster: str
-    points: int
+    points: int  #: its points (a later plane: the points its earlier planes did not hold)
     thickness: float | None = None  #: of its points (its fuzzy covariance)
     why: str | None = None  #: why it gives no plane, or was refused (its tilt, the sensor under it) (None: it gives one)
     inliers: int | None = None  #: points within the inlier distance of its robust plane
@@ -45,6 +45,9 @@ class GroundCandidate:
     angle_to_fallback: float | None = None  #: degrees between its plane's normal and the fallback normal
     distance: float | None = None  #: to the sensor, of its plane's nearest point
     supported: int | None = None  #: (choose: supporting) points standing on its plane
+    #: which of its robust planes (2, 3 ...: scene.ground.plane.planes, sought among the points the
+    #: earlier ones, refused, did not hold); not set for its first
+    plane: int | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return _set(self)
@@ -114,6 +117,10 @@ class GroundFacts:
     angle_to_fallback: float | None = None
     inliers: int | None = None
     inlier_share: float | None = None
+    plane: int | None = None  #: which of the cluster's robust planes (not set: its first)
+    #: the points the robust planes' shares are counted among, when not all of a candidate's:
+    #: 'not_above' (scene.ground.plane.share_of)
+    share_of: str | None = None
     note: str | None = None
     #: (a tiled run) how much of the whole cloud the plane every tile was given was found on
     scope: str | None = None

@@ -286,12 +286,25 @@ class Label:
 class PlaneSpec:
     """scene.ground.plane: a candidate whose robust plane holds ``min_inlier_share`` of its points
     within ``inlier_distance`` (length units), and whose normal lies within ``max_tilt`` degrees of
-    the fallback normal (None: any direction), is a ground plane, even if it fails the candidate check."""
+    the fallback normal (None: any direction), is a ground plane, even if it fails the candidate check.
+    ``planes``: how many robust planes a candidate may give, one after another: when one is refused
+    for its direction (``max_tilt``, ``sensor_above``), the next is the robust plane of the points
+    the earlier ones do not hold, its share and ``min_points`` counted on those points.
+    ``share_of``: the points the share is counted among: 'all', or 'not_above' (those not above
+    the plane, on the sensor's side farther than ``inlier_distance``: what stands on the ground
+    does not count against it). ``refit``: a candidate that passes the candidate check gives its
+    robust plane too (when it holds the share and ``min_points``), not the plane of all its points.
+    ``max_thickness`` (length units, None: any): a robust plane whose points spread more than this
+    across it (their standard deviation) is a slab cut through a volume, not a surface."""
 
     inlier_distance: float
     min_inlier_share: float
     max_tilt: float | None
     pos: SourcePos
+    planes: int = 1
+    share_of: str = "all"
+    refit: bool = False
+    max_thickness: float | None = None
 
 
 @dataclass(frozen=True)
@@ -1475,7 +1488,11 @@ class _Validator:
             plane = PlaneSpec(_number(g["plane"].get("inlier_distance"), 0.1),
                               _number(g["plane"].get("min_inlier_share"), 0.5),
                               None if tilt is None else _number(tilt, 90.0),
-                              self.pos.pos(("scene", "ground", "plane"), key=True))
+                              self.pos.pos(("scene", "ground", "plane"), key=True),
+                              _number(g["plane"].get("planes"), 1, int),
+                              str(g["plane"].get("share_of", "all")),
+                              g["plane"].get("refit") is True,
+                              None if g["plane"].get("max_thickness") is None else _number(g["plane"]["max_thickness"], 1.0))
             if not auto:
                 self.warn(("scene", "ground", "plane"), "scene.ground.plane is not used: scene.ground.normal "
                           "fixes the ground direction (plane only applies with 'normal: auto')", key=True)
