@@ -37,7 +37,9 @@ def find(run: Any, X: np.ndarray, candidates: list[tuple[Cluster, Draft]]) -> tu
         return plane_from_normal(X, np.asarray(spec.normal, float), "fixed", GroundFacts())
     fallback = np.asarray(spec.fallback, float)
     fallback = fallback / np.linalg.norm(fallback)
-    best, no_plane, verdicts, tilted, under, planes = None, [], [], [], [], []
+    best, no_plane, verdicts, planes = None, [], [], []
+    tilted: list[str] = []  # the candidates a plane of which was refused for its tilt
+    under: list[str] = []  # ... for the sensor under it (sensor_above)
     if spec.candidate is not None or spec.plane is not None:
         provisional = Scene(run.sensor, None, run.rule_base.units)
         for cl, rec in candidates:
@@ -65,7 +67,9 @@ def find(run: Any, X: np.ndarray, candidates: list[tuple[Cluster, Draft]]) -> tu
                     verdict["distance"] = dist  # to the sensor, of its plane's nearest point
                     planes.append((dist, cl, n, point, verdict["angle_to_fallback"], found, on, verdict))
                     break
-                (under if refused == "under" else tilted).append(cl.id)
+                seen = under if refused == "under" else tilted
+                if cl.id not in seen:  # a cluster once, whichever of its planes was refused
+                    seen.append(cl.id)
                 if found["method"] != "robust plane":  # the plane of all its points: no other
                     break
                 held = found["held"]  # the next plane among the points this one does not hold
@@ -82,7 +86,6 @@ def find(run: Any, X: np.ndarray, candidates: list[tuple[Cluster, Draft]]) -> tu
         if no_plane:
             why += (f" and has a plane ({len(no_plane)} degenerate)" if spec.plane is None else
                     f" ({len(no_plane)} degenerate: no plane)")
-        tilted, under = list(dict.fromkeys(tilted)), list(dict.fromkeys(under))  # a cluster once
         if tilted:
             why += (f" within max_tilt {spec.plane.max_tilt:g} deg of the fallback (the robust plane of "
                     f"{', '.join(tilted[:5])}{' ...' if len(tilted) > 5 else ''} is tilted more)")
