@@ -143,15 +143,17 @@ def robust_plane(X: np.ndarray, inlier_distance: float, min_share: float, *,
     normal, point = nrm[best], a[best]
     inl = np.abs((P - point) @ normal) <= inlier_distance
     thickness = 0.0
+    settled = False  # the plane was fitted to the points it holds: the final fit would repeat it
     for _ in range(REFINEMENTS):
         if inl.sum() < 3:
             break
         normal, point, thickness = _principal_plane(rows(P, inl))
         new = np.abs((P - point) @ normal) <= inlier_distance
         if np.array_equal(new, inl):
+            settled = True
             break
         inl = new
-    if inl.sum() >= 3:
+    if not settled and inl.sum() >= 3:
         normal, point, thickness = _principal_plane(rows(P, inl))
         inl = np.abs((P - point) @ normal) <= inlier_distance  # the points on the plane returned
     inliers = np.empty(n, dtype=bool)

@@ -348,6 +348,31 @@ def test_the_robust_plane_does_not_depend_on_the_order_of_the_points():
     assert np.array_equal(a.inliers[perm], b.inliers)
 
 
+def test_the_robust_plane_is_fitted_to_the_points_it_holds_once(monkeypatch):
+    """The refinement stops when the plane fitted to its inliers holds the same points: that fit is
+    the plane returned, not fitted a second time on the same points (a third of the cost on a
+    153k-point table, the same bits)."""
+    import kbs.geometry.groundplane as gp
+
+    fits: list[np.ndarray] = []
+    real = gp._principal_plane
+
+    def counted(Q):
+        fits.append(Q.copy())
+        return real(Q)
+
+    monkeypatch.setattr(gp, "_principal_plane", counted)
+    for seed in range(4):
+        X, _, _ = _plane_with_outliers(seed=seed, share=0.6)
+        fits.clear()
+        rp = robust_plane(X, 0.05, 0.5)
+        assert all(not np.array_equal(a, b) for a, b in zip(fits, fits[1:])), seed  # no fit repeated
+        P = X[gp._xyz_order(X)]
+        n, c, t = real(P[rp.inliers[gp._xyz_order(X)]])
+        assert np.array_equal(n, rp.normal) and np.array_equal(c, rp.point) and t == rp.thickness
+        assert np.array_equal(rp.inliers, np.abs((X - rp.point) @ rp.normal) <= 0.05)
+
+
 def test_no_robust_plane_through_a_line_or_two_points():
     t = np.linspace(0, 1, 100)[:, None]
     assert robust_plane(t * [1.0, 2.0, 3.0], 0.1, 0.5) is None
