@@ -21,7 +21,8 @@ steps, the result), median of the same frames.
 
 Usage: python benchmarks/bench_compare.py [--base REV] [--repeats 5] [--rounds 2] [--jobs 1] [--scan NAME ...]
 (scans: the five defaults, and the airborne samp11, samp61 and isprs-tile, 131,951 points of the
-ISPRS samples side by side, run in tiles by the rules' limits.tile)
+ISPRS samples side by side, run in tiles by the rules' limits.tile; mosd0-table: mOSD learn0 with
+each side's own examples/tabletop rules)
 """
 from __future__ import annotations
 
@@ -44,6 +45,7 @@ SCANS = {
     "seq00-0": (DATA / "semantickitti-seq00" / "seq00_000000.bin", "outdoor", None),
     "isprs21": (DATA / "isprs" / "samp21-utm.pcd", "airborne", None),
     "mosd0": (DATA / "mosd" / "learn0.pcd", "planar_contest", None),
+    "mosd0-table": (DATA / "mosd" / "learn0.pcd", "examples/tabletop", None),  # each side its own example file
     "samp11": (DATA / "isprs" / "samp11.txt", "airborne", None),
     "samp61": (DATA / "isprs" / "samp61-utm.pcd", "airborne", None),
     # ISPRS samples side by side (benchmarks/profile_run.py: make_isprs_tile), made once in the temp folder
