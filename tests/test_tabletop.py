@@ -225,49 +225,23 @@ def test_a_table_under_a_refused_box_face_in_its_cluster_is_its_second_plane(tmp
     assert [v.get("plane") for v in doc["explanation"]["ground"]["candidates"]] == [None, None]
 
 
-def test_max_thickness_must_be_a_positive_length(tmp_path, capsys):
-    text = TABLETOP.replace("max_thickness: 0.0035", "max_thickness: 0", 1)
+@pytest.mark.parametrize("old, new, says", [
+    ("max_thickness: 0.0035", "max_thickness: 0", "max_thickness"),
+    ("refit: true", "refit: yes please", "refit"),
+    ("share_of: not_above", "share_of: above", "not_above"),
+    *[("planes: 2", f"planes: {value}", "planes") for value in ("0", "2.5", "true", "6")],
+])
+def test_a_bad_plane_setting_is_refused_at_its_line(tmp_path, capsys, old, new, says):
+    """scene.ground.plane's settings of session 45: max_thickness a positive length, refit a
+    boolean, share_of all or not_above, planes a count from 1 to 5."""
+    text = TABLETOP.replace(old, new, 1)
     assert text != TABLETOP
     rules = tmp_path / "t.yaml"
     rules.write_text(text, encoding="utf-8")
-    line = text[:text.index("max_thickness: 0")].count("\n") + 1
+    line = text[:text.index(new)].count("\n") + 1
     assert main(["rules", "check", str(rules)]) == 4
     err = capsys.readouterr().err
-    assert f"t.yaml:{line}:" in err and "max_thickness" in err and "Traceback" not in err, err
-
-
-def test_refit_must_be_a_boolean(tmp_path, capsys):
-    text = TABLETOP.replace("refit: true", "refit: yes please", 1)
-    assert text != TABLETOP
-    rules = tmp_path / "t.yaml"
-    rules.write_text(text, encoding="utf-8")
-    line = text[:text.index("refit: yes")].count("\n") + 1
-    assert main(["rules", "check", str(rules)]) == 4
-    err = capsys.readouterr().err
-    assert f"t.yaml:{line}:" in err and "refit" in err and "Traceback" not in err, err
-
-
-@pytest.mark.parametrize("value", ["0", "2.5", "true", "6"])
-def test_planes_must_be_a_count_from_1_to_5(tmp_path, capsys, value):
-    text = TABLETOP.replace("planes: 2", f"planes: {value}", 1)
-    assert text != TABLETOP
-    rules = tmp_path / "t.yaml"
-    rules.write_text(text, encoding="utf-8")
-    line = text[:text.index(f"planes: {value}")].count("\n") + 1
-    assert main(["rules", "check", str(rules)]) == 4
-    err = capsys.readouterr().err
-    assert f"t.yaml:{line}:" in err and "planes" in err and "Traceback" not in err, err
-
-
-def test_share_of_is_all_or_not_above(tmp_path, capsys):
-    text = TABLETOP.replace("share_of: not_above", "share_of: above", 1)
-    assert text != TABLETOP
-    rules = tmp_path / "t.yaml"
-    rules.write_text(text, encoding="utf-8")
-    line = text[:text.index("share_of: above")].count("\n") + 1
-    assert main(["rules", "check", str(rules)]) == 4
-    err = capsys.readouterr().err
-    assert f"t.yaml:{line}:" in err and "share_of" in err and "not_above" in err and "Traceback" not in err, err
+    assert f"t.yaml:{line}:" in err and says in err and "Traceback" not in err, err
 
 
 def test_planes_defaults_to_one():
