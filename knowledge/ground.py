@@ -215,9 +215,8 @@ def _candidate_plane(run: Any, cl: Cluster, rec: Draft, provisional: Scene,
                    "thickness": geo.thickness}
         if spec.plane is not None and spec.plane.refit:  # the plane most of its points lie on
             rp = robust_plane(cl.X, spec.plane.inlier_distance, spec.plane.min_inlier_share)
-            share = 0.0 if rp is None else _share(run, spec.plane, cl.X, rp)[0]
-            if (rp is not None and share >= spec.plane.min_inlier_share and rp.n_inliers >= spec.min_points
-                    and (spec.plane.max_thickness is None or rp.thickness <= spec.plane.max_thickness)):
+            share, among = (0.0, 0) if rp is None else _share(run, spec.plane, cl.X, rp)
+            if rp is not None and _refusal(run, rp, share, among, None) is None:
                 checked.update(plane=(rp.normal, rp.point, cl.X), inliers=rp.n_inliers,
                                inlier_share=round(share, 4), plane_thickness=rp.thickness)
         return checked
@@ -235,22 +234,34 @@ def _candidate_plane(run: Any, cl: Cluster, rec: Draft, provisional: Scene,
         return out
     share, among = _share(run, p, P, rp)
     out.update(inliers=rp.n_inliers, inlier_share=round(share, 4), plane_thickness=rp.thickness)
-    unit = run.rule_base.length_unit and " " + run.rule_base.length_unit
-    of = "its points" if rest is None else "the points its earlier planes do not hold"
-    if p.share_of == "not_above":
-        of += f" not above it ({among:,})"
-    if share < p.min_inlier_share:
-        out["why"] = (f"its {'' if rest is None else 'next '}robust plane holds {share:.0%} of {of} within "
-                      f"{p.inlier_distance:g}{unit} < {p.min_inlier_share:.0%}")
-    elif rp.n_inliers < spec.min_points:
-        out["why"] = f"its {'' if rest is None else 'next '}robust plane holds {rp.n_inliers} points < min_points {spec.min_points}"
-    elif p.max_thickness is not None and rp.thickness > p.max_thickness:
-        out["why"] = (f"its {'' if rest is None else 'next '}robust plane's points spread {rp.thickness:.3g}{unit} across "
-                      f"it > max_thickness {p.max_thickness:g}{unit}: a slab through a volume, not a surface")
+    why = _refusal(run, rp, share, among, rest)
+    if why is not None:
+        out["why"] = why
     else:
         out.update(plane=(rp.normal, rp.point, rows(P, rp.inliers)), method="robust plane", held=rp.inliers)
         out.pop("why", None)
     return out
+
+
+def _refusal(run: Any, rp: Any, share: float, among: int, rest: np.ndarray | None) -> str | None:
+    """Why a robust plane (holding ``share`` of the ``among`` points it is counted among) gives no
+    ground plane: too small a share, too few points (min_points), too thick (max_thickness); None
+    when it gives one. ``rest``: not None for a cluster's later plane (the message says so)."""
+    spec = run.rule_base.ground
+    p = spec.plane
+    unit = run.rule_base.length_unit and " " + run.rule_base.length_unit
+    its = "its robust plane" if rest is None else "its next robust plane"
+    if share < p.min_inlier_share:
+        of = "its points" if rest is None else "the points its earlier planes do not hold"
+        if p.share_of == "not_above":
+            of += f" not above it ({among:,})"
+        return f"{its} holds {share:.0%} of {of} within {p.inlier_distance:g}{unit} < {p.min_inlier_share:.0%}"
+    if rp.n_inliers < spec.min_points:
+        return f"{its} holds {rp.n_inliers} points < min_points {spec.min_points}"
+    if p.max_thickness is not None and rp.thickness > p.max_thickness:
+        return (f"{its}'s points spread {rp.thickness:.3g}{unit} across it > max_thickness "
+                f"{p.max_thickness:g}{unit}: a slab through a volume, not a surface")
+    return None
 
 
 def _share(run: Any, p: Any, P: np.ndarray, rp: Any) -> tuple[float, int]:
